@@ -1,0 +1,17 @@
+# Environment for protocad-ros; sourced by scripts/protocad and by .venv/bin/activate.
+# ROS 2 from PyPI wheels: the ament index lives in the venv prefix.
+_protocad_prefix="${VIRTUAL_ENV:-$(cd "$(dirname "${BASH_SOURCE[0]}")/../.venv" && pwd)}"
+case ":${AMENT_PREFIX_PATH:-}:" in
+  *":$_protocad_prefix:"*) ;;
+  *) export AMENT_PREFIX_PATH="$_protocad_prefix${AMENT_PREFIX_PATH:+:$AMENT_PREFIX_PATH}" ;;
+esac
+export RMW_IMPLEMENTATION="${RMW_IMPLEMENTATION:-rmw_fastrtps_cpp}"
+# DDS discovery must never leave this machine (default discovery multicasts on every
+# interface). A per-user domain id keeps concurrent users apart; tests pick their own.
+export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
+export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( $(id -u) % 100 + 1 ))}"
+# Headless rendering: EGL with Mesa (osmesa also works: MUJOCO_GL=osmesa).
+export MUJOCO_GL="${MUJOCO_GL:-egl}"
+export PYOPENGL_PLATFORM="${PYOPENGL_PLATFORM:-$MUJOCO_GL}"
+export PYTHONUNBUFFERED=1
+unset _protocad_prefix

@@ -1,0 +1,65 @@
+"""One setup.py for the three ROS 2 packages of protocad-ros.
+
+Besides the Python packages it installs, for each ROS package, the ament_python layout
+that the real ros2cli resolves (AMENT_PREFIX_PATH = the install prefix):
+  share/ament_index/resource_index/packages/<pkg>   (empty marker)
+  share/<pkg>/package.xml
+  lib/<pkg>/<executable>                            (kept executable by pip)
+"""
+from pathlib import Path
+
+from setuptools import find_packages, setup
+
+ROS_PACKAGES = ("sim_bridge", "protocad_ros", "trainer")
+
+
+def ament_data_files():
+    files = []
+    for pkg in ROS_PACKAGES:
+        files.append(("share/ament_index/resource_index/packages", [f"{pkg}/resource/{pkg}"]))
+        files.append((f"share/{pkg}", [f"{pkg}/package.xml"]))
+        exes = sorted(str(p) for p in Path(pkg, "libexec").iterdir() if p.is_file())
+        files.append((f"lib/{pkg}", exes))
+    return files
+
+
+# Exact pins where the platform demands them (see ../shared/DESIGN.md): an unpinned torch
+# pulls GBs of CUDA wheels, mujoco 4.x breaks dm-control, rerun recordings are only N+1
+# compatible. The ROS wheels come as one consistent Jazzy set.
+INSTALL_REQUIRES = [
+    "torch==2.13.0",
+    "mujoco==3.17.0",
+    "dm-control==1.0.50",
+    "numpy>=1.26,<3",
+    "ros-jazzy-rclpy==7.1.6",
+    "ros-jazzy-common-interfaces==5.3.6",
+    "ros-jazzy-rmw-fastrtps-cpp==8.4.3",
+    "mcap==1.6.0",
+    "rosbags==0.11.9",
+    "rerun-sdk==0.41.0",
+    "pyyaml>=6.0",
+    "tqdm>=4.66",
+    "scikit-learn>=1.4",
+]
+
+setup(
+    name="protocad-ros",
+    version="0.1.0",
+    description="ProtoCAD (ICLR 2023) context-aware world models as a ROS 2 Jazzy stack",
+    packages=find_packages(include=["protocad_ros*", "sim_bridge*", "trainer*"]),
+    python_requires=">=3.11,<3.12",
+    install_requires=INSTALL_REQUIRES,
+    extras_require={"test": ["pytest==9.2.0", "pytest-timeout==2.4.0"]},
+    data_files=ament_data_files(),
+    entry_points={
+        "console_scripts": [
+            "ros2 = protocad_ros.ros2cli:main",
+            "protocad-record = trainer.recorder:main",
+            "protocad-train = trainer.train:main",
+            "protocad-evaluate = trainer.evaluate:main",
+            "protocad-loop = trainer.loop:main",
+            "protocad-online = trainer.online:main",
+            "protocad-visualize = trainer.visualize:main",
+        ]
+    },
+)

@@ -1,0 +1,179 @@
+"""The topic contract shared by every node, the recorder, the dataset and the in-process writer.
+
+Only common_interfaces types exist here (no custom message build), so stamped named vectors
+travel as ``sensor_msgs/JointState``: ``name[i]`` labels ``position[i]`` (or ``effort[i]`` for
+actions). msgs_docs/topics.md is the human-readable version of this module.
+
+The helpers below are duck-typed: they fill or read rclpy messages and rosbags dataclasses
+alike (same field names), so the ROS path and the ROS-free path write identical bytes.
+No rclpy import at module level.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+DEFAULT_NAMESPACE = "/protocad"
+
+# Relative names (resolved in the node's namespace, default /protocad).
+IMAGE = "image"                    # sensor_msgs/msg/Image, rgb8, 64x64
+STEP_INFO = "step_info"            # sensor_msgs/msg/JointState, fields STEP_INFO_FIELDS
+CONTEXT = "context"                # sensor_msgs/msg/JointState, the true context (eval/plots only)
+ACTION = "action"                  # sensor_msgs/msg/JointState, effort = action
+CONTEXT_FEATURES = "context_features"  # sensor_msgs/msg/JointState, u/w/e from the policy
+RESET_SERVICE = "reset"            # std_srvs/srv/Trigger on the sim bridge
+CLOCK = "/clock"                   # rosgraph_msgs/msg/Clock (sim time)
+DIAGNOSTICS = "/diagnostics"       # diagnostic_msgs/msg/DiagnosticArray
+
+TYPES = {
+    IMAGE: "sensor_msgs/msg/Image",
+    STEP_INFO: "sensor_msgs/msg/JointState",
+    CONTEXT: "sensor_msgs/msg/JointState",
+    ACTION: "sensor_msgs/msg/JointState",
+    CONTEXT_FEATURES: "sensor_msgs/msg/JointState",
+    CLOCK: "rosgraph_msgs/msg/Clock",
+    DIAGNOSTICS: "diagnostic_msgs/msg/DiagnosticArray",
+}
+
+IMAGE_FRAME_ID = "camera"
+STEP_INFO_FIELDS = ("reward", "discount", "is_first", "is_last", "is_terminal", "episode", "step")
+SPLIT_FIELD = "split"  # in CONTEXT: 0.0 = train split, 1.0 = test split
+SPLITS = ("train", "test")
+
+
+def topic_name(namespace: str, relative: str) -> str:
+    """Fully qualified topic name, e.g. ('/protocad', 'image') -> '/protocad/image'."""
+    if relative.startswith("/"):
+        return relative
+    ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
+    return f"{ns}/{relative}"
+
+
+def stamp_to_ns(stamp: Any) -> int:
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def set_stamp(stamp: Any, t_ns: int) -> None:
+    stamp.sec, stamp.nanosec = divmod(int(t_ns), 1_000_000_000)
+
+
+@dataclass
+class StepInfo:
+    reward: float
+    discount: float
+    is_first: bool
+    is_last: bool
+    is_terminal: bool
+    episode: int
+    step: int
+
+
+def fill_image(msg: Any, image: np.ndarray, t_ns: int) -> Any:
+    image = np.asarray(image)
+    if image.dtype != np.uint8 or image.ndim != 3 or image.shape[2] != 3:
+        raise ValueError(f"expected an HxWx3 uint8 RGB image, got {image.dtype} {image.shape}")
+    set_stamp(msg.header.stamp, t_ns)
+    msg.header.frame_id = IMAGE_FRAME_ID
+    msg.height, msg.width = int(image.shape[0]), int(image.shape[1])
+    msg.encoding = "rgb8"
+    msg.is_bigendian = 0
+    msg.step = int(image.shape[1]) * 3
+    data = np.ascontiguousarray(image).reshape(-1)
+    msg.data = data if isinstance(getattr(msg, "data", None), np.ndarray) else data.tobytes()
+    return msg
+
+
+def read_image(msg: Any, expected_hw: tuple[int, int] | None = None) -> np.ndarray:
+    """HxWx3 uint8 array from an Image message; ValueError with the reason if it is not rgb8."""
+    if msg.encoding != "rgb8":
+        raise ValueError(f"image encoding {msg.encoding!r}, expected 'rgb8'")
+    h, w, step = int(msg.height), int(msg.width), int(msg.step)
+    buf = np.frombuffer(bytes(msg.data) if not isinstance(msg.data, np.ndarray) else msg.data, np.uint8)
+    if step < w * 3 or buf.size != h * step:
+        raise ValueError(f"image data has {buf.size} bytes, expected {h}x{step} (width {w}, rgb8)")
+    if expected_hw is not None and (h, w) != tuple(expected_hw):
+        raise ValueError(f"image is {h}x{w}, expected {expected_hw[0]}x{expected_hw[1]}")
+    return buf.reshape(h, step)[:, : w * 3].reshape(h, w, 3)
+
+
+def fill_named(msg: Any, names: Sequence[str], values: Sequence[float], t_ns: int,
+               field: str = "position", frame_id: str = "") -> Any:
+    """Fill a JointState used as a stamped named vector (values in `position` or `effort`)."""
+    if len(names) != len(values):
+        raise ValueError(f"{len(names)} names for {len(values)} values")
+    set_stamp(msg.header.stamp, t_ns)
+    msg.header.frame_id = frame_id
+    msg.name = list(names)
+    arr = np.asarray(values, dtype=np.float64).reshape(-1)
+    empty = np.zeros(0, np.float64)
+    for f in ("position", "velocity", "effort"):
+        val = arr if f == field else empty
+        setattr(msg, f, val if isinstance(getattr(msg, f, None), np.ndarray) else val.tolist())
+    return msg
+
+
+def read_named(msg: Any, field: str = "position") -> dict[str, float]:
+    values = list(getattr(msg, field))
+    if len(values) != len(msg.name):
+        raise ValueError(f"JointState has {len(msg.name)} names but {len(values)} {field} values")
+    return {str(n): float(v) for n, v in zip(msg.name, values)}
+
+
+def fill_step_info(msg: Any, info: StepInfo, t_ns: int) -> Any:
+    return fill_named(msg, STEP_INFO_FIELDS, [float(getattr(info, f)) for f in STEP_INFO_FIELDS], t_ns)
+
+
+def read_step_info(msg: Any) -> StepInfo:
+    d = read_named(msg)
+    missing = [f for f in STEP_INFO_FIELDS if f not in d]
+    if missing:
+        raise ValueError(f"step_info lacks fields {missing}")
+    return StepInfo(reward=d["reward"], discount=d["discount"], is_first=bool(d["is_first"]),
+                    is_last=bool(d["is_last"]), is_terminal=bool(d["is_terminal"]),
+                    episode=int(d["episode"]), step=int(d["step"]))
+
+
+def fill_context(msg: Any, context: Mapping[str, float], split: str, t_ns: int) -> Any:
+    if split not in SPLITS:
+        raise ValueError(f"unknown split {split!r}; valid: {SPLITS}")
+    names = list(context) + [SPLIT_FIELD]
+    return fill_named(msg, names, [float(context[k]) for k in context] + [float(SPLITS.index(split))], t_ns)
+
+
+def read_context(msg: Any) -> tuple[dict[str, float], str]:
+    d = read_named(msg)
+    split = SPLITS[int(d.pop(SPLIT_FIELD, 0.0))]
+    return d, split
+
+
+def fill_action(msg: Any, action: Sequence[float], names: Sequence[str], t_ns: int) -> Any:
+    """`t_ns` is the stamp of the observation this action answers."""
+    return fill_named(msg, names, action, t_ns, field="effort")
+
+
+def read_action(msg: Any) -> np.ndarray:
+    if len(msg.effort) != len(msg.name):
+        raise ValueError(f"action has {len(msg.name)} names but {len(msg.effort)} effort values")
+    return np.asarray(msg.effort, dtype=np.float64)
+
+
+def context_feature_names(proj_dim: int, num_prototypes: int, proto_dim: int) -> list[str]:
+    return ([f"u/{i}" for i in range(proj_dim)] + [f"w/{k}" for k in range(num_prototypes)]
+            + [f"e/{i}" for i in range(proto_dim)])
+
+
+def fill_context_features(msg: Any, u: np.ndarray, w: np.ndarray, e: np.ndarray, t_ns: int) -> Any:
+    names = context_feature_names(len(u), len(w), len(e))
+    return fill_named(msg, names, np.concatenate([u, w, e]).astype(np.float64), t_ns)
+
+
+def read_context_features(msg: Any) -> dict[str, np.ndarray]:
+    d = read_named(msg)
+    out: dict[str, list[float]] = {"u": [], "w": [], "e": []}
+    for name, v in d.items():
+        key, _, _ = name.partition("/")
+        if key in out:
+            out[key].append(v)
+    return {k: np.asarray(v, np.float32) for k, v in out.items()}
