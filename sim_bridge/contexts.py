@@ -1,0 +1,121 @@
+"""The paper's context-randomized DMC tasks: parameter lists and number of prototypes.
+
+Values are copied verbatim from ProtoCAD (ICLR 2023), appendix Table ``env_para``
+("The environmental settings") and Table ``setting_k`` (K per task). A context is a dict
+``{param: scale}`` with one value per parameter of the task: ``m`` scales masses and ``d``
+joint damping, both relative to the model's defaults (see ``sim_bridge.envs`` for which bodies
+and joints). Each parameter is drawn independently from its list, i.e. uniformly over the
+cartesian grid of the split. Pure data: no dm_control or ROS import here.
+"""
+from __future__ import annotations
+
+import itertools
+import math
+from dataclasses import dataclass
+from types import MappingProxyType
+from typing import Mapping
+
+import numpy as np
+
+from sim_bridge.topics import SPLITS
+
+Values = Mapping[str, tuple[float, ...]]
+
+
+@dataclass(frozen=True, eq=False)
+class TaskSpec:
+    """One task: its dm_control (domain, task), context parameters and their split lists."""
+
+    name: str
+    domain: str
+    task: str
+    params: tuple[str, ...]
+    train: Values
+    test: Values
+    num_prototypes: int
+
+    def values(self, split: str) -> Values:
+        """The per-parameter value lists of a split ('train' or 'test')."""
+        check_split(split)
+        return self.train if split == "train" else self.test
+
+    def contexts(self, split: str) -> list[dict[str, float]]:
+        """Every context of a split: the cartesian product of its per-parameter lists."""
+        values = self.values(split)
+        grid = itertools.product(*(values[p] for p in self.params))
+        return [dict(zip(self.params, combo)) for combo in grid]
+
+    def sample(self, split: str, rng: np.random.Generator) -> dict[str, float]:
+        """A context drawn uniformly from the split's grid (each parameter independently)."""
+        values = self.values(split)
+        return {p: values[p][int(rng.integers(len(values[p])))] for p in self.params}
+
+    def validate(self, context: Mapping[str, float], split: str) -> dict[str, float]:
+        """``context`` as the table's exact values, or ValueError saying what is allowed."""
+        values = self.values(split)
+        if not isinstance(context, Mapping) or set(context) != set(self.params):
+            got = sorted(context) if isinstance(context, Mapping) else type(context).__name__
+            raise ValueError(f"{self.name}: a context needs exactly the parameters "
+                             f"{list(self.params)}, got {got}")
+        out = {}
+        for p in self.params:
+            try:
+                v = float(context[p])
+            except (TypeError, ValueError):
+                raise ValueError(f"{self.name}: context value {p}={context[p]!r} is not a number")
+            # Tolerance only absorbs float round-trips (e.g. through a float32 message); the
+            # table's own value is returned so masses are always default * table value.
+            match = [a for a in values[p] if math.isclose(v, a, rel_tol=0.0, abs_tol=1e-6)]
+            if not match:
+                other = "test" if split == "train" else "train"
+                hint = (f" ({p}={v:g} belongs to the {other} split)"
+                        if any(math.isclose(v, a, abs_tol=1e-6)
+                               for a in self.values(other)[p]) else "")
+                raise ValueError(f"{self.name}: {p}={v:g} is not in the {split} split{hint}; "
+                                 f"allowed {p} values for {split}: {list(values[p])}")
+            out[p] = match[0]
+        return out
+
+
+def check_split(split: str) -> str:
+    if split not in SPLITS:
+        raise ValueError(f"unknown split {split!r}; valid splits: {list(SPLITS)}")
+    return split
+
+
+def _spec(name: str, train: dict[str, tuple[float, ...]], test: dict[str, tuple[float, ...]],
+          k: int) -> TaskSpec:
+    domain, task = name.split("_", 1)
+    return TaskSpec(name, domain, task, tuple(train), MappingProxyType(train),
+                    MappingProxyType(test), k)
+
+
+# Cheetah and Walker share one row of the table (m and d), as do Finger and Hopper (m).
+_LINK_TRAIN = (0.75, 0.85, 1.00, 1.15, 1.25)
+_LINK_TEST = (0.2, 0.3, 0.4, 0.5, 1.5, 1.6, 1.7, 1.8)
+_MASS_TRAIN = (0.5, 0.75, 1.0, 1.25, 1.5)
+_MASS_TEST = (0.25, 0.375, 1.75, 2.0)
+_MD_TRAIN = {"m": _LINK_TRAIN, "d": _LINK_TRAIN}
+_MD_TEST = {"m": _LINK_TEST, "d": _LINK_TEST}
+
+TASKS: dict[str, TaskSpec] = {s.name: s for s in (
+    _spec("cheetah_run", _MD_TRAIN, _MD_TEST, 100),
+    _spec("finger_spin", {"m": _MASS_TRAIN}, {"m": _MASS_TEST}, 100),
+    _spec("hopper_hop", {"m": _MASS_TRAIN}, {"m": _MASS_TEST}, 50),
+    _spec("hopper_stand", {"m": _MASS_TRAIN}, {"m": _MASS_TEST}, 100),
+    _spec("pendulum_swingup",
+          {"m": (0.75, 0.8, 0.85, 0.9, 0.95, 1.0, 1.05, 1.1, 1.15, 1.2, 1.25)},
+          {"m": (0.2, 0.4, 0.5, 0.7, 1.3, 1.5, 1.6, 1.8)}, 100),
+    _spec("quadruped_run", {"m": (0.85, 0.90, 0.95, 1.00)},
+          {"m": (0.20, 0.25, 0.30, 0.35, 0.40, 0.45, 0.50, 0.55, 0.60)}, 100),
+    _spec("walker_run", _MD_TRAIN, _MD_TEST, 50),
+    _spec("walker_walk", _MD_TRAIN, _MD_TEST, 100),
+)}
+
+
+def get_task(name: str) -> TaskSpec:
+    """The TaskSpec of ``name`` (e.g. 'cheetah_run'), or ValueError listing the valid names."""
+    try:
+        return TASKS[name]
+    except (KeyError, TypeError):
+        raise ValueError(f"unknown task {name!r}; valid tasks: {sorted(TASKS)}") from None
