@@ -1,0 +1,158 @@
+"""The recorder node as a separate process, fed by real DDS traffic from this process."""
+from __future__ import annotations
+
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from conftest import wait_for
+from sim_bridge import topics as T
+from trainer import mcap_io as M
+
+NS = T.DEFAULT_NAMESPACE
+STEPS = 150
+BASE = 5_000_000_000  # sim-time stamp of step 0 (ns); step i is BASE + i * 20 ms
+TOPICS = [T.topic_name(NS, t) for t in (T.IMAGE, T.STEP_INFO, T.CONTEXT, T.ACTION,
+                                         T.CONTEXT_FEATURES)] + [T.CLOCK]
+
+
+def stamp(i: int) -> int:
+    return BASE + i * 20_000_000
+
+
+@pytest.fixture
+def ros():
+    import rclpy
+    from rclpy.node import Node
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    node = Node("recorder_test_publisher", namespace=NS, context=ctx)
+    yield node
+    node.destroy_node()
+    rclpy.try_shutdown(context=ctx)
+
+
+def make_publishers(node):
+    from rosgraph_msgs.msg import Clock
+    from sensor_msgs.msg import Image, JointState
+    from sim_bridge import qos
+    # The contract's reliability/durability; a history deep enough that a burst on a loaded
+    # machine cannot overwrite samples the recorder's reader has not received yet (a KEEP_LAST
+    # writer drops those: msgs_docs/recorder.md, "QoS, and why").
+    obs, clock = qos.observation_qos(), qos.clock_qos()
+    obs.depth = clock.depth = 1000
+    pubs = {}
+    for rel in (T.IMAGE, T.STEP_INFO, T.CONTEXT, T.ACTION, T.CONTEXT_FEATURES):
+        pubs[T.topic_name(NS, rel)] = node.create_publisher(
+            Image if rel == T.IMAGE else JointState, rel, obs)
+    pubs[T.CLOCK] = node.create_publisher(Clock, T.CLOCK, clock)
+    return pubs
+
+
+def publish_steps(pubs, steps: int) -> None:
+    """Lock-step-like traffic: one step (6 messages, same stamp) every ~2 ms."""
+    from rosgraph_msgs.msg import Clock
+    from sensor_msgs.msg import Image, JointState
+    for i in range(steps):
+        t = stamp(i)
+        img = np.full((64, 64, 3), i % 256, np.uint8)
+        pubs[TOPICS[0]].publish(T.fill_image(Image(), img, t))
+        pubs[TOPICS[1]].publish(T.fill_step_info(
+            JointState(), T.StepInfo(0.1 * i, 1.0, i == 0, False, False, 0, i), t))
+        pubs[TOPICS[2]].publish(T.fill_context(JointState(), {"m": 1.5}, "train", t))
+        pubs[TOPICS[3]].publish(T.fill_action(JointState(), [0.01 * i], ["a0"], t))
+        pubs[TOPICS[4]].publish(T.fill_context_features(
+            JointState(), np.zeros(2), np.ones(3) / 3, np.zeros(2), t))
+        clock = Clock()
+        T.set_stamp(clock.clock, t)
+        pubs[TOPICS[5]].publish(clock)
+        time.sleep(0.002)
+
+
+def wait_matched(pubs) -> None:
+    wait_for(lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 60,
+             "the recorder to subscribe to every contract topic")
+
+
+def wait_acked(pubs) -> None:
+    from rclpy.duration import Duration
+    for topic, p in pubs.items():
+        assert p.wait_for_all_acked(Duration(seconds=15)), f"{topic}: not acknowledged"
+
+
+def check_recorded(reader: M.BagReader, steps: int) -> None:
+    assert reader.report.ok, reader.report.summary()
+    assert reader.report.counts == {t: steps for t in TOPICS}
+    stamps: dict[str, list[int]] = {t: [] for t in TOPICS}
+    for m in reader.messages():
+        msg = reader.decode(m)
+        stamps[m.topic].append(T.stamp_to_ns(msg.clock if m.topic == T.CLOCK
+                                             else msg.header.stamp))
+        assert m.publish_time_ns > 0 and m.log_time_ns >= m.publish_time_ns - 50_000_000
+        if m.topic == TOPICS[0]:
+            assert (T.read_image(msg) == (T.stamp_to_ns(msg.header.stamp) - BASE)
+                    // 20_000_000 % 256).all()
+    for t in TOPICS:  # every message once, with its stamp (sorted: log time ~ publish order)
+        assert sorted(stamps[t]) == [stamp(i) for i in range(steps)], t
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
+def test_recorder_records_every_message_and_closes_cleanly(tmp_path, spawn, ros, sig):
+    bag = tmp_path / "run"
+    rec = spawn("recorder", "-m", "trainer.recorder", "-o", str(bag), "--chunk-size", "65536",
+                "--discovery-interval", "0.1")
+    pubs = make_publishers(ros)   # the recorder finds the topics when they appear
+    wait_matched(pubs)
+    publish_steps(pubs, STEPS)
+    wait_acked(pubs)              # every sample is in the recorder's reader history
+    assert rec.stop(sig) == 0, rec.output()
+    out = rec.log_path.read_text()
+    assert f"recorded {STEPS * len(TOPICS)} messages" in out, out
+
+    info = M.read_bag_metadata(bag)
+    assert info["relative_file_paths"] == ["run_0.mcap"]
+    assert info["message_count"] == STEPS * len(TOPICS)
+    tm = {x["topic_metadata"]["name"]: x["topic_metadata"]
+          for x in info["topics_with_message_count"]}
+    qos = tm[TOPICS[0]]["offered_qos_profiles"][0]
+    assert (qos["reliability"], qos["durability"], qos["history"]) == \
+        ("reliable", "volatile", "unknown")
+    assert tm[TOPICS[0]]["type_description_hash"] == M.type_hash("sensor_msgs/msg/Image")
+    r = M.BagReader(bag)
+    assert not r.report.truncated
+    check_recorded(r, STEPS)
+    from test_mcap_io import rerun_check
+    res = rerun_check(bag / "run_0.mcap")
+    assert res.returncode == 0, res.stdout + res.stderr
+    from rosbags.rosbag2 import Reader
+    with Reader(bag) as rb:
+        assert rb.message_count == STEPS * len(TOPICS)
+
+
+def test_recorder_killed_with_sigkill_keeps_flushed_chunks(tmp_path, spawn, ros):
+    bag = tmp_path / "killed"
+    rec = spawn("recorder", "-m", "trainer.recorder", "-o", str(bag), "--chunk-size", "8192",
+                "--flush-interval", "0.2", "--discovery-interval", "0.1")
+    pubs = make_publishers(ros)
+    wait_matched(pubs)
+    steps = 100
+    publish_steps(pubs, steps)
+    wait_acked(pubs)
+    # the flush timer writes the open chunk within 0.2 s: wait until a reader sees it all
+    wait_for(lambda: M.BagReader(bag).report.message_count == steps * len(TOPICS), 20,
+             "the recorder to write every message in complete chunks")
+    rec.stop(signal.SIGKILL)
+    assert not (bag / "metadata.yaml").exists()
+    r = M.BagReader(bag)
+    assert str(bag / "killed_0.mcap") in r.report.truncated, r.report.summary()
+    check_recorded(r, steps)
+
+
+def test_recorder_help():
+    res = subprocess.run([sys.executable, "-m", "trainer.recorder", "--help"], capture_output=True,
+                         text=True, timeout=60)
+    assert res.returncode == 0 and "--max-bag-size" in res.stdout and "--compression" in res.stdout
