@@ -1,0 +1,450 @@
+"""The ProtoCAD policy node (msgs_docs/policy.md).
+
+    python -m protocad_ros.policy_node --ros-args -p checkpoint:=runs/x/checkpoint.pt
+    ros2 run protocad_ros policy --ros-args -p task:=walker_walk        # random agent + WARNING
+
+Subscribes to image and step_info only (never the true context), pairs them by header stamp
+(they may arrive in any order), filters the RSSM state over the episode (reset on is_first),
+and answers EVERY observation with exactly one action stamped like it, plus the inferred
+context features u, w, e on context_features (same stamp). A newer checkpoint at the same path
+is loaded in a background thread and swapped in at the next is_first observation, so no step
+waits for a load and an episode is never served by two models.
+
+Extension point: `add_act_callback(fn)` calls fn(ActEvent) after each answered observation
+(e.g. protocad_ros.live_view for a rerun live stream); exceptions in callbacks are logged and
+counted, never propagated.
+"""
+from __future__ import annotations
+
+import collections
+import importlib.util
+import os
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.node import Node
+from sensor_msgs.msg import Image, JointState
+
+from sim_bridge import qos, topics
+from sim_bridge.contexts import TASKS
+from sim_bridge.rosnode import (ConfigError, KeyThrottle, Param, Percentiles, declare_all,
+                                executor_param, install_parameter_guards, make_status,
+                                run_node)
+
+NODE_NAME = "policy"
+#: Observations whose image and step_info have not both arrived yet (oldest dropped beyond).
+MAX_UNPAIRED = 64
+
+PARAMS: tuple[Param, ...] = (
+    Param("checkpoint", "", "Checkpoint file (protocad_ros.checkpoint). Empty: a randomly "
+          "initialised agent (task, preset, variant below) with a WARNING."),
+    Param("wait_for_checkpoint", False, "If the checkpoint file does not exist yet: serve a "
+          "random agent and load the file once it appears (collect-train-reload loop) "
+          "instead of exiting with an error."),
+    Param("reload_poll_s", 2.0, "How often the checkpoint file is checked for a newer version "
+          "(mtime/inode/size); a newer one is loaded in the background and served from the "
+          "next is_first observation. 0 = never reload.", range=(0.0, 3600.0), units="s"),
+    Param("task", "pendulum_swingup", "Task of the random agent (action size, K prototypes); "
+          "with a checkpoint its config's task is used.", choices=tuple(sorted(TASKS))),
+    Param("preset", "small", "Model size preset of the random agent.",
+          choices=("paper", "small", "dreamerv3_sizes")),
+    Param("variant", "protocad", "Model variant of the random agent.",
+          choices=("protocad", "dreamer", "dreamerpro", "dreamer_context", "no_projection",
+                   "no_temporal_consistency")),
+    Param("device", "cpu", "Torch device of the model, e.g. cpu, cuda, cuda:0."),
+    Param("mode", "deterministic", "deterministic: the actor's mode; sample: a sample of the "
+          "actor's distribution.", choices=("deterministic", "sample")),
+    Param("exploration_noise", 0.0, "Std of Gaussian noise added to the action (then clipped "
+          "to [-1, 1]).", range=(0.0, 10.0)),
+    Param("seed", 0, "Seeds the random agent's weights and the action sampling/noise.",
+          range=(0, 2**31 - 1)),
+    Param("num_threads", 0, "torch intra-op threads (0 = torch's default).", range=(0, 1024)),
+    Param("diagnostics_period_s", 1.0, "Period of /diagnostics.", range=(0.05, 3600.0),
+          units="s"),
+    executor_param(),
+)
+
+COUNTERS = ("observations_answered", "episodes", "images_received", "images_rejected",
+            "rejected_image_encoding", "rejected_image_size", "rejected_image_data",
+            "step_info_rejected", "duplicate_observations", "stale_observations",
+            "unpaired_dropped", "checkpoint_reloads", "checkpoint_load_errors",
+            "act_callback_errors", "unknown_parameters", "parameters_rejected")
+
+
+@dataclass
+class ActEvent:
+    """What an act callback receives after each answered observation."""
+
+    stamp_ns: int
+    info: topics.StepInfo
+    image: np.ndarray          # (H, W, 3) uint8
+    action: np.ndarray         # (A,) float32 in [-1, 1]
+    features: Any              # protocad_ros.policy.ContextFeatures (u, w, e)
+    latency_s: float           # completing message received -> action published
+    checkpoint_updates: int    # -1 for a random agent
+
+
+def task_actuators(task: str) -> list[str]:
+    """Actuator names of a task (its dm_control model), read with mujoco alone: no dm_control
+    import (which would open a rendering display) in a process that never renders."""
+    import mujoco
+
+    spec = TASKS[task]
+    found = importlib.util.find_spec("dm_control")
+    if found is None or not found.submodule_search_locations:
+        raise RuntimeError("dm_control is not installed")
+    xml = Path(list(found.submodule_search_locations)[0], "suite", f"{spec.domain}.xml")
+    model = mujoco.MjModel.from_xml_path(str(xml))
+    return [model.actuator(i).name for i in range(model.nu)]
+
+
+def _file_signature(path: str) -> tuple[int, int, int] | None:
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return (st.st_mtime_ns, st.st_ino, st.st_size)
+
+
+class PolicyNode(Node):
+    """See the module docstring; parameters in PARAMS, counters in COUNTERS."""
+
+    def __init__(self, *, namespace: str = topics.DEFAULT_NAMESPACE, **kw: Any):
+        super().__init__(NODE_NAME, namespace=namespace, **kw)
+        self.done = threading.Event()
+        self.exit_code = 0
+        p = self.params = declare_all(self, PARAMS)
+        self.executor_kind = p["executor"]
+        import torch
+
+        if p["num_threads"]:
+            torch.set_num_threads(p["num_threads"])
+        try:
+            dev = torch.device(p["device"])
+        except (RuntimeError, ValueError) as e:
+            raise ConfigError(f"device {p['device']!r}: {e}") from None
+        if dev.type == "cuda" and not torch.cuda.is_available():
+            raise ConfigError(f"device {p['device']!r} requested but CUDA is not available "
+                              "(torch.cuda.is_available() is False); use device:=cpu")
+        self._lock = threading.Lock()            # guards _pending_policy and counters
+        self._stop = threading.Event()
+        self.counters = dict.fromkeys(COUNTERS, 0)
+        self.counters["unknown_parameters"] = len(self.unknown_parameters)
+        self._throttle = KeyThrottle(self.get_logger())
+        self.latency = Percentiles()             # completing message -> action published
+        self.act_time = Percentiles()            # model time (Policy.act)
+        self._act_callbacks: list[Callable[[ActEvent], None]] = []
+
+        path = p["checkpoint"]
+        self._loaded_sig: tuple | None = None
+        self._failed_sig: tuple | None = None
+        self._pending_policy: tuple | None = None   # (policy, counters, sig) to swap in
+        sig = _file_signature(path) if path else None
+        if sig is not None:
+            try:
+                self.policy, self.ckpt_counters = self._load(path)
+            except Exception as e:  # CheckpointError and friends: a clear message, exit 2
+                raise ConfigError(f"cannot load checkpoint {path}: {e}") from None
+            self._loaded_sig = sig
+            self.agent_kind = "checkpoint"
+        elif path and not p["wait_for_checkpoint"]:
+            raise ConfigError(f"checkpoint {path} does not exist (set wait_for_checkpoint:=true "
+                              "to serve a random agent until it appears)")
+        elif path and p["reload_poll_s"] <= 0:
+            raise ConfigError(f"checkpoint {path} does not exist and reload_poll_s is 0: it "
+                              "would never be loaded")
+        else:
+            self.policy, self.ckpt_counters = self._random_policy(), {}
+            self.agent_kind = "random"
+            self.get_logger().warning(
+                ("checkpoint %s does not exist yet: " % path if path else "no checkpoint given: ")
+                + f"serving a RANDOMLY INITIALISED {p['variant']} agent ({p['preset']} preset, "
+                f"task {p['task']}); its actions are meaningless")
+        cfg = self.policy.agent.cfg
+        self.task = getattr(cfg, "task", p["task"])
+        self.action_dim = int(self.policy.agent.action_dim)
+        self.image_hw = (int(cfg.train.image_size),) * 2
+        try:
+            names = task_actuators(self.task)
+        except Exception:
+            names = []
+        self.action_names = names if len(names) == self.action_dim else [
+            f"a{i}" for i in range(self.action_dim)]
+        self.policy.reset()
+
+        # Per-episode filter state (the RSSM state itself lives in self.policy).
+        self._prev_action = np.zeros(self.action_dim, np.float32)
+        self._unpaired: collections.OrderedDict[int, dict[str, Any]] = collections.OrderedDict()
+        self._last_stamp: int | None = None
+        self._last_answer: tuple[Any, Any] | None = None
+        self._episode = -1
+        self._step = -1
+
+        obs_qos, out_qos = qos.observation_qos(), qos.action_qos()
+        self.pub_action = self.create_publisher(JointState, topics.ACTION, out_qos)
+        self.pub_features = self.create_publisher(JointState, topics.CONTEXT_FEATURES, out_qos)
+        self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
+                                              qos.diagnostics_qos())
+        self.sub_image = self.create_subscription(Image, topics.IMAGE, self._on_image, obs_qos)
+        self.sub_info = self.create_subscription(JointState, topics.STEP_INFO, self._on_info,
+                                                 obs_qos)
+        self.diag_timer = self.create_timer(p["diagnostics_period_s"], self._publish_diagnostics)
+        install_parameter_guards(self, PARAMS, lambda name, value: None,
+                                 lambda reason: self._count("parameters_rejected",
+                                                            f"parameter change rejected: {reason}"))
+        self._diag_name = f"{self.get_namespace().rstrip('/')}/{NODE_NAME}"
+        self._watcher = None
+        if path and p["reload_poll_s"] > 0:
+            self._watcher = threading.Thread(target=self._watch, name="checkpoint_watcher",
+                                             daemon=True)
+            self._watcher.start()
+        self.get_logger().info(
+            f"serving {self._describe_agent()} on {p['device']} ({p['mode']}, exploration "
+            f"noise {p['exploration_noise']}); {self.action_dim}-d actions {self.action_names}; "
+            f"expects {self.image_hw[0]}x{self.image_hw[1]} rgb8 on "
+            f"{self.resolve_topic_name(topics.IMAGE)}")
+
+    # ------------------------------------------------------------------ model
+    def _policy_kwargs(self) -> dict[str, Any]:
+        p = self.params
+        return dict(device=p["device"], mode=p["mode"], exploration_noise=p["exploration_noise"],
+                    seed=p["seed"])
+
+    def _load(self, path: str):
+        from protocad_ros.checkpoint import load_checkpoint
+        from protocad_ros.policy import Policy
+
+        agent, counters = load_checkpoint(path, device=self.params["device"])
+        # `updates` = the agent's own update counter (restored with the weights); the other
+        # counters are the trainer's (env steps, episodes, ...), reported as checkpoint/<key>.
+        counters = {**dict(counters or {}), "updates": int(agent.counters()["updates"])}
+        return Policy(agent, **self._policy_kwargs()), counters
+
+    def _random_policy(self):
+        from protocad_ros.agent import Agent
+        from protocad_ros.config import make_config
+        from protocad_ros.policy import Policy
+
+        p = self.params
+        cfg = make_config(p["task"], p["preset"], p["variant"], **{"train.seed": p["seed"]})
+        agent = Agent(cfg, len(task_actuators(p["task"])), device=p["device"])
+        return Policy(agent, **self._policy_kwargs())
+
+    @property
+    def checkpoint_updates(self) -> int:
+        return int(self.ckpt_counters.get("updates", -1)) if self.agent_kind == "checkpoint" else -1
+
+    def _describe_agent(self) -> str:
+        if self.agent_kind == "random":
+            return "a random agent"
+        return f"checkpoint {self.params['checkpoint']} (updates={self.checkpoint_updates})"
+
+    def _watch(self) -> None:
+        """Background: poll the checkpoint file; load a changed one; hand it to the executor
+        thread, which swaps it in at the next is_first observation."""
+        path = self.params["checkpoint"]
+        while not self._stop.wait(self.params["reload_poll_s"]):
+            sig = _file_signature(path)
+            if sig is None or sig == self._loaded_sig or sig == self._failed_sig:
+                continue
+            with self._lock:
+                if self._pending_policy is not None and self._pending_policy[2] == sig:
+                    continue
+            try:
+                policy, counters = self._load(path)
+                if _file_signature(path) != sig:
+                    continue   # replaced while we read it: take the newer one next poll
+                cfg = policy.agent.cfg
+                if int(policy.agent.action_dim) != self.action_dim or (
+                        (int(cfg.train.image_size),) * 2 != self.image_hw):
+                    raise ValueError(
+                        f"{policy.agent.action_dim}-d actions / {cfg.train.image_size}px images, "
+                        f"but this node serves {self.action_dim}-d / {self.image_hw[0]}px")
+            except Exception as e:  # noqa: BLE001 (corrupt, foreign, incompatible)
+                self._failed_sig = sig
+                with self._lock:
+                    self.counters["checkpoint_load_errors"] += 1
+                self.get_logger().error(f"cannot load checkpoint {path}: {e}; still serving "
+                                        f"{self._describe_agent()}")
+                continue
+            with self._lock:
+                self._pending_policy = (policy, counters, sig)
+            self.get_logger().info(f"loaded checkpoint {path} (updates="
+                                   f"{counters.get('updates', '?')}); serving it from the "
+                                   "next episode")
+
+    def _swap_if_pending(self) -> None:
+        with self._lock:
+            pending, self._pending_policy = self._pending_policy, None
+        if pending is None:
+            return
+        self.policy, self.ckpt_counters, self._loaded_sig = pending
+        self.agent_kind = "checkpoint"
+        self.policy.reset()
+        with self._lock:
+            self.counters["checkpoint_reloads"] += 1
+        self.get_logger().info(f"now serving {self._describe_agent()}")
+
+    # ------------------------------------------------------------------ callbacks
+    def add_act_callback(self, fn: Callable[[ActEvent], None]) -> None:
+        """Call fn(ActEvent) after each answered observation (in the executor thread: keep it
+        quick, e.g. hand over to a queue)."""
+        self._act_callbacks.append(fn)
+
+    def _count(self, key: str, why: str | None = None) -> None:
+        with self._lock:
+            self.counters[key] += 1
+            n = self.counters[key]
+        if why:
+            self._throttle.warning(key, f"{why} ({key}: {n} so far)")
+
+    def _on_image(self, msg) -> None:
+        t = time.monotonic()
+        stamp = topics.stamp_to_ns(msg.header.stamp)
+        self._count("images_received")
+        reason = None
+        if msg.encoding != "rgb8":
+            reason = ("rejected_image_encoding",
+                      f"image encoding {msg.encoding!r}, expected 'rgb8'")
+        elif (int(msg.height), int(msg.width)) != self.image_hw:
+            reason = ("rejected_image_size", f"image is {msg.height}x{msg.width}, expected "
+                      f"{self.image_hw[0]}x{self.image_hw[1]}")
+        else:
+            try:
+                image = topics.read_image(msg, self.image_hw).copy()
+            except ValueError as e:
+                reason = ("rejected_image_data", str(e))
+        if reason is not None:
+            self._count("images_rejected")
+            self._count(reason[0], f"image rejected (stamp {stamp}): {reason[1]}")
+            return
+        self._arrive(stamp, "image", image, t)
+
+    def _on_info(self, msg) -> None:
+        t = time.monotonic()
+        stamp = topics.stamp_to_ns(msg.header.stamp)
+        try:
+            info = topics.read_step_info(msg)
+        except (ValueError, TypeError, IndexError) as e:
+            return self._count("step_info_rejected", f"step_info rejected (stamp {stamp}): {e}")
+        self._arrive(stamp, "info", info, t)
+
+    def _arrive(self, stamp: int, kind: str, value: Any, t: float) -> None:
+        entry = self._unpaired.get(stamp)
+        if entry is None:
+            entry = self._unpaired[stamp] = {}
+            while len(self._unpaired) > MAX_UNPAIRED:
+                old, _ = self._unpaired.popitem(last=False)
+                self._count("unpaired_dropped", f"observation {old} never got both image and "
+                            "step_info: dropped")
+        entry[kind] = value
+        if len(entry) < 2:
+            return
+        del self._unpaired[stamp]
+        if stamp == self._last_stamp and self._last_answer is not None:
+            # The bridge published it again (its lock-step timeout): answer it again, same
+            # action, without filtering it a second time.
+            self._count("duplicate_observations")
+            for pub, msg in zip((self.pub_action, self.pub_features), self._last_answer):
+                pub.publish(msg)
+            return
+        if self._last_stamp is not None and stamp < self._last_stamp:
+            return self._count("stale_observations", f"observation {stamp} is older than the "
+                               f"last answered one ({self._last_stamp}): not answered")
+        self._answer(stamp, entry["image"], entry["info"], t)
+
+    def _answer(self, stamp: int, image: np.ndarray, info: topics.StepInfo, t_recv: float) -> None:
+        if info.is_first:
+            self._swap_if_pending()
+            self._prev_action[:] = 0.0
+            self._count("episodes")
+        elif self._last_stamp is None:
+            self.get_logger().info(f"joined in the middle of episode {info.episode} (step "
+                                   f"{info.step}): filtering from a blank state")
+        t0 = time.monotonic()
+        action, feats = self.policy.act(image, self._prev_action, bool(info.is_first))
+        self.act_time.add(time.monotonic() - t0)
+        action = np.asarray(action, np.float32).reshape(-1)
+        amsg = topics.fill_action(JointState(), action, self.action_names, stamp)
+        u, w, e = (np.asarray(getattr(feats, k, ()), np.float32).reshape(-1) for k in "uwe")
+        fmsg = topics.fill_context_features(JointState(), u, w, e, stamp)
+        self.pub_action.publish(amsg)
+        self.pub_features.publish(fmsg)
+        latency = time.monotonic() - t_recv
+        self.latency.add(latency)
+        self._prev_action = action.copy()
+        self._last_stamp, self._last_answer = stamp, (amsg, fmsg)
+        self._episode, self._step = info.episode, info.step
+        for s in [s for s in self._unpaired if s < stamp]:   # pieces that can no longer pair
+            del self._unpaired[s]
+        self._count("observations_answered")
+        if self._act_callbacks:
+            event = ActEvent(stamp, info, image, action, feats, latency, self.checkpoint_updates)
+            for fn in self._act_callbacks:
+                try:
+                    fn(event)
+                except Exception as exc:  # noqa: BLE001
+                    self._count("act_callback_errors", f"act callback {fn!r} failed: {exc}")
+
+    # ------------------------------------------------------------------ diagnostics
+    def _publish_diagnostics(self) -> None:
+        with self._lock:
+            c = dict(self.counters)
+            pending = self._pending_policy
+        values: dict[str, Any] = {
+            "agent": self.agent_kind, "checkpoint": self.params["checkpoint"],
+            "checkpoint_updates": self.checkpoint_updates,
+            "pending_checkpoint_updates": (pending[1].get("updates", -1) if pending else -1),
+            **{f"checkpoint/{k}": v for k, v in self.ckpt_counters.items() if k != "updates"},
+            "task": self.task, "device": self.params["device"], "mode": self.params["mode"],
+            "latency_ms_p50": self.latency.percentile(50) * 1e3,
+            "latency_ms_p99": self.latency.percentile(99) * 1e3,
+            "act_ms_p50": self.act_time.percentile(50) * 1e3,
+            "act_ms_p99": self.act_time.percentile(99) * 1e3,
+            "episode": self._episode, "step": self._step,
+            **c,
+        }
+        bad = (c["images_rejected"] or c["step_info_rejected"] or c["checkpoint_load_errors"]
+               or c["stale_observations"] or c["unpaired_dropped"])
+        level = "WARN" if bad or self.agent_kind == "random" else "OK"
+        message = ("random agent" if self.agent_kind == "random" else
+                   "rejected inputs or checkpoint errors" if bad else "serving")
+        arr = DiagnosticArray()
+        arr.header.stamp = self.get_clock().now().to_msg()
+        arr.status = [make_status(self._diag_name, self.task, values, level, message)]
+        try:
+            self.pub_diag.publish(arr)
+        except Exception:
+            pass
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._watcher is not None:
+            self._watcher.join(timeout=5.0)
+        try:
+            self._publish_diagnostics()
+        except Exception:
+            pass
+        c = self.counters
+        self.get_logger().info("stopped: " + ", ".join(f"{k}={c[k]}" for k in COUNTERS if c[k])
+                               + f"; latency p50 {self.latency.percentile(50) * 1e3:.2f} ms, "
+                               f"p99 {self.latency.percentile(99) * 1e3:.2f} ms")
+
+
+def main(argv: list[str] | None = None) -> None:
+    raise SystemExit(run_node(
+        PolicyNode, prog="policy", params=PARAMS, argv=argv,
+        description="ProtoCAD policy node: answers every observation (image + step_info, "
+                    "paired by stamp) with an action stamped like it, and publishes the "
+                    "inferred context features u, w, e. Contract: msgs_docs/policy.md.",
+        example="python -m protocad_ros.policy_node --ros-args -p checkpoint:=run/ckpt.pt "
+                "-p reload_poll_s:=5.0 -p mode:=deterministic"))
+
+
+if __name__ == "__main__":
+    main()

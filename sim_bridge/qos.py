@@ -1,0 +1,56 @@
+"""QoS profiles of the protocad topics (msgs_docs/topics.md explains each choice).
+
+Kept apart from sim_bridge/topics.py because it imports rclpy; topics.py stays ROS-free.
+
+Every protocad publisher offers RELIABLE + VOLATILE:
+- RELIABLE: a learning loop must not lose steps (every observation answered by exactly one
+  action and recorded exactly once). A reliable writer also matches best-effort readers, so a
+  visualiser may subscribe best-effort without breaking anything.
+- VOLATILE: a node that joins late must not act on (or answer) old observations; the sim
+  bridge instead waits for its readers to be matched before it publishes the first step.
+- KEEP_LAST with a deep history (OBSERVATION_DEPTH): in lock-step only one step is in flight,
+  the depth is slack for a slow reader (the recorder writing a chunk, a policy reloading a
+  checkpoint) in real-time mode, where a reader that falls more than DEPTH steps behind loses
+  the oldest ones (counted by the reader, never blocking the simulation).
+"""
+from __future__ import annotations
+
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+
+#: History depth of image, step_info, context, action and context_features (messages).
+OBSERVATION_DEPTH = 100
+#: History depth of /clock (only the newest time matters; a little slack for recorders).
+CLOCK_DEPTH = 10
+#: History depth of /diagnostics (as diagnostic_updater).
+DIAGNOSTICS_DEPTH = 10
+
+
+def _reliable(depth: int) -> QoSProfile:
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth,
+                      reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
+
+
+def observation_qos() -> QoSProfile:
+    """image, step_info, context (sim bridge -> policy, recorder)."""
+    return _reliable(OBSERVATION_DEPTH)
+
+
+def action_qos() -> QoSProfile:
+    """action and context_features (policy -> sim bridge, recorder)."""
+    return _reliable(OBSERVATION_DEPTH)
+
+
+def clock_qos() -> QoSProfile:
+    """/clock: reliable so that reliable recorders match; rclpy's TimeSource subscribes
+    best-effort depth 1, which a reliable writer also serves."""
+    return _reliable(CLOCK_DEPTH)
+
+
+def diagnostics_qos() -> QoSProfile:
+    return _reliable(DIAGNOSTICS_DEPTH)
+
+
+def describe(qos: QoSProfile) -> str:
+    """One-line summary, e.g. 'RELIABLE, VOLATILE, KEEP_LAST(100)' (for logs and docs)."""
+    return (f"{qos.reliability.name}, {qos.durability.name}, "
+            f"{qos.history.name}({qos.depth})")

@@ -1,0 +1,352 @@
+"""rclpy plumbing shared by the protocad nodes (sim bridge, policy).
+
+- `Param`: one row of a node's parameter table. The same table declares the ROS parameters
+  (ParameterDescriptor with description, range, read_only), prints `--help`, and is what
+  msgs_docs documents.
+- `declare_all`: declares a table with clear errors (`ConfigError`) for wrong types, values out
+  of range, values outside a choice list; integers given for float parameters are accepted
+  (`-p control_rate_hz:=10`); unknown `-p` overrides are reported with a warning.
+- `run_node`: the `main()` of a node: argparse (`--help` lists the ROS parameters; everything
+  after `--ros-args` goes to ROS), spin, clean shutdown on Ctrl-C / SIGTERM (exit 0, no
+  traceback), exit 2 on a configuration error.
+- `Percentiles`, `make_status`: diagnostics helpers.
+"""
+from __future__ import annotations
+
+import argparse
+import collections
+import signal
+import sys
+import threading
+from dataclasses import dataclass
+from typing import Any, Callable, Iterable, Sequence
+
+import numpy as np
+
+#: Parameters every rclpy node has (never reported as unknown).
+_BUILTIN_PARAMS = ("use_sim_time", "start_type_description_service")
+_BUILTIN_PREFIXES = ("qos_overrides.",)
+
+
+class ConfigError(Exception):
+    """A node cannot start with the given parameters (message says why and what is valid)."""
+
+
+@dataclass(frozen=True)
+class Param:
+    name: str
+    default: bool | int | float | str
+    description: str
+    read_only: bool = True
+    range: tuple[float, float] | None = None   # inclusive, for int and float parameters
+    choices: tuple[str, ...] | None = None     # for string parameters
+    units: str = ""
+
+    @property
+    def type_name(self) -> str:
+        return {bool: "bool", int: "int", float: "double", str: "string"}[type(self.default)]
+
+    def descriptor(self):
+        from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
+                                        ParameterType)
+
+        types = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
+                 float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING}
+        d = ParameterDescriptor(name=self.name, type=types[type(self.default)],
+                                description=self.description, read_only=self.read_only)
+        if self.choices:
+            d.additional_constraints = "one of: " + ", ".join(self.choices)
+        if self.range is not None:
+            lo, hi = self.range
+            if isinstance(self.default, float):
+                d.floating_point_range = [
+                    FloatingPointRange(from_value=float(lo), to_value=float(hi), step=0.0)]
+            else:
+                d.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=1)]
+        return d
+
+    def check(self, value: Any) -> str | None:
+        """Reason why `value` is invalid (choices; ranges are also enforced by rclpy), or None."""
+        if self.choices and value not in self.choices:
+            return f"{self.name}={value!r} is not one of {', '.join(self.choices)}"
+        if self.range is not None and not (self.range[0] <= value <= self.range[1]):
+            return f"{self.name}={value!r} is out of range [{self.range[0]}, {self.range[1]}]"
+        return None
+
+    def help_line(self) -> str:
+        extra = []
+        if self.choices:
+            extra.append("{" + "|".join(self.choices) + "}")
+        if self.range is not None:
+            lo, hi = self.range
+            if isinstance(self.default, float):
+                def fmt(v):
+                    return f"{v:g}"
+            else:
+                def fmt(v):
+                    return str(int(v))
+            extra.append(f"range [{fmt(lo)}, {fmt(hi)}]")
+        if self.units:
+            extra.append(self.units)
+        extra.append("read-only" if self.read_only else "settable at run time")
+        default = repr(self.default) if isinstance(self.default, str) else self.default
+        return (f"  {self.name} ({self.type_name}, default {default}; {', '.join(extra)})\n"
+                f"      {self.description}")
+
+
+def help_epilog(params: Sequence[Param], example: str) -> str:
+    return ("ROS parameters (set with --ros-args -p NAME:=VALUE):\n"
+            + "\n".join(p.help_line() for p in params)
+            + "\n\nROS arguments: everything after --ros-args, e.g. -r __ns:=/robot1 (namespace,"
+            " default /protocad),\n  --log-level debug.\n\nExample:\n  " + example)
+
+
+def declare_all(node, params: Sequence[Param]) -> dict[str, Any]:
+    """Declare every parameter of the table; returns {name: value}. Raises ConfigError."""
+    from rclpy.exceptions import ParameterException
+    from rclpy.parameter import Parameter
+
+    overrides = getattr(node, "_parameter_overrides", None)  # rclpy keeps -p values here
+    node.unknown_parameters = []
+    values: dict[str, Any] = {}
+    for p in params:
+        if isinstance(overrides, dict) and isinstance(p.default, float) and p.name in overrides:
+            given = overrides[p.name].value
+            if isinstance(given, int) and not isinstance(given, bool):
+                overrides[p.name] = Parameter(p.name, Parameter.Type.DOUBLE, float(given))
+        try:
+            value = node.declare_parameter(p.name, p.default, p.descriptor()).value
+        except ParameterException as e:
+            raise ConfigError(f"parameter {p.name}: {e}".replace("\n", " ")) from None
+        reason = p.check(value)
+        if reason:
+            raise ConfigError(reason)
+        values[p.name] = value
+    if isinstance(overrides, dict):
+        known = {p.name for p in params}
+        unknown = sorted(n for n in overrides if n not in known and n not in _BUILTIN_PARAMS
+                         and not n.startswith(_BUILTIN_PREFIXES))
+        for name in unknown:
+            node.get_logger().warning(
+                f"unknown parameter {name!r} ignored (valid: {', '.join(sorted(known))})")
+        node.unknown_parameters = unknown
+    return values
+
+
+def _type_ok(p: Param, value: Any) -> bool:
+    if isinstance(p.default, bool):
+        return isinstance(value, bool)
+    if isinstance(p.default, int):
+        return isinstance(value, int) and not isinstance(value, bool)
+    if isinstance(p.default, float):
+        return isinstance(value, float)
+    return isinstance(value, str)
+
+
+def install_parameter_guards(node, params: Sequence[Param], apply: Callable[[str, Any], None],
+                             on_reject: Callable[[str], None]) -> None:
+    """Run-time `set_parameters` handling for a node declared with `declare_all`.
+
+    A pre-set callback reports every change that will be refused (unknown name, read-only,
+    wrong type, out of range, not one of the choices) through `on_reject(reason)` (a log line
+    and a diagnostics count); rclpy itself refuses unknown names, read-only, type and range
+    violations, the on-set callback below refuses choice violations. Accepted values are
+    handed to `apply(name, value)`.
+    """
+    from rcl_interfaces.msg import SetParametersResult
+
+    table = {p.name: p for p in params}
+
+    def _pre(changes):
+        for c in changes:
+            p = table.get(c.name)
+            if p is None:
+                if c.name not in _BUILTIN_PARAMS and not c.name.startswith(_BUILTIN_PREFIXES):
+                    on_reject(f"unknown parameter {c.name!r}")
+            elif p.read_only:
+                on_reject(f"parameter {c.name} is read-only")
+            elif not _type_ok(p, c.value):
+                on_reject(f"{c.name}={c.value!r} is not a {p.type_name}")
+            else:
+                reason = p.check(c.value)
+                if reason:
+                    on_reject(reason)
+        return changes
+
+    def _on_set(changes):
+        for c in changes:
+            p = table.get(c.name)
+            reason = p.check(c.value) if p is not None else None
+            if reason:
+                return SetParametersResult(successful=False, reason=reason)
+        for c in changes:
+            if c.name in table:
+                apply(c.name, c.value)
+        return SetParametersResult(successful=True)
+
+    node.add_pre_set_parameters_callback(_pre)
+    node.add_on_set_parameters_callback(_on_set)
+
+
+class KeyThrottle:
+    """Log at most once per `period_s` per key (rclpy's throttling is per call site, which
+    would let one kind of bad input hide another)."""
+
+    def __init__(self, logger, period_s: float = 1.0):
+        self._logger, self._period = logger, period_s
+        self._last: dict[str, float] = {}
+        self._lock = threading.Lock()
+
+    def warning(self, key: str, message: str) -> None:
+        import time
+
+        now = time.monotonic()
+        with self._lock:
+            if now - self._last.get(key, -1e9) < self._period:
+                return
+            self._last[key] = now
+        self._logger.warning(message)
+
+
+class Percentiles:
+    """Rolling window of samples (e.g. latencies in seconds) with percentile read-out."""
+
+    def __init__(self, window: int = 2000):
+        self._buf: collections.deque[float] = collections.deque(maxlen=window)
+        self._lock = threading.Lock()
+        self.count = 0
+
+    def add(self, x: float) -> None:
+        with self._lock:
+            self._buf.append(float(x))
+            self.count += 1
+
+    def values(self) -> np.ndarray:
+        with self._lock:
+            return np.asarray(self._buf, np.float64)
+
+    def percentile(self, q: float) -> float:
+        v = self.values()
+        return float(np.percentile(v, q)) if v.size else float("nan")
+
+
+def make_status(name: str, hardware_id: str, values: dict[str, Any], level: str = "OK",
+                message: str = ""):
+    """DiagnosticStatus with KeyValue strings (floats with 6 significant digits)."""
+    from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+
+    def fmt(v: Any) -> str:
+        if isinstance(v, bool):
+            return str(v).lower()
+        if isinstance(v, float):
+            return f"{v:.6g}"
+        return str(v)
+
+    st = DiagnosticStatus()
+    st.level = {"OK": DiagnosticStatus.OK, "WARN": DiagnosticStatus.WARN,
+                "ERROR": DiagnosticStatus.ERROR, "STALE": DiagnosticStatus.STALE}[level]
+    st.name, st.hardware_id, st.message = name, hardware_id, message or level
+    st.values = [KeyValue(key=str(k), value=fmt(v)) for k, v in values.items()]
+    return st
+
+
+def diagnostics_dict(status) -> dict[str, str]:
+    return {kv.key: kv.value for kv in status.values}
+
+
+EXECUTORS = ("events", "single")
+
+
+def executor_param(default: str = "events") -> Param:
+    return Param("executor", default, "rclpy executor spinning the node's callbacks: events = "
+                 "rclpy.experimental.EventsExecutor (lower latency per callback), single = "
+                 "SingleThreadedExecutor (the classic wait-set executor).", choices=EXECUTORS)
+
+
+def make_executor(kind: str):
+    if kind == "events":
+        from rclpy.experimental import EventsExecutor
+
+        return EventsExecutor()
+    from rclpy.executors import SingleThreadedExecutor
+
+    return SingleThreadedExecutor()
+
+
+def run_node(make_node: Callable[[], Any], *, prog: str, description: str,
+             params: Iterable[Param], example: str, argv: Sequence[str] | None = None) -> int:
+    """main() of a protocad node; returns the exit code.
+
+    `make_node()` builds the node after rclpy.init (raise ConfigError for bad configuration).
+    The node may define `close()` (stop threads, flush) and `done` (threading.Event set when it
+    finished on its own, e.g. after max_episodes) and `exit_code`.
+    """
+    argv = list(sys.argv if argv is None else argv)
+    try:
+        import rclpy
+        import rclpy.logging
+        from rclpy.executors import ExternalShutdownException
+        from rclpy.signals import SignalHandlerOptions
+        from rclpy.utilities import remove_ros_args
+
+        parser = argparse.ArgumentParser(
+            prog=prog, description=description, epilog=help_epilog(list(params), example),
+            formatter_class=argparse.RawDescriptionHelpFormatter)
+        parser.parse_args(remove_ros_args(argv)[1:])   # --help / unknown plain args exit here
+
+        # Our own SIGINT/SIGTERM handlers (not rclpy's, which would shut the context down at
+        # once): the node then closes with a live context, so its last diagnostics and log
+        # lines still go out, and reliable readers get the last samples.
+        stop = threading.Event()
+
+        def _on_signal(signum, _frame):
+            if stop.is_set() and signum == signal.SIGINT:
+                raise KeyboardInterrupt   # a second Ctrl-C: stop waiting for a clean close
+            stop.set()
+
+        signal.signal(signal.SIGINT, _on_signal)
+        signal.signal(signal.SIGTERM, _on_signal)
+        rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    except KeyboardInterrupt:
+        return 0
+    log = rclpy.logging.get_logger(prog)
+    node = None
+    code = 0
+    try:
+        try:
+            node = make_node()
+        except ConfigError as e:
+            log.error(f"configuration error: {e}")
+            return 2
+        except (KeyboardInterrupt, ExternalShutdownException):
+            return 0
+        except Exception as e:
+            import traceback
+
+            log.error(f"could not start: {type(e).__name__}: {e}\n{traceback.format_exc()}")
+            return 1
+        executor = make_executor(getattr(node, "executor_kind", "single"))
+        executor.add_node(node)
+        done = getattr(node, "done", None) or threading.Event()
+        while rclpy.ok() and not done.is_set() and not stop.is_set():
+            executor.spin_once(timeout_sec=0.1)
+        code = int(getattr(node, "exit_code", 0))
+    except (KeyboardInterrupt, ExternalShutdownException):
+        code = 0
+    finally:
+        if node is not None:
+            try:
+                close = getattr(node, "close", None)
+                if close is not None:
+                    close()
+            except (Exception, KeyboardInterrupt) as e:  # never a traceback on the way out
+                print(f"[{prog}] error while shutting down: {e!r}", file=sys.stderr)
+            try:
+                node.destroy_node()
+            except Exception:
+                pass
+        try:
+            rclpy.try_shutdown()
+        except Exception:
+            pass
+    return code

@@ -1,0 +1,172 @@
+"""Test-side rclpy node for the node tests (tests/test_*node*.py, tests/test_ros_e2e.py).
+
+The probe lives in the pytest process, i.e. in a different process from the nodes under test,
+so everything it sends and receives crosses DDS (localhost only, the run's own domain; see
+conftest.py). It has its own rclpy Context, spun by a background thread.
+"""
+from __future__ import annotations
+
+import collections
+import threading
+import time
+from typing import Any, Callable
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from sensor_msgs.msg import Image, JointState
+
+from sim_bridge import qos, topics
+
+NS = topics.DEFAULT_NAMESPACE
+
+
+class Probe:
+    def __init__(self, name: str = "probe", namespace: str = NS):
+        self.ns = namespace
+        self.ctx = rclpy.Context()
+        rclpy.init(context=self.ctx)
+        self.node = Node(name, namespace=namespace, context=self.ctx)
+        self.executor = SingleThreadedExecutor(context=self.ctx)
+        self.executor.add_node(self.node)
+        self.lock = threading.Lock()
+        self.diag: dict[str, dict[str, str]] = {}
+        self._keep = []
+        self.sub_diag = self.node.create_subscription(
+            DiagnosticArray, topics.DIAGNOSTICS, self._on_diag, qos.diagnostics_qos())
+        self._thread = threading.Thread(target=self._spin, daemon=True)
+        self._thread.start()
+
+    def _spin(self) -> None:
+        try:
+            self.executor.spin()
+        except Exception:
+            pass
+
+    def _on_diag(self, msg) -> None:
+        with self.lock:
+            for st in msg.status:
+                self.diag[st.name] = {kv.key: kv.value for kv in st.values}
+
+    # -------------------------------------------------------------- helpers
+    def topic(self, rel: str, ns: str | None = None) -> str:
+        return topics.topic_name(self.ns if ns is None else ns, rel)
+
+    def record(self, rel: str, msgtype, qos_profile=None, ns: str | None = None) -> list:
+        """Subscribe and append every message to the returned list."""
+        box: list = []
+
+        def cb(msg):
+            with self.lock:
+                box.append(msg)
+
+        sub = self.node.create_subscription(msgtype, self.topic(rel, ns), cb,
+                                            qos_profile or qos.observation_qos())
+        self._keep.append(sub)
+        return _Recorded(box, sub)
+
+    def publisher(self, rel: str, msgtype, qos_profile=None, ns: str | None = None):
+        pub = self.node.create_publisher(msgtype, self.topic(rel, ns),
+                                         qos_profile or qos.action_qos())
+        self._keep.append(pub)
+        return pub
+
+    def node_diag(self, node: str) -> dict[str, str]:
+        """Latest diagnostics KeyValues of a node, by name ('sim_bridge' or '/ns/sim_bridge')."""
+        with self.lock:
+            for name, values in self.diag.items():
+                if name == node or name.rstrip("/").endswith("/" + node.lstrip("/")):
+                    return dict(values)
+        return {}
+
+    def counter(self, node: str, key: str) -> float:
+        v = self.node_diag(node).get(key)
+        return float(v) if v is not None else float("nan")
+
+    def close(self) -> None:
+        try:
+            self.executor.shutdown(timeout_sec=1.0)
+        except Exception:
+            pass
+        try:
+            self.node.destroy_node()
+        except Exception:
+            pass
+        rclpy.try_shutdown(context=self.ctx)
+        self._thread.join(5.0)
+
+
+class _Recorded(collections.UserList):
+    def __init__(self, box: list, sub):
+        super().__init__()
+        self.data = box
+        self.sub = sub
+
+    def matched(self) -> int:
+        return self.sub.get_publisher_count()
+
+
+class Responder:
+    """Answers every (image, step_info) pair with `policy(info: StepInfo) -> action` stamped
+    like the observation (a trivial stand-in for the policy node)."""
+
+    def __init__(self, probe: Probe, policy: Callable[[topics.StepInfo], Any] | None = None,
+                 names: list[str] | None = None, ns: str | None = None):
+        self.probe, self.policy, self.names = probe, policy, names
+        self.enabled = policy is not None
+        self.pending: dict[int, dict[str, Any]] = {}
+        self.answered: list[int] = []
+        self.received: list[tuple[str, int]] = []
+        self.steps: list[tuple[int, topics.StepInfo, bytes]] = []   # (stamp, info, image bytes)
+        self.pub = probe.publisher(topics.ACTION, JointState, ns=ns)
+        node = probe.node
+        self._subs = [
+            node.create_subscription(Image, probe.topic(topics.IMAGE, ns),
+                                     lambda m: self._on(m, "image"), qos.observation_qos()),
+            node.create_subscription(JointState, probe.topic(topics.STEP_INFO, ns),
+                                     lambda m: self._on(m, "info"), qos.observation_qos()),
+        ]
+
+    def ready(self) -> bool:
+        return all(s.get_publisher_count() > 0 for s in self._subs)
+
+    def _on(self, msg, kind: str) -> None:
+        stamp = topics.stamp_to_ns(msg.header.stamp)
+        with self.probe.lock:
+            self.received.append((kind, stamp))
+        entry = self.pending.setdefault(stamp, {})
+        entry[kind] = msg
+        if len(entry) < 2:
+            return
+        del self.pending[stamp]
+        info = topics.read_step_info(entry["info"])
+        with self.probe.lock:
+            self.steps.append((stamp, info, bytes(entry["image"].data)))
+        if not self.enabled:
+            return
+        action = np.asarray(self.policy(info), np.float64).reshape(-1)
+        names = self.names or [f"a{i}" for i in range(action.size)]
+        self.send(action, stamp, names)
+
+    def send(self, action, stamp: int, names: list[str] | None = None) -> None:
+        """Publish an action (any values, any names) stamped `stamp`."""
+        msg = JointState()
+        topics.set_stamp(msg.header.stamp, stamp)
+        msg.name = list(names if names is not None else
+                        self.names or [f"a{i}" for i in range(len(action))])
+        msg.effort = [float(v) for v in action]
+        self.pub.publish(msg)
+        with self.probe.lock:
+            self.answered.append(stamp)
+
+
+def wait_until(predicate, timeout: float, what: str, interval: float = 0.02):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        v = predicate()
+        if v:
+            return v
+        time.sleep(interval)
+    raise AssertionError(f"timed out after {timeout}s waiting for {what}")

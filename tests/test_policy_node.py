@@ -1,0 +1,237 @@
+"""The policy node as a real process, fed over DDS from this (separate) test process.
+
+Observations are hand-made here (no sim bridge), so the test controls stamps, order, duplicates
+and malformed input: wrong image size / encoding / truncated data, broken step_info. The node
+must stay up, count each kind on /diagnostics, answer every valid observation with exactly one
+action stamped like it, and swap in a newer checkpoint only at an episode boundary.
+"""
+from __future__ import annotations
+
+import os
+
+import numpy as np
+import pytest
+from sensor_msgs.msg import Image, JointState
+
+from ros_helpers import Probe, wait_until
+from sim_bridge import qos, topics
+from sim_bridge.contexts import TASKS
+
+TASK = "pendulum_swingup"
+START = 120.0   # torch import + model build on a loaded 2-core machine
+
+
+@pytest.fixture
+def probe():
+    p = Probe("policy_test_probe")
+    yield p
+    p.close()
+
+
+def policy_args(*params: str) -> list[str]:
+    args = ["-m", "protocad_ros.policy_node", "--ros-args", "-p", f"task:={TASK}",
+            "-p", "diagnostics_period_s:=0.1", "-p", "num_threads:=1"]
+    for p in params:
+        args += ["-p", p]
+    return args
+
+
+class Feeder:
+    """Publishes observations to the policy and collects its answers."""
+
+    def __init__(self, probe: Probe):
+        self.probe = probe
+        self.pub_image = probe.publisher(topics.IMAGE, Image, qos.observation_qos())
+        self.pub_info = probe.publisher(topics.STEP_INFO, JointState, qos.observation_qos())
+        self.actions = probe.record(topics.ACTION, JointState, qos.action_qos())
+        self.features = probe.record(topics.CONTEXT_FEATURES, JointState, qos.action_qos())
+        self.rng = np.random.default_rng(0)
+        self.images: dict[int, np.ndarray] = {}
+
+    def ready(self) -> bool:
+        return (self.pub_image.get_subscription_count() >= 1
+                and self.pub_info.get_subscription_count() >= 1
+                and self.actions.matched() >= 1 and self.features.matched() >= 1)
+
+    def image(self, stamp: int, img: np.ndarray | None = None) -> None:
+        if img is None:
+            img = self.images.get(stamp)
+        if img is None:
+            img = self.rng.integers(0, 256, (64, 64, 3), dtype=np.uint8)
+        self.images[stamp] = img
+        self.pub_image.publish(topics.fill_image(Image(), img, stamp))
+
+    def raw_image(self, stamp: int, h: int, w: int, encoding: str, data: bytes,
+                  step: int | None = None) -> None:
+        m = Image()
+        topics.set_stamp(m.header.stamp, stamp)
+        m.height, m.width, m.encoding = h, w, encoding
+        m.step = w * 3 if step is None else step
+        m.data = data
+        self.pub_image.publish(m)
+
+    def info(self, stamp: int, step: int, episode: int = 0, is_first: bool = False,
+             is_last: bool = False) -> None:
+        info = topics.StepInfo(0.0 if is_first else 0.5, 1.0, is_first, is_last, False,
+                               episode, step)
+        self.pub_info.publish(topics.fill_step_info(JointState(), info, stamp))
+
+    def obs(self, stamp: int, step: int, episode: int = 0, info_first: bool = False, **kw) -> None:
+        if info_first:
+            self.info(stamp, step, episode, **kw)
+            self.image(stamp)
+        else:
+            self.image(stamp)
+            self.info(stamp, step, episode, **kw)
+
+    def stamps(self) -> list[int]:
+        return [topics.stamp_to_ns(m.header.stamp) for m in list(self.actions)]
+
+    def wait_answers(self, n: int, what: str, timeout: float = 30.0) -> None:
+        wait_until(lambda: len(self.actions) >= n and len(self.features) >= n, timeout, what)
+
+
+def wait_exit(proc, timeout: float) -> int:
+    wait_until(lambda: not proc.alive(), timeout, f"{proc.args} to exit")
+    return proc.p.returncode
+
+
+def test_malformed_images_and_stamp_matching(spawn, probe):
+    f = Feeder(probe)
+    policy = spawn("policy", *policy_args())
+    wait_until(f.ready, START, "the policy's subscriptions and publishers to match")
+    node = "policy"
+    wait_until(lambda: probe.node_diag(node).get("agent") == "random", 30, "diagnostics")
+
+    f.obs(1_000, 0, is_first=True)                       # image, then step_info
+    f.wait_answers(1, "the answer to the first observation")
+    f.obs(2_000, 1, info_first=True)                     # step_info, then image
+    f.wait_answers(2, "the answer to the second observation")
+
+    # Malformed input (each with a valid partner, so only the bad half blocks the pair).
+    f.raw_image(3_000, 32, 32, "rgb8", bytes(32 * 32 * 3))
+    f.info(3_000, 2)
+    f.raw_image(4_000, 64, 64, "bgr8", bytes(64 * 64 * 3))
+    f.raw_image(4_500, 64, 64, "mono8", bytes(64 * 64), step=64)
+    f.info(4_000, 2)
+    f.raw_image(5_000, 64, 64, "rgb8", bytes(100))    # truncated
+    f.info(5_000, 2)
+    f.image(6_000)
+    bad = JointState()
+    topics.fill_named(bad, ["reward", "discount"], [1.0, 1.0], 6_000)   # lacks the flags/ids
+    f.pub_info.publish(bad)
+    wait_until(lambda: probe.counter(node, "images_rejected") == 4
+               and probe.counter(node, "step_info_rejected") == 1, 20, "rejection counters")
+    d = probe.node_diag(node)
+    assert (d["rejected_image_size"], d["rejected_image_encoding"], d["rejected_image_data"]) == (
+        "1", "2", "1"), d
+
+    f.obs(2_000, 1)                                      # the bridge's timeout republish
+    f.wait_answers(3, "the repeated answer")
+    f.obs(1_500, 1)                                      # older than the last answered
+    wait_until(lambda: probe.counter(node, "stale_observations") == 1, 20, "stale counter")
+    f.obs(7_000, 2)
+    f.obs(8_000, 3, is_last=True)
+    f.wait_answers(5, "answers after the bad input")
+    assert policy.alive()
+
+    assert f.stamps() == [1_000, 2_000, 2_000, 7_000, 8_000]
+    acts = [np.asarray(m.effort) for m in list(f.actions)]
+    assert all(list(m.name) == ["torque"] for m in list(f.actions))
+    assert all(a.shape == (1,) and np.all(np.abs(a) <= 1.0) for a in acts)
+    assert np.array_equal(acts[1], acts[2])               # same answer, not filtered twice
+    feats = [topics.read_context_features(m) for m in list(f.features)]
+    assert [topics.stamp_to_ns(m.header.stamp) for m in list(f.features)] == f.stamps()
+    K = TASKS[TASK].num_prototypes
+    for x in feats:
+        assert x["w"].shape == (K,) and x["u"].size > 0 and x["e"].shape == x["u"].shape
+        assert x["w"].sum() == pytest.approx(1.0, abs=1e-4)
+    wait_until(lambda: probe.counter(node, "observations_answered") == 4, 10, "answered count")
+    d = probe.node_diag(node)
+    assert d["duplicate_observations"] == "1" and d["checkpoint_updates"] == "-1"
+    p50, p99 = float(d["latency_ms_p50"]), float(d["latency_ms_p99"])
+    assert 0 < p50 <= p99
+    assert policy.stop() == 0
+    out = policy.log_path.read_text()
+    assert "RANDOMLY INITIALISED" in out and "Traceback" not in out
+
+
+def _save(path, updates: int, seed: int = 0):
+    from protocad_ros.agent import Agent
+    from protocad_ros.checkpoint import save_checkpoint
+    from protocad_ros.config import make_config
+
+    agent = Agent(make_config(TASK, "small", **{"train.seed": seed}), 1)
+    agent.updates.fill_(updates)
+    save_checkpoint(path, agent, counters={"env_steps": 100 * updates})
+    return agent
+
+
+def test_checkpoint_reload_between_episodes(spawn, probe, tmp_path):
+    from protocad_ros.policy import Policy
+
+    ckpt = tmp_path / "agent.pt"
+    _save(ckpt, 5, seed=1)
+    missing = spawn("missing", *policy_args(f"checkpoint:={tmp_path / 'nope.pt'}"))
+    f = Feeder(probe)
+    policy = spawn("policy", *policy_args(f"checkpoint:={ckpt}", "reload_poll_s:=0.1"))
+    assert wait_exit(missing, START) == 2
+    assert "does not exist" in missing.log_path.read_text()
+    wait_until(f.ready, START, "the policy to match")
+    node = "policy"
+    wait_until(lambda: probe.node_diag(node).get("checkpoint_updates") == "5", 30, "updates=5")
+    assert probe.node_diag(node)["checkpoint/env_steps"] == "500"
+
+    f.obs(10, 0, is_first=True)
+    f.obs(20, 1)
+    f.wait_answers(2, "episode 0")
+    new_agent = _save(ckpt, 7, seed=2)                   # the trainer writes a newer one
+    wait_until(lambda: probe.node_diag(node).get("pending_checkpoint_updates") == "7", 30,
+               "the new checkpoint to be loaded in the background")
+    f.obs(30, 2)                                         # same episode: still the old model
+    f.wait_answers(3, "episode 0, step 2")
+    assert probe.node_diag(node)["checkpoint_updates"] == "5"
+    episode1 = [(40, 0, True), (50, 1, False), (60, 2, False)]
+    for stamp, step, first in episode1:
+        f.obs(stamp, step, episode=1, is_first=first)
+    f.wait_answers(6, "episode 1")
+    wait_until(lambda: probe.node_diag(node).get("checkpoint_updates") == "7", 10, "updates=7")
+    assert probe.counter(node, "checkpoint_reloads") == 1
+    assert f.stamps() == [10, 20, 30, 40, 50, 60]        # no step dropped around the swap
+
+    # Episode 1 was served by exactly the new checkpoint (same filter, same actions).
+    ref = Policy(new_agent, mode="deterministic")
+    ref.reset()
+    prev = np.zeros(1, np.float32)
+    for (stamp, _, first), msg in zip(episode1, list(f.actions)[3:]):
+        a, _ = ref.act(f.images[stamp], prev, first)
+        np.testing.assert_allclose(np.asarray(msg.effort), a, atol=1e-5)
+        prev = a
+
+    # A corrupt file at the path: logged and counted, the node keeps serving updates=7.
+    tmp = tmp_path / "partial"
+    tmp.write_bytes(b"not a checkpoint at all")
+    os.replace(tmp, ckpt)
+    wait_until(lambda: probe.counter(node, "checkpoint_load_errors") == 1, 30, "load error")
+    f.obs(70, 3, episode=1)
+    f.obs(80, 0, episode=2, is_first=True)
+    f.wait_answers(8, "answers after the corrupt checkpoint")
+    assert probe.node_diag(node)["checkpoint_updates"] == "7"
+    assert policy.alive() and policy.stop() == 0
+    out = policy.log_path.read_text()
+    assert "cannot load checkpoint" in out and "now serving checkpoint" in out
+    assert "Traceback" not in out
+
+    corrupt = spawn("corrupt", *policy_args(f"checkpoint:={ckpt}"))
+    assert wait_exit(corrupt, START) == 2
+    assert "cannot load checkpoint" in corrupt.log_path.read_text()
+
+
+def test_docs_cover_every_parameter_and_counter():
+    from pathlib import Path
+
+    from protocad_ros.policy_node import COUNTERS, PARAMS
+
+    doc = (Path(__file__).resolve().parents[1] / "msgs_docs" / "policy.md").read_text()
+    missing = [n for n in [p.name for p in PARAMS] + list(COUNTERS) if f"`{n}`" not in doc]
+    assert not missing, f"msgs_docs/policy.md does not document {missing}"

@@ -1,0 +1,259 @@
+"""The sim-bridge node as a real process, driven over DDS from this (separate) test process.
+
+Lock-step determinism, the action contract (reject / clip / stale / duplicate, counted on
+/diagnostics), the timeout rule, run-time parameters, the reset service, /clock, real-time mode
+holding the latest action, and clean exits. Behaviour and counts only: no timing asserts.
+"""
+from __future__ import annotations
+
+import hashlib
+import math
+
+import pytest
+from rclpy.parameter import Parameter
+from rclpy.parameter_client import AsyncParameterClient
+from rosgraph_msgs.msg import Clock
+from sensor_msgs.msg import JointState
+from std_srvs.srv import Trigger
+
+from ros_helpers import Probe, Responder, wait_until
+from sim_bridge import qos, topics
+
+TASK = "pendulum_swingup"
+START = 90.0   # generous: first start on a loaded 2-core machine (imports, EGL, discovery)
+
+
+@pytest.fixture
+def probe():
+    p = Probe("bridge_test_probe")
+    yield p
+    p.close()
+
+
+def bridge_args(*params: str, ns: str | None = None) -> list[str]:
+    args = ["-m", "sim_bridge.node", "--ros-args", "-p", f"task:={TASK}",
+            "-p", "diagnostics_period_s:=0.1"]
+    for p in params:
+        args += ["-p", p]
+    if ns:
+        args += ["-r", f"__ns:={ns}"]
+    return args
+
+
+def wait_exit(proc, timeout: float) -> int:
+    wait_until(lambda: not proc.alive(), timeout, f"{proc.args} to exit")
+    return proc.p.returncode
+
+
+def wait_counter(probe: Probe, node: str, key: str, value: float, timeout: float = 20.0):
+    wait_until(lambda: probe.counter(node, key) == value, timeout,
+               f"{node} diagnostics {key} == {value} (now {probe.counter(node, key)})")
+
+
+def digest(steps) -> list[tuple]:
+    return [(stamp, info.reward, info.discount, info.is_first, info.is_last, info.is_terminal,
+             info.episode, info.step, hashlib.sha1(img).hexdigest()) for stamp, info, img in steps]
+
+
+def test_help_and_configuration_errors(spawn):
+    h = spawn("help", "-m", "sim_bridge.node", "--help")
+    assert wait_exit(h, 60) == 0
+    out = h.output()
+    for name in ("task", "split", "seed", "mode", "control_rate_hz", "render_quality",
+                 "episode_length", "action_repeat", "lockstep_timeout_s", "max_episodes",
+                 "--ros-args", "__ns"):
+        assert name in out, name
+    bad_task = spawn("bad_task", *bridge_args("task:=no_such_task"))
+    bad_range = spawn("bad_range", *bridge_args("seed:=-1"))
+    bad_mode = spawn("bad_mode", *bridge_args("mode:=fast"))
+    for proc, words in ((bad_task, ["no_such_task", "walker_walk"]), (bad_range, ["seed", "range"]),
+                        (bad_mode, ["mode", "lockstep"])):
+        assert wait_exit(proc, 60) == 2, proc.output()
+        out = proc.output()
+        assert "configuration error" in out and all(w in out for w in words), out
+        assert "Traceback" not in out
+
+
+def test_lockstep_is_deterministic_given_the_seed(spawn, probe):
+    """Two bridges with seed 3 (own namespaces, concurrently) produce identical streams; seed 4
+    differs. Each runs 2 episodes of 8 steps, every observation answered exactly once."""
+    runs = {"/det_a": 3, "/det_b": 3, "/det_c": 4}
+    responders, contexts, procs = {}, {}, {}
+    for ns, seed in runs.items():
+        responders[ns] = Responder(probe, lambda info: [math.sin(0.7 * info.step)],
+                                   names=["torque"], ns=ns)
+        contexts[ns] = probe.record(topics.CONTEXT, JointState, ns=ns)
+        procs[ns] = spawn(ns.strip("/"), *bridge_args(
+            f"seed:={seed}", "episode_length:=8", "max_episodes:=2",
+            ns=ns))
+    for ns, proc in procs.items():
+        assert wait_exit(proc, START) == 0, proc.output()
+        assert "Traceback" not in proc.output()
+    streams = {ns: digest(r.steps) for ns, r in responders.items()}
+    ctx = {ns: [(topics.stamp_to_ns(m.header.stamp), topics.read_context(m)) for m in box]
+           for ns, box in contexts.items()}
+    a = streams["/det_a"]
+    assert len(a) == 2 * 9                              # 2 episodes x (is_first + 8 steps)
+    assert a == streams["/det_b"] and ctx["/det_a"] == ctx["/det_b"]
+    assert a != streams["/det_c"]
+    # Stamps: sim time from 0 in control_dt (40 ms for pendulum at action_repeat 2) steps,
+    # never rewinding across the reset; ids and flags follow the Dreamer convention.
+    dt = 40_000_000
+    assert [s[0] for s in a] == [i * dt for i in range(len(a))]
+    assert [(s[6], s[7]) for s in a] == [(e, t) for e in range(2) for t in range(9)]
+    assert [s[3] for s in a] == [t == 0 for _ in range(2) for t in range(9)]
+    assert [s[4] for s in a] == [t == 8 for _ in range(2) for t in range(9)]
+    assert a[0][1] == 0.0                               # no reward on is_first
+    # The context topic carries the same stamps, one context per episode.
+    assert [c[0] for c in ctx["/det_a"]] == [s[0] for s in a]
+    per_episode = {s[6]: c[1] for s, c in zip(a, ctx["/det_a"])}
+    assert all(split == "train" and set(c) == {"m"} for c, split in per_episode.values())
+    # Each observation answered once; the answer to is_last is never executed.
+    for ns, r in responders.items():
+        assert sorted(r.answered) == sorted(set(r.answered)) == [s[0] for s in r.steps]
+
+
+def test_malformed_actions_timeouts_parameters_and_reset(spawn, probe):
+    from sim_bridge.envs import ContextDMCEnv
+
+    r = Responder(probe, None, names=["torque"])          # answers only when told to
+    clock = probe.record(topics.CLOCK, Clock, qos.clock_qos())
+    bridge = spawn("bridge", *bridge_args("seed:=5", "episode_length:=20",
+                                          "lockstep_timeout_s:=60.0", "bogus_param:=1"))
+    wait_until(lambda: len(r.steps) >= 1, START, "the first observation")
+    s0, info0, img0 = r.steps[0]
+    assert info0.is_first and s0 == 0
+
+    nan, inf = float("nan"), float("inf")
+    r.send([0.1, 0.2], s0, names=["a", "b"])            # wrong length
+    r.send([nan], s0)                                     # NaN
+    r.send([inf], s0)                                     # inf
+    r.send([-inf], s0)
+    r.send([0.1, 0.2], s0, names=["torque"])            # names/effort disagree
+    r.send([0.0], s0 + 1)                                 # answers no observation
+    node = "sim_bridge"
+    wait_counter(probe, node, "actions_rejected", 6)
+    d = probe.node_diag(node)
+    assert (d["rejected_wrong_length"], d["rejected_nonfinite"], d["rejected_malformed"],
+            d["rejected_stale_stamp"]) == ("1", "3", "1", "1"), d
+    assert d["steps"] == "0" and len(r.steps) == 1        # none of them was executed
+    assert bridge.alive()
+
+    r.send([5.0], s0)                                     # out of bounds: clipped to 1.0
+    wait_until(lambda: len(r.steps) >= 2, 20, "the second observation")
+    r.send([0.0], s0)                                     # already answered
+    wait_counter(probe, node, "rejected_duplicate", 1)
+    d = probe.node_diag(node)
+    assert (d["actions_clipped"], d["actions_accepted"], d["steps"]) == ("1", "1", "1"), d
+    s1, info1, img1 = r.steps[1]
+    assert s1 == 40_000_000 and info1.step == 1 and not info1.is_first
+    # Clipping, checked against the same env stepped here with the clipped action.
+    with ContextDMCEnv(TASK, seed=5, time_limit=40) as env:
+        o0 = env.reset()
+        assert o0.image.tobytes() == img0
+        o1 = env.step([1.0])
+        assert o1.image.tobytes() == img1 and o1.reward == pytest.approx(info1.reward)
+
+    # Run-time parameters: ranges, read-only and unknown names are refused.
+    client = AsyncParameterClient(probe.node, "/protocad/sim_bridge")
+    assert client.wait_for_services(20.0)
+
+    def set_param(name, value) -> bool:
+        fut = client.set_parameters([Parameter(name, value=value)])
+        wait_until(fut.done, 10, f"set {name}")
+        return fut.result().results[0].successful
+
+    assert not set_param("lockstep_timeout_s", -1.0)
+    assert not set_param("seed", 7)
+    assert not set_param("no_such_parameter", 1)
+    assert not set_param("control_rate_hz", "fast")
+    assert set_param("lockstep_timeout_s", 0.3)
+    wait_counter(probe, node, "parameters_rejected", 4)
+    assert probe.node_diag(node)["unknown_parameters"] == "1"          # bogus_param at start
+
+    # Timeout rule: no answer -> the same observation again (same stamp, same bytes), counted.
+    wait_until(lambda: len(r.steps) >= 3, 20, "a republished observation")
+    assert r.steps[2][0] == s1 and r.steps[2][2] == img1 and r.steps[2][1] == info1
+    wait_until(lambda: probe.counter(node, "lockstep_timeouts") >= 1, 10, "lockstep_timeouts")
+    assert set_param("lockstep_timeout_s", 60.0)
+
+    # Reset service: ends episode 0 at once; the next observation is episode 1's first.
+    cli = probe.node.create_client(Trigger, "/protocad/reset")
+    assert cli.wait_for_service(timeout_sec=10.0)
+    n = len(r.steps)
+    fut = cli.call_async(Trigger.Request())
+    wait_until(fut.done, 20, "the reset service")
+    assert fut.result().success, fut.result().message
+    assert "episode 1 started" in fut.result().message
+    wait_until(lambda: any(i.is_first and i.episode == 1 for _, i, _ in r.steps[n:]), 20,
+               "episode 1's first observation")
+    s2, info2, _ = next(x for x in r.steps[n:] if x[1].is_first)
+    assert (info2.episode, info2.step, info2.reward) == (1, 0, 0.0) and s2 > s1
+    r.send([0.0], s1)                                     # answers the abandoned observation
+    wait_counter(probe, node, "rejected_stale_stamp", 2)
+    r.send([0.0], s2)
+    wait_until(lambda: r.steps[-1][1].step == 1 and r.steps[-1][1].episode == 1, 20,
+               "episode 1 step 1")
+    wait_counter(probe, node, "resets_requested", 1)
+
+    # /clock follows the observation stamps (sim time), never rewinding.
+    clock_ns = [topics.stamp_to_ns(m.clock) for m in list(clock)]
+    assert clock_ns == sorted(clock_ns)
+    assert {s for s, _, _ in r.steps} <= set(clock_ns)
+    assert bridge.alive()
+    assert bridge.stop() == 0
+    out = bridge.log_path.read_text()
+    assert "Traceback" not in out and "stopped:" in out
+    assert "unknown parameter 'bogus_param' ignored" in out
+
+
+def test_realtime_holds_the_latest_action(spawn, probe):
+    from sim_bridge.envs import ContextDMCEnv
+
+    r = Responder(probe, None, names=["torque"])
+    bridge = spawn("bridge_rt", *bridge_args("mode:=realtime", "control_rate_hz:=50",
+                                             "seed:=9", "episode_length:=400"))
+    # Steps without any policy: zeros are held before the first action.
+    wait_until(lambda: len(r.steps) >= 10, START, "10 real-time observations")
+    k_sent = len(r.steps) - 1
+    r.send([1.0], r.steps[k_sent][0])
+    wait_until(lambda: len(r.steps) >= k_sent + 30, 30, "30 more observations")
+    r.send([-1.0], r.steps[2][0])                         # late, and older than the held one
+    r.send([0.5], 10**15)                                 # answers nothing ever published
+    wait_until(lambda: probe.counter("sim_bridge", "rejected_stale_stamp") == 1, 10,
+               "the unknown stamp to be rejected")
+    late = probe.counter("sim_bridge", "late_actions")
+    assert late >= 1                                      # at least the [-1.0] one
+    d = probe.node_diag("sim_bridge")
+    assert d["mode"] == "realtime" and float(d["control_rate_hz"]) == 50.0
+    assert bridge.stop() == 0                             # SIGINT: clean exit
+    assert "Traceback" not in bridge.log_path.read_text()
+
+    steps = list(r.steps)
+    stamps = [s for s, _, _ in steps]
+    assert stamps == [i * 40_000_000 for i in range(len(steps))]   # no gaps, no repeats
+    images = [img for _, _, img in steps]
+
+    def rollout(switch: int) -> list[bytes]:
+        """Zeros until observation `switch`, then 1.0 held (the late -1.0 never applied)."""
+        with ContextDMCEnv(TASK, seed=9, time_limit=800) as env:
+            out = [env.reset().image.tobytes()]
+            for i in range(1, len(steps)):
+                out.append(env.step([0.0] if i <= switch else [1.0]).image.tobytes())
+        return out
+
+    zeros = rollout(len(steps))
+    first_diff = next(i for i in range(len(steps)) if zeros[i] != images[i])
+    assert first_diff > k_sent                            # nothing applied before it was sent
+    # The action took effect at some tick after it was sent and was held from then on.
+    assert any(rollout(sw) == images for sw in reversed(range(k_sent, first_diff)))
+
+
+def test_docs_cover_every_parameter_and_counter():
+    from pathlib import Path
+
+    from sim_bridge.node import COUNTERS, PARAMS
+
+    doc = (Path(__file__).resolve().parents[1] / "msgs_docs" / "sim_bridge.md").read_text()
+    missing = [n for n in [p.name for p in PARAMS] + list(COUNTERS) if f"`{n}`" not in doc]
+    assert not missing, f"msgs_docs/sim_bridge.md does not document {missing}"
