@@ -40,6 +40,7 @@ INSTALL_REQUIRES = [
     "pyyaml>=6.0",
     "tqdm>=4.66",
     "scikit-learn>=1.4",
+    "pillow>=10.1",
 ]
 
 setup(

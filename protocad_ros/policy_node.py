@@ -30,6 +30,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.node import Node
 from sensor_msgs.msg import Image, JointState
 
+from protocad_ros.live_view import LiveView
 from sim_bridge import qos, topics
 from sim_bridge.contexts import TASKS
 from sim_bridge.rosnode import (ConfigError, KeyThrottle, Param, Percentiles, declare_all,
@@ -66,6 +67,12 @@ PARAMS: tuple[Param, ...] = (
     Param("num_threads", 0, "torch intra-op threads (0 = torch's default).", range=(0, 1024)),
     Param("diagnostics_period_s", 1.0, "Period of /diagnostics.", range=(0.05, 3600.0),
           units="s"),
+    Param("rerun_mode", "off", "Live rerun stream of image, u/w/e, assignment, action and "
+          "reward on the sim_time timeline: off, spawn (local viewer), connect (to rerun_url), "
+          "save (to rerun_path).", choices=("off", "spawn", "connect", "save")),
+    Param("rerun_url", "", "connect mode: gRPC url of a running viewer ('' = "
+          "rerun+http://127.0.0.1:9876/proxy, what a plain `rerun` listens on)."),
+    Param("rerun_path", "", "save mode: the .rrd file to write (completed at shutdown)."),
     executor_param(),
 )
 
@@ -176,6 +183,13 @@ class PolicyNode(Node):
         self.action_names = names if len(names) == self.action_dim else [
             f"a{i}" for i in range(self.action_dim)]
         self.policy.reset()
+        try:
+            self.live_view = LiveView.from_params(p["rerun_mode"], p["rerun_url"],
+                                                  p["rerun_path"], action_names=self.action_names)
+        except ValueError as e:
+            raise ConfigError(f"rerun: {e}") from None
+        if self.live_view.enabled:
+            self.add_act_callback(self.live_view.on_act)
 
         # Per-episode filter state (the RSSM state itself lives in self.policy).
         self._prev_action = np.zeros(self.action_dim, np.float32)
@@ -426,6 +440,7 @@ class PolicyNode(Node):
         self._stop.set()
         if self._watcher is not None:
             self._watcher.join(timeout=5.0)
+        self.live_view.close()
         try:
             self._publish_diagnostics()
         except Exception:

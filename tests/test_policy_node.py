@@ -235,3 +235,24 @@ def test_docs_cover_every_parameter_and_counter():
     doc = (Path(__file__).resolve().parents[1] / "msgs_docs" / "policy.md").read_text()
     missing = [n for n in [p.name for p in PARAMS] + list(COUNTERS) if f"`{n}`" not in doc]
     assert not missing, f"msgs_docs/policy.md does not document {missing}"
+
+
+def test_live_rerun_stream_saved_by_the_node(spawn, probe, tmp_path):
+    from trainer.rerun_log import read_recording
+
+    rrd = tmp_path / "live.rrd"
+    f = Feeder(probe)
+    policy = spawn("policy", *policy_args("rerun_mode:=save", f"rerun_path:={rrd}"))
+    wait_until(f.ready, START, "the policy to match")
+    for step, stamp in enumerate((1_000, 2_000, 3_000)):
+        f.obs(stamp, step, is_first=step == 0)
+    f.wait_answers(3, "answers with the live view on")
+    assert policy.stop() == 0
+    rec = read_recording(rrd)
+    for path in ("/policy/image", "/policy/assignment", "/policy/action", "/policy/reward"):
+        assert path in rec, f"{path} missing; have {sorted(rec)}"
+    assert sorted(rec["/policy/image"]["columns"]["sim_time"]) == [1_000, 2_000, 3_000]
+
+    bad = spawn("bad", *policy_args("rerun_mode:=save"))    # save mode without a path
+    assert wait_exit(bad, START) == 2
+    assert "configuration error" in bad.log_path.read_text()
