@@ -19,7 +19,12 @@ import shutil
 import sys
 from pathlib import Path
 
-SUBSET = __doc__.split("\n\n")[1]
+SUBSET = """\
+    ros2 run [--prefix CMD] PKG EXECUTABLE [ARGS...]
+    ros2 pkg list
+    ros2 pkg executables [PKG]
+    ros2 pkg prefix PKG
+"""
 
 
 def _real_ros2() -> list[str] | None:
