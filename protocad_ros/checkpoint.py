@@ -1,0 +1,204 @@
+"""Agent checkpoints: one file, versioned, written atomically, loaded without pickle code.
+
+    save_checkpoint("runs/x/agent.pt", agent, counters={"env_steps": 12000})
+    agent, counters = load_checkpoint("runs/x/agent.pt", device="cpu")
+
+File = torch.save of one dict (tensors, numbers, strings, lists and dicts only, so it loads with
+torch.load(weights_only=True)):
+    format "protocad-ros/agent-checkpoint", version 1, config (Config.to_dict()), action_dim,
+    modules (agent.state_dict(): world model, context module, actor, critic, slow critic,
+    update counter), optimizers (world_model / actor / critic state dicts), agent_counters,
+    counters (the caller's: env steps, episodes, ...), torch_rng (optional).
+A `config.yaml` with the same config is written beside the file (for humans and tools).
+
+Writes go to a temporary file in the same directory, are flushed and fsync'ed, and replace the
+target with os.replace: a crash leaves either the old or the new checkpoint, never half of one.
+Every failure to read (truncated/corrupt, not ours, other version, config or action size that
+does not fit) is a CheckpointError that says which file and what is wrong.
+"""
+from __future__ import annotations
+
+import io
+import os
+import tempfile
+import time
+import zipfile
+from pathlib import Path
+from typing import Any, Mapping
+
+import torch
+
+from .agent import Agent
+from .config import Config, ConfigError
+
+__all__ = ["save_checkpoint", "load_checkpoint", "restore_checkpoint", "read_checkpoint",
+           "CheckpointError", "FORMAT", "VERSION", "CONFIG_NAME"]
+
+FORMAT = "protocad-ros/agent-checkpoint"
+VERSION = 1
+CONFIG_NAME = "config.yaml"
+
+
+class CheckpointError(RuntimeError):
+    """A checkpoint that cannot be used: corrupt/truncated, foreign, or incompatible."""
+
+
+def _fsync_dir(path: Path) -> None:
+    try:
+        fd = os.open(path, os.O_RDONLY)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
+
+
+def save_checkpoint(path: str | os.PathLike, agent: Agent, counters: Mapping[str, Any] | None = None,
+                    rng_state: bool = False) -> Path:
+    """Write the agent (config, weights, optimizer states, counters) to `path` atomically,
+    and its config to `config.yaml` beside it. Returns the path."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    counters = dict(counters or {})
+    for k, v in counters.items():
+        if not isinstance(v, (int, float, str, bool)):
+            raise TypeError(f"counter {k!r} must be a number or string, got {type(v).__name__}")
+    payload = {
+        "format": FORMAT,
+        "version": VERSION,
+        "created_unix": time.time(),
+        "config": agent.cfg.to_dict(),
+        "action_dim": agent.action_dim,
+        "modules": agent.state_dict(),
+        "optimizers": {k: opt.state_dict() for k, opt in agent.optimizers().items()},
+        "agent_counters": agent.counters(),
+        "counters": counters,
+    }
+    if rng_state:
+        payload["torch_rng"] = torch.get_rng_state()
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(payload, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    _fsync_dir(path.parent)
+    agent.cfg.save(path.parent / CONFIG_NAME)
+    return path
+
+
+def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
+    """The raw checkpoint dict (tensors on CPU), after format and version checks."""
+    path = Path(path)
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no such checkpoint file")
+    data = path.read_bytes()
+    if not data:
+        raise CheckpointError(f"{path}: empty file (an interrupted write?)")
+    if not zipfile.is_zipfile(io.BytesIO(data)):
+        kind = "truncated or corrupt" if data[:4] == b"PK\x03\x04" else "not a checkpoint"
+        raise CheckpointError(f"{path}: {kind}: not a complete torch.save archive")
+    try:
+        payload = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
+    except Exception as err:  # noqa: BLE001 - any unpickling failure means an unusable file
+        raise CheckpointError(f"{path}: corrupt or foreign checkpoint: cannot be loaded with "
+                              f"weights_only=True ({type(err).__name__}: {err})") from None
+    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
+        what = payload.get("format") if isinstance(payload, dict) else type(payload).__name__
+        raise CheckpointError(f"{path}: not a protocad-ros agent checkpoint (format {what!r}, "
+                              f"expected {FORMAT!r})")
+    version = payload.get("version")
+    if version != VERSION:
+        raise CheckpointError(f"{path}: checkpoint format version {version!r} is not supported "
+                              f"by this code (version {VERSION})")
+    for key in ("config", "action_dim", "modules", "optimizers"):
+        if key not in payload:
+            raise CheckpointError(f"{path}: checkpoint is missing {key!r}")
+    return payload
+
+
+def _config(path: Path, payload: Mapping[str, Any]) -> Config:
+    try:
+        return Config.from_dict(payload["config"])
+    except ConfigError as err:
+        raise CheckpointError(f"{path}: incompatible config in checkpoint: {err}") from None
+
+
+def _load_into(path: Path, agent: Agent, payload: Mapping[str, Any]) -> dict[str, Any]:
+    try:
+        agent.load_state_dict(payload["modules"], strict=True)
+    except (RuntimeError, KeyError) as err:
+        raise CheckpointError(f"{path}: weights do not fit this agent (config "
+                              f"{agent.cfg.variant}/{agent.cfg.preset}): {err}") from None
+    opts = agent.optimizers()
+    if set(payload["optimizers"]) != set(opts):
+        raise CheckpointError(f"{path}: optimizer states {sorted(payload['optimizers'])} do not "
+                              f"match {sorted(opts)}")
+    for name, opt in opts.items():
+        try:
+            opt.load_state_dict(payload["optimizers"][name])
+        except (ValueError, KeyError, RuntimeError) as err:
+            raise CheckpointError(f"{path}: {name} optimizer state does not fit: {err}") from None
+    if "torch_rng" in payload:
+        torch.set_rng_state(payload["torch_rng"])
+    return dict(payload.get("counters", {}))
+
+
+def load_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu",
+                    action_dim: int | None = None) -> tuple[Agent, dict[str, Any]]:
+    """Rebuild the agent from a checkpoint. Returns (agent, counters).
+
+    action_dim, if given, must match the checkpoint's (e.g. the environment's).
+    """
+    path = Path(path)
+    payload = read_checkpoint(path)
+    cfg = _config(path, payload)
+    ckpt_dim = int(payload["action_dim"])
+    if action_dim is not None and int(action_dim) != ckpt_dim:
+        raise CheckpointError(f"{path}: checkpoint was trained with action_dim={ckpt_dim}, "
+                              f"but action_dim={action_dim} was requested")
+    agent = Agent(cfg, ckpt_dim, device=device)
+    counters = _load_into(path, agent, payload)
+    return agent, counters
+
+
+def restore_checkpoint(path: str | os.PathLike, agent: Agent) -> dict[str, Any]:
+    """Load a checkpoint into an existing agent (e.g. a policy node reloading new weights).
+
+    The checkpoint's config must describe the same networks (variant, sizes, action_dim);
+    training-only fields (learning rates, batch size, ...) may differ.
+    """
+    path = Path(path)
+    payload = read_checkpoint(path)
+    cfg = _config(path, payload)
+    if int(payload["action_dim"]) != agent.action_dim:
+        raise CheckpointError(f"{path}: checkpoint action_dim={payload['action_dim']} but the "
+                              f"agent has action_dim={agent.action_dim}")
+    mine, theirs = agent.cfg.to_dict(), cfg.to_dict()
+    diffs = [f"{sec}.{k}: {mine[sec][k]!r} != {theirs[sec][k]!r}"
+             for sec in ("world_model", "context") for k in mine[sec]
+             if mine[sec][k] != theirs[sec][k] and k in _ARCH_KEYS[sec]]
+    if mine["variant"] != theirs["variant"]:
+        diffs.insert(0, f"variant: {mine['variant']!r} != {theirs['variant']!r}")
+    diffs += [f"behavior.{k}: {mine['behavior'][k]!r} != {theirs['behavior'][k]!r}"
+              for k in _ARCH_KEYS["behavior"] if mine["behavior"][k] != theirs["behavior"][k]]
+    if diffs:
+        raise CheckpointError(f"{path}: checkpoint does not fit this agent: " + "; ".join(diffs))
+    return _load_into(path, agent, payload)
+
+
+# Config fields that change the networks' shapes (the rest may differ on restore).
+_ARCH_KEYS = {
+    "world_model": {"deter", "hidden", "stoch", "discrete", "cnn", "cnn_depth", "mlp_layers",
+                    "mlp_units", "act", "norm", "gru_norm", "discount_head"},
+    "context": {"num_prototypes", "proto_dim", "dreamerpro_num_prototypes"},
+    "behavior": {"actor_layers", "actor_units", "critic_layers", "critic_units", "act", "norm",
+                 "actor_dist"},
+}

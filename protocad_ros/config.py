@@ -1,0 +1,414 @@
+"""One typed configuration tree for the ProtoCAD agent and its baselines (pure Python, no ROS).
+
+Defaults are the paper's hyperparameter tables (ProtoCAD, ICLR 2023, appendix "Hyperparameters",
+Tables `hyperpara` and `setting_k`).  Where the paper says "we use the default values suggested
+in the config file in the official implementation of DreamerPro", the value is DreamerPro's
+`dmc` config (DreamerV2 base, fdeng18/dreamer-pro DreamerPro/dreamerv2/configs.yaml) and the
+comment next to the field says so ("DreamerPro dmc").
+
+    cfg = make_config("walker_walk", preset="paper", variant="protocad",
+                      **{"train.batch_size": 8, "world_model.deter": 128})
+    cfg.save("run/config.yaml"); cfg2 = Config.load("run/config.yaml")
+
+Presets: 'paper' (the paper/DreamerPro sizes), 'small' (CPU-sized, for quick runs and tests),
+'dreamerv3_sizes' (NM512/dreamerv3-torch dmc_vision sizes: 512 units, 32x32 discrete latents,
+CNN depth 32, batch 16 x 64; used by scripts/bench_train.py --dreamerv3-sizes).
+Unknown keys are rejected everywhere (overrides, from_dict, load) with the list of valid keys.
+"""
+from __future__ import annotations
+
+import dataclasses
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping
+
+import yaml
+
+VARIANTS = ("protocad", "dreamer", "dreamerpro", "dreamer_context", "no_projection",
+            "no_temporal_consistency")
+PRESETS = ("paper", "small", "dreamerv3_sizes")
+
+# Paper Table `setting_k` (K per task); used only if sim_bridge.contexts is not importable.
+PAPER_NUM_PROTOTYPES = {
+    "cheetah_run": 100, "finger_spin": 100, "hopper_hop": 50, "hopper_stand": 100,
+    "pendulum_swingup": 100, "quadruped_run": 100, "walker_run": 50, "walker_walk": 100,
+}
+
+# What each variant feeds the decoder / actor / critic (x_t); the reward head always reads s_t.
+#   's' = RSSM state (h, z), 'u' = projection embedding, 'e' = aggregated prototype.
+VARIANT_FEATURES = {
+    "protocad": ("s", "u", "e"),              # paper eq. 6: x = (s, u, e)
+    "dreamer": ("s",),                        # Dreamer: no context module
+    "dreamerpro": ("s",),                     # DreamerPro: prototypes only as a repr. loss
+    "dreamer_context": ("s", "u"),            # Dreamer + TC-SwAV projection, no aggregation
+    "no_projection": ("s", "e"),              # ablation "w/o Projection": x = (s, e)
+    "no_temporal_consistency": ("s", "u", "e"),  # ablation: in-place SwAV instead of TC-SwAV
+}
+
+
+class ConfigError(ValueError):
+    """A configuration key or value that does not fit the tree (message lists valid keys)."""
+
+
+@dataclass
+class WorldModelConfig:
+    # RSSM sizes: DreamerPro dmc (rssm: {hidden: 200, deter: 200, discrete: False}, stoch 32).
+    deter: int = 200
+    hidden: int = 200
+    stoch: int = 32
+    # 0 = continuous Gaussian latents (DreamerPro dmc); >0 = `stoch` categoricals with this many
+    # classes each (DreamerV2 Atari / DreamerV3: 32 x 32), straight-through + unimix.
+    discrete: int = 0
+    unimix: float = 0.01           # DreamerV3: 1% uniform mix in categorical latents
+    std_act: str = "sigmoid2"      # DreamerPro rssm.std_act
+    min_std: float = 0.1           # DreamerPro rssm.min_std
+    gru_norm: bool = True          # DreamerV2/DreamerPro GRUCell(norm=True), update bias -1
+    # Conv encoder/decoder: DreamerPro encoder depth 48, kernels 4 (stride 2, 'valid'),
+    # DreamerV2 decoder kernels 5, 5, 6, 6. 'dreamerv3' = stride-2 kernel-4 'same' convs down to
+    # 4x4 (NM512/dreamerv3-torch, minres 4).
+    cnn: str = "dreamerv2"
+    cnn_depth: int = 48
+    # Heads (reward, discount): DreamerPro reward_head {layers: 4, units: 400, act: elu}.
+    mlp_layers: int = 4
+    mlp_units: int = 400
+    act: str = "elu"               # DreamerPro act: elu
+    norm: str = "none"             # 'none' | 'layer' (LayerNorm in MLPs/CNN, DreamerV3 style)
+    # KL: DreamerPro kl {balance: 0.8, free: 1.0 (dmc), free_avg: True, forward: False}.
+    kl_balance: float = 0.8
+    kl_free: float = 1.0
+    kl_free_avg: bool = True
+    kl_scale: float = 1.0          # DreamerPro loss_scales.kl (beta of eq. 2)
+    image_scale: float = 1.0
+    reward_scale: float = 1.0
+    # DMC has no terminal states: DreamerPro dmc pred_discount False.
+    discount_head: bool = False
+    discount_scale: float = 1.0
+    # Optimiser: paper lr 3e-4 (= DreamerPro model_opt {lr 3e-4, eps 1e-5, clip 100, wd 1e-6}).
+    lr: float = 3e-4
+    eps: float = 1e-5
+    grad_clip: float = 100.0
+    weight_decay: float = 1e-6
+
+
+@dataclass
+class ContextConfig:
+    # Paper Table `hyperpara`: D = 32, T = 0.1, SK-itr 3, SK-eps 0.05, eta 0.05; K per task.
+    num_prototypes: int = 100      # K (Table setting_k; make_config sets it per task)
+    proto_dim: int = 32
+    temperature: float = 0.1
+    sinkhorn_iters: int = 3
+    # Paper value. DreamerPro overrides this to 0.0125 for DMC; keep configurable.
+    sinkhorn_eps: float = 0.05
+    ema: float = 0.05              # eta, target-projector momentum fraction (full copy first)
+    freeze_prototypes_updates: int = 10000  # DreamerPro freeze_prototypes_iters
+    drop_first_steps: int = 1      # DreamerPro rssm.warm_up: first step out of the SwAV scores
+    swav_scale: float = 1.0        # DreamerPro loss_scales.swav
+    aug_pad: int = 3               # DreamerPro aug.max_delta: random shift +-3 px, bilinear
+    # DreamerPro baseline only (variant 'dreamerpro'): its own K and extra loss scales.
+    dreamerpro_num_prototypes: int = 2500  # DreamerPro rssm.num_prototypes
+    dreamerpro_temp_scale: float = 1.0     # DreamerPro loss_scales.temp
+    dreamerpro_norm_scale: float = 1.0     # DreamerPro loss_scales.norm
+
+
+@dataclass
+class BehaviorConfig:
+    horizon: int = 15              # paper H
+    discount: float = 0.99         # paper gamma
+    lambda_: float = 0.95          # DreamerPro discount_lambda
+    # Actor: the DreamerV2 dmc actor (trunc-normal in [-1, 1], min_std 0.1; 'tanh_normal' is
+    # DreamerV1's and the default written in DreamerPro's configs.yaml).
+    actor_dist: str = "trunc_normal"
+    actor_min_std: float = 0.1
+    actor_init_std: float = 0.0
+    actor_layers: int = 4          # DreamerPro actor {layers: 4, units: 400, act: elu}
+    actor_units: int = 400
+    critic_layers: int = 4         # DreamerPro critic {layers: 4, units: 400, act: elu}
+    critic_units: int = 400
+    act: str = "elu"
+    norm: str = "none"
+    actor_grad: str = "dynamics"   # DreamerPro dmc: backprop through the model
+    actor_grad_mix: float = 0.1    # only for actor_grad='both'
+    actor_entropy: float = 1e-4    # DreamerPro dmc actor_ent
+    # Paper lr 8e-5 for actor and critic (= DreamerPro dmc); eps/clip/wd: DreamerPro *_opt.
+    actor_lr: float = 8e-5
+    critic_lr: float = 8e-5
+    eps: float = 1e-5
+    grad_clip: float = 100.0
+    weight_decay: float = 1e-6
+    slow_critic: bool = True       # DreamerPro slow_target
+    slow_critic_update: int = 100  # DreamerPro slow_target_update (hard copy every 100 updates)
+    slow_critic_fraction: float = 1.0
+
+
+@dataclass
+class TrainConfig:
+    batch_size: int = 16           # paper B (as in Dreamer)
+    seq_len: int = 50              # paper M
+    action_repeat: int = 2         # paper A
+    prefill_episodes: int = 2      # paper N (random seed episodes)
+    collect_interval: int = 100    # paper C (updates per collected episode)
+    expl_noise: float = 0.0        # DreamerPro expl_noise (actions are sampled from the actor)
+    eval_noise: float = 0.0
+    time_limit: int = 1000         # env steps per episode (DreamerPro dmc time_limit)
+    image_size: int = 64
+    # 'float32', or 'bfloat16' autocast (mixed precision; DreamerPro trains with precision 16,
+    # DreamerV3 with bf16).  Losses, KL and distributions are always computed in float32.
+    precision: str = "float32"
+    device: str = "cpu"
+    seed: int = 0
+
+
+@dataclass
+class Config:
+    task: str = "pendulum_swingup"
+    variant: str = "protocad"
+    preset: str = "paper"
+    world_model: WorldModelConfig = field(default_factory=WorldModelConfig)
+    context: ContextConfig = field(default_factory=ContextConfig)
+    behavior: BehaviorConfig = field(default_factory=BehaviorConfig)
+    train: TrainConfig = field(default_factory=TrainConfig)
+
+    # ---- derived ------------------------------------------------------------------------------
+    @property
+    def features(self) -> tuple[str, ...]:
+        """Parts of x_t for this variant, e.g. ('s', 'u', 'e')."""
+        return VARIANT_FEATURES[self.variant]
+
+    @property
+    def uses_context(self) -> bool:
+        """True for variants with ProtoCAD's ContextModule (projector + prototypes + TC-SwAV)."""
+        return self.variant in ("protocad", "dreamer_context", "no_projection",
+                                "no_temporal_consistency")
+
+    @property
+    def uses_augmentation(self) -> bool:
+        return self.variant != "dreamer"
+
+    @property
+    def uses_decoder(self) -> bool:
+        return self.variant != "dreamerpro"  # DreamerPro is reconstruction-free
+
+    # ---- serialisation -------------------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> "Config":
+        """Inverse of to_dict. Missing keys take defaults; unknown keys raise ConfigError."""
+        if not isinstance(d, Mapping):
+            raise ConfigError(f"config must be a mapping, got {type(d).__name__}")
+        cfg = _build(cls, d, "")
+        cfg.validate()
+        return cfg
+
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write YAML atomically (tmp file in the same directory + fsync + os.replace)."""
+        path = Path(path)
+        path.parent.mkdir(parents=True, exist_ok=True)
+        text = yaml.safe_dump(self.to_dict(), sort_keys=False)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        try:
+            with os.fdopen(fd, "w") as f:
+                f.write(text)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
+        return path
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> "Config":
+        with open(path) as f:
+            d = yaml.safe_load(f)
+        try:
+            return cls.from_dict(d or {})
+        except ConfigError as err:
+            raise ConfigError(f"{path}: {err}") from None
+
+    def replace(self, **overrides: Any) -> "Config":
+        """A copy with dotted-key overrides applied ('train.batch_size'=8)."""
+        cfg = Config.from_dict(self.to_dict())
+        apply_overrides(cfg, overrides)
+        return cfg
+
+    def validate(self) -> None:
+        def check(ok: bool, msg: str) -> None:
+            if not ok:
+                raise ConfigError(msg)
+        check(self.variant in VARIANTS, f"unknown variant {self.variant!r}; valid: {VARIANTS}")
+        check(self.preset in PRESETS, f"unknown preset {self.preset!r}; valid: {PRESETS}")
+        wm, ctx, bh, tr = self.world_model, self.context, self.behavior, self.train
+        check(wm.cnn in ("dreamerv2", "dreamerv3"), f"world_model.cnn must be 'dreamerv2' or "
+              f"'dreamerv3', got {wm.cnn!r}")
+        check(wm.norm in ("none", "layer"), f"world_model.norm must be 'none'|'layer'")
+        check(bh.norm in ("none", "layer"), f"behavior.norm must be 'none'|'layer'")
+        check(wm.discrete >= 0 and wm.stoch > 0 and wm.deter > 0 and wm.hidden > 0,
+              "world_model sizes must be positive (discrete >= 0)")
+        check(0.0 <= wm.kl_balance <= 1.0, "world_model.kl_balance must be in [0, 1]")
+        check(bh.actor_dist in ("trunc_normal", "tanh_normal"),
+              f"behavior.actor_dist must be 'trunc_normal'|'tanh_normal', got {bh.actor_dist!r}")
+        check(bh.actor_grad in ("dynamics", "reinforce", "both"),
+              f"behavior.actor_grad must be 'dynamics'|'reinforce'|'both'")
+        check(bh.horizon >= 1, "behavior.horizon must be >= 1")
+        check(tr.precision in ("float32", "bfloat16"),
+              f"train.precision must be 'float32'|'bfloat16', got {tr.precision!r}")
+        check(tr.image_size == 64, "only 64x64 images are supported (train.image_size=64)")
+        check(tr.batch_size >= 1 and tr.seq_len >= 2, "train.batch_size >= 1, seq_len >= 2")
+        if self.variant != "dreamer":
+            # SwAV scores drop the first steps and TC-SwAV needs two halves of >= 1 step.
+            check(tr.seq_len - ctx.drop_first_steps >= 2,
+                  f"train.seq_len={tr.seq_len} too short for the SwAV loss "
+                  f"(drop_first_steps={ctx.drop_first_steps})")
+            check(ctx.num_prototypes >= 1 and ctx.proto_dim >= 1, "context sizes must be >= 1")
+            check(0.0 < ctx.ema <= 1.0, "context.ema must be in (0, 1]")
+
+
+# ------------------------------------------------------------------------------------------------
+# Presets and construction
+# ------------------------------------------------------------------------------------------------
+_PRESET_OVERRIDES: dict[str, dict[str, Any]] = {
+    "paper": {},
+    # CPU preset: ~1/4 of the paper's widths, 2-layer heads, batch 16 x 32. About 0.1-0.2 s per
+    # update on 2 cores, so a 10-minute run gets a few thousand updates.
+    "small": {
+        "world_model.deter": 128, "world_model.hidden": 128, "world_model.stoch": 16,
+        "world_model.cnn_depth": 16, "world_model.mlp_layers": 2, "world_model.mlp_units": 128,
+        "behavior.actor_layers": 2, "behavior.actor_units": 128,
+        "behavior.critic_layers": 2, "behavior.critic_units": 128,
+        "train.batch_size": 16, "train.seq_len": 32,
+    },
+    # NM512/dreamerv3-torch `dmc_vision` sizes (configs.yaml defaults): dyn_deter/dyn_hidden/units
+    # 512, 32 x 32 discrete latents with 1% unimix, CNN depth 32 with minres 4, 2-layer heads,
+    # SiLU + LayerNorm, batch 16 x 64, horizon 15. bfloat16 autocast: danijar/dreamerv3 computes
+    # in bf16 by default (dreamerv3-torch in float32); on CPUs with AVX512-BF16 it is ~3x faster.
+    "dreamerv3_sizes": {
+        "train.precision": "bfloat16",
+        "world_model.deter": 512, "world_model.hidden": 512, "world_model.stoch": 32,
+        "world_model.discrete": 32, "world_model.unimix": 0.01, "world_model.cnn": "dreamerv3",
+        "world_model.cnn_depth": 32, "world_model.mlp_layers": 2, "world_model.mlp_units": 512,
+        "world_model.act": "silu", "world_model.norm": "layer",
+        "behavior.actor_layers": 2, "behavior.actor_units": 512,
+        "behavior.critic_layers": 2, "behavior.critic_units": 512,
+        "behavior.act": "silu", "behavior.norm": "layer",
+        "train.batch_size": 16, "train.seq_len": 64,
+    },
+}
+
+
+def task_num_prototypes(task: str) -> int:
+    """K for a task: sim_bridge.contexts.TASKS[task].num_prototypes, else the paper table."""
+    try:
+        from sim_bridge.contexts import TASKS  # pure data module, no ROS import
+    except ImportError:
+        TASKS = None
+    if TASKS is not None and task in TASKS:
+        return int(TASKS[task].num_prototypes)
+    if task in PAPER_NUM_PROTOTYPES:
+        return PAPER_NUM_PROTOTYPES[task]
+    valid = sorted(TASKS) if TASKS is not None else sorted(PAPER_NUM_PROTOTYPES)
+    raise ConfigError(f"unknown task {task!r}; valid tasks: {valid}")
+
+
+def make_config(task: str = "pendulum_swingup", preset: str = "paper",
+                variant: str = "protocad", **overrides: Any) -> Config:
+    """The config for (task, preset, variant) with dotted-key overrides applied last.
+
+    make_config("cheetah_run", "small", "dreamer", **{"train.batch_size": 8})
+    K (context.num_prototypes) comes from the task table unless overridden.
+    """
+    if preset not in PRESETS:
+        raise ConfigError(f"unknown preset {preset!r}; valid: {PRESETS}")
+    if variant not in VARIANTS:
+        raise ConfigError(f"unknown variant {variant!r}; valid: {VARIANTS}")
+    cfg = Config(task=task, variant=variant, preset=preset)
+    cfg.context.num_prototypes = task_num_prototypes(task)
+    apply_overrides(cfg, _PRESET_OVERRIDES[preset])
+    apply_overrides(cfg, overrides)
+    cfg.validate()
+    return cfg
+
+
+def apply_overrides(cfg: Config, overrides: Mapping[str, Any]) -> Config:
+    """Set 'section.field' (or top-level 'field') keys in place, with type checks."""
+    for key, value in overrides.items():
+        parts = key.split(".")
+        obj: Any = cfg
+        for i, name in enumerate(parts):
+            fields = {f.name: f for f in dataclasses.fields(obj)}
+            if name not in fields:
+                prefix = ".".join(parts[:i])
+                valid = sorted(fields) if not prefix else [f"{prefix}.{n}" for n in sorted(fields)]
+                raise ConfigError(f"unknown config key {key!r}; valid keys here: {valid}")
+            if i == len(parts) - 1:
+                f = fields[name]
+                if dataclasses.is_dataclass(getattr(obj, name)):
+                    if not isinstance(value, Mapping):
+                        raise ConfigError(f"{key!r} is a section; give 'section.field' keys")
+                    apply_overrides(getattr(obj, name), value)
+                else:
+                    setattr(obj, name, _coerce(value, f.type, key, getattr(obj, name)))
+            else:
+                obj = getattr(obj, name)
+                if not dataclasses.is_dataclass(obj):
+                    raise ConfigError(f"unknown config key {key!r}: {name!r} is not a section")
+    if isinstance(cfg, Config):
+        cfg.validate()
+    return cfg
+
+
+def _coerce(value: Any, type_name: Any, key: str, current: Any) -> Any:
+    """Check/convert a leaf value to the field's type (annotations are strings here)."""
+    t = type_name if isinstance(type_name, str) else getattr(type_name, "__name__", str(type_name))
+    try:
+        if t == "bool":
+            if isinstance(value, bool):
+                return value
+            if isinstance(value, str) and value.lower() in ("true", "false", "1", "0"):
+                return value.lower() in ("true", "1")
+            if isinstance(value, int) and value in (0, 1):
+                return bool(value)
+            raise TypeError
+        if t == "int":
+            if isinstance(value, bool):
+                raise TypeError
+            if isinstance(value, float) and not value.is_integer():
+                raise TypeError
+            return int(value)
+        if t == "float":
+            if isinstance(value, bool):
+                raise TypeError
+            return float(value)
+        if t == "str":
+            if not isinstance(value, str):
+                raise TypeError
+            return value
+    except (TypeError, ValueError):
+        raise ConfigError(f"config key {key!r} expects {t}, got {value!r}") from None
+    return value
+
+
+def _build(cls: type, d: Mapping[str, Any], prefix: str) -> Any:
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    unknown = sorted(set(d) - set(fields))
+    if unknown:
+        where = f" in section {prefix.rstrip('.')!r}" if prefix else ""
+        raise ConfigError(f"unknown config key(s) {[prefix + k for k in unknown]}{where}; "
+                          f"valid: {sorted(fields)}")
+    kwargs = {}
+    default = cls()
+    for name, f in fields.items():
+        if name not in d:
+            continue
+        value = d[name]
+        sub = getattr(default, name)
+        if dataclasses.is_dataclass(sub):
+            if not isinstance(value, Mapping):
+                raise ConfigError(f"config section {prefix + name!r} must be a mapping")
+            kwargs[name] = _build(type(sub), value, f"{prefix}{name}.")
+        else:
+            kwargs[name] = _coerce(value, f.type, prefix + name, sub)
+    return cls(**kwargs)

@@ -1,0 +1,233 @@
+#!/usr/bin/env python3
+"""Benchmark: seconds per training update (world model + behaviour) and peak memory.
+
+Every configuration runs in a fresh subprocess, so its peak RSS (resource.getrusage
+ru_maxrss, which includes the Python/torch baseline) is its own; on CUDA the table also shows
+torch.cuda.max_memory_allocated. Batches are random uint8 frames of the configured size (the
+cost of an update does not depend on pixel values); the first `--warmup` updates (oneDNN/cuDNN
+kernel selection, allocator growth) are not timed but do count for peak memory.
+
+    python scripts/bench_train.py                       # paper + small presets, CPU
+    python scripts/bench_train.py --dreamerv3-sizes     # + dreamer at dreamerv3-torch sizes
+    python scripts/bench_train.py --device cuda --dreamerv3-sizes
+    python scripts/bench_train.py --only-dreamerv3 --profile   # + top ops from torch.profiler
+
+Acceptance reference (issue #4): NM512/dreamerv3-torch dmc_vision on this 2-core machine takes
+7.2 s per update and 6.1 GB; our dreamer variant at those sizes must take <= 3.6 s, <= 3.05 GB.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import resource
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+BASELINE_V3 = {"sec": 7.2, "rss_gb": 6.1}  # dreamerv3-torch dmc_vision, this machine
+
+
+def _cpu_model() -> str:
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "unknown CPU"
+
+
+# ---- worker (one configuration, in its own process) ---------------------------------------------
+def worker(spec: dict) -> dict:
+    import numpy as np
+    import torch
+
+    torch.set_num_threads(spec["threads"])
+    sys.path.insert(0, str(ROOT))
+    from protocad_ros.agent import Agent
+    from protocad_ros.config import make_config
+
+    rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    overrides = dict(spec["overrides"])
+    if spec.get("precision"):
+        overrides["train.precision"] = spec["precision"]
+    cfg = make_config(spec["task"], spec["preset"], spec["variant"], **overrides)
+    A = 6
+    agent = Agent(cfg, A, device=spec["device"])
+    B, T = cfg.train.batch_size, cfg.train.seq_len
+    rng = np.random.default_rng(0)
+    batch = {"image": rng.integers(0, 256, (B, T, 64, 64, 3), dtype=np.uint8),
+             "action": rng.uniform(-1, 1, (B, T, A)).astype(np.float32),
+             "reward": rng.uniform(0, 1, (B, T)).astype(np.float32),
+             "discount": np.ones((B, T), np.float32), "is_first": np.zeros((B, T), bool)}
+    batch["is_first"][:, 0] = True
+    cuda = agent.device.type == "cuda"
+    sync = torch.cuda.synchronize if cuda else (lambda: None)
+    if cuda:
+        torch.cuda.reset_peak_memory_stats()
+    for _ in range(spec["warmup"]):
+        agent.train_step(batch)
+    sync()
+    wm_t, beh_t, tot_t = [], [], []
+    for _ in range(spec["updates"]):
+        t0 = time.perf_counter()
+        start, _ = agent.train_world_model(batch)
+        sync()
+        t1 = time.perf_counter()
+        agent.train_behavior(start)
+        agent.updates += 1
+        del start
+        sync()
+        t2 = time.perf_counter()
+        wm_t.append(t1 - t0)
+        beh_t.append(t2 - t1)
+        tot_t.append(t2 - t0)
+    out = {
+        "sec": float(np.mean(tot_t)), "sec_min": float(np.min(tot_t)),
+        "wm_sec": float(np.mean(wm_t)), "beh_sec": float(np.mean(beh_t)),
+        "rss_gb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e9,
+        "rss_base_gb": rss0 * 1024 / 1e9,
+        "params_m": sum(p.numel() for p in agent.parameters()) / 1e6,
+        "batch": f"{B}x{T}", "horizon": cfg.behavior.horizon,
+    }
+    if cuda:
+        out["cuda_gb"] = torch.cuda.max_memory_allocated() / 1e9
+    if spec.get("profile"):
+        from torch.profiler import ProfilerActivity, profile
+
+        acts = [ProfilerActivity.CPU] + ([ProfilerActivity.CUDA] if cuda else [])
+        with profile(activities=acts) as prof:
+            t0 = time.perf_counter()
+            start, _ = agent.train_world_model(batch)
+            sync()
+            t1 = time.perf_counter()
+            agent.train_behavior(start)
+            sync()
+            t2 = time.perf_counter()
+        sort = "self_cuda_time_total" if cuda else "self_cpu_time_total"
+        out["profile"] = (f"profiled update: world model {t1 - t0:.2f} s, behaviour "
+                          f"{t2 - t1:.2f} s\n" + prof.key_averages().table(sort_by=sort,
+                                                                            row_limit=20))
+    return out
+
+
+# ---- driver -------------------------------------------------------------------------------------
+def run_spec(spec: dict, timeout: float) -> dict:
+    cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", json.dumps(spec)]
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT),
+                                                                      os.environ.get("PYTHONPATH")]))}
+    try:
+        p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env)
+    except subprocess.TimeoutExpired:
+        return {"error": f"timed out after {timeout:.0f} s"}
+    if p.returncode != 0:
+        return {"error": (p.stderr.strip().splitlines() or ["?"])[-1]}
+    return json.loads(p.stdout.strip().splitlines()[-1])
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter,
+                                 epilog=__doc__.split("\n\n", 1)[1])
+    ap.add_argument("--device", default="cpu", help="cpu or cuda (default cpu)")
+    ap.add_argument("--presets", nargs="+", default=["paper", "small"],
+                    choices=["paper", "small"], help="presets to time (default both)")
+    ap.add_argument("--variants", nargs="+", default=["protocad", "dreamer"],
+                    help="variants to time at each preset (default protocad dreamer)")
+    ap.add_argument("--precision", nargs="+", default=["float32"],
+                    choices=["float32", "bfloat16"], help="precisions for the preset rows")
+    ap.add_argument("--dreamerv3-sizes", action="store_true",
+                    help="also time the dreamer variant at NM512/dreamerv3-torch dmc_vision "
+                         "sizes (512 units, 32x32 discrete, CNN depth 32, batch 16x64, H 15), "
+                         "in float32 and bfloat16 autocast")
+    ap.add_argument("--only-dreamerv3", action="store_true",
+                    help="only the --dreamerv3-sizes rows")
+    ap.add_argument("--updates", type=int, default=3, help="timed updates per config")
+    ap.add_argument("--warmup", type=int, default=1, help="untimed updates first")
+    ap.add_argument("--threads", type=int, default=os.cpu_count(),
+                    help="torch threads (default: all cores)")
+    ap.add_argument("--task", default="cheetah_run", help="task (sets K; default cheetah_run)")
+    ap.add_argument("--profile", action="store_true",
+                    help="print the top ops of one profiled update per config")
+    ap.add_argument("--timeout", type=float, default=1800, help="seconds per config")
+    ap.add_argument("--json", type=Path, help="also write the results here")
+    ap.add_argument("--worker", help=argparse.SUPPRESS)
+    args = ap.parse_args(argv)
+    if args.worker:
+        print(json.dumps(worker(json.loads(args.worker))))
+        return 0
+
+    def _interrupt(signum, frame):  # SIGTERM -> KeyboardInterrupt, so subprocess.run kills
+        raise KeyboardInterrupt  # the running worker instead of orphaning it
+
+    signal.signal(signal.SIGTERM, _interrupt)
+    specs = []
+    common = {"task": args.task, "device": args.device, "threads": args.threads,
+              "updates": args.updates, "warmup": args.warmup, "profile": args.profile}
+    if not args.only_dreamerv3:
+        for preset in args.presets:
+            for variant in args.variants:
+                for prec in args.precision:
+                    specs.append({**common, "name": f"{preset}/{variant}", "preset": preset,
+                                  "variant": variant, "precision": prec, "overrides": {}})
+    if args.dreamerv3_sizes or args.only_dreamerv3:
+        for prec in ("bfloat16", "float32"):
+            specs.append({**common, "name": "dreamerv3-sizes/dreamer", "preset": "dreamerv3_sizes",
+                          "variant": "dreamer", "precision": prec, "overrides": {}})
+
+    import torch
+    print(f"machine: {_cpu_model()}, {os.cpu_count()} cores, torch {torch.__version__}, "
+          f"threads {args.threads}, device {args.device}"
+          + (f" ({torch.cuda.get_device_name()})" if args.device.startswith("cuda")
+             and torch.cuda.is_available() else ""))
+    load = os.getloadavg()
+    print(f"load average before: {' '.join(f'{x:.2f}' for x in load)}")
+    if args.device == "cpu" and load[0] + args.threads > (os.cpu_count() or 1) + 0.5:
+        print(f"WARNING: the machine is busy (load {load[0]:.1f} on {os.cpu_count()} cores): the "
+              f"figures below are slower than on an idle machine"
+              + (f"; with {args.threads} threads, OpenMP barriers also wait for descheduled "
+                 f"threads (often several times slower): compare with --threads 1."
+                 if args.threads > 1 else "."))
+    head = (f"{'config':26} {'precision':9} {'batch':>6} {'params':>7} {'s/update':>9} "
+            f"{'min':>6} {'wm s':>6} {'beh s':>6} {'peak RSS':>9}")
+    cuda = args.device.startswith("cuda")
+    if cuda:
+        head += f" {'CUDA peak':>9}"
+    print(head)
+    print("-" * len(head))
+    results = []
+    for spec in specs:
+        r = run_spec(spec, args.timeout)
+        results.append({**spec, **r})
+        if "error" in r:
+            print(f"{spec['name']:26} {spec['precision']:9} ERROR: {r['error']}")
+            continue
+        line = (f"{spec['name']:26} {spec['precision']:9} {r['batch']:>6} {r['params_m']:6.1f}M "
+                f"{r['sec']:9.3f} {r['sec_min']:6.2f} {r['wm_sec']:6.2f} {r['beh_sec']:6.2f} "
+                f"{r['rss_gb']:7.2f}GB")
+        if cuda:
+            line += f" {r.get('cuda_gb', 0):7.2f}GB"
+        print(line, flush=True)
+        if r.get("profile"):
+            print(r["profile"])
+    print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    v3 = [r for r in results if r.get("preset") == "dreamerv3_sizes" and "error" not in r]
+    for r in v3:
+        ok = r["sec"] <= BASELINE_V3["sec"] / 2 and r["rss_gb"] <= BASELINE_V3["rss_gb"] / 2
+        print(f"dreamerv3-sizes {r['precision']}: {BASELINE_V3['sec'] / r['sec']:.2f}x faster, "
+              f"{BASELINE_V3['rss_gb'] / r['rss_gb']:.2f}x less memory than dreamerv3-torch "
+              f"({BASELINE_V3['sec']} s, {BASELINE_V3['rss_gb']} GB): target "
+              f"{'met' if ok else 'NOT met'} (<= {BASELINE_V3['sec'] / 2} s, "
+              f"<= {BASELINE_V3['rss_gb'] / 2} GB)")
+    if args.json:
+        args.json.write_text(json.dumps(results, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,216 @@
+"""Agent checkpoints: round trip (same actions, optimizer state, counters), atomic writes, and
+clear CheckpointErrors for truncated, corrupt, foreign and incompatible files."""
+from __future__ import annotations
+
+import os
+import zipfile
+
+import numpy as np
+import pytest
+import torch
+
+from protocad_ros import checkpoint as ckpt_mod
+from protocad_ros.agent import Agent
+from protocad_ros.checkpoint import (CONFIG_NAME, CheckpointError, load_checkpoint,
+                                     read_checkpoint, restore_checkpoint, save_checkpoint)
+from protocad_ros.config import Config, make_config
+from protocad_ros.policy import Policy
+
+T = 8
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def tiny(variant="protocad", **kw):
+    over = {"world_model.deter": 32, "world_model.hidden": 32, "world_model.stoch": 8,
+            "world_model.cnn_depth": 8, "world_model.mlp_layers": 1, "world_model.mlp_units": 32,
+            "behavior.actor_layers": 1, "behavior.actor_units": 32, "behavior.critic_layers": 1,
+            "behavior.critic_units": 32, "behavior.horizon": 3, "train.batch_size": 2,
+            "train.seq_len": T, "context.num_prototypes": 8}
+    over.update(kw)
+    return make_config("cheetah_run", "small", variant, **over)
+
+
+@pytest.fixture(scope="module")
+def frames():
+    """Real cheetah frames (2 sequences x T steps) with the random actions that produced them."""
+    from sim_bridge.envs import ContextDMCEnv
+
+    rng = np.random.default_rng(0)
+    env = ContextDMCEnv("cheetah_run", seed=1)
+    batch = {"image": np.zeros((2, T, 64, 64, 3), np.uint8),
+             "action": np.zeros((2, T, 6), np.float32), "reward": np.zeros((2, T), np.float32),
+             "discount": np.ones((2, T), np.float32), "is_first": np.zeros((2, T), bool)}
+    try:
+        for b in range(2):
+            obs = env.reset()
+            batch["image"][b, 0], batch["is_first"][b, 0] = obs.image, True
+            for t in range(1, T):
+                a = rng.uniform(-1, 1, 6).astype(np.float32)
+                obs = env.step(a)
+                batch["image"][b, t], batch["action"][b, t] = obs.image, a
+                batch["reward"][b, t] = obs.reward
+    finally:
+        env.close()
+    return batch
+
+
+@pytest.fixture(scope="module")
+def trained(frames):
+    agent = Agent(tiny(), action_dim=6)
+    for _ in range(2):
+        agent.train_step(frames)
+    return agent
+
+
+def _actions(agent, frames, mode="deterministic"):
+    policy = Policy(agent, mode=mode, seed=7)
+    out = []
+    for t in range(T):
+        a, f = policy.act(frames["image"][0, t], frames["action"][0, t], t == 0)
+        out.append(np.concatenate([a, f.u, f.w, f.e]))
+    return np.stack(out)
+
+
+def test_round_trip_same_actions_and_state(tmp_path, trained, frames):
+    path = save_checkpoint(tmp_path / "agent.pt", trained, counters={"env_steps": 1234,
+                                                                    "run": "x"})
+    assert (tmp_path / CONFIG_NAME).is_file()
+    assert Config.load(tmp_path / CONFIG_NAME) == trained.cfg
+    agent, counters = load_checkpoint(path)
+    assert counters == {"env_steps": 1234, "run": "x"}
+    assert agent.counters() == trained.counters() == {"updates": 2}
+    for mode in ("deterministic", "sample"):
+        assert np.array_equal(_actions(agent, frames, mode), _actions(trained, frames, mode))
+    for name, opt in trained.optimizers().items():
+        mine, theirs = opt.state_dict(), agent.optimizers()[name].state_dict()
+        assert mine["param_groups"] == theirs["param_groups"]
+        for k, st in mine["state"].items():
+            assert torch.equal(st["exp_avg"], theirs["state"][k]["exp_avg"])
+    # Training continues identically from the checkpoint (same RNG, same states).
+    torch.manual_seed(5)
+    m1 = trained.train_step(frames)
+    torch.manual_seed(5)
+    m2 = agent.train_step(frames)
+    assert m1["wm_loss"] == pytest.approx(m2["wm_loss"], rel=1e-5)
+    # Policy.from_checkpoint works on the file too.
+    policy = Policy.from_checkpoint(path)
+    a, _ = policy.act(frames["image"][0, 0], np.zeros(6), True)
+    assert a.shape == (6,)
+
+
+def test_file_is_weights_only_loadable(tmp_path, trained):
+    path = save_checkpoint(tmp_path / "a.pt", trained, rng_state=True)
+    payload = torch.load(path, weights_only=True)
+    assert payload["format"] == ckpt_mod.FORMAT and payload["version"] == ckpt_mod.VERSION
+    assert payload["action_dim"] == 6 and payload["config"]["variant"] == "protocad"
+    assert set(payload["optimizers"]) == {"world_model", "actor", "critic"}
+    assert "torch_rng" in payload
+
+
+def test_failed_write_leaves_old_file_intact(tmp_path, trained, monkeypatch, frames):
+    path = save_checkpoint(tmp_path / "agent.pt", trained, counters={"v": 1})
+    old = path.read_bytes()
+
+    def broken_save(obj, f, *a, **kw):
+        f.write(b"PK\x03\x04 half a checkpoint")
+        raise OSError("disk full")
+
+    monkeypatch.setattr(ckpt_mod.torch, "save", broken_save)
+    with pytest.raises(OSError, match="disk full"):
+        save_checkpoint(path, trained, counters={"v": 2})
+    monkeypatch.undo()
+    assert path.read_bytes() == old
+    assert sorted(os.listdir(tmp_path)) == sorted([CONFIG_NAME, "agent.pt"])  # no temp file
+    assert load_checkpoint(path)[1] == {"v": 1}
+
+
+def test_truncated_and_corrupt_files(tmp_path, trained):
+    path = save_checkpoint(tmp_path / "agent.pt", trained)
+    data = path.read_bytes()
+    for n in (0, 10, len(data) // 2, len(data) - 100):
+        bad = tmp_path / f"trunc{n}.pt"
+        bad.write_bytes(data[:n])
+        with pytest.raises(CheckpointError, match=r"trunc\d+\.pt: (empty|truncated|corrupt)"):
+            load_checkpoint(bad)
+    # A complete archive whose pickle is damaged.
+    bad = tmp_path / "corrupt.pt"
+    with zipfile.ZipFile(path) as zin, zipfile.ZipFile(bad, "w") as zout:
+        for item in zin.infolist():
+            blob = zin.read(item.filename)
+            if item.filename.endswith("data.pkl"):
+                blob = b"\x80\x02garbage" + blob[10:]
+            zout.writestr(item, blob)
+    with pytest.raises(CheckpointError, match="corrupt"):
+        load_checkpoint(bad)
+    with pytest.raises(CheckpointError, match="no such"):
+        load_checkpoint(tmp_path / "missing.pt")
+
+
+def test_foreign_files(tmp_path):
+    text = tmp_path / "notes.pt"
+    text.write_text("hello, not a checkpoint\n")
+    with pytest.raises(CheckpointError, match="not a checkpoint"):
+        load_checkpoint(text)
+    other = tmp_path / "other.pt"
+    torch.save({"state_dict": {"w": torch.zeros(3)}}, other)
+    with pytest.raises(CheckpointError, match="not a protocad-ros agent checkpoint"):
+        load_checkpoint(other)
+    tensor = tmp_path / "tensor.pt"
+    torch.save(torch.zeros(3), tensor)
+    with pytest.raises(CheckpointError, match="not a protocad-ros agent checkpoint"):
+        load_checkpoint(tensor)
+
+    class Evil:  # a pickle that would run code: refused by weights_only loading
+        def __reduce__(self):
+            return (os.system, ("true",))
+
+    evil = tmp_path / "evil.pt"
+    torch.save({"format": ckpt_mod.FORMAT, "x": Evil()}, evil)
+    with pytest.raises(CheckpointError, match="weights_only"):
+        load_checkpoint(evil)
+
+
+def test_incompatible_checkpoints(tmp_path, trained):
+    path = save_checkpoint(tmp_path / "agent.pt", trained)
+    with pytest.raises(CheckpointError, match="action_dim=6.*action_dim=1"):
+        load_checkpoint(path, action_dim=1)
+    payload = read_checkpoint(path)
+    future = dict(payload, version=ckpt_mod.VERSION + 1)
+    torch.save(future, tmp_path / "future.pt")
+    with pytest.raises(CheckpointError, match="version"):
+        load_checkpoint(tmp_path / "future.pt")
+    bad_cfg = dict(payload, config={**payload["config"], "variant": "dreamerv9"})
+    torch.save(bad_cfg, tmp_path / "badcfg.pt")
+    with pytest.raises(CheckpointError, match="incompatible config.*dreamerv9"):
+        load_checkpoint(tmp_path / "badcfg.pt")
+    unknown = dict(payload, config={**payload["config"], "extra_section": {}})
+    torch.save(unknown, tmp_path / "unknown.pt")
+    with pytest.raises(CheckpointError, match="extra_section"):
+        load_checkpoint(tmp_path / "unknown.pt")
+    # Weights that do not fit the config they claim.
+    lying = dict(payload, config={**payload["config"],
+                                  "world_model": {**payload["config"]["world_model"], "deter": 48}})
+    torch.save(lying, tmp_path / "lying.pt")
+    with pytest.raises(CheckpointError, match="weights do not fit"):
+        load_checkpoint(tmp_path / "lying.pt")
+    # Restoring into an agent of another size or variant says what differs.
+    with pytest.raises(CheckpointError, match="deter"):
+        restore_checkpoint(path, Agent(tiny(**{"world_model.deter": 16}), action_dim=6))
+    with pytest.raises(CheckpointError, match="variant"):
+        restore_checkpoint(path, Agent(tiny("dreamer"), action_dim=6))
+    with pytest.raises(CheckpointError, match="action_dim"):
+        restore_checkpoint(path, Agent(tiny(), action_dim=2))
+
+
+def test_restore_into_running_agent(tmp_path, trained, frames):
+    path = save_checkpoint(tmp_path / "agent.pt", trained, counters={"episodes": 3})
+    fresh = Agent(tiny(**{"world_model.lr": 1e-3}), action_dim=6)  # training-only field differs
+    assert restore_checkpoint(path, fresh) == {"episodes": 3}
+    assert np.array_equal(_actions(fresh, frames), _actions(trained, frames))
