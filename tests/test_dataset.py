@@ -1,0 +1,169 @@
+"""trainer.dataset on real MCAP bags: episode rebuild, the reported problems, the step convention,
+window sampling, the on-disk store and its reuse, truncated files."""
+from __future__ import annotations
+
+import json
+import os
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from trainer.dataset import DatasetError, MCAPDataset, TopicMap, find_sources
+from trainer_bags import DT_NS, answer, make_steps, write_bag
+
+
+def test_episode_rebuild_reports_gaps_duplicates_foreign_topics_and_unanswered(tmp_path):
+    steps = make_steps(3, 12)                          # episodes 0, 1, 2 of 12 steps
+    dropped = [s for s in steps if s["episode"] == 1 and s["step"] in (4, 5)]
+    steps = [s for s in steps if s not in dropped]     # a gap: episode 1 misses step ids 4..5
+    no_answer = next(s for s in steps if s["episode"] == 2 and s["step"] == 6)
+    no_answer["action"] = None                         # an observation nobody answered (mid-episode)
+    steps[-1]["action"] = None                         # the log ends before the last answer
+    dup = {steps[3]["stamp"], steps[20]["stamp"]}      # two stamps published twice
+    bag = write_bag(tmp_path / "bag", steps, duplicate_stamps=dup,
+                    extra_topics={"/some/foreign_topic": 5})
+    ds = MCAPDataset([bag], seq_len=4, seed=0, cache_dir=tmp_path / "cache")
+    rep = ds.report.sources[0]
+    assert rep.rejected is None
+    assert rep.steps == len(steps) and rep.episodes == 3
+    assert rep.gaps == 1 and rep.missing_step_ids == 2
+    assert rep.gap_examples == ["episode 1 steps 4..5"]
+    # duplicates: every topic written twice at those stamps (image, step_info, context)
+    assert rep.duplicates["/protocad/image"] == 2 and rep.duplicates["/protocad/step_info"] == 2
+    assert rep.foreign_topics == {"/some/foreign_topic": {"type": "std_msgs/msg/String", "count": 5}}
+    assert rep.missing_actions == 1          # episode 2 step 7 has no known incoming action
+    assert rep.unanswered_final == 0         # the final obs is is_last: its answer is not needed...
+    assert rep.unanswered_is_last == 1       # ...and is reported as such
+    # segments: ep0, ep1 split at the gap (2), ep2 split at the missing answer (2)
+    assert rep.segments == 5
+    text = str(ds.report)
+    for needle in ("1 gap(s) within episodes, 2 step id(s) missing", "episode 1 steps 4..5",
+                   "duplicate message(s) on /protocad/image", "foreign topics (present, unused): "
+                   "/some/foreign_topic [std_msgs/msg/String] x5",
+                   "1 observation(s) without an action answering them"):
+        assert needle in text, text
+
+
+def test_action_shift_convention_and_windows_stay_inside_episodes(tmp_path):
+    steps = make_steps(4, 10) + make_steps(1, 3, first_episode=4, t0_ns=40 * DT_NS)  # last one too short
+    bag = write_bag(tmp_path / "bag", steps)
+    ds = MCAPDataset([bag], seq_len=5, seed=3, cache_dir=tmp_path / "cache")
+    assert ds.report.short_segments_skipped == 1 and ds.report.short_steps_skipped == 3
+    assert "skipped 1 episode segment(s) shorter than 5 steps (3 steps)" in str(ds.report)
+    assert ds.num_windows == 4 * (10 - 5 + 1)
+    seen = set()
+    for _ in range(40):
+        b = ds.sample(6)
+        assert b["image"].dtype == np.uint8 and b["image"].shape == (6, 5, 64, 64, 3)
+        assert b["action"].dtype == np.float32 and b["action"].shape == (6, 5, 1)
+        for i in range(6):
+            step_ids = b["image"][i, :, 0, 0, 0].astype(int)
+            eps = b["image"][i, :, 0, 0, 1].astype(int)
+            assert len(set(eps)) == 1, "a window crossed an episode boundary"
+            assert np.all(np.diff(step_ids) == 1)
+            seen.add((eps[0], step_ids[0]))
+            for t, s in enumerate(step_ids):
+                # action[t] = the answer to the previous observation; zeros at is_first
+                want = 0.0 if s == 0 else answer(s - 1, eps[0])[0]
+                assert b["action"][i, t, 0] == pytest.approx(want)
+                assert b["is_first"][i, t] == (s == 0)
+                assert b["reward"][i, t] == pytest.approx(0.0 if s == 0 else s / 10)
+    assert len(seen) == ds.num_windows   # uniform over all windows: every one drawn
+    # seeded: the same seed draws the same batches; the state resumes the stream
+    a, b = (MCAPDataset([bag], seq_len=5, seed=11, cache_dir=tmp_path / "cache") for _ in range(2))
+    assert a.sample_index(8) == b.sample_index(8)
+    state = a.state_dict()
+    nxt = a.sample_index(8)
+    b.load_state_dict(json.loads(json.dumps(state)))
+    assert b.sample_index(8) == nxt
+
+
+def test_store_is_on_disk_uint8_reused_and_appendable(tmp_path):
+    cache = tmp_path / "cache"
+    bag1 = write_bag(tmp_path / "bags" / "b1", make_steps(2, 12))
+    ds = MCAPDataset([tmp_path / "bags"], seq_len=4, cache_dir=cache)
+    assert [s.cached for s in ds.report.sources] == [False]
+    entries = [p for p in cache.iterdir() if p.is_dir()]
+    assert len(entries) == 1
+    store = ds.stores[0]
+    assert isinstance(store.images, np.memmap) and store.images.dtype == np.uint8
+    assert (entries[0] / "images.u8").stat().st_size == 24 * 64 * 64 * 3
+    index_mtime = (entries[0] / "index.json").stat().st_mtime_ns
+    # a second run reuses the store (same bag files: path, size, mtime)
+    ds2 = MCAPDataset([bag1], seq_len=4, cache_dir=cache)
+    assert ds2.report.sources[0].cached and ds2.num_steps == 24
+    assert (entries[0] / "index.json").stat().st_mtime_ns == index_mtime
+    # appending a newly recorded bag (the loop does this after every collection phase)
+    write_bag(tmp_path / "bags" / "b2", make_steps(1, 12, first_episode=5))
+    added = ds2.add([tmp_path / "bags"])          # b1 known, only b2 indexed
+    assert len(added) == 1 and ds2.num_steps == 36 and ds2.num_episodes == 3
+    assert ds2.num_windows == 3 * (12 - 4 + 1)
+    # a changed bag (new mtime/size) gets a new store, never a stale one
+    shutil.rmtree(bag1)
+    write_bag(bag1, make_steps(1, 12))
+    ds3 = MCAPDataset([bag1], seq_len=4, cache_dir=cache)
+    assert not ds3.report.sources[0].cached and ds3.num_steps == 12
+
+
+def test_truncated_log_yields_every_complete_message_and_a_clear_report(tmp_path):
+    from trainer import mcap_io
+
+    steps = make_steps(3, 40)
+    bag = write_bag(tmp_path / "bag", steps, chunk_size=64 * 1024, compression="none")
+    f = next(bag.glob("*.mcap"))
+    data = f.read_bytes()
+    cut = tmp_path / "cut"
+    cut.mkdir()
+    (cut / f.name).write_bytes(data[: int(len(data) * 0.6)])   # writer killed: no footer, no metadata
+    # reference: what a reader recovers from the cut file (every complete chunk)
+    recovered = {}
+    for m in mcap_io.BagReader(cut).messages():
+        recovered.setdefault(m.topic, set()).add(m.log_time_ns)
+    both = {t - 3 for t in recovered["/protocad/image"]} & {t - 2 for t in recovered["/protocad/step_info"]}
+    assert 0 < len(both) < len(steps)
+    ds = MCAPDataset([cut], seq_len=4, cache_dir=tmp_path / "cache")
+    rep = ds.report.sources[0]
+    assert rep.rejected is None and rep.truncated
+    assert rep.steps == len(both)                         # every complete step, nothing invented
+    stamps = set(np.asarray(ds.stores[0].arrays["stamp"]).tolist())
+    assert stamps == both
+    text = str(ds.report)
+    assert "TRUNCATED" in text and f.name in text and "no metadata.yaml" in text
+    ds.sample(2)                                          # and it trains on what is there
+
+
+def test_foreign_topic_names_and_clear_errors(tmp_path):
+    bag = write_bag(tmp_path / "bag", make_steps(1, 10), namespace="/robot")
+    # default topics find nothing: rejected with the reason, and sampling explains itself
+    ds = MCAPDataset([bag], seq_len=4, cache_dir=tmp_path / "cache")
+    assert "no usable messages for image (/protocad/image)" in ds.report.sources[0].rejected
+    assert set(ds.report.sources[0].foreign_topics) == {"/robot/image", "/robot/step_info",
+                                                        "/robot/context", "/robot/action"}
+    with pytest.raises(DatasetError, match="no training window"):
+        ds.sample(1)
+    ok = MCAPDataset([bag], seq_len=4, topics=TopicMap.parse(["image=/robot/image", "step_info=/robot/step_info",
+                                                             "action=/robot/action", "context=/robot/context"]),
+                     cache_dir=tmp_path / "cache")
+    assert ok.num_steps == 10 and not ok.report.problems()
+    assert TopicMap.parse([], namespace="/robot") == ok.topics
+    # a topic with the wrong type is named
+    wrong = MCAPDataset([bag], seq_len=4, topics=TopicMap.parse(["image=/robot/context", "context=none"], "/robot"),
+                        cache_dir=tmp_path / "cache")
+    assert any("has type sensor_msgs/msg/JointState, expected sensor_msgs/msg/Image" in p
+               for p in wrong.report.problems())
+    with pytest.raises(ValueError, match="KEY=/topic"):
+        TopicMap.parse(["camera=/x"])
+    with pytest.raises(DatasetError, match="does not exist"):
+        find_sources([tmp_path / "nope"])
+
+
+def test_dataset_cli_prints_the_report(tmp_path):
+    from trainer_bags import run_cli
+
+    bag = write_bag(tmp_path / "bag", make_steps(2, 6), extra_topics={"/x": 1})
+    r = run_cli("trainer.dataset", bag, "--seq-len", "4", "--cache-dir", tmp_path / "c", "--json", tmp_path / "r.json")
+    assert r.returncode == 0, r.stderr
+    assert "2 episodes" in r.stdout and "foreign topics" in r.stdout
+    assert json.loads((tmp_path / "r.json").read_text())["steps"] == 12

@@ -1,0 +1,87 @@
+"""protocad-evaluate: per-context tables, JSON, the random baseline, several tasks, contexts
+subsets, and one run through the ROS nodes."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from trainer_bags import run_cli
+
+TINY_OVERRIDES = {"world_model.deter": 32, "world_model.hidden": 32, "world_model.stoch": 8,
+                  "world_model.cnn_depth": 8, "world_model.mlp_units": 32, "behavior.actor_units": 32,
+                  "behavior.critic_units": 32, "context.num_prototypes": 8, "context.proto_dim": 8,
+                  "train.batch_size": 4, "train.seq_len": 8}
+
+
+def tiny_checkpoint(path, task="pendulum_swingup", action_dim=1):
+    from protocad_ros.agent import Agent
+    from protocad_ros.checkpoint import save_checkpoint
+    from protocad_ros.config import make_config
+
+    cfg = make_config(task, "small", "protocad", **TINY_OVERRIDES)
+    return save_checkpoint(path, Agent(cfg, action_dim), {"env_steps": 1234})
+
+
+def test_select_contexts_subsets():
+    from trainer.evaluate import parse_context, select_contexts
+
+    assert len(select_contexts("walker_walk")) == 64
+    sub = select_contexts("walker_walk", max_contexts=5)
+    assert len(sub) == 5 and sub[0] == {"m": 0.2, "d": 0.2} and sub[-1] == {"m": 1.8, "d": 1.8}
+    assert select_contexts("pendulum_swingup", contexts=[parse_context("m=0.4")]) == [{"m": 0.4}]
+    with pytest.raises(ValueError, match="belongs to the train split"):
+        select_contexts("pendulum_swingup", contexts=[{"m": 1.0}])
+
+
+def test_checkpoints_of_two_tasks_with_random_baseline(tmp_path):
+    a = tiny_checkpoint(tmp_path / "pend" / "checkpoints" / "latest.pt")
+    b = tiny_checkpoint(tmp_path / "hop.pt", task="hopper_stand", action_dim=4)
+    out = tmp_path / "eval.json"
+    r = run_cli("trainer.evaluate", tmp_path / "pend", b, "--random", "--episodes", "2", "--max-contexts", "2",
+                "--time-limit", "10", "--workers", "0", "--json", out)
+    assert r.returncode == 0, r.stdout + r.stderr
+    txt = r.stdout
+    assert "pendulum_swingup on test contexts" in txt and "hopper_stand on test contexts" in txt
+    assert "m=0.2 " in txt and "m=1.8 " in txt and "m=0.25 " in txt and "m=2 " in txt
+    assert "random mean" in txt                          # the baseline column beside each context
+    assert "mean over tasks" in txt and "median over tasks" in txt
+    d = json.loads(out.read_text())
+    assert [x["task"] for x in d["results"]] == ["pendulum_swingup", "hopper_stand"]
+    pend = d["results"][0]
+    assert [c["episodes"] for c in pend["per_context"]] == [2, 2]
+    assert pend["mean_return"] == pytest.approx(np.mean([c["mean_return"] for c in pend["per_context"]]))
+    assert pend["env_steps"] == 1234 and pend["updates"] == 0
+    assert {x["task"] for x in d["random"]} == {"pendulum_swingup", "hopper_stand"}
+    s = d["summary"]
+    assert s["mean_over_tasks"] == pytest.approx(np.mean(list(s["per_task"].values())))
+    # bad input: a clear error, exit code 2
+    r = run_cli("trainer.evaluate", tmp_path / "nothing.pt")
+    assert r.returncode == 2 and "does not exist" in r.stderr
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    r = run_cli("trainer.evaluate", tmp_path / "junk.pt", "--episodes", "1")
+    assert r.returncode == 2 and "junk.pt" in r.stderr
+
+
+def test_random_baseline_in_worker_processes_matches_in_process(tmp_path):
+    from trainer.evaluate import evaluate_checkpoint
+
+    kw = dict(task="pendulum_swingup", episodes=1, contexts=[{"m": 0.5}, {"m": 1.5}], seed=3, time_limit=30)
+    a = evaluate_checkpoint(None, workers=0, **kw)
+    b = evaluate_checkpoint(None, workers=2, **kw)
+    assert [c.returns for c in a.per_context] == [c.returns for c in b.per_context]
+
+
+@pytest.mark.slow
+def test_through_ros_nodes(tmp_path):
+    ck = tiny_checkpoint(tmp_path / "ck.pt")
+    out = tmp_path / "ros.json"
+    r = run_cli("trainer.evaluate", ck, "--through-ros", "--ros-episodes", "2", "--episode-length", "10",
+                "--ros-dir", tmp_path / "ros", "--json", out, timeout=240)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "through ROS" in r.stdout
+    d = json.loads(out.read_text())["results"][0]
+    assert d["mode"] == "through ROS" and d["episodes"] == 2
+    assert all(c["split"] == "test" for c in d["per_context"])
+    assert list((tmp_path / "ros").glob("eval_test_*/*.mcap"))   # the recorded bag stays

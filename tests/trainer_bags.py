@@ -1,0 +1,128 @@
+"""Helpers of the trainer tests: step sequences with known content, written as rosbag2 MCAP bags
+by this project's writer (trainer.mcap_io.BagWriter) or by another tool (the rosbags library).
+
+Every step carries its identity in its data, so tests can check what the dataset made of it:
+image[..., 0] = step id % 256, image[..., 1] = episode id, image[..., 2] = 7;
+the action answering step s of episode e is [s / 100 + e] (for every action dimension).
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from sim_bridge import topics as T
+
+DT_NS = 40_000_000  # pendulum: control_dt 0.02 s x action repeat 2
+
+# A model small enough for CPU tests (seconds per run, not minutes).
+TINY = ["--set", "world_model.deter=32", "--set", "world_model.hidden=32", "--set", "world_model.stoch=8",
+        "--set", "world_model.cnn_depth=8", "--set", "world_model.mlp_units=32",
+        "--set", "behavior.actor_units=32", "--set", "behavior.critic_units=32",
+        "--set", "context.num_prototypes=8", "--set", "context.proto_dim=8",
+        "--set", "behavior.horizon=5", "--batch-size", "4", "--seq-len", "8", "--threads", "1"]
+
+
+def answer(step: int, episode: int, dim: int = 1) -> np.ndarray:
+    return np.full(dim, step / 100.0 + episode, np.float64)
+
+
+def make_steps(episodes: int, length: int, *, first_episode: int = 0, t0_ns: int = 0,
+               context: dict | None = None, split: str = "train") -> list[dict]:
+    """`episodes` episodes of `length` observations each (is_first ... is_last), consecutive
+    sim-time stamps, rewards = step id / 10."""
+    steps, tick = [], t0_ns // DT_NS
+    for e in range(first_episode, first_episode + episodes):
+        for s in range(length):
+            img = np.zeros((64, 64, 3), np.uint8)
+            img[..., 0], img[..., 1], img[..., 2] = s % 256, e % 256, 7
+            steps.append(dict(stamp=tick * DT_NS, episode=e, step=s, is_first=s == 0,
+                              is_last=s == length - 1, reward=0.0 if s == 0 else s / 10.0,
+                              image=img, action=answer(s, e), context=dict(context or {"m": 1.0}),
+                              split=split))
+            tick += 1
+    return steps
+
+
+def write_bag(bag_dir: Path, steps: list[dict], *, namespace: str = "/protocad", chunk_size: int = 1 << 20,
+              extra_topics: dict[str, int] | None = None, duplicate_stamps: set[int] | None = None,
+              compression: str = "zstd") -> Path:
+    """The ROS path's layout with trainer.mcap_io.BagWriter. A step without 'action' (None) is
+    left unanswered; stamps in duplicate_stamps are written twice (image + step_info);
+    extra_topics {topic: count} adds std_msgs/String messages on foreign topics."""
+    from trainer import mcap_io
+
+    names = {k: T.topic_name(namespace, k) for k in (T.IMAGE, T.STEP_INFO, T.CONTEXT, T.ACTION)}
+    with mcap_io.BagWriter(bag_dir, chunk_size=chunk_size, compression=compression) as w:
+        for rel, topic in names.items():
+            w.add_topic(topic, T.TYPES[rel])
+        for t in extra_topics or {}:
+            w.add_topic(t, "std_msgs/msg/String")
+        new = mcap_io.new_message
+        for st in steps:
+            s = st["stamp"]
+            reps = 2 if duplicate_stamps and s in duplicate_stamps else 1
+            for _ in range(reps):
+                w.write_message(names[T.CONTEXT], T.fill_context(new(T.TYPES[T.CONTEXT]), st["context"],
+                                                                 st["split"], s), s + 1)
+                w.write_message(names[T.STEP_INFO], T.fill_step_info(new(T.TYPES[T.STEP_INFO]), T.StepInfo(
+                    st["reward"], 1.0, st["is_first"], st["is_last"], False, st["episode"], st["step"]), s), s + 2)
+                w.write_message(names[T.IMAGE], T.fill_image(new(T.TYPES[T.IMAGE]), st["image"], s), s + 3)
+            if st.get("action") is not None:
+                w.write_message(names[T.ACTION], T.fill_action(new(T.TYPES[T.ACTION]), st["action"],
+                                                               [f"a{i}" for i in range(len(st["action"]))], s), s + 4)
+        for t, n in (extra_topics or {}).items():
+            for i in range(n):
+                msg = new("std_msgs/msg/String")
+                msg.data = f"foreign {i}"
+                w.write_message(t, msg, 10 + i)
+    return bag_dir
+
+
+def write_rosbags_bag(bag_dir: Path, steps: list[dict], topics: dict[str, str]) -> Path:
+    """The same content written by ANOTHER tool: the rosbags library (rosbag2 MCAP storage,
+    its own CDR serializer and message definitions), under the topic names in `topics`
+    {'image': '/robot/camera', 'step_info': ..., 'action': ..., 'context': ...}."""
+    from rosbags.rosbag2 import StoragePlugin, Writer
+    from rosbags.typesys import Stores, get_typestore
+
+    ts = get_typestore(Stores.ROS2_JAZZY)
+    Image, JointState = ts.types["sensor_msgs/msg/Image"], ts.types["sensor_msgs/msg/JointState"]
+    Header, Time = ts.types["std_msgs/msg/Header"], ts.types["builtin_interfaces/msg/Time"]
+
+    def header():
+        return Header(stamp=Time(sec=0, nanosec=0), frame_id="")
+
+    def js():
+        e = np.zeros(0, np.float64)
+        return JointState(header=header(), name=[], position=e, velocity=e, effort=e)
+
+    with Writer(bag_dir, version=9, storage_plugin=StoragePlugin.MCAP) as w:
+        conns = {k: w.add_connection(t, "sensor_msgs/msg/Image" if k == "image" else "sensor_msgs/msg/JointState",
+                                     typestore=ts) for k, t in topics.items()}
+        for st in steps:
+            s = st["stamp"]
+            if "context" in conns:
+                w.write(conns["context"], s + 1, ts.serialize_cdr(
+                    T.fill_context(js(), st["context"], st["split"], s), "sensor_msgs/msg/JointState"))
+            w.write(conns["step_info"], s + 2, ts.serialize_cdr(T.fill_step_info(js(), T.StepInfo(
+                st["reward"], 1.0, st["is_first"], st["is_last"], False, st["episode"], st["step"]), s),
+                "sensor_msgs/msg/JointState"))
+            img = Image(header=header(), height=0, width=0, encoding="", is_bigendian=0, step=0,
+                        data=np.zeros(0, np.uint8))
+            w.write(conns["image"], s + 3, ts.serialize_cdr(T.fill_image(img, st["image"], s), "sensor_msgs/msg/Image"))
+            if st.get("action") is not None:
+                w.write(conns["action"], s + 4, ts.serialize_cdr(
+                    T.fill_action(js(), st["action"], ["torque"], s), "sensor_msgs/msg/JointState"))
+    return bag_dir
+
+
+def run_cli(module: str, *args: str, timeout: float = 240, env: dict | None = None):
+    """Run `python -m module args` to completion; returns the CompletedProcess (text)."""
+    import os
+    import subprocess
+
+    return subprocess.run([sys.executable, "-m", module, *map(str, args)], capture_output=True, text=True,
+                          timeout=timeout, cwd=Path(__file__).resolve().parents[1],
+                          env={**os.environ, **(env or {})})

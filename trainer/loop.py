@@ -1,0 +1,453 @@
+"""`protocad-loop` (`ros2 run trainer loop`): the collect-train-reload loop through the ROS nodes.
+
+    protocad-loop --demo                         # README main command (Pendulum Swingup, small)
+    protocad-loop --task walker_walk --preset paper --cycles 100 --run-dir runs/ww
+    protocad-loop --run-dir runs/ww --resume     # continue after Ctrl-C / a crash
+
+Processes (trainer/rosprocs.py; logs in RUN_DIR/logs/, one ROS_DOMAIN_ID per run, a fresh
+one unless --domain-id):
+
+1. prefill: sim bridge (lock-step, training contexts, max_episodes=N) + trainer.random_actor
+   (uniform random actions) + recorder -> RUN_DIR/bags/00_prefill/;
+2. train C updates (Algorithm 1: before the first collected episode) from every bag so far,
+   checkpoint RUN_DIR/checkpoints/latest.pt (atomic);
+3. the policy node starts on that checkpoint (mode sample: DreamerV2 collects with sampled
+   actions) and stays up; each cycle: recorder -> bags/NN_collect/, a sim bridge run of
+   E episodes, then C x E updates and a new checkpoint, which the policy node reloads (its
+   file watcher loads it in the background and serves it from the next is_first); the loop
+   waits until the node has loaded the newest checkpoint before the next cycle starts, and
+   reads from the node's log which checkpoint (update counter) served each cycle;
+4. the end: an evaluation table on the test contexts (in-process, deterministic), JSON in
+   RUN_DIR/eval/, and a rerun recording of the context view (trainer.visualize).
+
+The recorder also records /diagnostics, so every bag says which checkpoint the policy node
+served (its `checkpoint_updates` value). Ctrl-C stops the nodes in order (the recorder last:
+its bag is closed cleanly) or saves a checkpoint when it comes during training; exit code 0.
+`--resume` rebuilds the state from the run directory: the bags (prefill / collect phases,
+episodes, env steps) and the checkpoint (weights, optimizers, counters, sampler state).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import re
+import sys
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+from trainer import runs
+from trainer.dataset import MCAPDataset, TopicMap
+from trainer.train import Trainer, add_common_model_args, config_from_args
+
+DEMO = dict(task="pendulum_swingup", preset="small", cycles=3, episodes_per_cycle=1, prefill=2,
+            updates_per_episode=25, eval_episodes=1)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="protocad-loop",
+        description="Collect-train-reload loop through the ROS 2 nodes: prefill with random "
+                    "actions on the training contexts, then alternate collection (policy node "
+                    "-> sim bridge, recorded to a new MCAP bag per cycle) and training (C "
+                    "updates per collected episode from all bags); the policy node reloads each "
+                    "new checkpoint. Ends with an evaluation table on the test contexts.",
+        formatter_class=runs.HelpFormatter)
+    ap.add_argument("--demo", action="store_true",
+                    help=f"the README's main command: {DEMO['task']}, {DEMO['preset']} preset, "
+                         f"{DEMO['cycles']} cycles of {DEMO['episodes_per_cycle']} episode, C="
+                         f"{DEMO['updates_per_episode']}, then the test-context table and a rerun "
+                         "recording (a few minutes on 2 CPU cores)")
+    add_common_model_args(ap)
+    g = ap.add_argument_group("loop")
+    g.add_argument("--cycles", type=int, default=None, help="collection cycles after the prefill (default 10; demo 3)")
+    g.add_argument("--episodes-per-cycle", type=int, default=None, help="E episodes recorded per cycle (default 1)")
+    g.add_argument("--prefill-episodes", type=int, default=None, help="N random episodes (default train.prefill_episodes = 2)")
+    g.add_argument("--updates-per-episode", type=int, default=None,
+                   help="C updates per collected episode, also done once after the prefill "
+                        "(default train.collect_interval = 100, the paper's; demo 40)")
+    g.add_argument("--episode-length", type=int, default=None,
+                   help="agent steps per episode (default train.time_limit / action_repeat = 500)")
+    g.add_argument("--exploration-noise", type=float, default=None,
+                   help="policy node exploration noise (default train.expl_noise)")
+    g.add_argument("--eval-episodes", type=int, default=None,
+                   help="final evaluation: episodes per test context (0: none; default 5, demo 1)")
+    g.add_argument("--eval-max-contexts", type=int, default=0, help="final evaluation: at most K test contexts (0: all)")
+    g.add_argument("--no-visualize", action="store_true", help="skip the rerun context recording at the end")
+    g = ap.add_argument_group("run")
+    g.add_argument("--run-dir", default=None, help="output directory (default runs/loop-TASK-VARIANT-TIME)")
+    g.add_argument("--resume", action="store_true", help="continue RUN_DIR (bags + checkpoint + counters)")
+    g.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID of the nodes (default: a fresh one)")
+    g.add_argument("--checkpoint-every", type=int, default=500, help="updates between checkpoints within a training phase")
+    g.add_argument("--log-every", type=int, default=10, help="updates per metrics line")
+    g.add_argument("--cache-dir", default=None, help="dataset cache (default RUN_DIR/cache)")
+    g.add_argument("--rerun", nargs="?", const="", default=None, metavar="RRD",
+                   help="log training scalars to a rerun recording (default RUN_DIR/metrics.rrd)")
+    g.add_argument("--phase-timeout", type=float, default=3600.0, help="seconds a collection phase may take")
+    g.add_argument("--no-progress", action="store_true")
+    return ap
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    a = build_parser().parse_args(argv)
+    from trainer.rosprocs import NodeFailed
+
+    try:
+        return Loop(a).run()
+    except NodeFailed as exc:
+        print(f"protocad-loop: a node failed: {exc}", file=sys.stderr)
+        return 1
+    except ValueError as exc:
+        print(f"protocad-loop: error: {exc}", file=sys.stderr)
+        return 2
+
+
+class Loop:
+    def __init__(self, a: argparse.Namespace):
+        self.a = a
+        if a.demo:
+            a.task = a.task or DEMO["task"]
+            a.preset = a.preset or DEMO["preset"]
+            for k, v in (("cycles", "cycles"), ("episodes_per_cycle", "episodes_per_cycle"),
+                         ("prefill_episodes", "prefill"), ("updates_per_episode", "updates_per_episode"),
+                         ("eval_episodes", "eval_episodes")):
+                if getattr(a, k) is None:
+                    setattr(a, k, DEMO[v])
+        self.device = runs.resolve_device(a.device)
+        runs.set_threads(a.threads)
+
+    # ------------------------------------------------------------------ setup
+    def _setup(self) -> None:
+        a = self.a
+        if a.resume:
+            if not a.run_dir:
+                raise ValueError("--resume needs --run-dir")
+            self.run_dir = Path(a.run_dir)
+            state = json.loads((self.run_dir / "run.json").read_text())
+            from protocad_ros.config import Config
+
+            self.cfg = Config.load(self.run_dir / "config.yaml")
+            p = state["protocol"]
+            for k in ("cycles", "episodes_per_cycle", "prefill_episodes", "updates_per_episode", "episode_length",
+                      "exploration_noise", "eval_episodes"):
+                if getattr(a, k) is None:
+                    setattr(a, k, p[k])
+            self.run_json = state
+        else:
+            self.cfg = config_from_args(a)
+            self.cfg.train.device = self.device
+            self.run_dir = Path(a.run_dir) if a.run_dir else runs.default_run_dir("loop", self.cfg.task, self.cfg.variant)
+            if runs.checkpoint_path(self.run_dir).exists() or (self.run_dir / "bags").exists():
+                raise ValueError(f"{self.run_dir} already holds a run: pass --resume or another --run-dir")
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+            self.cfg.save(self.run_dir / "config.yaml")
+            self.run_json = {}
+        tr = self.cfg.train
+        a.cycles = 10 if a.cycles is None else a.cycles
+        a.episodes_per_cycle = a.episodes_per_cycle or 1
+        a.prefill_episodes = tr.prefill_episodes if a.prefill_episodes is None else a.prefill_episodes
+        a.updates_per_episode = tr.collect_interval if a.updates_per_episode is None else a.updates_per_episode
+        a.episode_length = a.episode_length or max(1, tr.time_limit // tr.action_repeat)
+        a.exploration_noise = tr.expl_noise if a.exploration_noise is None else a.exploration_noise
+        a.eval_episodes = 5 if a.eval_episodes is None else a.eval_episodes
+        self.run_json.update(kind="loop", argv=sys.argv, task=self.cfg.task, variant=self.cfg.variant,
+                             preset=self.cfg.preset, seed=tr.seed, device=self.device, protocol={
+                                 k: getattr(a, k) for k in ("cycles", "episodes_per_cycle", "prefill_episodes",
+                                                            "updates_per_episode", "episode_length",
+                                                            "exploration_noise", "eval_episodes")})
+        runs.atomic_write_json(self.run_dir / "run.json", self.run_json)
+        self.bags_dir = self.run_dir / "bags"
+        self.bags_dir.mkdir(exist_ok=True)
+        self.ds = MCAPDataset([], topics=TopicMap(), seq_len=tr.seq_len, seed=tr.seed,
+                              cache_dir=a.cache_dir or self.run_dir / "cache")
+        self.phases: list[dict[str, Any]] = []
+        self.policy_restarts = 0
+        for bag in sorted(p for p in self.bags_dir.iterdir() if p.is_dir()):
+            self._add_bag(bag, resumed=True)
+
+    def _bag_stats(self, bag: Path) -> dict[str, Any]:
+        store = next(s for s in self.ds.stores if Path(s.report.path).resolve() == bag.resolve())
+        eps = [e for e in store.episodes]
+        complete = [e for e in eps if e["has_first"] and e["has_last"]]
+        R = self.cfg.train.action_repeat
+        steps = sum(max(e["length"] - 1, 0) for e in eps)
+        return {"bag": bag.name, "kind": "prefill" if bag.name.endswith("prefill") else "collect",
+                "episodes": len(complete), "partial_episodes": len(eps) - len(complete),
+                "env_steps": steps * R, "returns": [round(e["return"], 2) for e in complete],
+                "contexts": [e["context"] for e in complete],
+                "problems": store.report.problems()}
+
+    def _add_bag(self, bag: Path, resumed: bool = False) -> dict[str, Any]:
+        self.ds.add([bag])
+        st = self._bag_stats(bag)
+        self.phases.append(st)
+        if resumed:
+            print(f"[loop] found {bag.name}: {st['episodes']} complete episode(s)"
+                  + (f", {st['partial_episodes']} partial" if st["partial_episodes"] else ""), flush=True)
+        return st
+
+    # ------------------------------------------------------------------ counters
+    @property
+    def prefill_episodes_done(self) -> int:
+        return sum(p["episodes"] for p in self.phases if p["kind"] == "prefill")
+
+    @property
+    def collect_phases(self) -> int:
+        return sum(p["kind"] == "collect" for p in self.phases)
+
+    @property
+    def collected_episodes(self) -> int:
+        return sum(p["episodes"] for p in self.phases if p["kind"] == "collect")
+
+    def target_updates(self) -> int:
+        C = self.a.updates_per_episode
+        return C + C * self.collected_episodes
+
+    def _counters(self) -> None:
+        c = self.trainer.counters
+        c.update(env_steps=sum(p["env_steps"] for p in self.phases),
+                 episodes=sum(p["episodes"] for p in self.phases),
+                 collect_phases=self.collect_phases, prefill_episodes=self.prefill_episodes_done)
+
+    # ------------------------------------------------------------------ phases
+    def _next_bag(self, kind: str) -> Path:
+        return self.bags_dir / f"{len(self.phases):02d}_{kind}"
+
+    def _collect(self, kind: str, episodes: int, stop: runs.StopFlag) -> dict[str, Any] | None:
+        """One recorded bridge run of `episodes` episodes; returns the phase stats (None when
+        interrupted before the bag holds anything)."""
+        a, tr = self.a, self.cfg.train
+        bag = self._next_bag(kind)
+        stack = self.stack
+        actor = "actor" if kind == "prefill" else "policy"
+        seed = tr.seed * 1000 + len(self.phases)
+        stack.start_recorder(bag, log_name=f"recorder_{bag.name}",
+                             wait_topics=[f"{stack.namespace}/action"])
+        t0 = time.monotonic()
+        bridge = stack.start_bridge(task=self.cfg.task, split="train", seed=seed, max_episodes=episodes,
+                                    episode_length=a.episode_length, action_repeat=tr.action_repeat,
+                                    min_subscribers=2, log_name=f"bridge_{bag.name}")
+        print(f"[loop] {bag.name}: {episodes} episode(s) of {a.episode_length} steps on training contexts "
+              f"({'random actions' if kind == 'prefill' else 'policy node'}; bridge pid {bridge.pid})", flush=True)
+        restarts = self.policy_restarts
+        on_poll = self._policy_watchdog() if kind == "collect" else None
+        code = stack.wait_exit(bridge, a.phase_timeout, watch=(actor, "recorder"), stop=stop, on_poll=on_poll)
+        stack.stop("bridge")
+        stack.stop("recorder")
+        if kind == "prefill":
+            stack.stop("actor")
+        if not any(bag.glob("*.mcap")):
+            return None
+        st = self._add_bag(bag)
+        st["seconds"] = round(time.monotonic() - t0, 1)
+        st["interrupted"] = code != 0
+        if kind == "collect":
+            st["served_updates"] = self._served_updates()
+            st["policy_restarted"] = self.policy_restarts > restarts
+        rets = ", ".join(f"{r:.0f}" for r in st["returns"])
+        print(f"[loop] {bag.name}: {st['episodes']} episode(s) in {st['seconds']}s, returns [{rets}]"
+              + (f", policy node served checkpoint updates={st.get('served_updates')}" if kind == "collect" else ""),
+              flush=True)
+        return st
+
+    def _start_policy(self) -> None:
+        a, cfg = self.a, self.cfg
+        self.stack.start_policy(checkpoint=runs.checkpoint_path(self.run_dir), task=cfg.task,
+                                wait_for_checkpoint=True, reload_poll_s=0.5, mode="sample",
+                                exploration_noise=a.exploration_noise, seed=cfg.train.seed, device=self.device)
+
+    def _policy_watchdog(self):
+        """Each bridge run starts its sim time (stamps) at 0 again. A policy node that refuses
+        observations older than the last one it answered (as stale) would leave the new bridge
+        waiting forever: restart it then (it loads the newest checkpoint at start-up)."""
+        proc = self.stack.procs["policy"]
+        since = len(proc.output())
+
+        def check() -> None:
+            nonlocal proc, since
+            if "older than the last answered" in proc.output()[since:]:
+                print("[loop] the policy node refuses the new bridge run's observations as stale "
+                      "(sim time restarts at 0 with each bridge run): restarting it", flush=True)
+                self.stack.stop("policy")
+                self._start_policy()
+                self.policy_restarts += 1
+                proc = self.stack.procs["policy"]
+                since = len(proc.output())
+        return check
+
+    def _served_updates(self) -> int | None:
+        """The update counter of the checkpoint the policy node served last (from its log)."""
+        text = self.stack.procs["policy"].output()
+        hits = re.findall(r"(?:now serving|serving) checkpoint \S+ \(updates=(\d+)\)", text)
+        return int(hits[-1]) if hits else None
+
+    def _wait_policy_loaded(self, updates: int, stop, timeout: float = 120.0) -> None:
+        """Block until the policy node has loaded the checkpoint with this update counter
+        (its log says 'serving checkpoint ... (updates=N)' at start-up, 'loaded checkpoint ...
+        (updates=N)' when its watcher picked up a newer file)."""
+        proc = self.stack.procs["policy"]
+        proc.wait_for(rf"(loaded|serving) checkpoint \S+ \(updates={updates}\)", timeout, stop=stop)
+
+    def _train(self, stop: runs.StopFlag) -> bool:
+        target = self.target_updates()
+        if self.trainer.updates >= target or not self.ds.num_windows:
+            if not self.ds.num_windows:
+                print(f"[loop] no training window of {self.cfg.train.seq_len} steps yet:\n{self.ds.report}", flush=True)
+            return True
+        self._counters()
+        n = target - self.trainer.updates
+        print(f"[loop] training {n} updates ({self.trainer.updates} -> {target}) on {self.ds.num_steps} steps "
+              f"from {len(self.ds.stores)} bag(s)", flush=True)
+        t0 = time.monotonic()
+        bar = runs.progress(target, initial=self.trainer.updates, desc="train",
+                            disable=True if self.a.no_progress else None, unit="upd")
+        try:
+            done = self.trainer.train(target, stop=stop, checkpoint_every=self.a.checkpoint_every, bar=bar,
+                                      save=False)
+            self._counters()
+            self.trainer.save()
+        finally:
+            bar.close()
+        m = self.trainer.last_metrics
+        print(f"[loop] trained to update {self.trainer.updates} in {runs.fmt_seconds(time.monotonic() - t0)}"
+              + (f" (wm_loss {m.get('wm_loss', float('nan')):.3g}, reward_loss {m.get('reward_loss', float('nan')):.3g})" if m else "")
+              + f"; checkpoint {self.trainer.checkpoint_path}", flush=True)
+        return done
+
+    # ------------------------------------------------------------------ main
+    def run(self) -> int:
+        from trainer.rosprocs import RosStack
+
+        self._setup()
+        a, cfg = self.a, self.cfg
+        t_start = time.monotonic()
+        callbacks = []
+        if a.rerun is not None:
+            callbacks.append(runs.rerun_metrics_callback(a.rerun or self.run_dir / "metrics.rrd",
+                                                         application="protocad-loop"))
+        ckpt = runs.checkpoint_path(self.run_dir)
+        if a.resume and ckpt.exists():
+            self.trainer = Trainer.from_checkpoint(ckpt, self.run_dir, self.ds, device=self.device,
+                                                   callbacks=callbacks, log_every=a.log_every)
+        else:
+            from protocad_ros.policy_node import task_actuators
+
+            self.trainer = Trainer(cfg, self.run_dir, self.ds, device=self.device, callbacks=callbacks,
+                                   log_every=a.log_every, action_dim=len(task_actuators(cfg.task)))
+        self.stack = RosStack(self.run_dir / "logs", domain_id=a.domain_id)
+        print(f"[loop] {cfg.task} / {cfg.variant} / {cfg.preset} on {self.device}; run dir {self.run_dir}; "
+              f"ROS_DOMAIN_ID={self.stack.domain_id}; node logs in {self.stack.log_dir}", flush=True)
+        print(f"[loop] plan: prefill {a.prefill_episodes} random episode(s), then {a.cycles} cycle(s) of "
+              f"{a.episodes_per_cycle} episode(s) with C={a.updates_per_episode} updates per episode"
+              + (f" (resuming: {self.collect_phases} cycle(s), {self.trainer.updates} updates done)" if a.resume else ""),
+              flush=True)
+        status = "finished"
+        with runs.StopFlag() as stop:
+            try:
+                # 1. prefill
+                while self.prefill_episodes_done < a.prefill_episodes and not stop.stop:
+                    self.stack.start_random_actor(task=cfg.task, seed=cfg.train.seed + len(self.phases))
+                    st = self._collect("prefill", a.prefill_episodes - self.prefill_episodes_done, stop)
+                    if st is None or (st["episodes"] == 0 and not stop.stop):
+                        raise RuntimeError("the prefill phase recorded no complete episode; see "
+                                           f"{self.stack.log_dir}")
+                # 2. train + collect cycles
+                while not stop.stop:
+                    if not self._train(stop):
+                        break
+                    if not ckpt.exists() or self.trainer.counters.get("updates") != self.trainer.updates:
+                        self._counters()
+                        self.trainer.save()
+                    if self.collect_phases >= a.cycles or stop.stop:
+                        break
+                    if "policy" not in self.stack.procs or not self.stack.procs["policy"].alive():
+                        self._start_policy()
+                    self._wait_policy_loaded(self.trainer.updates, stop)
+                    if stop.stop:
+                        break
+                    st = self._collect("collect", a.episodes_per_cycle, stop)
+                    if st is None:
+                        break
+                    self.trainer.metrics.log(self.trainer.updates, {
+                        "collect_return": (sum(st["returns"]) / len(st["returns"])) if st["returns"] else float("nan")},
+                        kind="collect", bag=st["bag"], env_steps=sum(p["env_steps"] for p in self.phases),
+                        served_updates=st.get("served_updates"))
+                if stop.stop:
+                    status = "interrupted"
+            finally:
+                self.stack.stop_all()
+                self._counters()
+                if self.trainer.updates:
+                    self.trainer.save()
+                self.trainer.close()
+                runs.atomic_write_json(self.run_dir / "phases.json", self.phases)
+            eval_json = rrd = None
+            if status == "finished" and a.eval_episodes and self.trainer.updates and not stop.stop:
+                eval_json = self._final_eval(stop)
+                if not a.no_visualize and not stop.stop:
+                    rrd = self._visualize()
+        self._report(status, t_start, eval_json, rrd)
+        return 0
+
+    def _final_eval(self, stop) -> Path | None:
+        from trainer.evaluate import evaluate_checkpoint, format_table
+
+        ckpt = runs.checkpoint_path(self.run_dir)
+        print(f"[loop] evaluating {ckpt} on the test contexts ({self.a.eval_episodes} episode(s) each, "
+              "in-process, deterministic)", flush=True)
+        res = evaluate_checkpoint(ckpt, episodes=self.a.eval_episodes, max_contexts=self.a.eval_max_contexts,
+                                  seed=self.cfg.train.seed + 7, device=self.device,
+                                  time_limit=self.a.episode_length * self.cfg.train.action_repeat,
+                                  progress=False if self.a.no_progress else None, stop=stop)
+        if stop.stop:
+            return None
+        print(format_table(res), flush=True)
+        out = self.run_dir / "eval" / f"test_{self.trainer.updates:06d}.json"
+        runs.atomic_write_json(out, res.to_dict())
+        return out
+
+    def _visualize(self) -> Path | None:
+        out = self.run_dir / "contexts.rrd"
+        try:
+            from trainer.visualize import write_context_recording
+        except ImportError as exc:
+            print(f"[loop] no rerun context recording: trainer.visualize is not available ({exc})", flush=True)
+            return None
+        import os
+
+        old_cache = os.environ.get("PROTOCAD_CACHE_DIR")
+        os.environ["PROTOCAD_CACHE_DIR"] = str(self.ds.cache_dir)  # reuse this run's dataset cache
+        print(f"[loop] writing the rerun context recording {out}", flush=True)
+        try:
+            write_context_recording(runs.checkpoint_path(self.run_dir), logs=[self.bags_dir], out_rrd=out,
+                                    device=self.device, progress=False)
+        except Exception as exc:  # noqa: BLE001 - the run's results stand without the picture
+            print(f"[loop] rerun context recording failed: {type(exc).__name__}: {exc}", flush=True)
+            return None
+        finally:
+            if old_cache is None:
+                os.environ.pop("PROTOCAD_CACHE_DIR", None)
+            else:
+                os.environ["PROTOCAD_CACHE_DIR"] = old_cache
+        return out
+
+    def _report(self, status: str, t_start: float, eval_json: Path | None, rrd: Path | None) -> None:
+        c = self.trainer.counters
+        print(f"[loop] {status} in {runs.fmt_seconds(time.monotonic() - t_start)}: "
+              f"{c.get('episodes', 0)} episodes ({c.get('env_steps', 0)} env steps) in {len(self.phases)} bag(s), "
+              f"{self.trainer.updates} updates", flush=True)
+        lines = [("run dir", self.run_dir), ("bags (MCAP)", self.bags_dir), ("checkpoint", runs.checkpoint_path(self.run_dir)),
+                 ("config", self.run_dir / "config.yaml"), ("metrics", self.run_dir / "metrics.jsonl"),
+                 ("phases", self.run_dir / "phases.json"), ("node logs", self.run_dir / "logs")]
+        if eval_json:
+            lines.append(("evaluation", eval_json))
+        if rrd:
+            lines.append(("rerun recording", f"{rrd}   (view: rerun {rrd})"))
+        for k, v in lines:
+            print(f"[loop]   {k + ':':<17}{v}", flush=True)
+        if status != "finished":
+            print(f"[loop] resume with: protocad-loop --run-dir {self.run_dir} --resume", flush=True)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

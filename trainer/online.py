@@ -1,0 +1,403 @@
+"""`protocad-online`: the in-process research path (no ROS): vectorized envs -> the same agent
+(Policy, batched) -> the same trainer, writing the same MCAP bags as the ROS path.
+
+    protocad-online --task pendulum_swingup --preset small --env-steps 60000 --run-dir runs/pend
+    protocad-online --task walker_walk --preset paper --device auto --num-envs 4   # paper protocol
+    protocad-online --run-dir runs/pend --resume
+
+Protocol (ProtoCAD Algorithm 1 + "Evaluation protocol"): N random-action prefill episodes
+(train.prefill_episodes, paper 2), then C updates (train.collect_interval, paper 100) once
+after the prefill and C per collected episode thereafter; evaluation on the test contexts
+every --eval-every env steps (paper: 10k, 5 episodes per context); a budget of --env-steps
+env steps (paper: 2M; env steps = agent steps x action repeat). Collection samples from the
+actor (DreamerPro/DreamerV2: sampled actions, expl_noise 0).
+
+Logs: every env writes each episode to its own bag RUN_DIR/bags/epNNNNNN_envI/ through
+trainer.mcap_io.BagWriter with the contract topics, types and stamps of the ROS path (image,
+step_info, context, /clock at the observation's sim-time stamp; action and context_features
+stamped like the observation they answer, the answer to is_last included), so
+trainer.dataset reads both paths identically and `protocad-train --logs RUN_DIR/bags` retrains
+from them. The replay buffer IS that dataset (disk-backed uint8 store, see trainer/dataset.py).
+
+Resume (`--resume`): weights, optimizers, RNG, sampler state and counters come from the last
+checkpoint; bags on disk are re-indexed (from the cache). Environments restart with fresh
+episodes (a simulator mid-episode is not checkpointed), seeded differently from the first run.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import sys
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+import numpy as np
+
+from sim_bridge import topics as T
+from trainer import runs
+from trainer.dataset import MCAPDataset, TopicMap
+from trainer.train import Trainer, add_common_model_args, config_from_args
+
+BAG_QOS = dict(history="keep_last", depth=100, reliability="reliable", durability="volatile")
+
+
+class EpisodeBagWriter:
+    """Writes one env's steps as the ROS path records them: one bag per episode.
+
+    write_observation(obs, stamp) then write_action(action, stamp, features) for every step;
+    close() after the answer to is_last (or on shutdown: a partial episode is still valid).
+    """
+
+    def __init__(self, bag_dir: Path, action_names: Sequence[str], namespace: str = T.DEFAULT_NAMESPACE,
+                 compression: str = "zstd"):
+        from trainer import mcap_io
+
+        self._io = mcap_io
+        self.bag_dir = Path(bag_dir)
+        self.names = list(action_names)
+        self.w = mcap_io.BagWriter(self.bag_dir, compression=compression)
+        self.t = {k: T.topic_name(namespace, k) for k in (T.IMAGE, T.STEP_INFO, T.CONTEXT, T.ACTION,
+                                                           T.CONTEXT_FEATURES)}
+        self.t[T.CLOCK] = T.CLOCK
+        for rel, name in self.t.items():
+            depth = 10 if rel == T.CLOCK else 100
+            self.w.add_topic(name, T.TYPES[rel], [mcap_io.qos_profile(**{**BAG_QOS, "depth": depth})])
+        self.steps = 0
+
+    def _put(self, rel: str, msg: Any, stamp: int) -> None:
+        now = time.time_ns()
+        self.w.write(self.t[rel], self._io.encode(T.TYPES[rel], msg), now, now)
+
+    def write_observation(self, obs: Any, stamp: int) -> None:
+        new = self._io.new_message
+        clock = new(T.TYPES[T.CLOCK])
+        T.set_stamp(clock.clock, stamp)
+        self._put(T.CLOCK, clock, stamp)
+        self._put(T.CONTEXT, T.fill_context(new(T.TYPES[T.CONTEXT]), obs.context, obs.split, stamp), stamp)
+        self._put(T.STEP_INFO, T.fill_step_info(new(T.TYPES[T.STEP_INFO]), T.StepInfo(
+            float(obs.reward), float(obs.discount), bool(obs.is_first), bool(obs.is_last),
+            bool(obs.is_terminal), int(obs.episode), int(obs.step)), stamp), stamp)
+        self._put(T.IMAGE, T.fill_image(new(T.TYPES[T.IMAGE]), obs.image, stamp), stamp)
+        self.steps += 1
+
+    def write_action(self, action: np.ndarray, stamp: int, features: Any = None) -> None:
+        new = self._io.new_message
+        self._put(T.ACTION, T.fill_action(new(T.TYPES[T.ACTION]), np.asarray(action, np.float64),
+                                          self.names, stamp), stamp)
+        if features is not None and getattr(features, "u", None) is not None and np.size(features.u):
+            self._put(T.CONTEXT_FEATURES, T.fill_context_features(
+                new(T.TYPES[T.CONTEXT_FEATURES]), np.asarray(features.u), np.asarray(features.w),
+                np.asarray(features.e), stamp), stamp)
+
+    def close(self) -> None:
+        self.w.close()
+
+
+def _feature_row(features: Any, i: int) -> Any:
+    if features is None:
+        return None
+
+    class _F:
+        pass
+
+    f = _F()
+    f.u, f.w, f.e = features.u[i], features.w[i], features.e[i]
+    return f
+
+
+# ---------------------------------------------------------------------- CLI
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="protocad-online",
+        description="In-process training (no ROS): vectorized envs on the training contexts -> "
+                    "agent -> trainer, with the paper's protocol (prefill N random episodes, C "
+                    "updates per collected episode, evaluation on the test contexts every "
+                    "--eval-every env steps) and the same MCAP bags as the ROS path.",
+        formatter_class=runs.HelpFormatter)
+    add_common_model_args(ap)
+    ap.set_defaults(device="auto")   # the research path uses a GPU when there is one
+    g = ap.add_argument_group("protocol")
+    g.add_argument("--env-steps", type=int, default=2_000_000,
+                   help="budget in env steps (agent steps x action repeat); paper: 2M")
+    g.add_argument("--num-envs", type=int, default=1, help="training envs (worker processes)")
+    g.add_argument("--prefill-episodes", type=int, default=None, help="N (default train.prefill_episodes = 2)")
+    g.add_argument("--updates-per-episode", type=int, default=None,
+                   help="C (default train.collect_interval = 100)")
+    g.add_argument("--time-limit", type=int, default=None,
+                   help="env steps per episode (default train.time_limit = 1000)")
+    g.add_argument("--eval-every", type=int, default=10_000, help="env steps between evaluations (0: only at the end)")
+    g.add_argument("--eval-episodes", type=int, default=5, help="episodes per test context")
+    g.add_argument("--eval-max-contexts", type=int, default=16,
+                   help="periodic evaluations use at most K test contexts evenly spaced over the grid "
+                        "(0: all; only the (m, d) tasks have more than 16)")
+    g.add_argument("--final-max-contexts", type=int, default=0,
+                   help="the final evaluation (and --random-baseline): at most K test contexts "
+                        "evenly spaced over the grid (0: all, the paper protocol)")
+    g.add_argument("--eval-workers", type=int, default=-1,
+                   help="evaluation env processes (0: in this process; -1: auto)")
+    g.add_argument("--random-baseline", action="store_true",
+                   help="also evaluate the uniform random policy once (same contexts and episodes)")
+    g = ap.add_argument_group("run")
+    g.add_argument("--run-dir", default=None, help="output directory (default runs/online-TASK-VARIANT-TIME)")
+    g.add_argument("--resume", action="store_true", help="continue RUN_DIR from its checkpoint")
+    g.add_argument("--checkpoint-every", type=int, default=1000,
+                   help="updates between checkpoints (also after every evaluation and at the end)")
+    g.add_argument("--log-every", type=int, default=10, help="updates per metrics line")
+    g.add_argument("--cache-dir", default=None, help="dataset cache (default RUN_DIR/cache)")
+    g.add_argument("--rerun", nargs="?", const="", default=None, metavar="RRD",
+                   help="log scalars and evaluations to a rerun recording (default RUN_DIR/metrics.rrd)")
+    g.add_argument("--no-progress", action="store_true")
+    return ap
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    a = build_parser().parse_args(argv)
+    try:
+        return run(a)
+    except ValueError as exc:
+        print(f"protocad-online: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def run(a: argparse.Namespace) -> int:
+    from protocad_ros.policy import Policy
+    from sim_bridge.vector import VectorEnv
+    from trainer.evaluate import (RandomPolicy, evaluate_checkpoint, format_table, select_contexts)
+
+    runs.set_threads(a.threads)
+    device = runs.resolve_device(a.device)
+    run_json: dict[str, Any] = {}
+    if a.resume:
+        if not a.run_dir:
+            raise ValueError("--resume needs --run-dir")
+        run_dir = Path(a.run_dir)
+        if not runs.checkpoint_path(run_dir).exists():
+            raise ValueError(f"--resume: no checkpoint in {run_dir}/checkpoints")
+        run_json = json.loads((run_dir / "run.json").read_text())
+        from protocad_ros.config import Config
+
+        cfg = Config.load(run_dir / "config.yaml")
+        proto = run_json["protocol"]
+        for k in ("env_steps", "num_envs", "eval_every", "eval_episodes", "eval_max_contexts",
+                  "final_max_contexts"):
+            if getattr(a, k) == build_parser().get_default(k):
+                setattr(a, k, proto.get(k, getattr(a, k)))
+    else:
+        overrides = {}
+        if a.prefill_episodes is not None:
+            overrides["train.prefill_episodes"] = a.prefill_episodes
+        if a.updates_per_episode is not None:
+            overrides["train.collect_interval"] = a.updates_per_episode
+        if a.time_limit is not None:
+            overrides["train.time_limit"] = a.time_limit
+        a.set = list(a.set) + [f"{k}={v}" for k, v in overrides.items()]
+        cfg = config_from_args(a)
+        cfg.train.device = device
+        run_dir = Path(a.run_dir) if a.run_dir else runs.default_run_dir("online", cfg.task, cfg.variant)
+        if runs.checkpoint_path(run_dir).exists():
+            raise ValueError(f"{run_dir} already holds a checkpoint: pass --resume or another --run-dir")
+        run_dir.mkdir(parents=True, exist_ok=True)
+        cfg.save(run_dir / "config.yaml")
+    tr = cfg.train
+    N, C, R = tr.prefill_episodes, tr.collect_interval, tr.action_repeat
+    bags_dir = run_dir / "bags"
+    bags_dir.mkdir(parents=True, exist_ok=True)
+    cache_dir = Path(a.cache_dir) if a.cache_dir else run_dir / "cache"
+    eval_dir = run_dir / "eval"
+    eval_dir.mkdir(exist_ok=True)
+    run_json.update(kind="online", argv=sys.argv, task=cfg.task, variant=cfg.variant, preset=cfg.preset,
+                    seed=tr.seed, device=device, protocol={
+                        "env_steps": a.env_steps, "num_envs": a.num_envs, "prefill_episodes": N,
+                        "updates_per_episode": C, "action_repeat": R, "time_limit": tr.time_limit,
+                        "eval_every": a.eval_every, "eval_episodes": a.eval_episodes,
+                        "eval_max_contexts": a.eval_max_contexts, "final_max_contexts": a.final_max_contexts})
+    runs.atomic_write_json(run_dir / "run.json", run_json)
+
+    ds = MCAPDataset([], topics=TopicMap(), seq_len=tr.seq_len, seed=tr.seed, cache_dir=cache_dir)
+    existing = sorted(p for p in bags_dir.iterdir() if p.is_dir())
+    if existing:
+        ds.add(existing)
+    callbacks = []
+    if a.rerun is not None:
+        callbacks.append(runs.rerun_metrics_callback(a.rerun or run_dir / "metrics.rrd",
+                                                     application="protocad-online"))
+    if a.resume:
+        trainer = Trainer.from_checkpoint(runs.checkpoint_path(run_dir), run_dir, ds, device=device,
+                                          callbacks=callbacks, log_every=a.log_every)
+        print(f"[online] resuming {run_dir}: {trainer.counters.get('env_steps', 0)} env steps, "
+              f"{trainer.updates} updates, {len(existing)} bags", flush=True)
+    else:
+        from protocad_ros.policy_node import task_actuators
+
+        trainer = Trainer(cfg, run_dir, ds, device=device, callbacks=callbacks, log_every=a.log_every,
+                          action_dim=len(task_actuators(cfg.task)))
+        trainer.counters.update(env_steps=0, agent_steps=0, episodes=0, prefill_done=0,
+                                next_eval=a.eval_every, evals=0, resumes=0, last_return=0.0, bags=0)
+    c = trainer.counters
+    if a.resume:
+        c["resumes"] = int(c.get("resumes", 0)) + 1
+    eval_workers = a.eval_workers if a.eval_workers >= 0 else (0 if (os.cpu_count() or 1) <= 2 else
+                                                               min(16, (os.cpu_count() or 2) - 1))
+    periodic_contexts = select_contexts(cfg.task, "test", None, a.eval_max_contexts)
+    final_contexts = select_contexts(cfg.task, "test", None, a.final_max_contexts)
+
+    def log_eval(result, tag: str) -> None:
+        d = result.to_dict()
+        d.update(env_steps=int(c["env_steps"]), updates=trainer.updates, tag=tag)
+        runs.atomic_write_json(eval_dir / f"{tag}.json", d)
+        with open(run_dir / "eval.jsonl", "a") as f:
+            f.write(json.dumps({"env_steps": int(c["env_steps"]), "updates": trainer.updates, "tag": tag,
+                                "policy": d["policy"], "mean_return": d["mean_return"],
+                                "per_context": {" ".join(f"{k}={v:g}" for k, v in pc["context"].items()):
+                                                pc["mean_return"] for pc in d["per_context"]}}) + "\n")
+        trainer.metrics.log(trainer.updates, {"eval_return": d["mean_return"]}, kind="eval", tag=tag,
+                            env_steps=int(c["env_steps"]))
+        for hook in trainer.metrics.eval_hooks():
+            try:
+                hook.log_eval(trainer.updates, d)
+            except Exception as exc:  # noqa: BLE001
+                print(f"[online] rerun eval logging failed: {exc}", file=sys.stderr)
+
+    def evaluate(tag: str, contexts, stop) -> Any:
+        res = evaluate_checkpoint(None, agent=trainer.agent, task=cfg.task, episodes=a.eval_episodes,
+                                  contexts=contexts, seed=tr.seed + 7, device=device, workers=eval_workers,
+                                  counters=c, progress=False if a.no_progress else None, stop=stop)
+        res.policy = f"{cfg.variant}@{int(c['env_steps'])}"
+        if stop.stop:
+            return res
+        log_eval(res, tag)
+        print(format_table(res), flush=True)
+        return res
+
+    venv = None
+    writers: list[EpisodeBagWriter | None] = []
+    t_start = time.monotonic()
+    status = "finished"
+    with runs.StopFlag() as stop:
+        try:
+            if a.random_baseline and not (eval_dir / "random.json").exists():
+                from protocad_ros.policy_node import task_actuators
+
+                rnd = evaluate_checkpoint(None, task=cfg.task, episodes=a.eval_episodes, contexts=final_contexts,
+                                          seed=tr.seed + 7, workers=eval_workers,
+                                          time_limit=tr.time_limit, progress=False if a.no_progress else None,
+                                          stop=stop)
+                if not stop.stop:
+                    runs.atomic_write_json(eval_dir / "random.json", rnd.to_dict())
+                    print(format_table(rnd), flush=True)
+            seed = tr.seed * 1000 + int(c.get("resumes", 0))
+            venv = VectorEnv(cfg.task, a.num_envs, split="train", seed=seed, action_repeat=R,
+                             time_limit=tr.time_limit, image_size=tr.image_size)
+            names = list(venv.action_names)
+            dt_ns = int(round(venv.control_dt * 1e9))
+            A = venv.action_dim
+            rng_policy = RandomPolicy(A, seed=tr.seed + 1000 * int(c.get("resumes", 0)))
+            agent_policy = Policy(trainer.agent, device=device, mode="sample",
+                                  exploration_noise=tr.expl_noise, seed=tr.seed + int(c["episodes"]))
+            obs = venv.reset()
+            n = a.num_envs
+            agent_policy.reset(n)
+            ticks = [0] * n
+            prev = np.zeros((n, A), np.float32)
+            ep_return = np.zeros(n)
+            writers = [None] * n
+            bar = runs.progress(a.env_steps, initial=int(c["env_steps"]), desc="env steps",
+                                disable=True if a.no_progress else None, unit="step")
+            print(f"[online] {cfg.task} / {cfg.variant} / {cfg.preset} on {device}: {n} env(s), "
+                  f"budget {a.env_steps} env steps, prefill {N} episodes, C={C}, eval every "
+                  f"{a.eval_every} env steps on {len(periodic_contexts)} test contexts; run dir {run_dir}",
+                  flush=True)
+            while int(c["env_steps"]) < a.env_steps and not stop.stop:
+                prefill = int(c["episodes"]) < N and not int(c["prefill_done"])
+                images = np.stack([o.image for o in obs])
+                first = np.array([o.is_first for o in obs])
+                prev[first] = 0.0
+                if prefill:
+                    actions, feats = rng_policy.act(images, prev, first)
+                else:
+                    actions, feats = agent_policy.act(images, prev, first)
+                finished = []
+                for i, o in enumerate(obs):
+                    stamp = ticks[i] * dt_ns
+                    if o.is_first or writers[i] is None:
+                        if writers[i] is not None:
+                            writers[i].close()
+                        name = f"ep{int(c['bags']):06d}_env{i}_r{int(c['resumes'])}"
+                        c["bags"] = int(c["bags"]) + 1
+                        writers[i] = EpisodeBagWriter(bags_dir / name, names)
+                        ep_return[i] = 0.0
+                    writers[i].write_observation(o, stamp)
+                    writers[i].write_action(actions[i], stamp, _feature_row(feats, i))
+                    ticks[i] += 1
+                    if not o.is_first:
+                        ep_return[i] += o.reward
+                        c["agent_steps"] = int(c["agent_steps"]) + 1
+                        c["env_steps"] = int(c["env_steps"]) + R
+                        bar.update(R)
+                    if o.is_last:
+                        writers[i].close()
+                        finished.append(writers[i].bag_dir)
+                        writers[i] = None
+                        c["episodes"] = int(c["episodes"]) + 1
+                        c["last_return"] = float(ep_return[i])
+                        trainer.metrics.log(trainer.updates, {"train_return": float(ep_return[i])}, kind="episode",
+                                            env_steps=int(c["env_steps"]), episodes=int(c["episodes"]),
+                                            prefill=bool(prefill))
+                prev = np.asarray(actions, np.float32)
+                if finished:
+                    ds.add(finished)
+                    if int(c["episodes"]) >= N and not int(c["prefill_done"]):
+                        c["prefill_done"] = 1
+                    target = 0
+                    if int(c["prefill_done"]):
+                        # Algorithm 1: C updates before the first collected episode, then C per
+                        # collected episode (a total, so an interrupted phase is made up on resume)
+                        target = C + C * max(int(c["episodes"]) - N, 0)
+                    if target > trainer.updates and ds.num_windows:
+                        bar.set_description(f"train (ep {c['episodes']}, return {c['last_return']:.0f})")
+                        trainer.train(target, stop=stop, checkpoint_every=a.checkpoint_every, save=False)
+                        bar.set_description("env steps")
+                    if (a.eval_every and int(c["env_steps"]) >= int(c["next_eval"]) and not stop.stop
+                            and int(c["env_steps"]) < a.env_steps):   # at the budget: the final one
+                        while int(c["next_eval"]) <= int(c["env_steps"]):
+                            c["next_eval"] = int(c["next_eval"]) + a.eval_every
+                        evaluate(f"eval_{int(c['env_steps']):08d}", periodic_contexts, stop)
+                        c["evals"] = int(c["evals"]) + 1
+                        trainer.save()
+                if stop.stop:
+                    break
+                obs = venv.step(np.asarray(actions, np.float64))
+            bar.close()
+            if stop.stop:
+                status = "interrupted"
+            else:
+                final = evaluate("final", final_contexts, stop)
+                if not stop.stop:
+                    print(f"[online] final mean return on {len(final.per_context)} test contexts: "
+                          f"{final.mean:.1f}", flush=True)
+        finally:
+            for w in writers:
+                if w is not None:
+                    w.close()
+            if venv is not None:
+                venv.close()
+            if trainer.updates or stop.stop:
+                trainer.save()
+            trainer.close()
+    dt = time.monotonic() - t_start
+    print(f"[online] {status}: {c['env_steps']} env steps, {c['episodes']} episodes, {trainer.updates} "
+          f"updates in {runs.fmt_seconds(dt)}", flush=True)
+    print(f"[online] run dir:    {run_dir}\n[online] checkpoint: {trainer.checkpoint_path}\n"
+          f"[online] bags:       {bags_dir} ({len(ds.stores)} episodes)\n"
+          f"[online] metrics:    {run_dir / 'metrics.jsonl'}\n[online] eval:       {run_dir / 'eval.jsonl'}, {eval_dir}",
+          flush=True)
+    if status == "interrupted":
+        print(f"[online] resume with: protocad-online --run-dir {run_dir} --resume", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

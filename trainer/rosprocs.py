@@ -1,0 +1,243 @@
+"""Start, watch and stop the ROS node processes of the loop and of `--through-ros` evaluation.
+
+Every node runs as its own process (`python -m sim_bridge.node`, `python -m
+protocad_ros.policy_node`, `python -m trainer.recorder`, `python -m trainer.random_actor`)
+with the environment of scripts/env.sh (AMENT_PREFIX_PATH, RMW_IMPLEMENTATION,
+ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, MUJOCO_GL) and one ROS_DOMAIN_ID per stack (a fresh
+one unless given), output to LOG_DIR/<name>.log. Processes get their own session (a Ctrl-C
+in the terminal reaches only the orchestrator, which stops them in order: bridge, actor,
+recorder last so that it drains and closes its bag) and die with the orchestrator
+(PR_SET_PDEATHSIG) if it is killed.
+"""
+from __future__ import annotations
+
+import ctypes
+import os
+import random
+import re
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from typing import Iterable, Sequence
+
+from sim_bridge import topics as T
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class NodeFailed(RuntimeError):
+    """A node process exited with an error or did not get ready (message has its log tail)."""
+
+
+try:  # loaded here, in the parent: the child only calls the function (no loader work after fork)
+    _prctl = ctypes.CDLL("libc.so.6", use_errno=True).prctl
+except (OSError, AttributeError):  # pragma: no cover - not glibc
+    _prctl = None
+
+
+def _pdeathsig() -> None:  # runs in the child between fork and exec
+    if _prctl is not None:
+        _prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG: die with the orchestrator
+
+
+def fresh_domain_id() -> int:
+    """A domain id in 1..101 (the range whose ports never collide), drawn per run."""
+    return random.SystemRandom().randint(1, 101)
+
+
+def ros_env(domain_id: int | None = None) -> dict[str, str]:
+    env = dict(os.environ)
+    env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"    # DDS never leaves this machine
+    env.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
+    prefix = sys.prefix
+    amp = env.get("AMENT_PREFIX_PATH", "")
+    if prefix not in amp.split(os.pathsep):
+        env["AMENT_PREFIX_PATH"] = os.pathsep.join(filter(None, [prefix, amp]))
+    env.setdefault("MUJOCO_GL", "egl")
+    env.setdefault("PYOPENGL_PLATFORM", env["MUJOCO_GL"])
+    env["PYTHONUNBUFFERED"] = "1"
+    if (ROOT / "trainer").is_dir() and (ROOT / "sim_bridge").is_dir():
+        env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
+    env["ROS_DOMAIN_ID"] = str(domain_id if domain_id is not None else fresh_domain_id())
+    return env
+
+
+class NodeProc:
+    def __init__(self, name: str, args: Sequence[str], log_path: Path, env: dict[str, str]):
+        self.name, self.args, self.log_path = name, list(args), Path(log_path)
+        self.log_path.parent.mkdir(parents=True, exist_ok=True)
+        self._log = open(self.log_path, "ab")
+        self._log.write(f"$ {' '.join(self.args)}\n".encode())
+        self._log.flush()
+        self.p = subprocess.Popen(self.args, stdout=self._log, stderr=subprocess.STDOUT, env=env,
+                                  start_new_session=True, preexec_fn=_pdeathsig)
+        self.started = time.monotonic()
+
+    @property
+    def pid(self) -> int:
+        return self.p.pid
+
+    def alive(self) -> bool:
+        return self.p.poll() is None
+
+    def output(self) -> str:
+        self._log.flush()
+        try:
+            return self.log_path.read_text(errors="replace")
+        except OSError:
+            return ""
+
+    def tail(self, n: int = 25) -> str:
+        return "\n".join(self.output().splitlines()[-n:])
+
+    def wait_for(self, pattern: str, timeout: float, since: int = 0, stop=None) -> re.Match | None:
+        """Wait until the log (from character `since`) matches `pattern`; NodeFailed if the
+        process exits first or the time runs out; None when `stop` (a runs.StopFlag) is raised."""
+        rx = re.compile(pattern)
+        deadline = time.monotonic() + timeout
+        while True:
+            m = rx.search(self.output()[since:])
+            if m:
+                return m
+            if stop is not None and stop.stop:
+                return None
+            if not self.alive():
+                raise NodeFailed(f"{self.name} exited with code {self.p.returncode} before "
+                                 f"/{pattern}/; log {self.log_path}:\n{self.tail()}")
+            if time.monotonic() > deadline:
+                raise NodeFailed(f"{self.name}: no /{pattern}/ within {timeout:.0f}s; log "
+                                 f"{self.log_path}:\n{self.tail()}")
+            time.sleep(0.1)
+
+    def stop(self, sig: int = signal.SIGINT, timeout: float = 20.0) -> int | None:
+        if self.alive():
+            try:
+                os.killpg(self.p.pid, sig)
+            except ProcessLookupError:
+                pass
+            try:
+                self.p.wait(timeout)
+            except subprocess.TimeoutExpired:
+                try:
+                    os.killpg(self.p.pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
+                self.p.wait()
+        if not self._log.closed:
+            self._log.close()
+        return self.p.returncode
+
+
+class RosStack:
+    """The node processes of one run, sharing a namespace and a ROS domain."""
+
+    def __init__(self, log_dir: str | Path, *, domain_id: int | None = None,
+                 namespace: str = T.DEFAULT_NAMESPACE):
+        self.log_dir = Path(log_dir)
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        self.env = ros_env(domain_id)
+        self.domain_id = int(self.env["ROS_DOMAIN_ID"])
+        self.namespace = namespace
+        self.procs: dict[str, NodeProc] = {}
+
+    def _spawn(self, name: str, module: str, args: Sequence[str], log_name: str | None = None) -> NodeProc:
+        old = self.procs.get(name)
+        if old is not None and old.alive():
+            raise RuntimeError(f"{name} is already running (pid {old.pid})")
+        proc = NodeProc(name, [sys.executable, "-m", module, *args], self.log_dir / f"{log_name or name}.log",
+                        self.env)
+        self.procs[name] = proc
+        return proc
+
+    @staticmethod
+    def _params(**params) -> list[str]:
+        out = []
+        for k, v in params.items():
+            if v is None:
+                continue
+            if isinstance(v, bool):
+                v = "true" if v else "false"
+            out += ["-p", f"{k}:={v}"]
+        return out
+
+    def start_bridge(self, *, task: str, split: str = "train", seed: int = 0, max_episodes: int = 0,
+                     episode_length: int = 500, action_repeat: int = 2, min_subscribers: int = 2,
+                     lockstep_timeout_s: float = 5.0, log_name: str | None = None) -> NodeProc:
+        args = ["--ros-args", *self._params(task=task, split=split, seed=seed, mode="lockstep",
+                                            max_episodes=max_episodes, episode_length=episode_length,
+                                            action_repeat=action_repeat, min_subscribers=min_subscribers,
+                                            lockstep_timeout_s=float(lockstep_timeout_s)),
+                "-r", f"__ns:={self.namespace}"]
+        return self._spawn("bridge", "sim_bridge.node", args, log_name)
+
+    def start_policy(self, *, checkpoint: str | Path | None, task: str, wait_for_checkpoint: bool = False,
+                     reload_poll_s: float = 0.5, mode: str = "deterministic", exploration_noise: float = 0.0,
+                     seed: int = 0, device: str = "cpu", preset: str | None = None, variant: str | None = None,
+                     num_threads: int = 0, ready_timeout: float = 120.0) -> NodeProc:
+        args = ["--ros-args", *self._params(
+            checkpoint=str(checkpoint) if checkpoint else None, wait_for_checkpoint=wait_for_checkpoint,
+            reload_poll_s=float(reload_poll_s), task=task, mode=mode, exploration_noise=float(exploration_noise),
+            seed=seed, device=device, preset=preset, variant=variant, num_threads=num_threads),
+            "-r", f"__ns:={self.namespace}"]
+        proc = self._spawn("policy", "protocad_ros.policy_node", args)
+        proc.wait_for(r"serving ", ready_timeout)
+        return proc
+
+    def start_random_actor(self, *, task: str, seed: int = 0, ready_timeout: float = 60.0) -> NodeProc:
+        args = ["--task", task, "--seed", str(seed), "--ros-args", "-r", f"__ns:={self.namespace}"]
+        proc = self._spawn("actor", "trainer.random_actor", args)
+        proc.wait_for(r"random actor ready", ready_timeout)
+        return proc
+
+    def start_recorder(self, bag: str | Path, *, extra_topics: Iterable[str] = (T.DIAGNOSTICS,),
+                       wait_topics: Iterable[str] = (), ready_timeout: float = 60.0,
+                       log_name: str | None = None) -> NodeProc:
+        from trainer.recorder import default_topics
+
+        topics = default_topics(self.namespace) + [t for t in extra_topics]
+        args = ["-o", str(bag), "--namespace", self.namespace, "--flush-interval", "1.0",
+                "--topics", *topics]
+        proc = self._spawn("recorder", "trainer.recorder", args, log_name)
+        proc.wait_for(r"recording to", ready_timeout)
+        for t in wait_topics:
+            proc.wait_for(rf"subscribed to {re.escape(t)} ", ready_timeout)
+        return proc
+
+    def wait_exit(self, proc: NodeProc, timeout: float, *, watch: Sequence[str] = ("policy", "actor", "recorder"),
+                  stop=None, on_poll=None) -> int:
+        """Wait for `proc` to exit (code 0 expected); NodeFailed if it fails or a watched
+        process dies meanwhile; returns -1 when `stop` (a runs.StopFlag) is raised."""
+        deadline = time.monotonic() + timeout
+        while proc.alive():
+            if stop is not None and stop.stop:
+                return -1
+            if on_poll is not None:
+                on_poll()
+            for name in watch:
+                other = self.procs.get(name)
+                if other is not None and other is not proc and not other.alive() and other.p.returncode not in (0, None):
+                    raise NodeFailed(f"{name} died with code {other.p.returncode}; log "
+                                     f"{other.log_path}:\n{other.tail()}")
+            if time.monotonic() > deadline:
+                raise NodeFailed(f"{proc.name} still running after {timeout:.0f}s; log {proc.log_path}:\n{proc.tail()}")
+            time.sleep(0.2)
+        if proc.p.returncode != 0:
+            raise NodeFailed(f"{proc.name} exited with code {proc.p.returncode}; log {proc.log_path}:\n{proc.tail()}")
+        return 0
+
+    def stop(self, name: str, sig: int = signal.SIGINT, timeout: float = 20.0) -> int | None:
+        proc = self.procs.get(name)
+        return proc.stop(sig, timeout) if proc is not None else None
+
+    def stop_all(self) -> dict[str, int | None]:
+        """Bridge first (no new observations), then actors, the recorder last (drains)."""
+        codes = {}
+        for name in ("bridge", "actor", "policy", "recorder"):
+            if name in self.procs:
+                codes[name] = self.stop(name)
+        for name in list(self.procs):
+            if name not in codes:
+                codes[name] = self.stop(name)
+        return codes

@@ -1,0 +1,384 @@
+"""Shared helpers of the trainer CLIs: run directories, config overrides, seeding, devices,
+metrics (JSON lines + optional callbacks, e.g. rerun), progress bars and Ctrl-C handling.
+
+No ROS import here; the training, evaluation, loop and in-process paths all use it.
+
+Run directory layout (every CLI that trains writes the same one)::
+
+    RUN_DIR/
+      config.yaml             the full training config (protocad_ros.config.Config)
+      run.json                 how the run was started (argv, task, variant, seed, device, ...)
+      metrics.jsonl            one JSON object per logged update: {"update", "wall_time", ...}
+      checkpoints/latest.pt    newest checkpoint (atomic replace; what the policy node loads)
+      eval/*.json              evaluation results (loop / online)
+      bags/NAME/               MCAP logs written by the loop / online path (rosbag2 layout)
+      metrics.rrd              rerun recording of the scalars (when --rerun is given)
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import random
+import signal
+import sys
+import tempfile
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Callable, Iterable, Mapping
+
+import numpy as np
+import yaml
+
+MetricsCallback = Callable[[int, Mapping[str, float]], None]
+
+CHECKPOINT_NAME = "latest.pt"
+
+
+# ----------------------------------------------------------------------------- run dirs
+def default_run_dir(kind: str, task: str, variant: str) -> Path:
+    stamp = time.strftime("%Y%m%d-%H%M%S")
+    return Path("runs") / f"{kind}-{task}-{variant}-{stamp}"
+
+
+def checkpoint_path(run_dir: Path) -> Path:
+    return Path(run_dir) / "checkpoints" / CHECKPOINT_NAME
+
+
+def atomic_write_text(path: Path, text: str) -> None:
+    """Write text to path atomically (tmp file in the same dir + fsync + os.replace)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as f:
+            f.write(text)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+
+
+def atomic_write_json(path: Path, obj: Any) -> None:
+    atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n")
+
+
+def _json_default(o: Any) -> Any:
+    if isinstance(o, (np.integer,)):
+        return int(o)
+    if isinstance(o, (np.floating,)):
+        return float(o)
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serializable: {type(o).__name__}")
+
+
+# ----------------------------------------------------------------------------- config
+def parse_set(items: Iterable[str] | None) -> dict[str, Any]:
+    """`--set a.b=1 --set c=[1,2]` -> {'a.b': 1, 'c': [1, 2]} (values parsed as YAML)."""
+    out: dict[str, Any] = {}
+    for item in items or []:
+        key, sep, value = item.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"--set expects KEY=VALUE (e.g. train.batch_size=8), got {item!r}")
+        out[key.strip()] = yaml.safe_load(value) if value.strip() else ""
+    return out
+
+
+def _set_nested(d: dict, dotted: str, value: Any) -> None:
+    """Set d[a][b]... for 'a.b'; a bare key is searched for in every section (must be unique)."""
+    parts = dotted.split(".")
+    if len(parts) == 1 and parts[0] not in d:
+        hits = [sec for sec, sub in d.items() if isinstance(sub, dict) and parts[0] in sub]
+        if len(hits) == 1:
+            parts = [hits[0], parts[0]]
+        elif len(hits) > 1:
+            raise ValueError(f"config key {dotted!r} is ambiguous: use one of "
+                             + ", ".join(f"{h}.{dotted}" for h in hits))
+    cur = d
+    for i, p in enumerate(parts[:-1]):
+        if p not in cur or not isinstance(cur[p], dict):
+            raise ValueError(f"unknown config section {'.'.join(parts[:i + 1])!r} in {dotted!r}; "
+                             f"sections: {sorted(k for k, v in cur.items() if isinstance(v, dict))}")
+        cur = cur[p]
+    if parts[-1] not in cur:
+        raise ValueError(f"unknown config key {dotted!r}; keys here: {sorted(cur)}")
+    cur[parts[-1]] = value
+
+
+def flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
+    out: dict[str, Any] = {}
+    for k, v in d.items():
+        key = f"{prefix}{k}"
+        if isinstance(v, Mapping):
+            out.update(flatten(v, key + "."))
+        else:
+            out[key] = v
+    return out
+
+
+def build_config(task: str | None = None, variant: str | None = None, preset: str | None = None,
+                 config_file: str | Path | None = None, overrides: Mapping[str, Any] | None = None):
+    """Config from (in increasing priority): preset defaults for task/variant, a YAML file
+    (full Config.save() output or a partial nested mapping), `--set` overrides.
+
+    Returns a protocad_ros.config.Config.
+    """
+    from protocad_ros.config import Config, make_config
+
+    file_dict: dict[str, Any] = {}
+    if config_file:
+        text = Path(config_file).read_text()
+        loaded = yaml.safe_load(text) or {}
+        if not isinstance(loaded, dict):
+            raise ValueError(f"{config_file}: expected a YAML mapping at the top level")
+        file_dict = loaded
+    # task / variant / preset: flag > file > default
+    task = task or file_dict.get("task") or "pendulum_swingup"
+    variant = variant or file_dict.get("variant") or "protocad"
+    preset = preset or file_dict.get("preset") or "small"
+    cfg = make_config(task=task, preset=preset, variant=variant)
+    d = cfg.to_dict()
+    for k, v in flatten(file_dict).items():
+        if k in ("task", "variant", "preset"):
+            continue
+        _set_nested(d, k, v)
+    for k, v in (overrides or {}).items():
+        _set_nested(d, k, v)
+    return Config.from_dict(d)
+
+
+class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Shows '(default: X)' unless the help already says what the default is or there is none."""
+
+    def _get_help_string(self, action):
+        h = action.help or ""
+        d = action.default
+        if "default" in h or d is None or d is False or d is argparse.SUPPRESS or (isinstance(d, list) and not d):
+            return h
+        return super()._get_help_string(action)
+
+
+# ----------------------------------------------------------------------------- seeding/device
+def seed_everything(seed: int) -> None:
+    random.seed(seed)
+    np.random.seed(seed % (2 ** 32))
+    try:
+        import torch
+
+        torch.manual_seed(seed)
+    except ImportError:  # pragma: no cover
+        pass
+
+
+def resolve_device(name: str | None) -> str:
+    """'cpu' (default), 'cuda', 'cuda:N' or 'auto' (cuda when available)."""
+    import torch
+
+    name = (name or "cpu").lower()
+    if name == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if name.startswith("cuda") and not torch.cuda.is_available():
+        raise SystemExit(f"--device {name}: CUDA is not available on this machine (use cpu or auto)")
+    if name != "cpu" and not name.startswith("cuda"):
+        raise SystemExit(f"--device {name!r}: expected cpu, cuda, cuda:N or auto")
+    return name
+
+
+def set_threads(n: int | None) -> None:
+    if n:
+        import torch
+
+        torch.set_num_threads(int(n))
+
+
+# ----------------------------------------------------------------------------- metrics
+class MetricsLogger:
+    """Append-only JSON-lines metrics writer; each line carries `update` and `wall_time`
+    (seconds since the run started, carried over across resumes) plus the scalars.
+    Callbacks (e.g. the rerun scalar logger) get (update, metrics) for every logged line."""
+
+    def __init__(self, path: Path, callbacks: Iterable[MetricsCallback] = (), wall_offset: float = 0.0):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._f = open(self.path, "a", buffering=1)
+        self.callbacks = [c for c in callbacks if c is not None]
+        self._t0 = time.monotonic() - float(wall_offset)
+
+    @property
+    def wall_time(self) -> float:
+        return time.monotonic() - self._t0
+
+    def log(self, update: int, metrics: Mapping[str, Any], **extra: Any) -> dict:
+        row = {"update": int(update), "wall_time": round(self.wall_time, 3), "time": round(time.time(), 3)}
+        row.update(extra)
+        for k, v in metrics.items():
+            row[k] = _scalar(v)
+        self._f.write(json.dumps(row, default=_json_default) + "\n")
+        self._f.flush()
+        for cb in self.callbacks:
+            try:
+                cb(int(update), {k: v for k, v in row.items() if isinstance(v, (int, float))})
+            except Exception as exc:  # a broken visualizer must not stop training
+                print(f"[metrics] callback {cb!r} failed: {exc}", file=sys.stderr)
+                self.callbacks.remove(cb)
+        return row
+
+    def eval_hooks(self) -> list:
+        """Callbacks that also take evaluation results (`log_eval(update, results)`)."""
+        return [cb for cb in self.callbacks if hasattr(cb, "log_eval")]
+
+    def close(self) -> None:
+        if not self._f.closed:
+            self._f.close()
+        for cb in self.callbacks:
+            close = getattr(cb, "close", None)
+            if callable(close):
+                try:
+                    close()
+                except Exception as exc:  # noqa: BLE001
+                    print(f"[metrics] closing {cb!r} failed: {exc}", file=sys.stderr)
+        self.callbacks = []
+
+
+def _scalar(v: Any) -> Any:
+    if hasattr(v, "item"):
+        v = v.item()
+    if isinstance(v, float) and not np.isfinite(v):
+        return str(v)
+    return v
+
+
+def read_metrics(path: Path) -> list[dict]:
+    rows = []
+    with open(path) as f:
+        for line in f:
+            line = line.strip()
+            if line:
+                try:
+                    rows.append(json.loads(line))
+                except json.JSONDecodeError:  # a torn last line after a kill
+                    pass
+    return rows
+
+
+def truncate_metrics(path: Path, max_update: int) -> None:
+    """Drop lines logged after the checkpoint we resume from (they will be logged again)."""
+    path = Path(path)
+    if not path.exists():
+        return
+    rows = [r for r in read_metrics(path) if int(r.get("update", 0)) <= max_update]
+    atomic_write_text(path, "".join(json.dumps(r) + "\n" for r in rows))
+
+
+class RunningMean:
+    def __init__(self):
+        self.sums: dict[str, float] = {}
+        self.n: dict[str, int] = {}
+
+    def add(self, metrics: Mapping[str, Any]) -> None:
+        for k, v in metrics.items():
+            try:
+                v = float(v)
+            except (TypeError, ValueError):
+                continue
+            if np.isfinite(v):
+                self.sums[k] = self.sums.get(k, 0.0) + v
+                self.n[k] = self.n.get(k, 0) + 1
+
+    def pop(self) -> dict[str, float]:
+        out = {k: self.sums[k] / self.n[k] for k in self.sums}
+        self.sums, self.n = {}, {}
+        return out
+
+
+def rerun_metrics_callback(rrd_path: str | Path | None, application: str = "protocad-train",
+                           recording_id: str | None = None) -> MetricsCallback | None:
+    """Scalars to a rerun recording (.rrd file), or None without a path.
+
+    Hook for the visualization module: if `trainer.rerun_log` exists and defines
+    `metrics_callback(rrd_path, application, recording_id) -> callable(update, metrics)`,
+    it is used instead of the minimal built-in logger below.
+    """
+    if not rrd_path:
+        return None
+    try:
+        from trainer import rerun_log  # type: ignore[attr-defined]
+
+        factory = getattr(rerun_log, "metrics_callback", None)
+        if factory is not None:
+            return factory(rrd_path, application=application, recording_id=recording_id)
+    except ImportError:
+        pass
+    import rerun as rr
+
+    rec = rr.RecordingStream(application, recording_id=recording_id)
+    Path(rrd_path).parent.mkdir(parents=True, exist_ok=True)
+    rec.save(str(rrd_path))
+
+    def _cb(update: int, metrics: Mapping[str, float]) -> None:
+        rec.set_time("update", sequence=int(update))
+        for k, v in metrics.items():
+            if k in ("update", "time"):
+                continue
+            rec.log(f"metrics/{k.replace('.', '/')}", rr.Scalars(float(v)))
+
+    _cb.recording = rec  # type: ignore[attr-defined]
+    return _cb
+
+
+# ----------------------------------------------------------------------------- progress
+def progress(total: int | None, initial: int = 0, desc: str = "", disable: bool | None = None, unit: str = "it"):
+    """A tqdm bar (to stderr; disabled automatically when stderr is not a terminal unless
+    PROTOCAD_PROGRESS=1)."""
+    from tqdm.auto import tqdm
+
+    if disable is None:
+        disable = not (sys.stderr.isatty() or os.environ.get("PROTOCAD_PROGRESS") == "1")
+    return tqdm(total=total, initial=initial, desc=desc, disable=disable, unit=unit,
+                dynamic_ncols=True, smoothing=0.05)
+
+
+# ----------------------------------------------------------------------------- interrupts
+@dataclass
+class StopFlag:
+    """Ctrl-C / SIGTERM turn into a flag the training loop checks between updates; a second
+    Ctrl-C raises KeyboardInterrupt as usual."""
+
+    stop: bool = False
+    signum: int | None = None
+    _old: dict = field(default_factory=dict)
+
+    def __enter__(self) -> "StopFlag":
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            try:
+                self._old[sig] = signal.signal(sig, self._handler)
+            except ValueError:  # not the main thread
+                pass
+        return self
+
+    def _handler(self, signum, frame):
+        if self.stop and signum == signal.SIGINT:
+            raise KeyboardInterrupt
+        self.stop, self.signum = True, signum
+        print(f"\n[protocad] {signal.Signals(signum).name}: finishing the current step, saving, exiting"
+              " (press Ctrl-C again to abort)", file=sys.stderr, flush=True)
+
+    def __exit__(self, *exc) -> None:
+        for sig, old in self._old.items():
+            signal.signal(sig, old)
+
+
+def fmt_seconds(s: float) -> str:
+    s = int(round(s))
+    h, rem = divmod(s, 3600)
+    m, sec = divmod(rem, 60)
+    return f"{h}h{m:02d}m{sec:02d}s" if h else (f"{m}m{sec:02d}s" if m else f"{sec}s")

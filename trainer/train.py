@@ -1,0 +1,361 @@
+"""`protocad-train` (`ros2 run trainer train`): train an agent from MCAP logs.
+
+    protocad-train --logs runs/loop/bags --task pendulum_swingup --variant protocad \\
+        --preset small --updates 5000 --run-dir runs/offline-1
+    protocad-train --logs foreign_bag/ --topic image=/robot/camera --topic action=/robot/cmd ...
+    protocad-train --run-dir runs/offline-1 --resume            # continue exactly
+
+The :class:`Trainer` here is shared by the loop (trainer/loop.py) and the in-process path
+(trainer/online.py): it owns the agent, the dataset sampler, the metrics log and the
+checkpoints. A checkpoint (protocad_ros.checkpoint, written atomically) carries the weights,
+optimizer states, the torch RNG state, the agent's update counter and the trainer's counters,
+including the dataset sampler's RNG state, so `--resume` continues from the last checkpoint
+with the same counters and draws the same next batch an uninterrupted run would have drawn.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+import zlib
+from pathlib import Path
+from typing import Any, Callable, Iterable, Mapping, Sequence
+
+import numpy as np
+
+from trainer import runs
+from trainer.dataset import DatasetError, MCAPDataset, TopicMap
+
+DEFAULT_LOG_EVERY = 10
+
+
+class Trainer:
+    """Agent + dataset + run directory: updates, metrics (JSON lines + callbacks), checkpoints.
+
+    counters: free-form numbers/strings saved with every checkpoint (the loop and the online
+    path keep env_steps, episodes, phase, ... there); `updates` always mirrors the agent's own
+    update counter.
+    """
+
+    def __init__(self, cfg, run_dir: str | Path, dataset: MCAPDataset | None, *, device: str = "cpu",
+                 agent=None, counters: Mapping[str, Any] | None = None,
+                 callbacks: Iterable[runs.MetricsCallback] = (), log_every: int = DEFAULT_LOG_EVERY,
+                 action_dim: int | None = None, resumed: bool = False):
+        from protocad_ros.agent import Agent
+
+        self.cfg = cfg
+        self.run_dir = Path(run_dir)
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self.dataset = dataset
+        self.device = device
+        if agent is None:
+            adim = action_dim or (dataset.action_dim if dataset is not None else None)
+            if not adim:
+                raise ValueError("the action size is unknown: no dataset with actions and no action_dim")
+            runs.seed_everything(cfg.train.seed)
+            agent = Agent(cfg, int(adim), device=device)
+        self.agent = agent
+        self.counters: dict[str, Any] = dict(counters or {})
+        self.counters.pop("dataset_state", None)
+        self.counters["updates"] = int(agent.counters()["updates"])
+        self.log_every = max(1, int(log_every))
+        if resumed:  # lines logged after the checkpoint will be logged again
+            runs.truncate_metrics(self.run_dir / "metrics.jsonl", self.counters["updates"])
+        self.metrics = runs.MetricsLogger(self.run_dir / "metrics.jsonl", callbacks,
+                                          wall_offset=float(self.counters.get("wall_time", 0.0)))
+        self._mean = runs.RunningMean()
+        self._last_log_t = time.monotonic()
+        self._last_log_u = self.updates
+        self.last_metrics: dict[str, float] = {}
+
+    # ------------------------------------------------------------------ construction helpers
+    @classmethod
+    def from_checkpoint(cls, path: str | Path, run_dir: str | Path, dataset: MCAPDataset | None, *,
+                        device: str = "cpu", **kw) -> "Trainer":
+        """Rebuild from a checkpoint: weights, optimizers, torch RNG, counters, sampler state."""
+        from protocad_ros.checkpoint import load_checkpoint
+
+        agent, counters = load_checkpoint(path, device=device)
+        state = counters.get("dataset_state")
+        if dataset is not None and state:
+            dataset.load_state_dict(json.loads(state))
+        return cls(agent.cfg, run_dir, dataset, device=device, agent=agent, counters=counters,
+                   resumed=True, **kw)
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def updates(self) -> int:
+        return int(self.agent.counters()["updates"])
+
+    @property
+    def checkpoint_path(self) -> Path:
+        return runs.checkpoint_path(self.run_dir)
+
+    # ------------------------------------------------------------------ training
+    def update(self) -> dict[str, float]:
+        """One update on a freshly sampled batch."""
+        if self.dataset is None:
+            raise RuntimeError("no dataset to train on")
+        index = self.dataset.sample_index(self.cfg.train.batch_size)
+        batch = self.dataset.gather(index)
+        m = self.agent.train_step(MCAPDataset.training_batch(batch))
+        m["batch_crc"] = float(zlib.crc32(np.asarray(index, np.int64).tobytes()))
+        self.counters["updates"] = self.updates
+        self._mean.add({k: v for k, v in m.items() if k not in ("batch_crc", "updates")})
+        self.last_metrics = m
+        if self.updates % self.log_every == 0:
+            self.log_now(batch_crc=int(m["batch_crc"]))
+        return m
+
+    def log_now(self, **extra: Any) -> dict | None:
+        means = self._mean.pop()
+        if not means and not extra:
+            return None
+        now = time.monotonic()
+        du = self.updates - self._last_log_u
+        rate = du / (now - self._last_log_t) if now > self._last_log_t and du > 0 else None
+        self._last_log_t, self._last_log_u = now, self.updates
+        row_extra = {k: v for k, v in extra.items()}
+        if rate is not None:
+            row_extra["updates_per_s"] = round(rate, 3)
+        for k in ("env_steps", "episodes"):
+            if k in self.counters:
+                row_extra.setdefault(k, self.counters[k])
+        return self.metrics.log(self.updates, means, kind="train", **row_extra)
+
+    def train(self, target_updates: int, *, stop: runs.StopFlag | None = None, checkpoint_every: int = 0,
+              bar=None, on_update: Callable[[int, dict], None] | None = None, save: bool = True) -> bool:
+        """Update until the agent's counter reaches target_updates (a total, not a delta).
+        Checkpoints every `checkpoint_every` updates and at the end (unless save=False and not
+        stopped). Returns False when stopped early by `stop` (a checkpoint is written then)."""
+        completed = True
+        while self.updates < target_updates:
+            if stop is not None and stop.stop:
+                completed = False
+                break
+            m = self.update()
+            if bar is not None:
+                bar.update(1)
+                if self.updates % 5 == 0:
+                    bar.set_postfix({k: f"{m[k]:.3g}" for k in ("wm_loss", "image_loss", "reward_loss", "actor_loss")
+                                     if k in m}, refresh=False)
+            if on_update is not None:
+                on_update(self.updates, m)
+            if checkpoint_every and self.updates % checkpoint_every == 0 and self.updates < target_updates:
+                self.save()
+        if save or not completed:
+            self.save()
+        return completed
+
+    # ------------------------------------------------------------------ checkpoints
+    def save(self, path: str | Path | None = None) -> Path:
+        """Atomic checkpoint (weights, optimizers, torch RNG, counters, sampler state)."""
+        from protocad_ros.checkpoint import save_checkpoint
+
+        self.log_now()
+        self.counters["updates"] = self.updates
+        self.counters["wall_time"] = round(self.metrics.wall_time, 3)
+        counters = dict(self.counters)
+        if self.dataset is not None:
+            counters["dataset_state"] = json.dumps(self.dataset.state_dict())
+        return save_checkpoint(path or self.checkpoint_path, self.agent, counters, rng_state=True)
+
+    def close(self) -> None:
+        self.metrics.close()
+
+
+# ---------------------------------------------------------------------- CLI
+def add_common_model_args(ap: argparse.ArgumentParser, *, defaults_from_config: bool = True) -> None:
+    from protocad_ros.config import PRESETS, VARIANTS
+    from sim_bridge.contexts import TASKS
+
+    g = ap.add_argument_group("model / config")
+    g.add_argument("--task", choices=sorted(TASKS), default=None,
+                   help="task (default: from --config, else pendulum_swingup)")
+    g.add_argument("--variant", choices=VARIANTS, default=None,
+                   help="agent variant (default: from --config, else protocad)")
+    g.add_argument("--preset", choices=PRESETS, default=None,
+                   help="model size preset (default: from --config, else small)")
+    g.add_argument("--config", default=None, metavar="FILE",
+                   help="YAML config (a saved config.yaml or a partial nested mapping)")
+    g.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="config override, e.g. --set world_model.deter=64 --set train.batch_size=8 (repeatable)")
+    g.add_argument("--batch-size", type=int, default=None, help="B (train.batch_size)")
+    g.add_argument("--seq-len", type=int, default=None, help="M (train.seq_len)")
+    g.add_argument("--seed", type=int, default=0, help="seeds model init, sampling and augmentation")
+    g.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (cuda when available)")
+    g.add_argument("--threads", type=int, default=0, help="torch intra-op threads (0: torch's default)")
+
+
+def config_from_args(a: argparse.Namespace):
+    overrides = runs.parse_set(a.set)
+    if a.batch_size is not None:
+        overrides["train.batch_size"] = a.batch_size
+    if a.seq_len is not None:
+        overrides["train.seq_len"] = a.seq_len
+    overrides["train.seed"] = a.seed
+    return runs.build_config(a.task, a.variant, a.preset, a.config, overrides)
+
+
+def add_topic_args(ap: argparse.ArgumentParser) -> None:
+    g = ap.add_argument_group("logs")
+    g.add_argument("--topic", action="append", default=[], metavar="KEY=/TOPIC",
+                   help="read KEY (image, step_info, action, context) from /TOPIC, for logs "
+                        "recorded under other names (e.g. --topic image=/cam/rgb; context=none)")
+    g.add_argument("--namespace", default=None,
+                   help="namespace of the contract topics in the logs (default /protocad)")
+    g.add_argument("--cache-dir", default=None,
+                   help="dataset cache (default $PROTOCAD_CACHE_DIR or ~/.cache/protocad-ros/dataset)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="protocad-train",
+        description="Train a ProtoCAD agent (or a baseline/ablation variant) from MCAP logs "
+                    "(rosbag2 layout; bag directories, .mcap files or folders of bags). "
+                    "Writes RUN_DIR/config.yaml, metrics.jsonl, checkpoints/latest.pt (atomic, "
+                    "every --checkpoint-every updates and at the end). Ctrl-C saves a final "
+                    "checkpoint and exits 0; --resume continues exactly from the last one.",
+        formatter_class=runs.HelpFormatter)
+    ap.add_argument("--logs", nargs="+", default=None, metavar="PATH",
+                    help="bag directories / .mcap files / folders of bags (with --resume: "
+                         "default = the run's logs)")
+    add_topic_args(ap)
+    add_common_model_args(ap)
+    g = ap.add_argument_group("run")
+    g.add_argument("--updates", type=int, default=None,
+                   help="train until the update counter reaches N (a total; default 1000, or "
+                        "the resumed run's target)")
+    g.add_argument("--run-dir", default=None, help="output directory (default runs/train-TASK-VARIANT-TIME)")
+    g.add_argument("--checkpoint-every", type=int, default=None,
+                   help="updates between checkpoints (default 500, or the resumed run's)")
+    g.add_argument("--log-every", type=int, default=None,
+                   help=f"updates per metrics line (default {DEFAULT_LOG_EVERY}, or the resumed run's)")
+    g.add_argument("--resume", action="store_true",
+                   help="continue RUN_DIR from its checkpoint (config, counters, sampler state)")
+    g.add_argument("--rerun", nargs="?", const="", default=None, metavar="RRD",
+                   help="also log the scalars to a rerun recording (default RUN_DIR/metrics.rrd)")
+    g.add_argument("--no-progress", action="store_true", help="no progress bar")
+    return ap
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    a = build_parser().parse_args(argv)
+    try:
+        return _main(a)
+    except (DatasetError, ValueError) as exc:
+        print(f"protocad-train: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _main(a: argparse.Namespace) -> int:
+    from protocad_ros.checkpoint import CheckpointError
+
+    runs.set_threads(a.threads)
+    device = runs.resolve_device(a.device)
+    run_json: dict[str, Any] = {}
+    if a.resume:
+        if not a.run_dir:
+            raise ValueError("--resume needs --run-dir")
+        run_dir = Path(a.run_dir)
+        ckpt = runs.checkpoint_path(run_dir)
+        if not ckpt.exists():
+            raise ValueError(f"--resume: no checkpoint at {ckpt}")
+        if (run_dir / "run.json").exists():
+            run_json = json.loads((run_dir / "run.json").read_text())
+    else:
+        cfg = config_from_args(a)
+        run_dir = Path(a.run_dir) if a.run_dir else runs.default_run_dir("train", cfg.task, cfg.variant)
+        if runs.checkpoint_path(run_dir).exists():
+            raise ValueError(f"{run_dir} already holds a checkpoint: pass --resume to continue it, "
+                             "or choose another --run-dir")
+    a.checkpoint_every = a.checkpoint_every or run_json.get("checkpoint_every") or 500
+    a.log_every = a.log_every or run_json.get("log_every") or DEFAULT_LOG_EVERY
+    logs = a.logs or run_json.get("logs")
+    if not logs:
+        raise ValueError("give --logs PATH... (bag directories, .mcap files or folders of bags)")
+    topic_args = a.topic or run_json.get("topics_args", [])
+    namespace = a.namespace or run_json.get("namespace")
+    topics = TopicMap.parse(topic_args, namespace)
+    cache_dir = a.cache_dir or run_json.get("cache_dir")
+
+    print(f"[train] reading logs: {', '.join(map(str, logs))}", flush=True)
+    if a.resume:
+        try:
+            from protocad_ros.config import Config
+
+            cfg = Config.load(run_dir / "config.yaml")
+        except Exception as exc:  # noqa: BLE001
+            raise ValueError(f"--resume: cannot read {run_dir / 'config.yaml'}: {exc}") from None
+    ds = MCAPDataset(logs, topics=topics, seq_len=cfg.train.seq_len, seed=cfg.train.seed,
+                     cache_dir=cache_dir, verbose=True)
+    print(ds.report.summary(), flush=True)
+    if ds.num_windows == 0:
+        raise DatasetError(f"nothing to train on: no window of {cfg.train.seq_len} steps in the logs "
+                           "(see the report above)")
+
+    from protocad_ros.policy_node import task_actuators
+
+    n_act = len(task_actuators(cfg.task))
+    if ds.action_dim != n_act:
+        raise ValueError(f"the logs carry {ds.action_dim}-d actions {ds.action_names} but {cfg.task} has "
+                         f"{n_act} actuators: wrong --task, or the action topic maps something else")
+    callbacks = []
+    rrd = None
+    if a.rerun is not None or run_json.get("rerun"):
+        rrd = a.rerun or run_json.get("rerun") or str(run_dir / "metrics.rrd")
+        callbacks.append(runs.rerun_metrics_callback(rrd, application="protocad-train"))
+    if a.resume:
+        try:
+            trainer = Trainer.from_checkpoint(runs.checkpoint_path(run_dir), run_dir, ds, device=device,
+                                              callbacks=callbacks, log_every=a.log_every)
+        except CheckpointError as exc:
+            raise ValueError(str(exc)) from None
+        target = a.updates or int(run_json.get("updates", 1000))
+        print(f"[train] resuming {run_dir} at update {trainer.updates} (target {target})", flush=True)
+    else:
+        cfg.train.device = device
+        (run_dir / "metrics.jsonl").unlink(missing_ok=True)   # a fresh run (no checkpoint yet)
+        trainer = Trainer(cfg, run_dir, ds, device=device, callbacks=callbacks, log_every=a.log_every)
+        target = a.updates or 1000
+        cfg.save(run_dir / "config.yaml")
+    if trainer.dataset.action_dim != trainer.agent.action_dim:
+        raise ValueError(f"the logs have {trainer.dataset.action_dim}-d actions but the agent "
+                         f"{trainer.agent.action_dim}-d")
+    run_json.update(kind="train", argv=sys.argv, logs=[str(Path(p).resolve()) for p in logs],
+                    topics_args=list(topic_args), namespace=namespace,
+                    cache_dir=str(Path(cache_dir).resolve()) if cache_dir else None, task=cfg.task,
+                    variant=cfg.variant, preset=cfg.preset, seed=cfg.train.seed, device=device, updates=target,
+                    checkpoint_every=a.checkpoint_every, log_every=a.log_every,
+                    rerun=str(rrd) if rrd else None, topics=topics.as_dict())
+    runs.atomic_write_json(run_dir / "run.json", run_json)
+
+    print(f"[train] {cfg.task} / {cfg.variant} / {cfg.preset} on {device}: batch "
+          f"{cfg.train.batch_size} x {cfg.train.seq_len}, {trainer.updates} -> {target} updates; "
+          f"run dir {run_dir}", flush=True)
+    t0 = time.monotonic()
+    start = trainer.updates
+    with runs.StopFlag() as stop:
+        bar = runs.progress(target, initial=trainer.updates, desc="train", disable=True if a.no_progress else None,
+                            unit="upd")
+        try:
+            done = trainer.train(target, stop=stop, checkpoint_every=a.checkpoint_every, bar=bar)
+        finally:
+            bar.close()
+            trainer.close()
+    dt = time.monotonic() - t0
+    n = trainer.updates - start
+    status = "finished" if done else "interrupted"
+    print(f"[train] {status} at update {trainer.updates} ({n} updates in {runs.fmt_seconds(dt)}"
+          f"{f', {n / dt:.2f}/s' if dt > 0 and n else ''})", flush=True)
+    print(f"[train] checkpoint: {trainer.checkpoint_path}", flush=True)
+    print(f"[train] metrics:    {run_dir / 'metrics.jsonl'}", flush=True)
+    print(f"[train] config:     {run_dir / 'config.yaml'}", flush=True)
+    if not done:
+        print(f"[train] resume with: protocad-train --run-dir {run_dir} --resume", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
