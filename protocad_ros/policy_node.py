@@ -78,7 +78,7 @@ PARAMS: tuple[Param, ...] = (
 
 COUNTERS = ("observations_answered", "episodes", "images_received", "images_rejected",
             "rejected_image_encoding", "rejected_image_size", "rejected_image_data",
-            "step_info_rejected", "duplicate_observations", "stale_observations",
+            "step_info_rejected", "duplicate_observations", "stale_observations", "sim_time_restarts",
             "unpaired_dropped", "checkpoint_reloads", "checkpoint_load_errors",
             "act_callback_errors", "unknown_parameters", "parameters_rejected")
 
@@ -368,8 +368,16 @@ class PolicyNode(Node):
                 pub.publish(msg)
             return
         if self._last_stamp is not None and stamp < self._last_stamp:
-            return self._count("stale_observations", f"observation {stamp} is older than the "
-                               f"last answered one ({self._last_stamp}): not answered")
+            if not entry["info"].is_first:
+                return self._count("stale_observations", f"observation {stamp} is older than "
+                                   f"the last answered one ({self._last_stamp}): not answered")
+            # Sim time went back at an episode start: a new bridge run (its clock starts at 0
+            # again), as in the collect-train-reload loop. Lone pieces of the old run could
+            # pair with the new run's equal stamps, so they go.
+            self._count("sim_time_restarts", f"sim time went back to {stamp} at an episode "
+                        f"start (last answered {self._last_stamp}): a new sim run")
+            self._unpaired.clear()
+            self._last_stamp = self._last_answer = None
         self._answer(stamp, entry["image"], entry["info"], t)
 
     def _answer(self, stamp: int, image: np.ndarray, info: topics.StepInfo, t_recv: float) -> None:

@@ -151,6 +151,18 @@ def test_malformed_images_and_stamp_matching(spawn, probe):
     assert d["duplicate_observations"] == "1" and d["checkpoint_updates"] == "-1"
     p50, p99 = float(d["latency_ms_p50"]), float(d["latency_ms_p99"])
     assert 0 < p50 <= p99
+
+    # A new bridge run: sim time restarts at 0 with an episode start. That is answered (a new
+    # episode), while an older observation that is not an episode start stays stale.
+    f.image(500)                                          # a lone piece of the "old" run
+    f.obs(0, 0, episode=0, is_first=True)
+    f.wait_answers(6, "the first observation of a new sim run")
+    f.obs(20, 1, episode=0)
+    f.wait_answers(7, "the new run's second step")
+    f.obs(10, 1, episode=0)                               # older, not an episode start
+    wait_until(lambda: probe.counter(node, "stale_observations") == 2, 20, "second stale")
+    assert f.stamps()[-2:] == [0, 20]
+    assert probe.counter(node, "sim_time_restarts") == 1
     assert policy.stop() == 0
     out = policy.log_path.read_text()
     assert "RANDOMLY INITIALISED" in out and "Traceback" not in out
