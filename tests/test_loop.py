@@ -23,7 +23,11 @@ def test_two_collect_train_reload_cycles_through_ros(tmp_path):
     # cycle 1 was served by the checkpoint trained after the prefill (C updates), cycle 2 by the
     # one trained after cycle 1 (2C updates): the policy node picked up the new checkpoint
     assert [p.get("served_updates") for p in phases[1:]] == [C, 2 * C]
-    assert f"updates={2 * C}" in (run / "logs" / "policy.log").read_text()
+    # ... one policy node process, which reloaded it (no restart): started on the first
+    # checkpoint, then loaded the second one and served it from the next episode
+    log = (run / "logs" / "policy.log").read_text()
+    assert log.count("$ ") == 1 and f"serving checkpoint {run}/checkpoints/latest.pt (updates={C})" in log
+    assert f"now serving checkpoint {run}/checkpoints/latest.pt (updates={2 * C})" in log
     # the recorded /diagnostics of the second cycle's bag say the same (the node's own report)
     from trainer import mcap_io
 
@@ -41,10 +45,6 @@ def test_two_collect_train_reload_cycles_through_ros(tmp_path):
     assert int(ck["modules"]["updates"]) == 3 * C
     assert ck["counters"]["episodes"] == 4 and ck["counters"]["collect_phases"] == 2
     assert "mean over contexts" in r.stdout and list((run / "eval").glob("test_*.json"))
-    # every bag is a complete, cleanly closed rosbag2 bag; the only problem the dataset may
-    # report is the bridge publishing its waiting observation again while the policy node
-    # was restarted (see the loop's policy watchdog)
+    # every bag is a complete, cleanly closed rosbag2 bag without any problem to report
     for p in phases:
-        assert (run / "bags" / p["bag"] / "metadata.yaml").exists()
-        assert all("duplicate message(s)" in x for x in p["problems"]), p["problems"]
-        assert not p["problems"] or p.get("policy_restarted")
+        assert (run / "bags" / p["bag"] / "metadata.yaml").exists() and not p["problems"], p

@@ -334,7 +334,7 @@ def run_episodes(task: str, policy: Any, contexts: Sequence[Mapping[str, float]]
     results = [ContextResult(dict(c), split) for c in contexts]
     if not jobs:
         return results
-    n = min(len(jobs), batch or (max(workers, 1) * 4 if workers else 8))
+    n = min(len(jobs), batch or (workers if workers > 0 else 8))   # one env per worker process
     steps_per_ep = math.ceil(time_limit / action_repeat)
     bar = runs.progress(len(jobs) * steps_per_ep, desc=desc, disable=True if progress is False else None, unit="step")
     with EnvPool(task, n, split, seed, workers=workers > 0, action_repeat=action_repeat,
@@ -518,7 +518,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--ros-dir", default=None, help="--through-ros: where bags and node logs go")
     ap.add_argument("--domain-id", type=int, default=None, help="--through-ros: ROS_DOMAIN_ID (default: a fresh one)")
     ap.add_argument("--json", default=None, metavar="FILE", help="write the results as JSON")
-    ap.add_argument("--threads", type=int, default=0, help="torch threads (0: default)")
+    ap.add_argument("--threads", type=int, default=0,
+                    help="torch threads (default 0 = auto: 1 on machines with <= 2 cores, else torch's default)")
     ap.add_argument("--no-progress", action="store_true")
     return ap
 

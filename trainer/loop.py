@@ -161,7 +161,6 @@ class Loop:
         self.ds = MCAPDataset([], topics=TopicMap(), seq_len=tr.seq_len, seed=tr.seed,
                               cache_dir=a.cache_dir or self.run_dir / "cache")
         self.phases: list[dict[str, Any]] = []
-        self.policy_restarts = 0
         for bag in sorted(p for p in self.bags_dir.iterdir() if p.is_dir()):
             self._add_bag(bag, resumed=True)
 
@@ -229,9 +228,7 @@ class Loop:
                                     min_subscribers=2, log_name=f"bridge_{bag.name}")
         print(f"[loop] {bag.name}: {episodes} episode(s) of {a.episode_length} steps on training contexts "
               f"({'random actions' if kind == 'prefill' else 'policy node'}; bridge pid {bridge.pid})", flush=True)
-        restarts = self.policy_restarts
-        on_poll = self._policy_watchdog() if kind == "collect" else None
-        code = stack.wait_exit(bridge, a.phase_timeout, watch=(actor, "recorder"), stop=stop, on_poll=on_poll)
+        code = stack.wait_exit(bridge, a.phase_timeout, watch=(actor, "recorder"), stop=stop)
         stack.stop("bridge")
         stack.stop("recorder")
         if kind == "prefill":
@@ -243,7 +240,6 @@ class Loop:
         st["interrupted"] = code != 0
         if kind == "collect":
             st["served_updates"] = self._served_updates()
-            st["policy_restarted"] = self.policy_restarts > restarts
         rets = ", ".join(f"{r:.0f}" for r in st["returns"])
         print(f"[loop] {bag.name}: {st['episodes']} episode(s) in {st['seconds']}s, returns [{rets}]"
               + (f", policy node served checkpoint updates={st.get('served_updates')}" if kind == "collect" else ""),
@@ -255,25 +251,6 @@ class Loop:
         self.stack.start_policy(checkpoint=runs.checkpoint_path(self.run_dir), task=cfg.task,
                                 wait_for_checkpoint=True, reload_poll_s=0.5, mode="sample",
                                 exploration_noise=a.exploration_noise, seed=cfg.train.seed, device=self.device)
-
-    def _policy_watchdog(self):
-        """Each bridge run starts its sim time (stamps) at 0 again. A policy node that refuses
-        observations older than the last one it answered (as stale) would leave the new bridge
-        waiting forever: restart it then (it loads the newest checkpoint at start-up)."""
-        proc = self.stack.procs["policy"]
-        since = len(proc.output())
-
-        def check() -> None:
-            nonlocal proc, since
-            if "older than the last answered" in proc.output()[since:]:
-                print("[loop] the policy node refuses the new bridge run's observations as stale "
-                      "(sim time restarts at 0 with each bridge run): restarting it", flush=True)
-                self.stack.stop("policy")
-                self._start_policy()
-                self.policy_restarts += 1
-                proc = self.stack.procs["policy"]
-                since = len(proc.output())
-        return check
 
     def _served_updates(self) -> int | None:
         """The update counter of the checkpoint the policy node served last (from its log)."""

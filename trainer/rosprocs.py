@@ -206,15 +206,13 @@ class RosStack:
         return proc
 
     def wait_exit(self, proc: NodeProc, timeout: float, *, watch: Sequence[str] = ("policy", "actor", "recorder"),
-                  stop=None, on_poll=None) -> int:
+                  stop=None) -> int:
         """Wait for `proc` to exit (code 0 expected); NodeFailed if it fails or a watched
         process dies meanwhile; returns -1 when `stop` (a runs.StopFlag) is raised."""
         deadline = time.monotonic() + timeout
         while proc.alive():
             if stop is not None and stop.stop:
                 return -1
-            if on_poll is not None:
-                on_poll()
             for name in watch:
                 other = self.procs.get(name)
                 if other is not None and other is not proc and not other.alive() and other.p.returncode not in (0, None):

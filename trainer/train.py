@@ -185,7 +185,8 @@ def add_common_model_args(ap: argparse.ArgumentParser, *, defaults_from_config: 
     g.add_argument("--seq-len", type=int, default=None, help="M (train.seq_len)")
     g.add_argument("--seed", type=int, default=0, help="seeds model init, sampling and augmentation")
     g.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (cuda when available)")
-    g.add_argument("--threads", type=int, default=0, help="torch intra-op threads (0: torch's default)")
+    g.add_argument("--threads", type=int, default=0,
+                   help="torch intra-op threads (default 0 = auto: 1 on machines with <= 2 cores, else torch's default)")
 
 
 def config_from_args(a: argparse.Namespace):
