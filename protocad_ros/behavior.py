@@ -138,7 +138,6 @@ class ActorCritic(nn.Module):
         """
         cfg = self.cfg
         x, s, actions, ent, logp = self.imagine(fns, start, cfg.horizon)
-        H = cfg.horizon
         reward = fns.reward(s[1:]).float()  # (H, N): r_{t+1} = reward head on s_{t+1}
         if fns.discount is not None:
             discount = cfg.discount * fns.discount(s[1:]).float()

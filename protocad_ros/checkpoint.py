@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import io
 import os
-import tempfile
 import time
 import zipfile
 from pathlib import Path
@@ -29,6 +28,7 @@ from typing import Any, Mapping
 import torch
 
 from .agent import Agent
+from .atomic import atomic_open
 from .config import Config, ConfigError
 
 __all__ = ["save_checkpoint", "load_checkpoint", "restore_checkpoint", "read_checkpoint",
@@ -41,19 +41,6 @@ CONFIG_NAME = "config.yaml"
 
 class CheckpointError(RuntimeError):
     """A checkpoint that cannot be used: corrupt/truncated, foreign, or incompatible."""
-
-
-def _fsync_dir(path: Path) -> None:
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
 
 
 def save_checkpoint(path: str | os.PathLike, agent: Agent, counters: Mapping[str, Any] | None = None,
@@ -79,17 +66,8 @@ def save_checkpoint(path: str | os.PathLike, agent: Agent, counters: Mapping[str
     }
     if rng_state:
         payload["torch_rng"] = torch.get_rng_state()
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            torch.save(payload, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
-    _fsync_dir(path.parent)
+    with atomic_open(path, "wb") as f:
+        torch.save(payload, f)
     agent.cfg.save(path.parent / CONFIG_NAME)
     return path
 

@@ -19,12 +19,13 @@ from __future__ import annotations
 
 import dataclasses
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
 
 import yaml
+
+from .atomic import atomic_write_text
 
 VARIANTS = ("protocad", "dreamer", "dreamerpro", "dreamer_context", "no_projection",
             "no_temporal_consistency")
@@ -206,18 +207,7 @@ class Config:
     def save(self, path: str | os.PathLike) -> Path:
         """Write YAML atomically (tmp file in the same directory + fsync + os.replace)."""
         path = Path(path)
-        path.parent.mkdir(parents=True, exist_ok=True)
-        text = yaml.safe_dump(self.to_dict(), sort_keys=False)
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-        try:
-            with os.fdopen(fd, "w") as f:
-                f.write(text)
-                f.flush()
-                os.fsync(f.fileno())
-            os.replace(tmp, path)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
+        atomic_write_text(path, yaml.safe_dump(self.to_dict(), sort_keys=False))
         return path
 
     @classmethod
@@ -244,15 +234,15 @@ class Config:
         wm, ctx, bh, tr = self.world_model, self.context, self.behavior, self.train
         check(wm.cnn in ("dreamerv2", "dreamerv3"), f"world_model.cnn must be 'dreamerv2' or "
               f"'dreamerv3', got {wm.cnn!r}")
-        check(wm.norm in ("none", "layer"), f"world_model.norm must be 'none'|'layer'")
-        check(bh.norm in ("none", "layer"), f"behavior.norm must be 'none'|'layer'")
+        check(wm.norm in ("none", "layer"), f"world_model.norm must be 'none'|'layer', got {wm.norm!r}")
+        check(bh.norm in ("none", "layer"), f"behavior.norm must be 'none'|'layer', got {bh.norm!r}")
         check(wm.discrete >= 0 and wm.stoch > 0 and wm.deter > 0 and wm.hidden > 0,
               "world_model sizes must be positive (discrete >= 0)")
         check(0.0 <= wm.kl_balance <= 1.0, "world_model.kl_balance must be in [0, 1]")
         check(bh.actor_dist in ("trunc_normal", "tanh_normal"),
               f"behavior.actor_dist must be 'trunc_normal'|'tanh_normal', got {bh.actor_dist!r}")
         check(bh.actor_grad in ("dynamics", "reinforce", "both"),
-              f"behavior.actor_grad must be 'dynamics'|'reinforce'|'both'")
+              f"behavior.actor_grad must be 'dynamics'|'reinforce'|'both', got {bh.actor_grad!r}")
         check(bh.horizon >= 1, "behavior.horizon must be >= 1")
         check(tr.precision in ("float32", "bfloat16"),
               f"train.precision must be 'float32'|'bfloat16', got {tr.precision!r}")

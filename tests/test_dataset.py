@@ -3,9 +3,7 @@ window sampling, the on-disk store and its reuse, truncated files."""
 from __future__ import annotations
 
 import json
-import os
 import shutil
-from pathlib import Path
 
 import numpy as np
 import pytest

@@ -36,7 +36,7 @@ def test_select_contexts_subsets():
 
 
 def test_checkpoints_of_two_tasks_with_random_baseline(tmp_path):
-    a = tiny_checkpoint(tmp_path / "pend" / "checkpoints" / "latest.pt")
+    tiny_checkpoint(tmp_path / "pend" / "checkpoints" / "latest.pt")
     b = tiny_checkpoint(tmp_path / "hop.pt", task="hopper_stand", action_dim=4)
     out = tmp_path / "eval.json"
     r = run_cli("trainer.evaluate", tmp_path / "pend", b, "--random", "--episodes", "2", "--max-contexts", "2",

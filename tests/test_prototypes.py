@@ -5,7 +5,6 @@ reference (explicit loops / closed forms), so a wrong axis, pairing or update fa
 """
 from __future__ import annotations
 
-import math
 
 import pytest
 import torch

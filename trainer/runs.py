@@ -22,7 +22,6 @@ import os
 import random
 import signal
 import sys
-import tempfile
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -30,6 +29,8 @@ from typing import Any, Callable, Iterable, Mapping
 
 import numpy as np
 import yaml
+
+from protocad_ros.atomic import atomic_write_text
 
 MetricsCallback = Callable[[int, Mapping[str, float]], None]
 
@@ -44,25 +45,6 @@ def default_run_dir(kind: str, task: str, variant: str) -> Path:
 
 def checkpoint_path(run_dir: Path) -> Path:
     return Path(run_dir) / "checkpoints" / CHECKPOINT_NAME
-
-
-def atomic_write_text(path: Path, text: str) -> None:
-    """Write text to path atomically (tmp file in the same dir + fsync + os.replace)."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
 
 
 def atomic_write_json(path: Path, obj: Any) -> None:
