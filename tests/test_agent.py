@@ -19,13 +19,7 @@ from protocad_ros.policy import ContextFeatures, Policy
 B, T = 4, 16  # 4 real sequences of 16 agent steps
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    # Tiny tensors on 2 shared cores: a second thread only adds synchronisation cost.
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def tiny(variant: str = "protocad", **kw) -> Config:

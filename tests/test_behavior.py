@@ -12,13 +12,7 @@ from protocad_ros.config import BehaviorConfig
 from protocad_ros.networks import TanhNormal, TruncNormal
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_thread():
-    # Tiny tensors: a second (shared) core only adds synchronisation cost.
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 # ---- lambda-returns ---------------------------------------------------------------------------
