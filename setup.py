@@ -35,8 +35,11 @@ INSTALL_REQUIRES = [
     "ros-jazzy-common-interfaces==5.3.6",
     "ros-jazzy-rmw-fastrtps-cpp==8.4.3",
     "mcap==1.6.0",
+    # Decodes real ROS 2 schemas leniently (FastCDR's trailing padding, which rosbags rejects).
+    "mcap-ros2-support==0.6.0",
     "rosbags==0.11.9",
     "rerun-sdk==0.41.0",
+    "pyarrow>=14",  # rerun's dataframe API, used directly to read recordings back
     "pyyaml>=6.0",
     "tqdm>=4.66",
     "scikit-learn>=1.4",
