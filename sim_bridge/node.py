@@ -41,6 +41,23 @@ from sim_bridge.rosnode import (ConfigError, KeyThrottle, Param, Percentiles, de
                                 executor_param, install_parameter_guards, make_status)
 
 NODE_NAME = "sim_bridge"
+
+
+def episode_contexts(task: str, split: str, schedule: str, fixed: str) -> list[dict[str, float]]:
+    """The contexts episodes cycle through: [] = a uniform draw per reset. ConfigError for a
+    malformed or out-of-table fixed context, naming the allowed values."""
+    spec = TASKS[task]
+    if fixed.strip():
+        try:
+            pairs = [item.split("=", 1) for item in fixed.replace(" ", "").split(",") if item]
+            context = {k: float(v) for k, v in pairs}
+        except ValueError:
+            raise ConfigError(f"parameter context: {fixed!r} is not like 'm=0.2,d=1.5'") from None
+        try:
+            return [spec.validate(context, split)]
+        except ValueError as e:
+            raise ConfigError(f"parameter context: {e}") from None
+    return spec.contexts(split) if schedule == "cycle" else []
 MODES = ("lockstep", "realtime")
 
 PARAMS: tuple[Param, ...] = (
@@ -48,6 +65,12 @@ PARAMS: tuple[Param, ...] = (
           choices=tuple(sorted(TASKS))),
     Param("split", "train", "Context split drawn at each reset: train (C_train) or test (C_test).",
           choices=("train", "test")),
+    Param("context_schedule", "sample", "How each reset picks its context from the split: "
+          "sample = uniform draw (training, the paper's protocol); cycle = the split's grid in "
+          "order, episode i gets context i mod n (evaluation: max_episodes = E * n gives exactly "
+          "E episodes per context).", choices=("sample", "cycle")),
+    Param("context", "", "A fixed context for every episode, e.g. 'm=0.2,d=1.5' (values from "
+          "the split's table); empty = context_schedule decides."),
     Param("seed", 0, "Seeds the context draws and dm_control's initial states: a lock-step run "
           "is reproducible given the seed.", range=(0, 2**31 - 1)),
     Param("mode", "lockstep", "lockstep: each step waits for the action answering it; "
@@ -102,6 +125,9 @@ class SimBridgeNode(Node):
         self.exit_code = 0
         p = self.params = declare_all(self, PARAMS)
         self.executor_kind = p["executor"]
+        self._contexts = episode_contexts(p["task"], p["split"], p["context_schedule"],
+                                          p["context"])
+        self._episodes_begun = 0
         self.lockstep = p["mode"] == "lockstep"
         # The GL context of the renderer is bound to the thread that creates it: the stepping
         # thread builds the env, __init__ waits for it (and reports a bad configuration).
@@ -373,7 +399,10 @@ class SimBridgeNode(Node):
         self.pub_image.publish(img)
 
     def _begin_episode(self):
-        obs = self.env.reset()
+        # None: the env draws uniformly from the split; else the schedule's next context.
+        ctx = self._contexts[self._episodes_begun % len(self._contexts)] if self._contexts else None
+        self._episodes_begun += 1
+        obs = self.env.reset(context=ctx)
         with self._cond:
             self._held, self._held_stamp = np.zeros(self.action_dim), -1
         ctx = ", ".join(f"{k}={v:g}" for k, v in obs.context.items())

@@ -7,6 +7,7 @@ import json
 import numpy as np
 import pytest
 
+from sim_bridge.contexts import TASKS
 from trainer_bags import run_cli
 
 TINY_OVERRIDES = {"world_model.deter": 32, "world_model.hidden": 32, "world_model.stoch": 8,
@@ -85,3 +86,13 @@ def test_through_ros_nodes(tmp_path):
     assert d["mode"] == "through ROS" and d["episodes"] == 2
     assert all(c["split"] == "test" for c in d["per_context"])
     assert list((tmp_path / "ros").glob("eval_test_*/*.mcap"))   # the recorded bag stays
+
+    # Without a total the bridge cycles through the split: every test context exactly once.
+    out = tmp_path / "cycle.json"
+    r = run_cli("trainer.evaluate", ck, "--through-ros", "--episodes", "1", "--episode-length", "5",
+                "--ros-dir", tmp_path / "ros_cycle", "--json", out, timeout=240)
+    assert r.returncode == 0, r.stdout + r.stderr
+    d = json.loads(out.read_text())["results"][0]
+    got = sorted(c["context"]["m"] for c in d["per_context"])
+    assert got == pytest.approx(sorted(TASKS["pendulum_swingup"].test["m"]), abs=1e-6)
+    assert all(len(c["returns"]) == 1 for c in d["per_context"])

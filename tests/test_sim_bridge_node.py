@@ -257,3 +257,12 @@ def test_docs_cover_every_parameter_and_counter():
     doc = (Path(__file__).resolve().parents[1] / "msgs_docs" / "sim_bridge.md").read_text()
     missing = [n for n in [p.name for p in PARAMS] + list(COUNTERS) if f"`{n}`" not in doc]
     assert not missing, f"msgs_docs/sim_bridge.md does not document {missing}"
+
+
+def test_fixed_context_outside_the_split_is_a_configuration_error(spawn):
+    bad = spawn("bridge", "-m", "sim_bridge.node", "--ros-args", "-p", "task:=pendulum_swingup",
+                "-p", "split:=test", "-p", "context:=m=1.0")
+    wait_until(lambda: not bad.alive(), 120, "the bridge to refuse m=1.0 on the test split")
+    assert bad.p.returncode == 2
+    out = bad.output()
+    assert "configuration error" in out and "belongs to the train split" in out

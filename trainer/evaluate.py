@@ -423,7 +423,9 @@ def evaluate_through_ros(checkpoint: str | None, *, task: str | None, split: str
                          episode_length: int | None = None, device: str = "cpu",
                          timeout_s: float = 3600.0) -> EvalResult:
     """Run the episodes through real ROS processes (bridge + policy node or random actor +
-    recorder), then read the returns from the recorded bag (grouped by the true context)."""
+    recorder), then read the returns from the recorded bag (grouped by the true context).
+    Without `total_episodes` the bridge cycles through the split's contexts, so each gets
+    exactly `episodes` episodes; with it, contexts are drawn uniformly."""
     from trainer import rosprocs
     from trainer.dataset import MCAPDataset
 
@@ -457,6 +459,7 @@ def evaluate_through_ros(checkpoint: str | None, *, task: str | None, split: str
             stack.start_random_actor(task=task, seed=seed)
         stack.start_recorder(bag, wait_topics=[f"{stack.namespace}/action"])
         bridge = stack.start_bridge(task=task, split=split, seed=seed, max_episodes=total,
+                                    context_schedule="sample" if total_episodes else "cycle",
                                     episode_length=ep_len, action_repeat=cfg.train.action_repeat if cfg else 2)
         stack.wait_exit(bridge, timeout_s)
     finally:
@@ -509,8 +512,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="run through the ROS nodes (sim bridge + policy node + recorder); "
                          "contexts are drawn by the bridge, --episodes is then the total count")
     ap.add_argument("--ros-episodes", type=int, default=0,
-                    help="--through-ros: total episodes (default: --episodes x the number of the "
-                         "split's contexts)")
+                    help="--through-ros: total episodes, contexts drawn uniformly (default: the "
+                         "bridge cycles through the split's contexts, --episodes each)")
     ap.add_argument("--episode-length", type=int, default=None,
                     help="--through-ros: agent steps per episode (default: the checkpoint's "
                          "time_limit / action_repeat)")

@@ -164,8 +164,10 @@ class RosStack:
 
     def start_bridge(self, *, task: str, split: str = "train", seed: int = 0, max_episodes: int = 0,
                      episode_length: int = 500, action_repeat: int = 2, min_subscribers: int = 2,
-                     lockstep_timeout_s: float = 5.0, log_name: str | None = None) -> NodeProc:
+                     lockstep_timeout_s: float = 5.0, context_schedule: str = "sample",
+                     log_name: str | None = None) -> NodeProc:
         args = ["--ros-args", *self._params(task=task, split=split, seed=seed, mode="lockstep",
+                                            context_schedule=context_schedule,
                                             max_episodes=max_episodes, episode_length=episode_length,
                                             action_repeat=action_repeat, min_subscribers=min_subscribers,
                                             lockstep_timeout_s=float(lockstep_timeout_s)),
