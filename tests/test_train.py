@@ -122,3 +122,21 @@ def test_cli_help_and_errors(tmp_path):
     assert r.returncode == 2 and "nope" in r.stderr
     r = run_cli("trainer.train", "--logs", bag, *TINY, "--run-dir", tmp_path / "z", "--cache-dir", tmp_path / "c")
     assert r.returncode == 2 and "no window of 8 steps" in r.stderr
+
+
+def test_resume_and_new_run_dirs_are_checked_by_every_command(tmp_path):
+    (tmp_path / "ckpt_only" / "checkpoints").mkdir(parents=True)
+    (tmp_path / "ckpt_only" / "checkpoints" / "latest.pt").write_bytes(b"")
+    for module in ("trainer.train", "trainer.online", "trainer.loop"):
+        r = run_cli(module, "--resume")
+        assert r.returncode == 2 and "--resume needs --run-dir" in r.stderr, (module, r.stderr)
+        r = run_cli(module, "--resume", "--run-dir", tmp_path / "nowhere")
+        assert r.returncode == 2 and "is not a directory" in r.stderr, (module, r.stderr)
+        assert "Traceback" not in r.stderr
+    # online and loop need their run.json (the protocol); train can do without it.
+    for module in ("trainer.online", "trainer.loop"):
+        r = run_cli(module, "--resume", "--run-dir", tmp_path / "ckpt_only")
+        assert r.returncode == 2 and "run.json is missing" in r.stderr, (module, r.stderr)
+    # A fresh run never overwrites one that is there.
+    r = run_cli("trainer.online", "--run-dir", tmp_path / "ckpt_only", *TINY)
+    assert r.returncode == 2 and "already holds a run" in r.stderr, r.stderr

@@ -29,7 +29,6 @@ episodes, env steps) and the checkpoint (weights, optimizers, counters, sampler 
 from __future__ import annotations
 
 import argparse
-import json
 import re
 import sys
 import time
@@ -120,10 +119,8 @@ class Loop:
     def _setup(self) -> None:
         a = self.a
         if a.resume:
-            if not a.run_dir:
-                raise ValueError("--resume needs --run-dir")
-            self.run_dir = Path(a.run_dir)
-            state = json.loads((self.run_dir / "run.json").read_text())
+            # A loop stopped during its prefill has bags but no checkpoint yet: still resumable.
+            self.run_dir, state = runs.resume_run_dir(a.run_dir, need_checkpoint=False)
             from protocad_ros.config import Config
 
             self.cfg = Config.load(self.run_dir / "config.yaml")
@@ -136,9 +133,7 @@ class Loop:
         else:
             self.cfg = config_from_args(a)
             self.cfg.train.device = self.device
-            self.run_dir = Path(a.run_dir) if a.run_dir else runs.default_run_dir("loop", self.cfg.task, self.cfg.variant)
-            if runs.checkpoint_path(self.run_dir).exists() or (self.run_dir / "bags").exists():
-                raise ValueError(f"{self.run_dir} already holds a run: pass --resume or another --run-dir")
+            self.run_dir = runs.new_run_dir(a.run_dir, "loop", self.cfg.task, self.cfg.variant)
             self.run_dir.mkdir(parents=True, exist_ok=True)
             self.cfg.save(self.run_dir / "config.yaml")
             self.run_json = {}

@@ -170,12 +170,7 @@ def run(a: argparse.Namespace) -> int:
     device = runs.resolve_device(a.device)
     run_json: dict[str, Any] = {}
     if a.resume:
-        if not a.run_dir:
-            raise ValueError("--resume needs --run-dir")
-        run_dir = Path(a.run_dir)
-        if not runs.checkpoint_path(run_dir).exists():
-            raise ValueError(f"--resume: no checkpoint in {run_dir}/checkpoints")
-        run_json = json.loads((run_dir / "run.json").read_text())
+        run_dir, run_json = runs.resume_run_dir(a.run_dir)
         from protocad_ros.config import Config
 
         cfg = Config.load(run_dir / "config.yaml")
@@ -195,9 +190,7 @@ def run(a: argparse.Namespace) -> int:
         a.set = list(a.set) + [f"{k}={v}" for k, v in overrides.items()]
         cfg = config_from_args(a)
         cfg.train.device = device
-        run_dir = Path(a.run_dir) if a.run_dir else runs.default_run_dir("online", cfg.task, cfg.variant)
-        if runs.checkpoint_path(run_dir).exists():
-            raise ValueError(f"{run_dir} already holds a checkpoint: pass --resume or another --run-dir")
+        run_dir = runs.new_run_dir(a.run_dir, "online", cfg.task, cfg.variant)
         run_dir.mkdir(parents=True, exist_ok=True)
         cfg.save(run_dir / "config.yaml")
     tr = cfg.train

@@ -47,6 +47,38 @@ def checkpoint_path(run_dir: Path) -> Path:
     return Path(run_dir) / "checkpoints" / CHECKPOINT_NAME
 
 
+def resume_run_dir(run_dir: str | os.PathLike | None, *, need_checkpoint: bool = True,
+                   need_state: bool = True) -> tuple[Path, dict[str, Any]]:
+    """The run directory `--resume` continues and its run.json (ValueError saying what is
+    missing, rather than a traceback half-way through start-up)."""
+    if not run_dir:
+        raise ValueError("--resume needs --run-dir")
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise ValueError(f"--resume: {run_dir} is not a directory")
+    if need_checkpoint and not checkpoint_path(run_dir).exists():
+        raise ValueError(f"--resume: no checkpoint at {checkpoint_path(run_dir)}")
+    state = run_dir / "run.json"
+    if not state.exists():
+        if need_state:
+            raise ValueError(f"--resume: {state} is missing (not a run directory of this command?)")
+        return run_dir, {}
+    try:
+        return run_dir, json.loads(state.read_text())
+    except json.JSONDecodeError as e:
+        raise ValueError(f"--resume: {state} is not valid JSON ({e})") from None
+
+
+def new_run_dir(run_dir: str | os.PathLike | None, kind: str, task: str, variant: str) -> Path:
+    """The directory of a fresh run (default runs/KIND-TASK-VARIANT-STAMP); refuses one that
+    already holds a run, so nothing is overwritten."""
+    run_dir = Path(run_dir) if run_dir else default_run_dir(kind, task, variant)
+    if checkpoint_path(run_dir).exists() or (run_dir / "bags").exists():
+        raise ValueError(f"{run_dir} already holds a run: pass --resume to continue it, or "
+                         "choose another --run-dir")
+    return run_dir
+
+
 def atomic_write_json(path: Path, obj: Any) -> None:
     atomic_write_text(path, json.dumps(obj, indent=2, sort_keys=False, default=_json_default) + "\n")
 

@@ -257,20 +257,10 @@ def _main(a: argparse.Namespace) -> int:
     device = runs.resolve_device(a.device)
     run_json: dict[str, Any] = {}
     if a.resume:
-        if not a.run_dir:
-            raise ValueError("--resume needs --run-dir")
-        run_dir = Path(a.run_dir)
-        ckpt = runs.checkpoint_path(run_dir)
-        if not ckpt.exists():
-            raise ValueError(f"--resume: no checkpoint at {ckpt}")
-        if (run_dir / "run.json").exists():
-            run_json = json.loads((run_dir / "run.json").read_text())
+        run_dir, run_json = runs.resume_run_dir(a.run_dir, need_state=False)
     else:
         cfg = config_from_args(a)
-        run_dir = Path(a.run_dir) if a.run_dir else runs.default_run_dir("train", cfg.task, cfg.variant)
-        if runs.checkpoint_path(run_dir).exists():
-            raise ValueError(f"{run_dir} already holds a checkpoint: pass --resume to continue it, "
-                             "or choose another --run-dir")
+        run_dir = runs.new_run_dir(a.run_dir, "train", cfg.task, cfg.variant)
     a.checkpoint_every = a.checkpoint_every or run_json.get("checkpoint_every") or 500
     a.log_every = a.log_every or run_json.get("log_every") or DEFAULT_LOG_EVERY
     logs = a.logs or run_json.get("logs")
