@@ -64,6 +64,7 @@ setup(
             "protocad-loop = trainer.loop:main",
             "protocad-online = trainer.online:main",
             "protocad-visualize = trainer.visualize:main",
+            "protocad-compare = trainer.compare:main",
         ]
     },
 )

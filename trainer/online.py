@@ -108,6 +108,15 @@ def _feature_row(features: Any, i: int) -> Any:
 
 
 # ---------------------------------------------------------------------- CLI
+def parse_context_arg(text: str) -> dict[str, float]:
+    from trainer.evaluate import parse_context
+
+    try:
+        return parse_context(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="protocad-online",
@@ -117,7 +126,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "--eval-every env steps) and the same MCAP bags as the ROS path.",
         formatter_class=runs.HelpFormatter)
     add_common_model_args(ap)
-    ap.set_defaults(device="auto")   # the research path uses a GPU when there is one
+    # The research path uses a GPU when there is one, and bf16 where the hardware has it.
+    ap.set_defaults(device="auto", precision="auto")
     g = ap.add_argument_group("protocol")
     g.add_argument("--env-steps", type=int, default=2_000_000,
                    help="budget in env steps (agent steps x action repeat); paper: 2M")
@@ -129,12 +139,26 @@ def build_parser() -> argparse.ArgumentParser:
                    help="env steps per episode (default train.time_limit = 1000)")
     g.add_argument("--eval-every", type=int, default=10_000, help="env steps between evaluations (0: only at the end)")
     g.add_argument("--eval-episodes", type=int, default=5, help="episodes per test context")
+    g.add_argument("--final-episodes", type=int, default=None,
+                   help="episodes per context of the final evaluation and --random-baseline "
+                        "(default --eval-episodes)")
     g.add_argument("--eval-max-contexts", type=int, default=16,
                    help="periodic evaluations use at most K test contexts evenly spaced over the grid "
                         "(0: all; only the (m, d) tasks have more than 16)")
     g.add_argument("--final-max-contexts", type=int, default=0,
                    help="the final evaluation (and --random-baseline): at most K test contexts "
                         "evenly spaced over the grid (0: all, the paper protocol)")
+    g.add_argument("--wall-budget", type=runs.parse_duration, default=None, metavar="DURATION",
+                   help="also stop once the run's training wall time (carried across resumes) reaches "
+                        "this, e.g. 5400, 90m, 1h30m; then the final evaluation, checkpoint and curves "
+                        "are written as at the env-step budget")
+    g.add_argument("--train-context", type=parse_context_arg, default=None, metavar="K=V[,K=V]",
+                   help="train on this one context of the train split instead of a draw per episode "
+                        "(e.g. m=1: the standard, unrandomized task)")
+    g.add_argument("--eval-split", choices=("test", "train"), default="test",
+                   help="split of the evaluation contexts (paper: test = unseen)")
+    g.add_argument("--eval-contexts", type=parse_context_arg, nargs="+", default=None, metavar="K=V[,K=V]",
+                   help="evaluate on exactly these contexts of --eval-split (default: the split's grid)")
     g.add_argument("--eval-workers", type=int, default=-1,
                    help="evaluation env processes (0: in this process; -1: auto)")
     g.add_argument("--random-baseline", action="store_true",
@@ -176,7 +200,7 @@ def run(a: argparse.Namespace) -> int:
         cfg = Config.load(run_dir / "config.yaml")
         proto = run_json["protocol"]
         for k in ("env_steps", "num_envs", "eval_every", "eval_episodes", "eval_max_contexts",
-                  "final_max_contexts"):
+                  "final_max_contexts", "final_episodes", "wall_budget", "train_context", "eval_split", "eval_contexts"):
             if getattr(a, k) == build_parser().get_default(k):
                 setattr(a, k, proto.get(k, getattr(a, k)))
     else:
@@ -205,7 +229,10 @@ def run(a: argparse.Namespace) -> int:
                         "env_steps": a.env_steps, "num_envs": a.num_envs, "prefill_episodes": N,
                         "updates_per_episode": C, "action_repeat": R, "time_limit": tr.time_limit,
                         "eval_every": a.eval_every, "eval_episodes": a.eval_episodes,
-                        "eval_max_contexts": a.eval_max_contexts, "final_max_contexts": a.final_max_contexts})
+                        "eval_max_contexts": a.eval_max_contexts, "final_max_contexts": a.final_max_contexts,
+                        "final_episodes": a.final_episodes,
+                        "wall_budget": a.wall_budget, "train_context": a.train_context,
+                        "eval_split": a.eval_split, "eval_contexts": a.eval_contexts})
     runs.atomic_write_json(run_dir / "run.json", run_json)
 
     ds = MCAPDataset([], topics=TopicMap(), seq_len=tr.seq_len, seed=tr.seed, cache_dir=cache_dir)
@@ -233,8 +260,12 @@ def run(a: argparse.Namespace) -> int:
         c["resumes"] = int(c.get("resumes", 0)) + 1
     eval_workers = a.eval_workers if a.eval_workers >= 0 else (0 if (os.cpu_count() or 1) <= 2 else
                                                                min(16, (os.cpu_count() or 2) - 1))
-    periodic_contexts = select_contexts(cfg.task, "test", None, a.eval_max_contexts)
-    final_contexts = select_contexts(cfg.task, "test", None, a.final_max_contexts)
+    periodic_contexts = select_contexts(cfg.task, a.eval_split, a.eval_contexts, a.eval_max_contexts)
+    final_contexts = select_contexts(cfg.task, a.eval_split, a.eval_contexts, a.final_max_contexts)
+    if a.train_context is not None:
+        from sim_bridge.contexts import get_task
+
+        a.train_context = get_task(cfg.task).validate(a.train_context, "train")
 
     def log_eval(result, tag: str) -> None:
         d = result.to_dict()
@@ -253,9 +284,11 @@ def run(a: argparse.Namespace) -> int:
             except Exception as exc:  # noqa: BLE001
                 print(f"[online] rerun eval logging failed: {exc}", file=sys.stderr)
 
-    def evaluate(tag: str, contexts, stop) -> Any:
-        res = evaluate_checkpoint(None, agent=trainer.agent, task=cfg.task, episodes=a.eval_episodes,
-                                  contexts=contexts, seed=tr.seed + 7, device=device, workers=eval_workers,
+    final_episodes = a.final_episodes or a.eval_episodes
+
+    def evaluate(tag: str, contexts, stop, episodes: int) -> Any:
+        res = evaluate_checkpoint(None, agent=trainer.agent, task=cfg.task, episodes=episodes,
+                                  contexts=contexts, split=a.eval_split, seed=tr.seed + 7, device=device, workers=eval_workers,
                                   counters=c, progress=False if a.no_progress else None, stop=stop)
         res.policy = f"{cfg.variant}@{int(c['env_steps'])}"
         if stop.stop:
@@ -267,13 +300,14 @@ def run(a: argparse.Namespace) -> int:
     venv = None
     writers: list[EpisodeBagWriter | None] = []
     t_start = time.monotonic()
-    status = "finished"
+    status = "failed"   # until the loop below ends normally or is stopped
     with runs.StopFlag() as stop:
         try:
             if a.random_baseline and not (eval_dir / "random.json").exists():
                 from protocad_ros.policy_node import task_actuators
 
-                rnd = evaluate_checkpoint(None, task=cfg.task, episodes=a.eval_episodes, contexts=final_contexts,
+                rnd = evaluate_checkpoint(None, task=cfg.task, episodes=final_episodes, contexts=final_contexts,
+                                          split=a.eval_split,
                                           seed=tr.seed + 7, workers=eval_workers,
                                           time_limit=tr.time_limit, progress=False if a.no_progress else None,
                                           stop=stop)
@@ -282,7 +316,7 @@ def run(a: argparse.Namespace) -> int:
                     print(format_table(rnd), flush=True)
             seed = tr.seed * 1000 + int(c.get("resumes", 0))
             venv = VectorEnv(cfg.task, a.num_envs, split="train", seed=seed, action_repeat=R,
-                             time_limit=tr.time_limit, image_size=tr.image_size)
+                             time_limit=tr.time_limit, image_size=tr.image_size, context=a.train_context)
             names = list(venv.action_names)
             dt_ns = int(round(venv.control_dt * 1e9))
             A = venv.action_dim
@@ -298,11 +332,19 @@ def run(a: argparse.Namespace) -> int:
             writers = [None] * n
             bar = runs.progress(a.env_steps, initial=int(c["env_steps"]), desc="env steps",
                                 disable=True if a.no_progress else None, unit="step")
+            from protocad_ros.precision import cpu_capability
+
+            wall = f", wall budget {runs.fmt_seconds(a.wall_budget)}" if a.wall_budget else ""
             print(f"[online] {cfg.task} / {cfg.variant} / {cfg.preset} on {device}: {n} env(s), "
-                  f"budget {a.env_steps} env steps, prefill {N} episodes, C={C}, eval every "
-                  f"{a.eval_every} env steps on {len(periodic_contexts)} test contexts; run dir {run_dir}",
-                  flush=True)
-            while int(c["env_steps"]) < a.env_steps and not stop.stop:
+                  f"budget {a.env_steps} env steps{wall}, prefill {N} episodes, C={C}, eval every "
+                  f"{a.eval_every} env steps on {len(periodic_contexts)} {a.eval_split} contexts; "
+                  f"precision {tr.precision}, CPU capability {cpu_capability()}, "
+                  f"{runs.torch_threads()} torch thread(s); run dir {run_dir}", flush=True)
+
+            def out_of_wall_time() -> bool:
+                return bool(a.wall_budget) and trainer.metrics.wall_time >= a.wall_budget
+
+            while int(c["env_steps"]) < a.env_steps and not stop.stop and not out_of_wall_time():
                 prefill = int(c["episodes"]) < N and not int(c["prefill_done"])
                 images = np.stack([o.image for o in obs])
                 first = np.array([o.is_first for o in obs])
@@ -356,7 +398,7 @@ def run(a: argparse.Namespace) -> int:
                             and int(c["env_steps"]) < a.env_steps):   # at the budget: the final one
                         while int(c["next_eval"]) <= int(c["env_steps"]):
                             c["next_eval"] = int(c["next_eval"]) + a.eval_every
-                        evaluate(f"eval_{int(c['env_steps']):08d}", periodic_contexts, stop)
+                        evaluate(f"eval_{int(c['env_steps']):08d}", periodic_contexts, stop, a.eval_episodes)
                         c["evals"] = int(c["evals"]) + 1
                         trainer.save()
                 if stop.stop:
@@ -366,7 +408,8 @@ def run(a: argparse.Namespace) -> int:
             if stop.stop:
                 status = "interrupted"
             else:
-                final = evaluate("final", final_contexts, stop)
+                status = "finished" if int(c["env_steps"]) >= a.env_steps else "wall_budget"
+                final = evaluate("final", final_contexts, stop, final_episodes)
                 if not stop.stop:
                     print(f"[online] final mean return on {len(final.per_context)} test contexts: "
                           f"{final.mean:.1f}", flush=True)
@@ -379,6 +422,10 @@ def run(a: argparse.Namespace) -> int:
             if trainer.updates or stop.stop:
                 trainer.save()
             trainer.close()
+            run_json["result"] = {"status": status, "env_steps": int(c["env_steps"]), "updates": trainer.updates,
+                                  "episodes": int(c["episodes"]), "wall_time": round(trainer.metrics.wall_time, 1),
+                                  "precision": tr.precision, "resumes": int(c.get("resumes", 0))}
+            runs.atomic_write_json(run_dir / "run.json", run_json)
     dt = time.monotonic() - t_start
     print(f"[online] {status}: {c['env_steps']} env steps, {c['episodes']} episodes, {trainer.updates} "
           f"updates in {runs.fmt_seconds(dt)}", flush=True)

@@ -397,6 +397,28 @@ class StopFlag:
             signal.signal(sig, old)
 
 
+def parse_duration(text: str | float) -> float:
+    """'5400', '90m', '1h30m', '45s', '2h' -> seconds (argparse type; ValueError otherwise)."""
+    import re
+
+    t = str(text).strip().lower()
+    try:
+        return float(t)
+    except ValueError:
+        pass
+    m = re.fullmatch(r"(?:(\d+(?:\.\d+)?)h)?(?:(\d+(?:\.\d+)?)m)?(?:(\d+(?:\.\d+)?)s)?", t)
+    if not t or not m or not any(m.groups()):
+        raise argparse.ArgumentTypeError(f"expected a duration like 5400, 90m, 1h30m or 45s, got {text!r}")
+    h, mi, se = (float(g) if g else 0.0 for g in m.groups())
+    return h * 3600 + mi * 60 + se
+
+
+def torch_threads() -> int:
+    import torch
+
+    return torch.get_num_threads()
+
+
 def fmt_seconds(s: float) -> str:
     s = int(round(s))
     h, rem = divmod(s, 3600)

@@ -187,6 +187,9 @@ def add_common_model_args(ap: argparse.ArgumentParser, *, defaults_from_config: 
     g.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (cuda when available)")
     g.add_argument("--threads", type=int, default=0,
                    help="torch intra-op threads (default 0 = auto: 1 on machines with <= 2 cores, else torch's default)")
+    g.add_argument("--precision", choices=("auto", "float32", "bfloat16"), default=None,
+                   help="train.precision; auto = bfloat16 where the device has bf16 arithmetic "
+                        "(AVX512-BF16/AMX CPUs, Ampere+ GPUs), else float32 (default: the config's, float32)")
 
 
 def config_from_args(a: argparse.Namespace):
@@ -196,6 +199,12 @@ def config_from_args(a: argparse.Namespace):
     if a.seq_len is not None:
         overrides["train.seq_len"] = a.seq_len
     overrides["train.seed"] = a.seed
+    if getattr(a, "precision", None):
+        from protocad_ros.precision import resolve_precision
+
+        choice = resolve_precision(a.precision, runs.resolve_device(a.device))
+        overrides["train.precision"] = choice.precision
+        print(f"[config] {choice.describe()}", flush=True)
     return runs.build_config(a.task, a.variant, a.preset, a.config, overrides)
 
 
