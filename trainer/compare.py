@@ -203,6 +203,35 @@ def run_grid(specs: Sequence[RunSpec], a: argparse.Namespace) -> int:
     return failed
 
 
+def add_grid_wall_time(out: Path, seconds: float) -> float:
+    """Wall time of the grid summed over every invocation (OUT/grid.json). Where no earlier
+    invocation recorded its share, it is the time from the oldest run's config.yaml to the
+    start of this invocation."""
+    path = Path(out) / "grid.json"
+    try:
+        total = float(json.loads(path.read_text()).get("wall_time_s", 0.0))
+    except (OSError, ValueError, AttributeError):
+        starts = [p.stat().st_mtime for p in Path(out).glob("*/*/seed*/config.yaml")]
+        total = max(0.0, time.time() - seconds - min(starts)) if starts else 0.0
+    total += seconds
+    runs.atomic_write_json(path, {"wall_time_s": round(total, 1)})
+    return total
+
+
+def random_baselines(a: argparse.Namespace) -> dict[str, dict]:
+    """The uniform random policy on each task's test contexts, once (OUT/TASK/random.json)."""
+    from trainer.evaluate import evaluate_checkpoint
+
+    out = {}
+    for task in a.tasks:
+        path = Path(a.out) / task / "random.json"
+        if not path.exists():
+            res = evaluate_checkpoint(None, task=task, episodes=a.random_episodes, seed=7, progress=False)
+            runs.atomic_write_json(path, res.to_dict())
+        out[task] = json.loads(path.read_text())
+    return out
+
+
 # ---------------------------------------------------------------------- CLI
 def build_parser() -> argparse.ArgumentParser:
     from protocad_ros.config import VARIANTS
@@ -239,6 +268,13 @@ def build_parser() -> argparse.ArgumentParser:
                    help="print the README results section (generated from results.json)")
     g.add_argument("--update-readme", default=None, metavar="README",
                    help="replace the generated results section of this README in place")
+    g.add_argument("--image", default=None, metavar="PNG",
+                   help="also write the learning-curve plot here, and link it from the markdown section "
+                        "(a path relative to the README)")
+    g.add_argument("--random-baseline", action="store_true",
+                   help="evaluate the uniform random policy once per task (OUT/TASK/random.json, the "
+                        "final evaluation's contexts and episodes) and report it beside the variants")
+    g.add_argument("--random-episodes", type=int, default=5, help="episodes per context of --random-baseline")
     g.add_argument("--status-every", type=float, default=300.0, help="seconds between status lines")
     ap.add_argument("online_args", nargs=argparse.REMAINDER,
                     help="-- then arguments for every protocad-online run")
@@ -264,25 +300,30 @@ def main(argv: Sequence[str] | None = None) -> int:
             specs = plan(a)
             t0 = time.monotonic()
             failed = run_grid(specs, a)
+            wall = add_grid_wall_time(a.out, time.monotonic() - t0)
             if failed < 0:
                 return 130
             from trainer import results as R
 
-            doc = R.gather(specs, command=sys.argv if argv is None else ["protocad-compare", *argv],
-                           env_steps=a.env_steps, wall_budget=a.wall_budget, jobs=a.jobs, threads=a.threads,
-                           wall_time=time.monotonic() - t0)
+            random = random_baselines(a) if a.random_baseline else {}
+            command = ["protocad-compare", *(sys.argv[1:] if argv is None else argv)]
+            doc = R.gather(specs, command=command, env_steps=a.env_steps, wall_budget=a.wall_budget,
+                           jobs=a.jobs, threads=a.threads, wall_time=wall, random=random)
             out_dir = a.out
             R.save_results(doc, out_dir / "results.json")
             print(f"[compare] {len(specs)} runs, {failed} failed; results: {out_dir / 'results.json'}",
                   flush=True)
         print(R.format_report(doc), flush=True)
         png = R.plot_curves(doc, out_dir / "curves.png")
+        if a.image:
+            shutil.copyfile(png, a.image)
         rrd = R.log_curves_rerun(doc, out_dir / "curves.rrd")
         print(f"[compare] plot: {png}\n[compare] rerun: {rrd}", flush=True)
+        source = a.report or str(out_dir / "results.json")
         if a.markdown:
-            print(R.markdown_section(doc))
+            print(R.markdown_section(doc, image=a.image, source=source))
         if a.update_readme:
-            R.update_readme(Path(a.update_readme), R.markdown_section(doc))
+            R.update_readme(Path(a.update_readme), R.markdown_section(doc, image=a.image, source=source))
             print(f"[compare] updated the results section of {a.update_readme}", flush=True)
     except (ValueError, OSError) as exc:
         print(f"protocad-compare: error: {exc}", file=sys.stderr)

@@ -1,0 +1,149 @@
+"""protocad-compare: a real grid of protocad-online processes (tiny budgets), interrupted and
+resumed; results.json against its schema; the statistics against hand-computed values; the
+plot; the README section regenerated from the committed results.json."""
+from __future__ import annotations
+
+import itertools
+import json
+import re
+import signal
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from conftest import ROOT, wait_for
+from trainer import results as R
+
+# 4 runs of 100-agent-step episodes; 2 test contexts, 1 episode each, so a run takes seconds.
+TINY = ["--preset", "small", "--time-limit", "200", "--prefill-episodes", "1", "--updates-per-episode", "2",
+        "--batch-size", "4", "--seq-len", "16", "--eval-every", "400", "--eval-episodes", "1",
+        "--eval-contexts", "m=0.2", "m=1.8", "--checkpoint-every", "1",
+        "--set", "context.freeze_prototypes_updates=2"]
+
+
+def grid_args(out: Path) -> list[str]:
+    return ["-m", "trainer.compare", "--tasks", "pendulum_swingup", "--variants", "protocad", "dreamer",
+            "--seeds", "0", "1", "--env-steps", "1200", "--jobs", "4", "--out", str(out),
+            "--status-every", "5", "--", *TINY]
+
+
+def read_counters(run_dir: Path) -> dict:
+    from protocad_ros.checkpoint import read_checkpoint
+
+    return read_checkpoint(run_dir / "checkpoints" / "latest.pt")["counters"]
+
+
+@pytest.mark.slow
+def test_grid_runs_in_parallel_resumes_after_ctrl_c_and_reports(tmp_path, spawn):
+    out = tmp_path / "grid"
+    run_dirs = [out / "pendulum_swingup" / v / f"seed{s}" for v in ("protocad", "dreamer") for s in (0, 1)]
+    first = spawn("compare1", *grid_args(out))
+    # All four runs are alive at once (parallel workers) and each has written a checkpoint.
+    wait_for(lambda: all((d / "checkpoints" / "latest.pt").exists() for d in run_dirs), 300,
+             "a checkpoint in every run directory")
+    pids = set(re.findall(r"started \S+ \(fresh\) pid (\d+)", first.output()))
+    assert len(pids) == 4, first.output()
+    assert first.stop(signal.SIGINT, timeout=120) == 130, first.output()
+    assert "interrupted" in first.output()
+    saved = {d: read_counters(d) for d in run_dirs}
+    for d in run_dirs:
+        assert json.loads((d / "run.json").read_text())["result"]["status"] == "interrupted"
+        assert not (d / "eval" / "final.json").exists()
+
+    second = spawn("compare2", *grid_args(out))
+    wait_for(lambda: not second.alive(), 400, "the resumed grid to finish")
+    log = second.output()
+    assert second.p.returncode == 0, log
+    for d in run_dirs:
+        c = saved[d]
+        run_log = (d / "online.log").read_text()
+        # The resumed run starts from exactly the counters its checkpoint holds.
+        assert (f"resuming {d}: {c['env_steps']} env steps, {c['updates']} updates"
+                in run_log.replace(str(d.resolve()), str(d))), run_log[-2000:]
+        res = json.loads((d / "run.json").read_text())["result"]
+        assert res["status"] == "finished" and res["env_steps"] == 1200 and res["resumes"] == 1
+
+    doc = R.load_results(out / "results.json")         # validates against RESULTS_SCHEMA
+    assert len(doc["runs"]) == 4 and {r["status"] for r in doc["runs"]} == {"finished"}
+    for r in doc["runs"]:
+        assert r["final"] is not None and set(r["final"]["per_context"]) == {"m=0.2", "m=1.8"}
+        assert r["curve"][-1]["tag"] == "final" and r["curve"][-1]["env_steps"] == 1200
+        assert [c["env_steps"] for c in r["curve"]] == sorted(c["env_steps"] for c in r["curve"])
+    # A third run of the same command has nothing left to do.
+    third = spawn("compare3", *grid_args(out))
+    wait_for(lambda: not third.alive(), 120, "the finished grid to report")
+    assert third.output().count(": done") == 4 and "started" not in third.output()
+
+    # The plot: a valid PNG with one curve per variant (each variant's colour is in it).
+    from PIL import Image
+
+    png = out / "curves.png"
+    with Image.open(png) as im:
+        im.verify()
+    with Image.open(png) as im:
+        pixels = {tuple(p) for p in np.asarray(im.convert("RGB")).reshape(-1, 3)}
+    import matplotlib
+
+    for color in matplotlib.rcParams["axes.prop_cycle"].by_key()["color"][:2]:
+        rgb = tuple(int(round(255 * x)) for x in matplotlib.colors.to_rgb(color))
+        assert rgb in pixels, color
+    assert (out / "curves.rrd").stat().st_size > 0
+
+
+def test_results_schema_rejects_a_broken_document(tmp_path):
+    doc = json.loads((ROOT / "msgs_docs" / "results" / "pendulum_cpu.json").read_text())
+    R.validate(doc)
+    del doc["runs"][0]["curve"]
+    with pytest.raises(ValueError, match="runs/0"):
+        R.validate(doc)
+
+
+def test_bootstrap_interval_matches_the_exact_bootstrap_distribution():
+    # Four seeds: the bootstrap distribution of the mean is the 4**4 = 256 equally likely
+    # resamples, enumerated here; a 95% percentile interval must sit at its 2.5% and 97.5%
+    # points (checked between the exact 2% and 3% / 97% and 98% points: Monte Carlo error at
+    # 40k replicates is ~0.08%).
+    scores = np.array([1.0, 2.0, 6.0, 10.0])
+    exact = np.sort([np.mean(c) for c in itertools.product(scores, repeat=4)])
+    q = lambda p: exact[int(np.ceil(p * exact.size)) - 1]   # noqa: E731  inverse CDF
+    lo, hi = R.bootstrap_ci([scores], R.aggregate_mean, reps=40_000, seed=1)
+    assert q(0.02) <= lo <= q(0.03) and q(0.97) <= hi <= q(0.98), (lo, hi, q(0.025), q(0.975))
+    assert q(0.025) == pytest.approx(1.5) and q(0.975) == pytest.approx(8.0)   # by hand: 1,1,2,2 / 10,10,6,6
+    assert R.bootstrap_ci([scores], R.aggregate_mean, reps=500, seed=3) == \
+        R.bootstrap_ci([scores], R.aggregate_mean, reps=500, seed=3)
+
+
+def test_iqm_and_aggregates_match_hand_computed_values():
+    # 8 scores: IQM drops the 2 lowest and the 2 highest and averages the middle 4.
+    assert R.iqm(np.array([0, 1, 2, 3, 4, 5, 6, 100.0])) == pytest.approx((2 + 3 + 4 + 5) / 4)
+    per_task = [np.array([10.0, 20.0]), np.array([0.0, 100.0]), np.array([5.0, 5.0])]
+    assert R.aggregate_mean(per_task) == pytest.approx(140 / 6)
+    assert R.aggregate_median(per_task) == pytest.approx(15.0)   # task means 15, 50, 5
+    # all 6 scores sorted 0 5 5 10 20 100: trim 25% (1.5 each side) -> scipy trims 1 each side
+    assert R.aggregate_iqm(per_task) == pytest.approx(np.mean([5, 5, 10, 20]))
+    # Stratified: a task whose seeds agree contributes no spread.
+    lo, hi = R.bootstrap_ci([np.array([5.0, 5.0])], R.aggregate_mean, reps=200)
+    assert lo == hi == 5.0
+
+
+def test_readme_results_section_regenerates_byte_identically_from_the_committed_json():
+    source = "msgs_docs/results/pendulum_cpu.json"
+    doc = R.load_results(ROOT / source)
+    section = R.markdown_section(doc, image="msgs_docs/results/pendulum_cpu.png", source=source)
+    assert R.readme_section(ROOT / "README.md") == section
+    assert (ROOT / "msgs_docs" / "results" / "pendulum_cpu.png").exists()
+
+
+def test_compare_help_and_bad_report_are_clear(tmp_path):
+    import subprocess
+
+    h = subprocess.run([sys.executable, "-m", "trainer.compare", "--help"], capture_output=True, text=True,
+                       cwd=ROOT, timeout=120)
+    assert h.returncode == 0 and "--wall-budget" in h.stdout and "--anchor-seeds" in h.stdout
+    bad = tmp_path / "results.json"
+    bad.write_text(json.dumps({"schema": "protocad-compare/1"}))
+    r = subprocess.run([sys.executable, "-m", "trainer.compare", "--report", str(bad)], capture_output=True,
+                       text=True, cwd=ROOT, timeout=120)
+    assert r.returncode == 2 and "does not match protocad-compare/1" in r.stderr
