@@ -17,22 +17,20 @@ counted, never propagated.
 from __future__ import annotations
 
 import collections
-import importlib.util
 import os
 import threading
 import time
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any, Callable
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.node import Node
+from sim_bridge.rosbase import ProtocadNode
 from sensor_msgs.msg import Image, JointState
 
 from protocad_ros.live_view import LiveView
 from sim_bridge import qos, topics
-from sim_bridge.contexts import TASKS
+from sim_bridge.contexts import TASKS, task_actuators
 from sim_bridge.rosnode import (ConfigError, KeyThrottle, Param, Percentiles, declare_all,
                                 executor_param, install_parameter_guards, make_status,
                                 run_node)
@@ -80,7 +78,8 @@ COUNTERS = ("observations_answered", "episodes", "images_received", "images_reje
             "rejected_image_encoding", "rejected_image_size", "rejected_image_data",
             "step_info_rejected", "duplicate_observations", "stale_observations", "sim_time_restarts",
             "unpaired_dropped", "checkpoint_reloads", "checkpoint_load_errors",
-            "act_callback_errors", "unknown_parameters", "parameters_rejected")
+            "act_callback_errors", "unknown_parameters", "parameters_rejected",
+            "observations_lost", "fragments_discarded", "step_info_received")
 
 
 @dataclass
@@ -96,20 +95,6 @@ class ActEvent:
     checkpoint_updates: int    # -1 for a random agent
 
 
-def task_actuators(task: str) -> list[str]:
-    """Actuator names of a task (its dm_control model), read with mujoco alone: no dm_control
-    import (which would open a rendering display) in a process that never renders."""
-    import mujoco
-
-    spec = TASKS[task]
-    found = importlib.util.find_spec("dm_control")
-    if found is None or not found.submodule_search_locations:
-        raise RuntimeError("dm_control is not installed")
-    xml = Path(list(found.submodule_search_locations)[0], "suite", f"{spec.domain}.xml")
-    model = mujoco.MjModel.from_xml_path(str(xml))
-    return [model.actuator(i).name for i in range(model.nu)]
-
-
 def _file_signature(path: str) -> tuple[int, int, int] | None:
     try:
         st = os.stat(path)
@@ -118,7 +103,7 @@ def _file_signature(path: str) -> tuple[int, int, int] | None:
     return (st.st_mtime_ns, st.st_ino, st.st_size)
 
 
-class PolicyNode(Node):
+class PolicyNode(ProtocadNode):
     """See the module docstring; parameters in PARAMS, counters in COUNTERS."""
 
     def __init__(self, *, namespace: str = topics.DEFAULT_NAMESPACE, **kw: Any):
@@ -342,6 +327,7 @@ class PolicyNode(Node):
     def _on_info(self, msg) -> None:
         t = time.monotonic()
         stamp = topics.stamp_to_ns(msg.header.stamp)
+        self._count("step_info_received")
         try:
             info = topics.read_step_info(msg)
         except (ValueError, TypeError, IndexError) as e:
@@ -388,6 +374,18 @@ class PolicyNode(Node):
         elif self._last_stamp is None:
             self.get_logger().info(f"joined in the middle of episode {info.episode} (step "
                                    f"{info.step}): filtering from a blank state")
+        else:
+            # Observations that never reached us whole (a DDS queue overwritten under load, a
+            # flood): the contract numbers the steps of an episode 0, 1, 2, ... A later episode
+            # shows its lost head; the lost tail of an earlier one is not knowable.
+            lost = info.step - self._step - 1 if info.episode == self._episode else info.step
+            if lost > 0:
+                with self._lock:
+                    self.counters["observations_lost"] += lost
+                    n = self.counters["observations_lost"]
+                self._throttle.warning("observations_lost", f"{lost} observation(s) before episode "
+                                       f"{info.episode} step {info.step} never arrived whole "
+                                       f"(observations_lost: {n} so far)")
         t0 = time.monotonic()
         action, feats = self.policy.act(image, self._prev_action, bool(info.is_first))
         self.act_time.add(time.monotonic() - t0)
@@ -402,8 +400,12 @@ class PolicyNode(Node):
         self._prev_action = action.copy()
         self._last_stamp, self._last_answer = stamp, (amsg, fmsg)
         self._episode, self._step = info.episode, info.step
-        for s in [s for s in self._unpaired if s < stamp]:   # pieces that can no longer pair
+        stale = [s for s in self._unpaired if s < stamp]   # pieces that can no longer pair
+        for s in stale:
             del self._unpaired[s]
+        if stale:
+            with self._lock:
+                self.counters["fragments_discarded"] += len(stale)
         self._count("observations_answered")
         if self._act_callbacks:
             event = ActEvent(stamp, info, image, action, feats, latency, self.checkpoint_updates)
@@ -428,11 +430,12 @@ class PolicyNode(Node):
             "latency_ms_p99": self.latency.percentile(99) * 1e3,
             "act_ms_p50": self.act_time.percentile(50) * 1e3,
             "act_ms_p99": self.act_time.percentile(99) * 1e3,
-            "episode": self._episode, "step": self._step,
+            "episode": self._episode, "step": self._step, "callback_errors": self.callback_errors,
             **c,
         }
         bad = (c["images_rejected"] or c["step_info_rejected"] or c["checkpoint_load_errors"]
-               or c["stale_observations"] or c["unpaired_dropped"])
+               or c["stale_observations"] or c["unpaired_dropped"] or c["observations_lost"]
+               or self.callback_errors)
         level = "WARN" if bad or self.agent_kind == "random" else "OK"
         message = ("random agent" if self.agent_kind == "random" else
                    "rejected inputs or checkpoint errors" if bad else "serving")

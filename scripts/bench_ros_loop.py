@@ -125,7 +125,7 @@ def ros_loop(args, with_policy: bool, logdir: Path) -> dict[str, float]:
             wait_until(lambda: probe.node.count_publishers(probe.topic(topics.ACTION)) > 0, 180,
                        "the policy node")
         else:
-            from protocad_ros.policy_node import task_actuators
+            from sim_bridge.contexts import task_actuators
 
             zero = np.zeros(len(task_actuators(args.task)))
             Responder(probe, lambda info: zero, ns=ns)

@@ -113,6 +113,25 @@ TASKS: dict[str, TaskSpec] = {s.name: s for s in (
 )}
 
 
+# Actuator names of each domain's dm_control model, in action order (read once from the suite's
+# XML files; tests/test_envs.py checks them against the models), so that nodes and trainers that
+# never simulate (a robot's policy node, a GPU learner) know the action layout without mujoco.
+ACTUATORS: dict[str, tuple[str, ...]] = {
+    "cheetah": ("bthigh", "bshin", "bfoot", "fthigh", "fshin", "ffoot"),
+    "finger": ("proximal", "distal"),
+    "hopper": ("waist", "hip", "knee", "ankle"),
+    "pendulum": ("torque",),
+    "quadruped": tuple(f"{j}_{leg}" for leg in ("front_left", "front_right", "back_right", "back_left")
+                       for j in ("yaw", "lift", "extend")),
+    "walker": tuple(f"{side}_{j}" for side in ("right", "left") for j in ("hip", "knee", "ankle")),
+}
+
+
+def task_actuators(task: str) -> list[str]:
+    """The action names of a task, in order (ValueError for an unknown task)."""
+    return list(ACTUATORS[get_task(task).domain])
+
+
 def get_task(name: str) -> TaskSpec:
     """The TaskSpec of ``name`` (e.g. 'cheetah_run'), or ValueError listing the valid names."""
     try:

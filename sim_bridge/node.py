@@ -30,7 +30,7 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.duration import Duration
 from rclpy.event_handler import SubscriptionEventCallbacks
-from rclpy.node import Node
+from sim_bridge.rosbase import ProtocadNode
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Image, JointState
 from std_srvs.srv import Trigger
@@ -116,7 +116,7 @@ COUNTERS = ("steps", "episodes", "observations_published", "observations_republi
             "parameters_rejected")
 
 
-class SimBridgeNode(Node):
+class SimBridgeNode(ProtocadNode):
     """See the module docstring; parameters in PARAMS, counters in COUNTERS."""
 
     def __init__(self, *, namespace: str = topics.DEFAULT_NAMESPACE, env_factory=None, **kw: Any):
@@ -545,12 +545,13 @@ class SimBridgeNode(Node):
             "episode": episode, "step": step,
             "sim_time_s": max(tick, 0) * self.dt_ns / 1e9,
             "action_publishers": self.sub_action.get_publisher_count(),
+            "callback_errors": self.callback_errors,
             **{f"context/{k}": v for k, v in context.items()},
             **c,
         }
         if not self.lockstep:
             values["control_rate_hz"] = self._control_rate
-        warn = c["actions_rejected"] or c["lockstep_timeouts"] or c["late_actions"]
+        warn = c["actions_rejected"] or c["lockstep_timeouts"] or c["late_actions"] or self.callback_errors
         status = make_status(self._diag_name, self.params["task"], values,
                              "WARN" if warn else "OK",
                              "rejected/late actions or timeouts" if warn else "running")

@@ -158,6 +158,13 @@ def install_parameter_guards(node, params: Sequence[Param], apply: Callable[[str
     table = {p.name: p for p in params}
 
     def _pre(changes):
+        try:
+            _report(changes)
+        except Exception as exc:  # noqa: BLE001  reporting must never block the change itself
+            on_reject(f"could not check the change: {type(exc).__name__}: {exc}")
+        return changes
+
+    def _report(changes):
         for c in changes:
             p = table.get(c.name)
             if p is None:
@@ -171,9 +178,15 @@ def install_parameter_guards(node, params: Sequence[Param], apply: Callable[[str
                 reason = p.check(c.value)
                 if reason:
                     on_reject(reason)
-        return changes
 
     def _on_set(changes):
+        try:
+            return _apply(changes)
+        except Exception as exc:  # noqa: BLE001
+            on_reject(f"applying {[c.name for c in changes]} failed: {type(exc).__name__}: {exc}")
+            return SetParametersResult(successful=False, reason=f"internal error: {exc}")
+
+    def _apply(changes):
         for c in changes:
             p = table.get(c.name)
             reason = p.check(c.value) if p is not None else None

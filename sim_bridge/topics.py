@@ -10,6 +10,8 @@ No rclpy import at module level.
 """
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 from typing import Any, Mapping, Sequence
 
@@ -115,10 +117,32 @@ def fill_named(msg: Any, names: Sequence[str], values: Sequence[float], t_ns: in
 
 
 def read_named(msg: Any, field: str = "position") -> dict[str, float]:
+    """{name: value} of a JointState used as a named vector; ValueError if the lengths differ
+    or a name repeats (values may be any float: each reader says which it accepts)."""
     values = list(getattr(msg, field))
     if len(values) != len(msg.name):
         raise ValueError(f"JointState has {len(msg.name)} names but {len(values)} {field} values")
-    return {str(n): float(v) for n, v in zip(msg.name, values)}
+    out = {str(n): float(v) for n, v in zip(msg.name, values)}
+    if len(out) != len(values):
+        raise ValueError(f"JointState names repeat: {sorted(n for n in out if list(msg.name).count(n) > 1)}")
+    return out
+
+
+MAX_COUNT = 2 ** 53   # episode and step counters: exact in the float64 they travel as
+
+
+def _flag(d: Mapping[str, float], name: str) -> bool:
+    v = d[name]
+    if v not in (0.0, 1.0):   # NaN included: a flag that is neither 0 nor 1 means nothing
+        raise ValueError(f"step_info {name} must be 0 or 1, got {v!r}")
+    return v == 1.0
+
+
+def _count(d: Mapping[str, float], name: str) -> int:
+    v = d[name]
+    if not (math.isfinite(v) and v == int(v) and 0 <= v < MAX_COUNT):
+        raise ValueError(f"step_info {name} must be a whole number in [0, 2^53), got {v!r}")
+    return int(v)
 
 
 def fill_step_info(msg: Any, info: StepInfo, t_ns: int) -> Any:
@@ -130,9 +154,13 @@ def read_step_info(msg: Any) -> StepInfo:
     missing = [f for f in STEP_INFO_FIELDS if f not in d]
     if missing:
         raise ValueError(f"step_info lacks fields {missing}")
-    return StepInfo(reward=d["reward"], discount=d["discount"], is_first=bool(d["is_first"]),
-                    is_last=bool(d["is_last"]), is_terminal=bool(d["is_terminal"]),
-                    episode=int(d["episode"]), step=int(d["step"]))
+    if not math.isfinite(d["reward"]):
+        raise ValueError(f"step_info reward is not finite: {d['reward']!r}")
+    if not (math.isfinite(d["discount"]) and 0.0 <= d["discount"] <= 1.0):
+        raise ValueError(f"step_info discount must be in [0, 1], got {d['discount']!r}")
+    return StepInfo(reward=d["reward"], discount=d["discount"], is_first=_flag(d, "is_first"),
+                    is_last=_flag(d, "is_last"), is_terminal=_flag(d, "is_terminal"),
+                    episode=_count(d, "episode"), step=_count(d, "step"))
 
 
 def fill_context(msg: Any, context: Mapping[str, float], split: str, t_ns: int) -> Any:
@@ -143,9 +171,15 @@ def fill_context(msg: Any, context: Mapping[str, float], split: str, t_ns: int) 
 
 
 def read_context(msg: Any) -> tuple[dict[str, float], str]:
+    """(context, split); ValueError for a split code other than 0/1 or a non-finite value."""
     d = read_named(msg)
-    split = SPLITS[int(d.pop(SPLIT_FIELD, 0.0))]
-    return d, split
+    code = d.pop(SPLIT_FIELD, 0.0)
+    if code not in (0.0, 1.0):
+        raise ValueError(f"context {SPLIT_FIELD} must be 0 (train) or 1 (test), got {code!r}")
+    bad = {k: v for k, v in d.items() if not math.isfinite(v)}
+    if bad:
+        raise ValueError(f"context values are not finite: {bad}")
+    return d, SPLITS[int(code)]
 
 
 def fill_action(msg: Any, action: Sequence[float], names: Sequence[str], t_ns: int) -> Any:

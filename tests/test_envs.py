@@ -7,6 +7,7 @@ unmodified suite.load() of the same task: the intended bodies/joints are default
 from __future__ import annotations
 
 import itertools
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -255,3 +256,18 @@ def test_fast_and_default_rendering_show_the_same_state(make_env):
     assert a.context == b.context
     diff = np.abs(a.image.astype(int) - b.image.astype(int)).mean()
     assert 0 < diff < 20  # no shadows/reflection/MSAA: same picture, slightly different pixels
+
+
+@pytest.mark.parametrize("task", sorted(TASKS))
+def test_stored_actuator_names_are_the_models_in_action_order(task):
+    """sim_bridge.contexts.ACTUATORS is read once from the suite's XML: it must stay the model's."""
+    import importlib.util
+
+    import mujoco
+
+    from sim_bridge.contexts import task_actuators
+
+    spec = TASKS[task]
+    root = list(importlib.util.find_spec("dm_control").submodule_search_locations)[0]
+    model = mujoco.MjModel.from_xml_path(str(Path(root, "suite", f"{spec.domain}.xml")))
+    assert task_actuators(task) == [model.actuator(i).name for i in range(model.nu)]

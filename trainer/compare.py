@@ -317,7 +317,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         png = R.plot_curves(doc, out_dir / "curves.png")
         if a.image:
             shutil.copyfile(png, a.image)
-        rrd = R.log_curves_rerun(doc, out_dir / "curves.rrd")
+        try:
+            rrd = R.log_curves_rerun(doc, out_dir / "curves.rrd")
+        except ImportError:   # rerun-sdk absent (the GPU machine's bare Python)
+            rrd = "not written (rerun-sdk is not installed)"
         print(f"[compare] plot: {png}\n[compare] rerun: {rrd}", flush=True)
         source = a.report or str(out_dir / "results.json")
         if a.markdown:

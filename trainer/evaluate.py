@@ -401,7 +401,7 @@ def evaluate_checkpoint(checkpoint: str | Path | None, *, task: str | None = Non
         repeat, limit = 2, time_limit or 1000
     ctxs = select_contexts(task, split, contexts, max_contexts)
     if policy is None:
-        from protocad_ros.policy_node import task_actuators
+        from sim_bridge.contexts import task_actuators
 
         policy = RandomPolicy(len(task_actuators(task)), seed)
     per = run_episodes(task, policy, ctxs, episodes, split=split, seed=seed, workers=workers, batch=batch,

@@ -302,7 +302,7 @@ class Loop:
             self.trainer = Trainer.from_checkpoint(ckpt, self.run_dir, self.ds, device=self.device,
                                                    callbacks=callbacks, log_every=a.log_every)
         else:
-            from protocad_ros.policy_node import task_actuators
+            from sim_bridge.contexts import task_actuators
 
             self.trainer = Trainer(cfg, self.run_dir, self.ds, device=self.device, callbacks=callbacks,
                                    log_every=a.log_every, action_dim=len(task_actuators(cfg.task)))

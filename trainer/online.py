@@ -249,7 +249,7 @@ def run(a: argparse.Namespace) -> int:
         print(f"[online] resuming {run_dir}: {trainer.counters.get('env_steps', 0)} env steps, "
               f"{trainer.updates} updates, {len(existing)} bags", flush=True)
     else:
-        from protocad_ros.policy_node import task_actuators
+        from sim_bridge.contexts import task_actuators
 
         trainer = Trainer(cfg, run_dir, ds, device=device, callbacks=callbacks, log_every=a.log_every,
                           action_dim=len(task_actuators(cfg.task)))
@@ -304,7 +304,7 @@ def run(a: argparse.Namespace) -> int:
     with runs.StopFlag() as stop:
         try:
             if a.random_baseline and not (eval_dir / "random.json").exists():
-                from protocad_ros.policy_node import task_actuators
+                from sim_bridge.contexts import task_actuators
 
                 rnd = evaluate_checkpoint(None, task=cfg.task, episodes=final_episodes, contexts=final_contexts,
                                           split=a.eval_split,

@@ -39,7 +39,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from rclpy.signals import SignalHandlerOptions
     from sensor_msgs.msg import Image, JointState
 
-    from protocad_ros.policy_node import task_actuators
+    from sim_bridge.contexts import task_actuators
     from sim_bridge import qos, topics
 
     names = task_actuators(a.task)

@@ -24,7 +24,7 @@ import time
 from datetime import datetime
 from typing import Any, Sequence
 
-from rclpy.node import Node
+from sim_bridge.rosbase import ProtocadNode
 
 from sim_bridge import topics as T
 from trainer import mcap_io
@@ -84,7 +84,7 @@ def _import_message(msgtype: str) -> Any:
     return getattr(importlib.import_module(f"{pkg}.{ns}"), name)
 
 
-class RecorderNode(Node):
+class RecorderNode(ProtocadNode):
     """Records topics into a BagWriter. Every constructor argument is also a ROS parameter of
     the same name (a --ros-args -p override wins): output, topics, namespace, all_topics,
     exclude_regex, compression, chunk_size, max_bagfile_size, max_bagfile_duration,

@@ -295,7 +295,7 @@ def _main(a: argparse.Namespace) -> int:
         raise DatasetError(f"nothing to train on: no window of {cfg.train.seq_len} steps in the logs "
                            "(see the report above)")
 
-    from protocad_ros.policy_node import task_actuators
+    from sim_bridge.contexts import task_actuators
 
     n_act = len(task_actuators(cfg.task))
     if ds.action_dim != n_act:
