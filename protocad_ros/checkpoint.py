@@ -66,8 +66,12 @@ def save_checkpoint(path: str | os.PathLike, agent: Agent, counters: Mapping[str
     }
     if rng_state:
         payload["torch_rng"] = torch.get_rng_state()
+    # Serialized in memory first: torch's zip writer reports a failed file write as a
+    # RuntimeError ("unexpected pos"); written as one buffer, a full disk is an OSError.
+    buf = io.BytesIO()
+    torch.save(payload, buf)
     with atomic_open(path, "wb") as f:
-        torch.save(payload, f)
+        f.write(buf.getbuffer())
     agent.cfg.save(path.parent / CONFIG_NAME)
     return path
 

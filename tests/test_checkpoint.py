@@ -3,6 +3,7 @@ clear CheckpointErrors for truncated, corrupt, foreign and incompatible files.""
 from __future__ import annotations
 
 import os
+from pathlib import Path
 import zipfile
 
 import numpy as np
@@ -209,3 +210,59 @@ def test_restore_into_running_agent(tmp_path, trained, frames):
     fresh = Agent(tiny(**{"world_model.lr": 1e-3}), action_dim=6)  # training-only field differs
     assert restore_checkpoint(path, fresh) == {"episodes": 3}
     assert np.array_equal(_actions(fresh, frames), _actions(trained, frames))
+
+
+def test_interrupted_write_leftovers_are_removed_at_the_next_start(tmp_path):
+    """A checkpoint write killed mid-way (SIGKILL: no cleanup) leaves .latest.pt.PID.*.tmp; the
+    next Trainer on that run directory removes it, and never a live writer's file."""
+    import subprocess
+    import sys
+
+    from protocad_ros.atomic import remove_stale_temporaries
+    from protocad_ros.config import make_config
+    from trainer.train import Trainer
+
+    ckpt = tmp_path / "checkpoints" / "latest.pt"
+    code = ("import os, signal, sys; from protocad_ros.atomic import atomic_open\n"
+            f"with atomic_open({str(ckpt)!r}) as f:\n"
+            "    f.write(b'x' * 100000); f.flush(); os.kill(os.getpid(), signal.SIGKILL)\n")
+    p = subprocess.run([sys.executable, "-c", code], cwd=Path(__file__).resolve().parents[1])
+    assert p.returncode == -9
+    left = list(ckpt.parent.glob(".latest.pt.*.tmp"))
+    assert len(left) == 1 and left[0].stat().st_size == 100000
+    mine = ckpt.parent / f".latest.pt.{os.getpid()}.inprogress.tmp"
+    live = ckpt.parent / ".latest.pt.1.inprogress.tmp"          # pid 1 is alive
+    mine.write_bytes(b"")
+    live.write_bytes(b"")
+    Trainer(make_config("pendulum_swingup", "small", "dreamer"), tmp_path, None, action_dim=1)
+    assert not left[0].exists() and mine.exists() and live.exists()
+    assert remove_stale_temporaries(ckpt) == []
+
+
+def test_full_disk_checkpoint_write_is_a_clear_error_and_the_last_good_one_stays(tmp_path):
+    import subprocess
+
+    from protocad_ros.checkpoint import load_checkpoint
+    from protocad_ros.config import make_config
+    from trainer.train import CheckpointWriteError, Trainer
+
+    mnt = tmp_path / "disk"
+    mnt.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=40m", "tmpfs", str(mnt)]).returncode != 0:
+        pytest.skip("cannot mount a tmpfs here")
+    try:
+        tr = Trainer(make_config("pendulum_swingup", "small", "dreamer"), mnt / "run", None, action_dim=1)
+        first = tr.save()
+        size = first.stat().st_size
+        free = os.statvfs(mnt).f_bavail * os.statvfs(mnt).f_frsize
+        (mnt / "filler").write_bytes(bytes(max(0, free - size // 2)))   # room for half a checkpoint
+        tr.agent.updates += 7
+        with pytest.raises(CheckpointWriteError, match=r"update 7 failed: No space left on device; the "
+                                                       r"last good checkpoint there is intact \(update 0\)"):
+            tr.save()
+        agent, _ = load_checkpoint(first)
+        assert int(agent.counters()["updates"]) == 0
+        assert not list(first.parent.glob(".*.tmp"))
+        tr.close()
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)])

@@ -165,3 +165,26 @@ def test_dataset_cli_prints_the_report(tmp_path):
     assert r.returncode == 0, r.stderr
     assert "2 episodes" in r.stdout and "foreign topics" in r.stdout
     assert json.loads((tmp_path / "r.json").read_text())["steps"] == 12
+
+
+def test_a_full_cache_disk_is_a_clear_error_and_skips_nothing(tmp_path):
+    """Frames that cannot be cached are not 'bad messages': indexing stops with the reason,
+    the partial cache entry is removed, and the bag is untouched."""
+    import subprocess
+
+    from trainer.dataset import CacheWriteError, MCAPDataset
+
+    bag = write_bag(tmp_path / "bag", make_steps(2, 60))
+    mnt = tmp_path / "cache_disk"
+    mnt.mkdir()
+    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(mnt)]).returncode != 0:
+        pytest.skip("cannot mount a tmpfs here")
+    try:
+        with pytest.raises(CacheWriteError, match="No space left on device.*logs are untouched"):
+            MCAPDataset([bag], seq_len=8, cache_dir=mnt)
+        leftovers = [p for p in mnt.rglob("*") if p.is_file()]
+        assert not [p for p in leftovers if ".tmp-" in str(p)], leftovers
+        ds = MCAPDataset([bag], seq_len=8, cache_dir=tmp_path / "roomy")   # the bag still reads whole
+        assert ds.num_steps == 2 * 60
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)])

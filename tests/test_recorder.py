@@ -156,3 +156,65 @@ def test_recorder_help():
     res = subprocess.run([sys.executable, "-m", "trainer.recorder", "--help"], capture_output=True,
                          text=True, timeout=60)
     assert res.returncode == 0 and "--max-bag-size" in res.stdout and "--compression" in res.stdout
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 1.5 MB filesystem (tmpfs; root is needed to mount it), unmounted afterwards."""
+    mnt = tmp_path / "small_disk"
+    mnt.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1536k", "tmpfs", str(mnt)], capture_output=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.decode().strip()}")
+    yield mnt
+    subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
+
+
+def test_recording_into_a_full_disk_stops_cleanly_with_a_readable_bag(ros, small_disk):
+    """Random (incompressible) 12 KB images until the disk is full: the recorder exits by itself
+    with EXIT_WRITE_FAILED, prints the summary with the loss, and the bag is valid MCAP that the
+    mcap library and rosbags read, with no temporary file left."""
+    from mcap.reader import make_reader
+    from rosbags.rosbag2 import Reader
+    from sensor_msgs.msg import Image
+
+    from sim_bridge import qos
+    from trainer.recorder import EXIT_WRITE_FAILED
+
+    bag = small_disk / "bag"
+    obs = qos.observation_qos()
+    obs.depth = 1000
+    pub = ros.create_publisher(Image, T.IMAGE, obs)
+    rec = subprocess.Popen([sys.executable, "-m", "trainer.recorder", "-o", str(bag), T.topic_name(NS, T.IMAGE),
+                            "--ros-args", "-p", "flush_interval:=0.2"],
+                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        wait_for(lambda: pub.get_subscription_count() >= 1, 60, "the recorder's subscription")
+        rng = np.random.default_rng(0)
+        sent = 0
+        while rec.poll() is None and sent < 400:
+            img = rng.integers(0, 256, (64, 64, 3), dtype=np.uint8)
+            pub.publish(T.fill_image(Image(), img, stamp(sent)))
+            sent += 1
+            time.sleep(0.005)
+        out, _ = rec.communicate(timeout=60)
+    finally:
+        if rec.poll() is None:
+            rec.kill()
+    assert rec.returncode == EXIT_WRITE_FAILED, out
+    assert "RECORDING STOPPED EARLY" in out and "No space left on device" in out, out
+    assert "metadata.yaml: written" in out, out
+    files = sorted(p.name for p in bag.iterdir())
+    assert files == ["bag_0.mcap", "metadata.yaml"], files      # no .tmp, no reserve left
+    with open(bag / "bag_0.mcap", "rb") as f:
+        n_mcap = sum(1 for _ in make_reader(f).iter_messages())
+    assert n_mcap > 0
+    with Reader(bag) as reader:
+        n_rosbags = sum(1 for _ in reader.messages())
+        assert reader.message_count == n_rosbags
+    import yaml
+
+    info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert info["custom_data"]["protocad_write_error"].startswith("OSError")
+    assert info["message_count"] == n_mcap
+    assert n_rosbags == n_mcap == sum(1 for _ in M.BagReader(bag).messages()) > 0

@@ -68,7 +68,17 @@ KNOWN_UNUSED = (T.CONTEXT_FEATURES, T.CLOCK, T.DIAGNOSTICS, "/rosout", "/paramet
 
 
 class DatasetError(RuntimeError):
-    """No usable data (with the reason)."""
+    """No usable data, or a cache that cannot be written (with the reason)."""
+
+
+class CacheWriteError(DatasetError):
+    """Writing the on-disk frame cache failed (disk full, permission): nothing is skipped, the
+    partial cache entry is removed and the logs themselves are untouched."""
+
+    def __init__(self, where: Path, exc: OSError):
+        super().__init__(f"writing the dataset cache under {where.parent} failed: {exc.strerror or exc}; "
+                         "the partial entry was removed and the logs are untouched: free space or "
+                         "point --cache-dir (PROTOCAD_CACHE_DIR) at a disk with room")
 
 
 # ----------------------------------------------------------------------------- topic map
@@ -389,7 +399,10 @@ def _ingest(source: Path, topics: TopicMap, entry: Path) -> None:
         shutil.rmtree(tmp)
     tmp.mkdir(parents=True)
     try:
-        _ingest_into(source, topics, tmp)
+        try:
+            _ingest_into(source, topics, tmp)
+        except OSError as exc:    # np.save / index.json on a full disk
+            raise CacheWriteError(tmp, exc) from exc
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -478,8 +491,12 @@ def _ingest_into(source: Path, topics: TopicMap, tmp: Path) -> None:
                             raise ValueError(f"context names {names} differ from earlier {ctx_names}")
                         ctx_stamps.append(stamp)
                         ctx_vals.extend(float(v) for v in msg.position)
+                except OSError as exc:   # the cache, not the message: stop (below), never skip
+                    raise CacheWriteError(tmp, exc) from exc
                 except Exception as exc:  # noqa: BLE001 - count, report, keep going
                     err(topic, f"{type(exc).__name__}: {exc}")
+        except CacheWriteError:
+            raise
         except Exception as exc:  # noqa: BLE001 - a reader failure mid-stream: keep what we have
             rep.read_errors.append(f"{type(exc).__name__}: {exc}")
     finally:

@@ -559,6 +559,50 @@ class _FileInfo:
 _COMPRESSION = {"zstd": "ZSTD", "lz4": "LZ4", "none": "NONE", "": "NONE", None: "NONE"}
 
 
+RESERVE_BYTES = 64 * 1024   # kept free beside the bag, to close it validly on a full disk
+_DATA_END = b"\x0f" + (4).to_bytes(8, "little") + (0).to_bytes(4, "little")
+_FOOTER = b"\x02" + (20).to_bytes(8, "little") + bytes(20) + b"\x89MCAP0\r\n"
+
+
+class _CheckedFile:
+    """An unbuffered file for the mcap Writer that never writes a record half-way silently:
+    a short write is retried until complete or an OSError, and `good` is the end of the last
+    complete write (the mcap Writer writes each chunk, index and summary record in one call),
+    so that after a failure the file can be cut back to whole records."""
+
+    def __init__(self, path: Path):
+        self._f = open(path, "xb", buffering=0)
+        self.good = 0
+        self.data_end: int | None = None
+
+    def write(self, data) -> int:
+        view = memoryview(data).cast("B")
+        done = 0
+        while done < len(view):
+            n = self._f.write(view[done:])
+            if not n:
+                raise OSError(28, "No space left on device (short write)")
+            done += n
+        self.good = self._f.tell()
+        return done
+
+    def tell(self) -> int:
+        return self._f.tell()
+
+    def flush(self) -> None:
+        pass
+
+    def fileno(self) -> int:
+        return self._f.fileno()
+
+    def close(self) -> None:
+        self._f.close()
+
+    @property
+    def closed(self) -> bool:
+        return self._f.closed
+
+
 class BagWriter:
     """Write a rosbag2 (Jazzy, MCAP storage) bag directory.
 
@@ -618,6 +662,16 @@ class BagWriter:
         self._schema_ids: dict[str, int] = {}
         self._pending = 0           # bytes buffered in the open chunk (estimate)
         self._last_flush = time.monotonic()
+        #: Why writing stopped (an OSError: disk full, file too large, permission, removed),
+        #: or None. After it, write() raises BagWriteError and close() salvages the bag.
+        self.failure: str | None = None
+        self.lost_after_failure = 0  # write() calls refused after the failure
+        self.salvage_notes: list[str] = []
+        from protocad_ros.atomic import remove_stale_temporaries
+
+        remove_stale_temporaries(self.bag_dir / "metadata.yaml")
+        self._reserve = self.bag_dir / ".protocad-reserve"
+        self._make_reserve()
         self._open_file()
 
     # -- public API ----------------------------------------------------------------------------
@@ -675,11 +729,23 @@ class BagWriter:
               publish_time_ns: int | None = None, sequence: int = 0) -> None:
         """Write one serialized (CDR) message. log_time = receive time, publish_time = source
         time (defaults to log_time)."""
+        if self.failure is not None:
+            self.lost_after_failure += 1
+            raise BagWriteError(f"the bag stopped recording after a write error: {self.failure}")
         self._check_open()
         info = self._topics.get(topic)
         if info is None:
             raise BagWriteError(f"Failed to write on topic '{topic}'. Call add_topic() before "
                                 "first write.")
+        try:
+            self._write(topic, info, data, log_time_ns, publish_time_ns, sequence)
+        except OSError as exc:
+            self._fail(exc)
+            raise BagWriteError(f"write to {self.bag_dir} failed: {exc}; the bag was closed with "
+                                "what was written before") from exc
+
+    def _write(self, topic: str, info: Any, data: Any, log_time_ns: int, publish_time_ns: int | None,
+               sequence: int) -> None:
         log_time_ns = int(log_time_ns)
         if log_time_ns < 0:
             raise ValueError(f"log_time_ns must be >= 0, got {log_time_ns}")
@@ -691,9 +757,9 @@ class BagWriter:
         self._mcap.add_message(channel_id=self._channel_ids[topic], log_time=log_time_ns,
                                data=data, publish_time=max(publish_time_ns, 0),
                                sequence=int(sequence) & 0xFFFFFFFF)
-        if self._stream.tell() != before:   # a chunk was finalized: hand it to the OS now
+        committed = self._stream.tell() != before   # a chunk (this message included) is on disk
+        if committed:
             self._pending = 0
-            self._stream.flush()
             self._last_flush = time.monotonic()
         else:
             self._pending += len(data) + 31
@@ -705,6 +771,8 @@ class BagWriter:
         self._end = max(self._end, log_time_ns)
         self._count += 1
         info.message_count += 1
+        if committed:
+            self._commit()
         if self.flush_interval_s and time.monotonic() - self._last_flush >= self.flush_interval_s:
             self.flush()
 
@@ -721,9 +789,28 @@ class BagWriter:
         """Close the open chunk (if it holds messages) and hand everything to the OS."""
         if self._closed:
             return
-        self._mcap.flush()
+        try:
+            self._mcap.flush()
+        except OSError as exc:
+            self._fail(exc)
+            raise BagWriteError(f"flushing {self.bag_dir} failed: {exc}") from exc
         self._pending = 0
         self._last_flush = time.monotonic()
+        self._commit()
+
+    def _commit(self) -> None:
+        """Remember the counts of what is on disk: a failure loses only the open chunk."""
+        self._committed = (self._count, {n: t.message_count for n, t in self._topics.items()},
+                           self._files[-1].message_count)
+
+    def _uncommit(self) -> None:
+        """After a failure: the counts go back to what the file holds; the rest is lost."""
+        total, per_topic, in_file = self._committed
+        self.lost_after_failure += self._count - total
+        self._count = total
+        for n, t in self._topics.items():
+            t.message_count = per_topic.get(n, 0)
+        self._files[-1].message_count = in_file
 
     def flush_if_due(self) -> bool:
         if self._closed or not self.flush_interval_s or not self._pending:
@@ -734,14 +821,30 @@ class BagWriter:
         return False
 
     def close(self) -> None:
-        """Finish the current file (summary + footer) and write metadata.yaml. Idempotent."""
+        """Finish the current file (summary + footer) and write metadata.yaml. Idempotent.
+
+        After a write error (self.failure) it salvages instead: the reserve beside the bag is
+        freed, the current file is cut back to its last complete record and ended with a
+        DataEnd and a footer without summary (valid MCAP: readers scan it), and metadata.yaml
+        is written with the failure and the loss in custom_data (or salvage_notes says why it
+        could not be). Never raises OSError."""
         if self._closed:
             return
         self._closed = True
+        if self.failure is None:
+            try:
+                self._close_file()
+            except OSError as exc:
+                self._fail(exc)
+        if self.failure is not None:
+            self._salvage()
         try:
-            self._close_file()
-        finally:
             self._write_metadata_yaml()
+        except OSError as exc:
+            self.salvage_notes.append(f"metadata.yaml not written: {exc}")
+            for tmp in self.bag_dir.glob(".metadata.yaml.*.tmp"):
+                tmp.unlink(missing_ok=True)
+        self._drop_reserve()
 
     def __enter__(self) -> "BagWriter":
         return self
@@ -780,9 +883,53 @@ class BagWriter:
         return bool(self.max_bagfile_duration_ns
                     and t_ns - f.starting_time > self.max_bagfile_duration_ns)
 
+    def _make_reserve(self) -> None:
+        try:
+            with open(self._reserve, "wb") as f:
+                f.write(bytes(RESERVE_BYTES))
+                f.flush()
+                os.fsync(f.fileno())
+        except OSError as exc:
+            self._reserve.unlink(missing_ok=True)
+            self.salvage_notes.append(f"no space reserve ({exc})")
+
+    def _drop_reserve(self) -> None:
+        try:
+            self._reserve.unlink(missing_ok=True)
+        except OSError:
+            pass
+
+    def _fail(self, exc: OSError) -> None:
+        if self.failure is None:
+            self.failure = f"{type(exc).__name__}: {exc}"
+
+    def _salvage(self) -> None:
+        self._drop_reserve()
+        self._uncommit()
+        stream = self._stream
+        if stream is None or stream.closed:
+            return
+        try:
+            fd = stream.fileno()
+            cut = stream.data_end if stream.data_end is not None else stream.good
+            os.ftruncate(fd, cut)
+            os.lseek(fd, cut, os.SEEK_SET)
+            os.write(fd, _DATA_END + _FOOTER)
+            os.fsync(fd)
+            self.salvage_notes.append(f"{self.files[-1].name} cut back to its last complete record "
+                                      f"({cut} bytes) and ended without a summary")
+        except OSError as exc:
+            self.salvage_notes.append(f"{self.files[-1].name} could not be ended ({exc}): readers "
+                                      "recover its complete chunks")
+        finally:
+            try:
+                stream.close()
+            except OSError:
+                pass
+
     def _open_file(self) -> None:
         name = f"{self.bag_dir.name}_{len(self._files)}.mcap"
-        self._stream = open(self.bag_dir / name, "xb")
+        self._stream = _CheckedFile(self.bag_dir / name)
         self._mcap = self._mw.Writer(self._stream, chunk_size=self.chunk_size,
                                      compression=self._compression, enable_crcs=True)
         self._mcap.start(profile="ros2", library=self.library)
@@ -792,7 +939,7 @@ class BagWriter:
         self._write_metadata_record()
         for info in self._topics.values():  # rosbag2 re-registers every topic after a split
             self._register(info)
-        self._stream.flush()
+        self._commit()
 
     def _register(self, info: _TopicInfo) -> None:
         sid = self._schema_ids.get(info.msgtype)
@@ -809,26 +956,24 @@ class BagWriter:
         self._mcap.add_metadata("rosbag2", {"serialized_metadata": yaml_cpp_dump(self.metadata())})
 
     def _close_file(self) -> None:
-        try:
-            self._write_metadata_record()
-            self._mcap.finish()
-            self._stream.flush()
-            os.fsync(self._stream.fileno())
-        finally:
-            self._stream.close()
+        self._write_metadata_record()
+        self._stream.data_end = self._stream.good   # a failed finish() is cut back to here
+        self._mcap.finish()
+        os.fsync(self._stream.fileno())
+        self._stream.close()
 
     def _split(self) -> None:
         self._close_file()
         self._open_file()
 
     def _write_metadata_yaml(self) -> None:
-        text = yaml_cpp_dump({"rosbag2_bagfile_information": self.metadata()})
-        tmp = self.bag_dir / "metadata.yaml.tmp"
-        with open(tmp, "w") as fh:
-            fh.write(text)
-            fh.flush()
-            os.fsync(fh.fileno())
-        os.replace(tmp, self.bag_dir / "metadata.yaml")
+        from protocad_ros.atomic import atomic_write_text
+
+        info = self.metadata()
+        if self.failure is not None:
+            info["custom_data"] = {**(info["custom_data"] or {}), "protocad_write_error": self.failure,
+                                   "protocad_messages_lost_after_error": str(self.lost_after_failure)}
+        atomic_write_text(self.bag_dir / "metadata.yaml", yaml_cpp_dump({"rosbag2_bagfile_information": info}))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -178,11 +178,22 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     a = build_parser().parse_args(argv)
+    from trainer.train import CheckpointWriteError
+
     try:
         return run(a)
     except ValueError as exc:
         print(f"protocad-online: error: {exc}", file=sys.stderr)
         return 2
+    except (CheckpointWriteError, mcap_io_errors()) as exc:
+        print(f"protocad-online: error: {exc}", file=sys.stderr)
+        return 1
+
+
+def mcap_io_errors() -> type:
+    from trainer.mcap_io import BagWriteError
+
+    return BagWriteError
 
 
 def run(a: argparse.Namespace) -> int:

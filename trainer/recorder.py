@@ -127,6 +127,8 @@ class RecorderNode(ProtocadNode):
             flush_interval_s=p["flush_interval"])
         self.received = 0
         self.errors = 0
+        self.done = threading.Event()    # set when recording cannot go on (write failure)
+        self.exit_code = 0
         self._subs: dict[str, Any] = {}
         self._warned: set[str] = set()
         self._lock = threading.Lock()
@@ -209,10 +211,25 @@ class RecorderNode(ProtocadNode):
             except Exception as exc:
                 self.errors += 1
                 self._warn_once(f"write:{type(exc).__name__}", f"write to bag failed: {exc}")
+                self._check_failure()
 
     def _flush_if_due(self) -> None:
         with self._lock:
-            self.writer.flush_if_due()
+            try:
+                self.writer.flush_if_due()
+            except mcap_io.BagWriteError as exc:
+                self._warn_once("flush", f"flushing the bag failed: {exc}")
+                self._check_failure()
+
+    def _check_failure(self) -> None:
+        """A write error (disk full, file too large, permission lost, file removed) ends the
+        recording: the bag is closed with what it holds and the recorder exits with
+        EXIT_WRITE_FAILED."""
+        if self.writer.failure is not None and not self.done.is_set():
+            self.get_logger().error(f"recording stopped: {self.writer.failure}; closing the bag with the "
+                                    f"{self.writer.message_count} messages written")
+            self.exit_code = EXIT_WRITE_FAILED
+            self.done.set()
 
     def _status(self) -> None:
         counts = ", ".join(f"{t}: {n}" for t, n in self.writer.topic_counts.items())
@@ -234,6 +251,11 @@ class RecorderNode(ProtocadNode):
         with self._lock:
             self.writer.close()
         return self.writer.topic_counts
+
+
+#: Exit status when a write error (disk full, ...) ended the recording; the bag holds what was
+#: written before it, closed validly where the disk allowed (see BagWriter.close).
+EXIT_WRITE_FAILED = 3
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -309,22 +331,29 @@ def main(argv: Sequence[str] | None = None) -> int:
     executor.add_node(node)
     print(f"recorder: recording to {node.writer.bag_dir}", flush=True)
     try:
-        while not stop.is_set():
+        while not stop.is_set() and not node.done.is_set():
             executor.spin_once(timeout_sec=0.1)
-        node.drain(executor)
+        if not node.done.is_set():
+            node.drain(executor)
     finally:
         counts = node.close()
+        w = node.writer
         total = sum(counts.values())
-        lines = [f"recorder: recorded {total} messages to {node.writer.bag_dir} "
-                 f"({len(node.writer.files)} file(s))"]
+        lines = [f"recorder: recorded {total} messages to {w.bag_dir} ({len(w.files)} file(s))"]
         lines += [f"  {t}: {n}" for t, n in counts.items()]
         if node.errors:
             lines.append(f"  write errors: {node.errors}")
+        if w.failure is not None:
+            lines.append(f"  RECORDING STOPPED EARLY: {w.failure}")
+            lines.append(f"  messages lost (received, not in the bag: the open chunk and everything after): "
+                         f"{w.lost_after_failure}")
+            lines += [f"  {note}" for note in w.salvage_notes]
+            lines.append(f"  metadata.yaml: {'written' if (w.bag_dir / 'metadata.yaml').exists() else 'NOT written'}")
         print("\n".join(lines), flush=True)
         executor.remove_node(node)
         node.destroy_node()
         rclpy.try_shutdown()
-    return 0
+    return node.exit_code
 
 
 if __name__ == "__main__":

@@ -47,6 +47,12 @@ class Trainer:
         self.cfg = cfg
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
+        from protocad_ros.atomic import remove_stale_temporaries
+
+        for path in (self.checkpoint_path, self.checkpoint_path.with_name("config.yaml"),
+                     self.run_dir / "config.yaml", self.run_dir / "run.json"):
+            for tmp in remove_stale_temporaries(path):
+                print(f"[train] removed {tmp}, left by an interrupted write", flush=True)
         self.dataset = dataset
         self.device = device
         if agent is None:
@@ -59,6 +65,7 @@ class Trainer:
         self.counters: dict[str, Any] = dict(counters or {})
         self.counters.pop("dataset_state", None)
         self.counters["updates"] = int(agent.counters()["updates"])
+        self._last_saved: int | None = None
         self.log_every = max(1, int(log_every))
         if resumed:  # lines logged after the checkpoint will be logged again
             runs.truncate_metrics(self.run_dir / "metrics.jsonl", self.counters["updates"])
@@ -159,10 +166,23 @@ class Trainer:
         counters = dict(self.counters)
         if self.dataset is not None:
             counters["dataset_state"] = json.dumps(self.dataset.state_dict())
-        return save_checkpoint(path or self.checkpoint_path, self.agent, counters, rng_state=True)
+        target = Path(path or self.checkpoint_path)
+        try:
+            out = save_checkpoint(target, self.agent, counters, rng_state=True)
+            self._last_saved = self.updates
+            return out
+        except OSError as exc:   # disk full, quota, permission: the previous file is untouched
+            raise CheckpointWriteError(
+                f"writing the checkpoint {target} at update {self.updates} failed: {exc.strerror or exc}; "
+                f"the last good checkpoint there is intact"
+                + (f" (update {self._last_saved})" if self._last_saved is not None else "")) from exc
 
     def close(self) -> None:
         self.metrics.close()
+
+
+class CheckpointWriteError(RuntimeError):
+    """A checkpoint could not be written (the message says why and what is still on disk)."""
 
 
 # ---------------------------------------------------------------------- CLI
@@ -257,6 +277,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (DatasetError, ValueError) as exc:
         print(f"protocad-train: error: {exc}", file=sys.stderr)
         return 2
+    except CheckpointWriteError as exc:
+        print(f"protocad-train: error: {exc}", file=sys.stderr)
+        return 1
 
 
 def _main(a: argparse.Namespace) -> int:
