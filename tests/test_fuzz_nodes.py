@@ -90,26 +90,27 @@ def overrides(**values):
     return [Parameter(k, value=v) for k, v in values.items()]
 
 
+def in_process(node):
+    yield node
+    node.close()
+    node.destroy_node()
+
+
 @pytest.fixture(scope="module")
 def policy_node(ros_context):
     from protocad_ros.policy_node import PolicyNode
 
-    node = PolicyNode(namespace=NS, context=ros_context,
-                      parameter_overrides=overrides(task="pendulum_swingup", num_threads=1))
-    yield node
-    node.close()
-    node.destroy_node()
+    yield from in_process(PolicyNode(namespace=NS, context=ros_context, parameter_overrides=overrides(
+        task="pendulum_swingup", num_threads=1)))
 
 
 @pytest.fixture(scope="module")
 def bridge_node(ros_context):
     from sim_bridge.node import SimBridgeNode
 
-    node = SimBridgeNode(namespace=NS, context=ros_context,
-                         parameter_overrides=overrides(task="pendulum_swingup", min_subscribers=5))
-    yield node
-    node.close()
-    node.destroy_node()
+    # min_subscribers: it never starts stepping; only its callbacks are driven here.
+    yield from in_process(SimBridgeNode(namespace=NS, context=ros_context, parameter_overrides=overrides(
+        task="pendulum_swingup", min_subscribers=5)))
 
 
 @pytest.fixture(scope="module")
@@ -119,9 +120,7 @@ def recorder_node(ros_context, tmp_path_factory):
     node = RecorderNode(output=str(tmp_path_factory.mktemp("fuzzbag") / "bag"), namespace=NS,
                         context=ros_context)
     node.writer.add_topic(f"{NS}/image", "sensor_msgs/msg/Image", [])
-    yield node
-    node.close()
-    node.destroy_node()
+    yield from in_process(node)
 
 
 @FUZZ

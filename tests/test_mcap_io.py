@@ -469,3 +469,20 @@ def test_writer_killed_with_sigkill_leaves_readable_chunks(tmp_path, spawn):
     assert len(idx) >= at_least and idx == list(range(len(idx)))  # a gap-free prefix
     assert r.report.counts["/x"] == len(idx)
     assert rerun_check(bag / "killed_0.mcap").returncode != 0  # no footer: rerun refuses too
+
+
+def test_a_bag_file_removed_while_recording_is_a_write_failure_not_silence(tmp_path):
+    """Writes to a deleted file succeed at the OS level; the writer notices at its next chunk."""
+    import pytest
+
+    bag = tmp_path / "bag"
+    w = M.BagWriter(bag, chunk_size=1024)
+    w.add_topic("/x", "std_msgs/msg/String", [])
+    w.write_message("/x", {"data": "a" * 100}, 1)
+    (bag / "bag_0.mcap").unlink()
+    with pytest.raises(M.BagWriteError, match="was removed while recording"):
+        for t in range(2, 100):
+            w.write_message("/x", {"data": "b" * 100}, t)
+    w.close()
+    assert "was removed while recording" in w.failure
+    assert (bag / "metadata.yaml").exists() and not (bag / ".protocad-reserve").exists()

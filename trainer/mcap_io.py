@@ -791,15 +791,19 @@ class BagWriter:
             return
         try:
             self._mcap.flush()
+            self._commit()
         except OSError as exc:
             self._fail(exc)
             raise BagWriteError(f"flushing {self.bag_dir} failed: {exc}") from exc
         self._pending = 0
         self._last_flush = time.monotonic()
-        self._commit()
 
     def _commit(self) -> None:
-        """Remember the counts of what is on disk: a failure loses only the open chunk."""
+        """Remember the counts of what is on disk: a failure loses only the open chunk. A bag
+        file deleted while recording takes writes without an error (its inode lives on), so
+        that is checked here too and treated as a write failure."""
+        if self._files and os.fstat(self._stream.fileno()).st_nlink == 0:
+            raise OSError(2, f"{self.files[-1]} was removed while recording")
         self._committed = (self._count, {n: t.message_count for n, t in self._topics.items()},
                            self._files[-1].message_count)
 

@@ -1,0 +1,157 @@
+#!/usr/bin/env python3
+"""Benchmark of the in-process research path (protocad-online's loop), by part: env steps/s
+of collection (the env alone, and env + Policy.act + the MCAP bag writer), and seconds per
+training update split into sampling the batch from the dataset, the world model and the
+behaviour (imagination + actor-critic), each configuration in its own fresh process, side by
+side in one run on one machine.
+
+    python scripts/bench_online.py                              # small preset, float32 vs auto
+    python scripts/bench_online.py --precision float32 bfloat16 --preset paper --updates 5
+
+"float32" is how this path trained before precision was chosen from the hardware; "auto" is
+what `protocad-online` does now (bfloat16 where the CPU has AVX512-BF16/AMX, else float32),
+so the two rows are the before and after of that change on this machine. The CPU capability
+line says which one auto picks here.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def worker(spec: dict) -> dict:
+    import numpy as np
+    import torch
+
+    sys.path.insert(0, str(ROOT))
+    from protocad_ros.config import make_config
+    from protocad_ros.policy import Policy
+    from protocad_ros.precision import resolve_precision
+    from sim_bridge.envs import ContextDMCEnv
+    from trainer.dataset import MCAPDataset, TopicMap
+    from trainer.online import EpisodeBagWriter
+    from trainer.train import Trainer
+
+    torch.set_num_threads(spec["threads"])
+    prec = resolve_precision(spec["precision"], "cpu").precision
+    cfg = make_config(spec["task"], spec["preset"], spec["variant"], **{"train.precision": prec})
+    work = Path(tempfile.mkdtemp(prefix="bench_online_"))
+    env = ContextDMCEnv(spec["task"], "train", seed=0, time_limit=2 * spec["steps"])
+    rng = np.random.default_rng(0)
+    # 1. the env alone, random actions
+    env.reset()
+    t0 = time.perf_counter()
+    for _ in range(spec["steps"]):
+        obs = env.step(rng.uniform(-1, 1, env.action_dim))
+    env_only = spec["steps"] / (time.perf_counter() - t0)
+    # 2. collection as protocad-online does it: env + Policy.act + the bag writer
+    trainer = Trainer(cfg, work / "run", None, action_dim=env.action_dim)
+    policy = Policy(trainer.agent, mode="sample")
+    policy.reset(1)
+    writer = EpisodeBagWriter(work / "bags" / "ep0", env.action_names)
+    obs = env.reset()
+    prev = np.zeros((1, env.action_dim), np.float32)
+    t0 = time.perf_counter()
+    act_s = 0.0
+    for i in range(spec["steps"]):
+        ta = time.perf_counter()
+        action, feats = policy.act(obs.image[None], prev, np.array([obs.is_first]))
+        act_s += time.perf_counter() - ta
+        writer.write_observation(obs, i * 40_000_000)
+        writer.write_action(action[0], i * 40_000_000)
+        prev = np.asarray(action, np.float32)
+        obs = env.step(action[0])
+    writer.close()
+    collect = spec["steps"] / (time.perf_counter() - t0)
+    env.close()
+    # 3. updates on what was collected
+    ds = MCAPDataset([work / "bags" / "ep0"], topics=TopicMap(), seq_len=cfg.train.seq_len, seed=0,
+                     cache_dir=work / "cache")
+    trainer.dataset = ds
+    B = cfg.train.batch_size
+    for _ in range(spec["warmup"]):
+        trainer.update()
+    sample_t, wm_t, beh_t, total_t = [], [], [], []
+    for _ in range(spec["updates"]):
+        t0 = time.perf_counter()
+        batch = MCAPDataset.training_batch(ds.gather(ds.sample_index(B)))
+        t1 = time.perf_counter()
+        start, _ = trainer.agent.train_world_model(batch)
+        t2 = time.perf_counter()
+        trainer.agent.train_behavior(start)
+        trainer.agent.updates += 1
+        t3 = time.perf_counter()
+        sample_t.append(t1 - t0)
+        wm_t.append(t2 - t1)
+        beh_t.append(t3 - t2)
+        total_t.append(t3 - t0)
+    trainer.close()
+    return {"precision": prec, "env_steps_per_s_env_only": 2 * env_only,
+            "env_steps_per_s_collect": 2 * collect, "act_ms": 1e3 * act_s / spec["steps"],
+            "sec_update": float(np.mean(total_t)), "sec_sample": float(np.mean(sample_t)),
+            "sec_wm": float(np.mean(wm_t)), "sec_beh": float(np.mean(beh_t))}
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter,
+                                 epilog=__doc__.split("\n\n", 1)[1])
+    ap.add_argument("--task", default="pendulum_swingup")
+    ap.add_argument("--preset", default="small")
+    ap.add_argument("--variant", default="protocad")
+    ap.add_argument("--precision", nargs="+", default=["float32", "auto"],
+                    choices=["float32", "bfloat16", "auto"])
+    ap.add_argument("--steps", type=int, default=300, help="agent steps per collection measurement")
+    ap.add_argument("--updates", type=int, default=10, help="timed updates")
+    ap.add_argument("--warmup", type=int, default=2, help="untimed updates first")
+    ap.add_argument("--threads", type=int, default=1, help="torch threads")
+    ap.add_argument("--json", type=Path, default=None, help="also write the rows here")
+    ap.add_argument("--worker", help=argparse.SUPPRESS)
+    a = ap.parse_args(argv)
+    if a.worker:
+        print(json.dumps(worker(json.loads(a.worker))))
+        return 0
+    sys.path.insert(0, str(ROOT))
+    from protocad_ros.precision import cpu_capability
+
+    import torch
+    print(f"machine: {os.cpu_count()} cores, torch {torch.__version__}, {a.threads} torch thread(s); "
+          f"CPU capability {cpu_capability()}; load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    print(f"{a.task} / {a.preset} / {a.variant}; collection {a.steps} agent steps (env steps = 2x), "
+          f"{a.updates} timed updates")
+    head = (f"{'precision':22} {'env only':>9} {'collect':>8} {'act ms':>7} {'s/update':>9} "
+            f"{'sample':>7} {'wm':>6} {'beh':>6}")
+    print(head + "\n" + "-" * len(head))
+    rows = []
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
+    for prec in a.precision:
+        spec = {"task": a.task, "preset": a.preset, "variant": a.variant, "precision": prec,
+                "steps": a.steps, "updates": a.updates, "warmup": a.warmup, "threads": a.threads}
+        p = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--worker", json.dumps(spec)],
+                           capture_output=True, text=True, env=env)
+        if p.returncode != 0:
+            print(f"{prec:22} ERROR: {(p.stderr.strip().splitlines() or ['?'])[-1]}")
+            continue
+        r = json.loads(p.stdout.strip().splitlines()[-1])
+        rows.append({**spec, **r})
+        label = prec if prec == r["precision"] else f"{prec} -> {r['precision']}"
+        print(f"{label:22} {r['env_steps_per_s_env_only']:9.0f} {r['env_steps_per_s_collect']:8.0f} "
+              f"{r['act_ms']:7.2f} {r['sec_update']:9.3f} {r['sec_sample']:7.3f} {r['sec_wm']:6.3f} "
+              f"{r['sec_beh']:6.3f}", flush=True)
+    print("env only / collect: env steps per second (collect = env + Policy.act + bag writer); "
+          "s/update = sample + wm (world model) + beh (behaviour)")
+    if a.json:
+        a.json.write_text(json.dumps(rows, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
