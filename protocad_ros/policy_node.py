@@ -32,8 +32,8 @@ from protocad_ros.live_view import LiveView
 from sim_bridge import qos, topics
 from sim_bridge.contexts import TASKS, task_actuators
 from sim_bridge.rosnode import (ConfigError, KeyThrottle, Param, Percentiles, declare_all,
-                                executor_param, install_parameter_guards, make_status,
-                                run_node)
+                                executor_param, install_parameter_guards, make_status, run_node,
+                                strict_param)
 
 NODE_NAME = "policy"
 #: Observations whose image and step_info have not both arrived yet (oldest dropped beyond).
@@ -71,6 +71,7 @@ PARAMS: tuple[Param, ...] = (
     Param("rerun_url", "", "connect mode: gRPC url of a running viewer ('' = "
           "rerun+http://127.0.0.1:9876/proxy, what a plain `rerun` listens on)."),
     Param("rerun_path", "", "save mode: the .rrd file to write (completed at shutdown)."),
+    strict_param(),
     executor_param(),
 )
 
@@ -436,8 +437,10 @@ class PolicyNode(ProtocadNode):
         bad = (c["images_rejected"] or c["step_info_rejected"] or c["checkpoint_load_errors"]
                or c["stale_observations"] or c["unpaired_dropped"] or c["observations_lost"]
                or self.callback_errors)
-        level = "WARN" if bad or self.agent_kind == "random" else "OK"
-        message = ("random agent" if self.agent_kind == "random" else
+        unknown = self.unknown_parameters
+        level = "WARN" if bad or unknown or self.agent_kind == "random" else "OK"
+        message = (f"unknown parameters ignored: {unknown}" if unknown else
+                   "random agent" if self.agent_kind == "random" else
                    "rejected inputs or checkpoint errors" if bad else "serving")
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()

@@ -38,7 +38,7 @@ from std_srvs.srv import Trigger
 from sim_bridge import qos, topics
 from sim_bridge.contexts import TASKS
 from sim_bridge.rosnode import (ConfigError, KeyThrottle, Param, Percentiles, declare_all,
-                                executor_param, install_parameter_guards, make_status)
+                                executor_param, install_parameter_guards, make_status, strict_param)
 
 NODE_NAME = "sim_bridge"
 
@@ -99,6 +99,7 @@ PARAMS: tuple[Param, ...] = (
           range=(0, 1000)),
     Param("diagnostics_period_s", 1.0, "Period of /diagnostics.", range=(0.05, 3600.0),
           units="s"),
+    strict_param(),
     executor_param(),
 )
 
@@ -552,8 +553,10 @@ class SimBridgeNode(ProtocadNode):
         if not self.lockstep:
             values["control_rate_hz"] = self._control_rate
         warn = c["actions_rejected"] or c["lockstep_timeouts"] or c["late_actions"] or self.callback_errors
+        unknown = self.unknown_parameters
         status = make_status(self._diag_name, self.params["task"], values,
-                             "WARN" if warn else "OK",
+                             "WARN" if warn or unknown else "OK",
+                             f"unknown parameters ignored: {unknown}" if unknown else
                              "rejected/late actions or timeouts" if warn else "running")
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()

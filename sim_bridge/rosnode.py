@@ -126,10 +126,13 @@ def declare_all(node, params: Sequence[Param]) -> dict[str, Any]:
         known = {p.name for p in params}
         unknown = sorted(n for n in overrides if n not in known and n not in _BUILTIN_PARAMS
                          and not n.startswith(_BUILTIN_PREFIXES))
+        node.unknown_parameters = unknown
+        if unknown and values.get("strict"):
+            raise ConfigError(f"unknown parameter(s) {unknown} (strict:=true); valid: "
+                              f"{', '.join(sorted(known))}")
         for name in unknown:
             node.get_logger().warning(
                 f"unknown parameter {name!r} ignored (valid: {', '.join(sorted(known))})")
-        node.unknown_parameters = unknown
     return values
 
 
@@ -268,6 +271,12 @@ def diagnostics_dict(status) -> dict[str, str]:
 
 
 EXECUTORS = ("events", "single")
+
+
+def strict_param() -> Param:
+    return Param("strict", False, "Refuse to start (exit 2) on an unknown -p parameter, e.g. a "
+                 "typo like tsk:=walker_walk; without it the node starts, warns and reports "
+                 "WARN on /diagnostics (unknown_parameters).", read_only=True)
 
 
 def executor_param(default: str = "events") -> Param:

@@ -48,7 +48,10 @@ class Probe:
     def _on_diag(self, msg) -> None:
         with self.lock:
             for st in msg.status:
-                self.diag[st.name] = {kv.key: kv.value for kv in st.values}
+                # The status's own level and message ride along under reserved keys.
+                self.diag[st.name] = {"_level": int.from_bytes(st.level, "little") if isinstance(
+                    st.level, bytes) else int(st.level), "_message": st.message,
+                    **{kv.key: kv.value for kv in st.values}}
 
     # -------------------------------------------------------------- helpers
     def topic(self, rel: str, ns: str | None = None) -> str:

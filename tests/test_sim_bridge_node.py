@@ -66,8 +66,9 @@ def test_help_and_configuration_errors(spawn):
     bad_task = spawn("bad_task", *bridge_args("task:=no_such_task"))
     bad_range = spawn("bad_range", *bridge_args("seed:=-1"))
     bad_mode = spawn("bad_mode", *bridge_args("mode:=fast"))
+    typo_strict = spawn("typo_strict", *bridge_args("tsk:=walker_walk", "strict:=true"))
     for proc, words in ((bad_task, ["no_such_task", "walker_walk"]), (bad_range, ["seed", "range"]),
-                        (bad_mode, ["mode", "lockstep"])):
+                        (bad_mode, ["mode", "lockstep"]), (typo_strict, ["unknown parameter(s) ['tsk']"])):
         assert wait_exit(proc, 60) == 2, proc.output()
         out = proc.output()
         assert "configuration error" in out and all(w in out for w in words), out
@@ -158,18 +159,24 @@ def test_malformed_actions_timeouts_parameters_and_reset(spawn, probe):
     client = AsyncParameterClient(probe.node, "/protocad/sim_bridge")
     assert client.wait_for_services(20.0)
 
-    def set_param(name, value) -> bool:
+    def set_param(name, value, reason: list | None = None) -> bool:
         fut = client.set_parameters([Parameter(name, value=value)])
         wait_until(fut.done, 10, f"set {name}")
+        if reason is not None:
+            reason.append(fut.result().results[0].reason)
         return fut.result().results[0].successful
 
     assert not set_param("lockstep_timeout_s", -1.0)
     assert not set_param("seed", 7)
-    assert not set_param("no_such_parameter", 1)
+    why: list = []
+    assert not set_param("no_such_parameter", 1, why)
+    assert "no_such_parameter" in why[0], why          # rclpy alone says "...parameter(s): []"
     assert not set_param("control_rate_hz", "fast")
     assert set_param("lockstep_timeout_s", 0.3)
     wait_counter(probe, node, "parameters_rejected", 4)
-    assert probe.node_diag(node)["unknown_parameters"] == "1"          # bogus_param at start
+    d = probe.node_diag(node)
+    assert d["unknown_parameters"] == "1"          # bogus_param at start
+    assert d["_level"] == 1 and "bogus_param" in d["_message"], d      # WARN, naming it
 
     # Timeout rule: no answer -> the same observation again (same stamp, same bytes), counted.
     wait_until(lambda: len(r.steps) >= 3, 20, "a republished observation")
