@@ -268,3 +268,23 @@ def test_live_rerun_stream_saved_by_the_node(spawn, probe, tmp_path):
     bad = spawn("bad", *policy_args("rerun_mode:=save"))    # save mode without a path
     assert wait_exit(bad, START) == 2
     assert "configuration error" in bad.log_path.read_text()
+
+
+def test_deploys_without_the_simulator_and_names_the_real_actuators(spawn, probe):
+    """On a robot there is no mujoco or dm_control: the node still starts, and its actions carry
+    the task's real actuator names (from the task table), not a0, a1, ..."""
+    from conftest import ROOT
+
+    f = Feeder(probe)
+    env = {"PROTOCAD_BLOCK_IMPORTS": "mujoco,dm_control",
+           "PYTHONPATH": os.pathsep.join([str(ROOT / "tests" / "import_blocker"), str(ROOT)])}
+    args = policy_args()
+    args[args.index(f"task:={TASK}")] = "task:=walker_walk"
+    policy = spawn("policy", *args, env=env)
+    wait_until(f.ready, START, "the policy's subscriptions and publishers to match")
+    f.obs(1_000, 0, is_first=True)
+    f.wait_answers(1, "an answer")
+    assert list(f.actions[0].name) == ["right_hip", "right_knee", "right_ankle", "left_hip", "left_knee",
+                                       "left_ankle"]
+    assert policy.alive()
+    assert "blocked by the test's import blocker" not in policy.output()
