@@ -104,7 +104,7 @@ def check_recorded(reader: M.BagReader, steps: int) -> None:
 def test_recorder_records_every_message_and_closes_cleanly(tmp_path, spawn, ros, sig):
     bag = tmp_path / "run"
     rec = spawn("recorder", "-m", "trainer.recorder", "-o", str(bag), "--chunk-size", "65536",
-                "--discovery-interval", "0.1")
+                "-p", "100")
     pubs = make_publishers(ros)   # the recorder finds the topics when they appear
     wait_matched(pubs)
     publish_steps(pubs, STEPS)
@@ -136,7 +136,7 @@ def test_recorder_records_every_message_and_closes_cleanly(tmp_path, spawn, ros,
 def test_recorder_killed_with_sigkill_keeps_flushed_chunks(tmp_path, spawn, ros):
     bag = tmp_path / "killed"
     rec = spawn("recorder", "-m", "trainer.recorder", "-o", str(bag), "--chunk-size", "8192",
-                "--flush-interval", "0.2", "--discovery-interval", "0.1")
+                "--flush-interval", "0.2", "-p", "100")
     pubs = make_publishers(ros)
     wait_matched(pubs)
     steps = 100
@@ -218,3 +218,60 @@ def test_recording_into_a_full_disk_stops_cleanly_with_a_readable_bag(ros, small
     assert info["custom_data"]["protocad_write_error"].startswith("OSError")
     assert info["message_count"] == n_mcap
     assert n_rosbags == n_mcap == sum(1 for _ in M.BagReader(bag).messages()) > 0
+
+
+# `ros2 bag record` options of Jazzy (rosbag2's ros2bag/verb/record.py and the MCAP storage
+# plugin's --storage-preset-profile / --storage-config-file), with the meaning each must have.
+JAZZY_RECORD_OPTIONS = [
+    "-o", "--output", "-s", "--storage", "--topics", "--services", "--topic-types", "-a", "--all",
+    "--all-topics", "--all-services", "-e", "--regex", "--exclude-regex", "--exclude-topic-types",
+    "--exclude-topics", "--exclude-services", "--include-unpublished-topics", "--include-hidden-topics",
+    "--no-discovery", "-p", "--polling-interval", "--ignore-leaf-topics", "--qos-profile-overrides-path",
+    "-f", "--serialization-format", "-b", "--max-bag-size", "-d", "--max-bag-duration", "--max-cache-size",
+    "--disable-keyboard-controls", "--start-paused", "--use-sim-time", "--node-name", "--custom-data",
+    "--snapshot-mode", "--log-level", "--compression-queue-size", "--compression-threads",
+    "--compression-mode", "--compression-format", "--storage-preset-profile", "--storage-config-file",
+]
+
+
+def test_every_jazzy_record_option_is_known_with_its_meaning_or_refused_with_a_reason():
+    from trainer.recorder import UNSUPPORTED_OPTIONS, build_parser
+
+    ap = build_parser()
+    known = {s for a in ap._actions for s in a.option_strings}
+    assert not [o for o in JAZZY_RECORD_OPTIONS if o not in known]
+    a = ap.parse_args(["-e", "^/a/", "--exclude-regex", "skip", "-b", "4096", "-d", "30", "-o", "x"])
+    assert (a.regex, a.exclude_regex, a.max_bagfile_size, a.max_bagfile_duration, a.output) == (
+        "^/a/", "skip", 4096, 30.0, "x")           # -e includes (it excluded here before)
+    assert ap.parse_args(["-a"]).all_topics and ap.parse_args(["--all-topics"]).all_topics
+    for opt in UNSUPPORTED_OPTIONS:
+        res = subprocess.run([sys.executable, "-m", "trainer.recorder", opt], capture_output=True, text=True,
+                             timeout=60) if opt == "--snapshot-mode" else None
+        if res is not None:
+            assert res.returncode == 2 and "snapshot mode is not supported" in res.stderr
+
+
+def test_include_and_exclude_regex_select_topics_as_ros2_bag_record(ros, tmp_path):
+    from std_msgs.msg import String
+
+    pubs = {t: ros.create_publisher(String, t, 10) for t in ("/a/keep", "/a/skip_me", "/a/drop", "/b/other")}
+    bag = tmp_path / "sel"
+    rec = subprocess.Popen([sys.executable, "-m", "trainer.recorder", "-o", str(bag), "-e", "^/a/",
+                            "--exclude-regex", "skip", "--exclude-topics", "/a/drop", "-p", "50"],
+                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        wait_for(lambda: pubs["/a/keep"].get_subscription_count() >= 1, 60, "the recorder on /a/keep")
+        time.sleep(1.0)   # it had the chance to (wrongly) subscribe to the others too
+        for i in range(20):
+            for pub in pubs.values():
+                pub.publish(String(data=str(i)))
+            time.sleep(0.01)
+        time.sleep(1.0)
+        assert [t for t, p in pubs.items() if p.get_subscription_count()] == ["/a/keep"]
+        rec.send_signal(signal.SIGINT)
+        out, _ = rec.communicate(timeout=60)
+    finally:
+        if rec.poll() is None:
+            rec.kill()
+    assert rec.returncode == 0, out
+    assert M.BagReader(bag).report.counts == {"/a/keep": 20}

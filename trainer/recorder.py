@@ -22,7 +22,7 @@ import sys
 import threading
 import time
 from datetime import datetime
-from typing import Any, Sequence
+from typing import Any, Mapping, Sequence
 
 from sim_bridge.rosbase import ProtocadNode
 
@@ -56,6 +56,26 @@ def qos_profile_to_dict(qos: Any) -> dict[str, Any]:
         avoid_ros_namespace_conventions=bool(qos.avoid_ros_namespace_conventions))
 
 
+def apply_qos_override(qos: Any, override: Mapping[str, Any] | None):
+    """A --qos-profile-overrides-path entry ({reliability, durability, history, depth}) on top of
+    the adapted profile (ValueError naming a bad value)."""
+    if not override:
+        return qos
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, ReliabilityPolicy
+
+    for key, enum in (("reliability", ReliabilityPolicy), ("durability", DurabilityPolicy),
+                      ("history", HistoryPolicy)):
+        if key in override:
+            try:
+                setattr(qos, key, enum[str(override[key]).upper()])
+            except KeyError:
+                raise ValueError(f"QoS override {key}={override[key]!r}; valid: "
+                                 f"{[e.name.lower() for e in enum]}") from None
+    if "depth" in override:
+        qos.depth = int(override["depth"])
+    return qos
+
+
 def subscription_qos(offered: Sequence[Any], depth: int):
     """The QoS the recorder requests, adapted to the publishers' offers like rosbag2
     (Rosbag2QoS::adapt_request_to_offers) but with a deep history:
@@ -87,12 +107,17 @@ def _import_message(msgtype: str) -> Any:
 class RecorderNode(ProtocadNode):
     """Records topics into a BagWriter. Every constructor argument is also a ROS parameter of
     the same name (a --ros-args -p override wins): output, topics, namespace, all_topics,
-    exclude_regex, compression, chunk_size, max_bagfile_size, max_bagfile_duration,
-    flush_interval, queue_depth, discovery_interval, status_interval."""
+    regex (include), exclude_regex, exclude_topics, include_hidden_topics, no_discovery,
+    compression, chunk_size, max_bagfile_size, max_bagfile_duration, flush_interval,
+    queue_depth, discovery_interval, status_interval. `qos_overrides` ({topic: policies}) and
+    `custom_data` are constructor-only (the command line's YAML file and KEY=VALUE list)."""
 
     def __init__(self, output: str | None = None, topics: Sequence[str] = (),
                  namespace: str = T.DEFAULT_NAMESPACE, all_topics: bool = False,
-                 exclude_regex: str = "", compression: str = "zstd",
+                 exclude_regex: str = "", compression: str = "zstd", regex: str = "",
+                 exclude_topics: Sequence[str] = (), include_hidden_topics: bool = False,
+                 no_discovery: bool = False, qos_overrides: Mapping[str, Mapping[str, Any]] | None = None,
+                 custom_data: Mapping[str, str] | None = None,
                  chunk_size: int = mcap_io.DEFAULT_CHUNK_SIZE, max_bagfile_size: int = 0,
                  max_bagfile_duration: float = 0.0, flush_interval: float = 1.0,
                  queue_depth: int = DEFAULT_QUEUE_DEPTH, discovery_interval: float = 0.2,
@@ -102,6 +127,8 @@ class RecorderNode(ProtocadNode):
         p = {}
         for key, default in (("output", output or default_output()), ("namespace", namespace),
                              ("all_topics", bool(all_topics)), ("exclude_regex", exclude_regex),
+                             ("regex", regex), ("include_hidden_topics", bool(include_hidden_topics)),
+                             ("no_discovery", bool(no_discovery)),
                              ("compression", compression), ("chunk_size", int(chunk_size)),
                              ("max_bagfile_size", int(max_bagfile_size)),
                              ("max_bagfile_duration", float(max_bagfile_duration)),
@@ -115,16 +142,27 @@ class RecorderNode(ProtocadNode):
                 type=ParameterType.PARAMETER_STRING_ARRAY,
                 description="topics to record (empty: the contract topics in `namespace` "
                             "and /clock)")).value or [])
+        p["exclude_topics"] = list(self.declare_parameter(
+            "exclude_topics", list(exclude_topics), ParameterDescriptor(
+                type=ParameterType.PARAMETER_STRING_ARRAY,
+                description="topics not to record")).value or [])
         self.params = p
-        self.wanted: list[str] = ([] if p["all_topics"] else
-                                  [self.resolve_topic_name(t) for t in p["topics"]]
-                                  or default_topics(p["namespace"]))
-        self._exclude = re.compile(p["exclude_regex"]) if p["exclude_regex"] else None
+        # As ros2 bag record: -a overrides -e; topics and -e add up; excludes apply on top.
+        explicit = [self.resolve_topic_name(t) for t in p["topics"]]
+        self.wanted: list[str] = ([] if p["all_topics"] else explicit
+                                  or ([] if p["regex"] else default_topics(p["namespace"])))
+        try:
+            self._include = re.compile(p["regex"]) if p["regex"] and not p["all_topics"] else None
+            self._exclude = re.compile(p["exclude_regex"]) if p["exclude_regex"] else None
+        except re.error as exc:
+            raise ValueError(f"bad regular expression: {exc}") from None
+        self._excluded = {self.resolve_topic_name(t) for t in p["exclude_topics"]}
+        self._qos_overrides = {self.resolve_topic_name(t): dict(v) for t, v in (qos_overrides or {}).items()}
         self.writer = mcap_io.BagWriter(
             p["output"], compression=p["compression"], chunk_size=p["chunk_size"],
             max_bagfile_size=p["max_bagfile_size"],
             max_bagfile_duration_s=p["max_bagfile_duration"],
-            flush_interval_s=p["flush_interval"])
+            flush_interval_s=p["flush_interval"], custom_data=custom_data)
         self.received = 0
         self.errors = 0
         self.done = threading.Event()    # set when recording cannot go on (write failure)
@@ -133,12 +171,14 @@ class RecorderNode(ProtocadNode):
         self._warned: set[str] = set()
         self._lock = threading.Lock()
         self._discover()
-        self._discovery_timer = self.create_timer(p["discovery_interval"], self._discover)
+        if not p["no_discovery"]:
+            self._discovery_timer = self.create_timer(p["discovery_interval"], self._discover)
         if p["flush_interval"] > 0:
             self._flush_timer = self.create_timer(p["flush_interval"], self._flush_if_due)
         if p["status_interval"] > 0:
             self._status_timer = self.create_timer(p["status_interval"], self._status)
-        what = "all topics" if p["all_topics"] else ", ".join(self.wanted)
+        what = ("all topics" if p["all_topics"] else ", ".join(
+            self.wanted + ([f"topics matching {p['regex']!r}"] if self._include else [])))
         self.get_logger().info(
             f"recording {what} to {self.writer.bag_dir} (compression {p['compression']}, "
             f"chunk {p['chunk_size']} B, split size {p['max_bagfile_size']} B / duration "
@@ -146,12 +186,14 @@ class RecorderNode(ProtocadNode):
 
     # -- discovery -----------------------------------------------------------------------------
     def _want(self, topic: str) -> bool:
-        if self._exclude is not None and self._exclude.search(topic):
+        if topic in self._excluded or (self._exclude is not None and self._exclude.search(topic)):
             return False
-        if self.params["all_topics"]:
+        if topic in self.wanted:
+            return True
+        if self.params["all_topics"] or (self._include is not None and self._include.search(topic)):
             from rclpy.topic_or_service_is_hidden import topic_or_service_is_hidden
-            return not topic_or_service_is_hidden(topic)
-        return topic in self.wanted
+            return self.params["include_hidden_topics"] or not topic_or_service_is_hidden(topic)
+        return False
 
     def _warn_once(self, key: str, text: str) -> None:
         if key not in self._warned:
@@ -183,7 +225,8 @@ class RecorderNode(ProtocadNode):
         type_hash = sorted(hashes)[0] if hashes else None
         self.writer.add_topic(topic, msgtype, [qos_profile_to_dict(q) for q in offered],
                               type_hash=type_hash)
-        qos = subscription_qos(offered, self.params["queue_depth"])
+        qos = apply_qos_override(subscription_qos(offered, self.params["queue_depth"]),
+                                 self._qos_overrides.get(topic))
         self._subs[topic] = self.create_subscription(
             msg_class, topic, functools.partial(self._on_message, topic), qos, raw=True)
         self.get_logger().info(f"subscribed to {topic} [{msgtype}] "
@@ -258,44 +301,146 @@ class RecorderNode(ProtocadNode):
 EXIT_WRITE_FAILED = 3
 
 
+#: `ros2 bag record` (Jazzy) options this recorder does not have, and why (each is refused
+#: with that reason rather than silently ignored).
+UNSUPPORTED_OPTIONS: dict[str, str] = {
+    "--services": "service recording (service event topics) is not supported",
+    "--all-services": "service recording (service event topics) is not supported",
+    "--exclude-services": "service recording (service event topics) is not supported",
+    "--topic-types": "selecting topics by type is not supported: name them, or use --regex",
+    "--exclude-topic-types": "excluding topics by type is not supported: use --exclude-regex",
+    "--include-unpublished-topics": "a topic is recorded once a publisher offers its QoS (as the "
+                                    "default ros2 bag record does)",
+    "--ignore-leaf-topics": "not supported",
+    "--use-sim-time": "messages are stamped with receive and source times, never /clock",
+    "--snapshot-mode": "snapshot mode is not supported",
+    "--start-paused": "pausing is not supported",
+    "--max-cache-size": "there is no write cache: each message is handed to the MCAP writer "
+                        "as it arrives (chunking is --chunk-size)",
+    "--compression-mode": "rosbag2's file/message compression is not supported: MCAP chunks are "
+                          "compressed instead (--compression zstd|lz4|none, "
+                          "or --storage-preset-profile)",
+    "--compression-format": "see --compression-mode",
+    "--compression-queue-size": "see --compression-mode",
+    "--compression-threads": "see --compression-mode",
+    "--storage-config-file": "MCAP writer options are --chunk-size and --compression",
+    "--static-topics-path": "not supported",
+}
+#: MCAP storage presets of rosbag2 (`--storage-preset-profile`) as our chunk compression.
+STORAGE_PRESETS = {"none": "zstd", "fastwrite": "none", "zstd_fast": "zstd", "zstd_small": "zstd"}
+
+
+class _Unsupported(argparse.Action):
+    def __init__(self, option_strings, dest, **kw):
+        kw.setdefault("nargs", "*")
+        super().__init__(option_strings, dest, **kw)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        parser.error(f"{option_string}: {UNSUPPORTED_OPTIONS[option_string]} (this recorder follows "
+                     "`ros2 bag record` of Jazzy for the options it has)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(
         prog="ros2 run trainer record",
         description="Record ROS 2 topics into a rosbag2-compatible MCAP bag directory "
-                    "(NAME/NAME_0.mcap ... + metadata.yaml). Every option is also a ROS "
-                    "parameter (--ros-args -p name:=value). SIGINT/SIGTERM close the bag cleanly.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                    "(NAME/NAME_0.mcap ... + metadata.yaml). Options follow `ros2 bag record` of "
+                    "Jazzy (same names, same meanings: -e/--regex includes, --exclude-regex "
+                    "excludes); its options this recorder lacks are refused with the reason. Every "
+                    "option is also a ROS parameter (--ros-args -p name:=value). SIGINT/SIGTERM close "
+                    "the bag cleanly; a write error (disk full) closes it and exits 3.",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("-o", "--output", default=None,
                     help="bag directory to create (default: rosbag2_YYYY_MM_DD-HH_MM_SS)")
+    ap.add_argument("-s", "--storage", default="mcap", choices=("mcap",),
+                    help="storage identifier (only mcap; default mcap)")
     ap.add_argument("topics", nargs="*", default=[],
-                    help="topics to record (default: the contract topics image, step_info, "
-                         "context, action, context_features in --namespace, and /clock)")
+                    help="topics to record (default, with no topic, -a or -e: the contract topics "
+                         "image, step_info, context, action, context_features in --namespace, and /clock)")
     ap.add_argument("--topics", dest="topics_opt", nargs="+", default=[], metavar="TOPIC",
-                    help="same as the positional topics")
+                    help="space-delimited list of topics to record (as the positional ones)")
     ap.add_argument("-a", "--all", dest="all_topics", action="store_true",
-                    help="record every (non-hidden) topic")
-    ap.add_argument("-e", "--exclude-regex", default="", help="do not record matching topics")
-    ap.add_argument("--namespace", default=T.DEFAULT_NAMESPACE,
-                    help="namespace of the default contract topics")
-    ap.add_argument("--compression", choices=("zstd", "lz4", "none"), default="zstd",
-                    help="MCAP chunk compression")
-    ap.add_argument("--chunk-size", type=int, default=mcap_io.DEFAULT_CHUNK_SIZE,
-                    help="uncompressed chunk size in bytes (smaller: less lost on SIGKILL)")
+                    help="record every topic (hidden ones excluded)")
+    ap.add_argument("--all-topics", dest="all_topics", action="store_true", help="same as -a")
+    ap.add_argument("-e", "--regex", default="",
+                    help="record only topics matching this regular expression (re.search); "
+                         "-a overrides it")
+    ap.add_argument("--exclude-regex", default="",
+                    help="do not record topics matching this regular expression; works on top of "
+                         "-a, --topics and -e")
+    ap.add_argument("--exclude-topics", nargs="+", default=[], metavar="TOPIC",
+                    help="topics not to record; works on top of -a, --topics and -e")
+    ap.add_argument("--include-hidden-topics", action="store_true",
+                    help="with -a or -e: hidden topics too")
+    ap.add_argument("--no-discovery", action="store_true",
+                    help="record only topics present at start-up")
+    ap.add_argument("-p", "--polling-interval", type=int, default=200, metavar="MS",
+                    help="milliseconds between graph polls for topics that appear late (default 200)")
+    ap.add_argument("--qos-profile-overrides-path", type=argparse.FileType("r"), default=None,
+                    metavar="YAML", help="QoS for specific topics, as ros2 bag record: "
+                    "{/topic: {reliability: reliable|best_effort, durability: volatile|transient_local, "
+                    "history: keep_last|keep_all, depth: N}}")
+    ap.add_argument("-f", "--serialization-format", default="cdr", choices=("cdr",),
+                    help="serialization format (only cdr, what every rmw here uses)")
     ap.add_argument("-b", "--max-bag-size", dest="max_bagfile_size", type=int, default=0,
                     help="split the bag at this file size in bytes (0: no split; >= 1024)")
     ap.add_argument("-d", "--max-bag-duration", dest="max_bagfile_duration", type=float,
                     default=0.0, help="split the bag after this many seconds (0: no split)")
-    ap.add_argument("--flush-interval", type=float, default=1.0,
-                    help="write the open chunk at least every this many seconds (0: only by "
-                         "size); bounds what a SIGKILL loses")
-    ap.add_argument("--queue-depth", type=int, default=DEFAULT_QUEUE_DEPTH,
-                    help="KEEP_LAST depth of the recorder's subscriptions")
-    ap.add_argument("--discovery-interval", type=float, default=0.2,
-                    help="seconds between graph polls for topics that appear late")
-    ap.add_argument("--status-interval", type=float, default=0.0,
-                    help="log message counts every this many seconds (0: off)")
-    ap.add_argument("--node-name", default="recorder", help="ROS node name")
+    ap.add_argument("--storage-preset-profile", choices=sorted(STORAGE_PRESETS), default=None,
+                    help="rosbag2's MCAP presets, as chunk compression: fastwrite = none, "
+                         "zstd_fast / zstd_small / none = zstd")
+    ap.add_argument("--custom-data", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="stored under custom_data in metadata.yaml (as ros2 bag record)")
+    ap.add_argument("--node-name", default="recorder", help="ROS node name (default recorder)")
+    ap.add_argument("--log-level", choices=("debug", "info", "warn", "error", "fatal"), default="info")
+    ap.add_argument("--disable-keyboard-controls", action="store_true",
+                    help="accepted for compatibility: this recorder has no keyboard controls")
+    g = ap.add_argument_group("this recorder's own options")
+    g.add_argument("--namespace", default=T.DEFAULT_NAMESPACE,
+                   help="namespace of the default contract topics (default /protocad)")
+    g.add_argument("--compression", choices=("zstd", "lz4", "none"), default=None,
+                   help="MCAP chunk compression (default zstd)")
+    g.add_argument("--chunk-size", type=int, default=mcap_io.DEFAULT_CHUNK_SIZE,
+                   help=f"uncompressed chunk size in bytes (smaller: less lost on SIGKILL; default "
+                        f"{mcap_io.DEFAULT_CHUNK_SIZE})")
+    g.add_argument("--flush-interval", type=float, default=1.0,
+                   help="write the open chunk at least every this many seconds (0: only by "
+                        "size); bounds what a SIGKILL loses (default 1.0)")
+    g.add_argument("--queue-depth", type=int, default=DEFAULT_QUEUE_DEPTH,
+                   help=f"KEEP_LAST depth of the subscriptions (default {DEFAULT_QUEUE_DEPTH})")
+    g.add_argument("--status-interval", type=float, default=0.0,
+                   help="log message counts every this many seconds (0: off)")
+    g = ap.add_argument_group("`ros2 bag record` options this recorder does not have (refused, "
+                              "with the reason)")
+    for opt in UNSUPPORTED_OPTIONS:
+        g.add_argument(opt, action=_Unsupported, help=argparse.SUPPRESS)
     return ap
+
+
+def parse_custom_data(items: Sequence[str]) -> dict[str, str]:
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ValueError(f"--custom-data expects KEY=VALUE, got {item!r}")
+        out[key] = value
+    return out
+
+
+def load_qos_overrides(stream: Any) -> dict[str, dict[str, Any]]:
+    """The YAML of --qos-profile-overrides-path: {topic: {policy: value}} (ValueError if malformed)."""
+    import yaml
+
+    data = yaml.safe_load(stream) or {}
+    if not isinstance(data, dict) or not all(isinstance(v, dict) for v in data.values()):
+        raise ValueError("--qos-profile-overrides-path: expected a mapping of topic -> QoS policies")
+    allowed = {"reliability", "durability", "history", "depth"}
+    for topic, policies in data.items():
+        bad = set(policies) - allowed
+        if bad:
+            raise ValueError(f"--qos-profile-overrides-path: {topic}: unknown policies {sorted(bad)}; "
+                             f"supported: {sorted(allowed)}")
+    return {str(k): dict(v) for k, v in data.items()}
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -303,6 +448,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     from rclpy.utilities import remove_ros_args
     args = build_parser().parse_args(remove_ros_args(argv)[1:])
     import rclpy
+    import rclpy.logging
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.signals import SignalHandlerOptions
 
@@ -312,16 +458,23 @@ def main(argv: Sequence[str] | None = None) -> int:
         stop.set()
 
     rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
+    rclpy.logging.set_logger_level(args.node_name, getattr(rclpy.logging.LoggingSeverity, args.log_level.upper()))
     signal.signal(signal.SIGINT, on_signal)
     signal.signal(signal.SIGTERM, on_signal)
     try:
+        compression = args.compression or STORAGE_PRESETS.get(args.storage_preset_profile or "none", "zstd")
+        qos_overrides = load_qos_overrides(args.qos_profile_overrides_path) \
+            if args.qos_profile_overrides_path else None
         node = RecorderNode(
             output=args.output, topics=[*args.topics, *args.topics_opt],
-            namespace=args.namespace, all_topics=args.all_topics,
-            exclude_regex=args.exclude_regex, compression=args.compression,
+            namespace=args.namespace, all_topics=args.all_topics, regex=args.regex,
+            exclude_regex=args.exclude_regex, exclude_topics=args.exclude_topics,
+            include_hidden_topics=args.include_hidden_topics, no_discovery=args.no_discovery,
+            qos_overrides=qos_overrides, custom_data=parse_custom_data(args.custom_data),
+            compression=compression,
             chunk_size=args.chunk_size, max_bagfile_size=args.max_bagfile_size,
             max_bagfile_duration=args.max_bagfile_duration, flush_interval=args.flush_interval,
-            queue_depth=args.queue_depth, discovery_interval=args.discovery_interval,
+            queue_depth=args.queue_depth, discovery_interval=args.polling_interval / 1000.0,
             status_interval=args.status_interval, node_name=args.node_name)
     except (mcap_io.BagWriteError, ValueError) as exc:
         print(f"recorder: {exc}", file=sys.stderr)
