@@ -425,7 +425,10 @@ class PolicyNode(ProtocadNode):
             "agent": self.agent_kind, "checkpoint": self.params["checkpoint"],
             "checkpoint_updates": self.checkpoint_updates,
             "pending_checkpoint_updates": (pending[1].get("updates", -1) if pending else -1),
-            **{f"checkpoint/{k}": v for k, v in self.ckpt_counters.items() if k != "updates"},
+            # The trainer's scalar counters only (env steps, episodes, ...): its sampler state
+            # and bag list would be kilobytes on every diagnostics message.
+            **{f"checkpoint/{k}": v for k, v in self.ckpt_counters.items()
+               if k != "updates" and isinstance(v, (int, float)) and not isinstance(v, bool)},
             "task": self.task, "device": self.params["device"], "mode": self.params["mode"],
             "latency_ms_p50": self.latency.percentile(50) * 1e3,
             "latency_ms_p99": self.latency.percentile(99) * 1e3,

@@ -169,6 +169,7 @@ class SimBridgeNode(ProtocadNode):
         self.counters["unknown_parameters"] = len(self.unknown_parameters)
         self._throttle = KeyThrottle(self.get_logger())
         self.latency = Percentiles()             # observation published -> answer received
+        self._late_at_last_diag = 0
         self._rate_window = collections.deque(maxlen=2)
         self._rate_window.append((time.monotonic(), 0))
         self._episode = -1
@@ -249,7 +250,8 @@ class SimBridgeNode(ProtocadNode):
                                             f"stamp {stamp} was already answered")
                     return self._reject("rejected_stale_stamp",
                                         f"stamp {stamp} is not the observation awaiting an "
-                                        f"answer ({self._pending_stamp})")
+                                        f"answer ({self._pending_stamp})" if self._pending_stamp is not None
+                                        else f"stamp {stamp} arrived while no observation awaits an answer")
             else:
                 if stamp not in self._published:
                     return self._reject("rejected_stale_stamp",
@@ -552,7 +554,11 @@ class SimBridgeNode(ProtocadNode):
         }
         if not self.lockstep:
             values["control_rate_hz"] = self._control_rate
-        warn = c["actions_rejected"] or c["lockstep_timeouts"] or c["late_actions"] or self.callback_errors
+        # Late actions are a rate, not a state: WARN only while new ones arrive (one late
+        # action must not mark the rest of a run).
+        late_now = c["late_actions"] - self._late_at_last_diag
+        self._late_at_last_diag = c["late_actions"]
+        warn = c["actions_rejected"] or c["lockstep_timeouts"] or late_now or self.callback_errors
         unknown = self.unknown_parameters
         status = make_status(self._diag_name, self.params["task"], values,
                              "WARN" if warn or unknown else "OK",
