@@ -58,6 +58,10 @@ PARAMS: tuple[Param, ...] = (
     Param("device", "cpu", "Torch device of the model, e.g. cpu, cuda, cuda:0."),
     Param("mode", "deterministic", "deterministic: the actor's mode; sample: a sample of the "
           "actor's distribution.", choices=("deterministic", "sample")),
+    Param("latest_only", False, "Real time: subscribe to observations with KEEP_LAST(1), so a "
+          "policy that falls behind skips to the newest observation instead of answering every "
+          "queued one in turn (the skipped ones are counted in observations_skipped). Off for "
+          "lock-step, where every observation waits for its answer."),
     Param("exploration_noise", 0.0, "Std of Gaussian noise added to the action (then clipped "
           "to [-1, 1]).", range=(0.0, 10.0)),
     Param("seed", 0, "Seeds the random agent's weights and the action sampling/noise.",
@@ -80,7 +84,7 @@ COUNTERS = ("observations_answered", "episodes", "images_received", "images_reje
             "step_info_rejected", "duplicate_observations", "stale_observations", "sim_time_restarts",
             "unpaired_dropped", "checkpoint_reloads", "checkpoint_load_errors",
             "act_callback_errors", "unknown_parameters", "parameters_rejected",
-            "observations_lost", "fragments_discarded", "step_info_received")
+            "observations_lost", "observations_skipped", "fragments_discarded", "step_info_received")
 
 
 @dataclass
@@ -186,6 +190,8 @@ class PolicyNode(ProtocadNode):
         self._step = -1
 
         obs_qos, out_qos = qos.observation_qos(), qos.action_qos()
+        if p["latest_only"]:
+            obs_qos.depth = 1
         self.pub_action = self.create_publisher(JointState, topics.ACTION, out_qos)
         self.pub_features = self.create_publisher(JointState, topics.CONTEXT_FEATURES, out_qos)
         self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
@@ -380,7 +386,10 @@ class PolicyNode(ProtocadNode):
             # flood): the contract numbers the steps of an episode 0, 1, 2, ... A later episode
             # shows its lost head; the lost tail of an earlier one is not knowable.
             lost = info.step - self._step - 1 if info.episode == self._episode else info.step
-            if lost > 0:
+            if lost > 0 and self.params["latest_only"]:   # skipped on purpose: the newest wins
+                with self._lock:
+                    self.counters["observations_skipped"] += lost
+            elif lost > 0:
                 with self._lock:
                     self.counters["observations_lost"] += lost
                     n = self.counters["observations_lost"]

@@ -288,3 +288,23 @@ def test_deploys_without_the_simulator_and_names_the_real_actuators(spawn, probe
                                        "left_ankle"]
     assert policy.alive()
     assert "blocked by the test's import blocker" not in policy.output()
+
+
+def test_realtime_latest_only_skips_to_the_newest_observation(spawn, probe):
+    """A real-time bridge at 500 steps/s, faster than this policy answers on 2 shared cores:
+    with latest_only the policy never answers an older observation after a newer one, skips to
+    the newest, and counts what it skipped."""
+    actions = probe.record(topics.ACTION, JointState, qos.action_qos())
+    policy = spawn("policy", *policy_args("latest_only:=true"))
+    wait_until(lambda: actions.matched() >= 1, START, "the policy's action publisher")
+    bridge = spawn("bridge", "-m", "sim_bridge.node", "--ros-args", "-p", f"task:={TASK}",
+                   "-p", "mode:=realtime", "-p", "control_rate_hz:=500", "-p", "episode_length:=1500",
+                   "-p", "min_subscribers:=1", "-p", "diagnostics_period_s:=0.1")
+    wait_until(lambda: len(actions) >= 200, START, "200 answers")
+    wait_until(lambda: probe.counter("policy", "observations_skipped") > 0, 30, "skipped observations")
+    assert bridge.stop() == 0
+    stamps = [topics.stamp_to_ns(m.header.stamp) for m in list(actions)]
+    assert stamps == sorted(set(stamps)), "answered an older observation after a newer one"
+    d = probe.node_diag("policy")
+    assert int(d["observations_lost"]) == 0 and int(d["stale_observations"]) == 0, d
+    assert policy.alive()
