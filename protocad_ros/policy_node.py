@@ -84,7 +84,8 @@ COUNTERS = ("observations_answered", "episodes", "images_received", "images_reje
             "step_info_rejected", "duplicate_observations", "stale_observations", "sim_time_restarts",
             "unpaired_dropped", "checkpoint_reloads", "checkpoint_load_errors",
             "act_callback_errors", "unknown_parameters", "parameters_rejected",
-            "observations_lost", "observations_skipped", "fragments_discarded", "step_info_received")
+            "observations_lost", "observations_skipped", "fragments_discarded", "step_info_received",
+            "mismatched_observations", "awaiting_bridge_info", "bridge_info_rejected")
 
 
 @dataclass
@@ -199,11 +200,15 @@ class PolicyNode(ProtocadNode):
         self.sub_image = self.create_subscription(Image, topics.IMAGE, self._on_image, obs_qos)
         self.sub_info = self.create_subscription(JointState, topics.STEP_INFO, self._on_info,
                                                  obs_qos)
+        self.bridge: topics.BridgeInfo | None = None
+        self.mismatch: str | None = None
+        self.sub_bridge_info = self.create_subscription(JointState, topics.BRIDGE_INFO, self._on_bridge_info,
+                                                        qos.announcement_qos())
         self.diag_timer = self.create_timer(p["diagnostics_period_s"], self._publish_diagnostics)
         install_parameter_guards(self, PARAMS, lambda name, value: None,
                                  lambda reason: self._count("parameters_rejected",
                                                             f"parameter change rejected: {reason}"))
-        self._diag_name = f"{self.get_namespace().rstrip('/')}/{NODE_NAME}"
+        self._diag_name = self.get_fully_qualified_name()
         self._watcher = None
         if path and p["reload_poll_s"] > 0:
             self._watcher = threading.Thread(target=self._watch, name="checkpoint_watcher",
@@ -341,6 +346,29 @@ class PolicyNode(ProtocadNode):
             return self._count("step_info_rejected", f"step_info rejected (stamp {stamp}): {e}")
         self._arrive(stamp, "info", info, t)
 
+    def _on_bridge_info(self, msg) -> None:
+        """The bridge's announcement: refuse, with the reason, a bridge the checkpoint does not fit."""
+        try:
+            info = topics.read_bridge_info(msg)
+        except ValueError as e:
+            return self._count("bridge_info_rejected", f"bridge_info rejected: {e}")
+        self.bridge = info
+        why = []
+        if info.task != self.task:
+            why.append(f"the checkpoint is for {self.task}, the bridge runs {info.task}")
+        if len(info.action_names) != self.action_dim:
+            why.append(f"the checkpoint acts with {self.action_dim} value(s) {self.action_names}, the "
+                       f"bridge expects {len(info.action_names)} {info.action_names}")
+        if (info.image_size, info.image_size) != tuple(self.image_hw):
+            why.append(f"the checkpoint sees {self.image_hw[0]}x{self.image_hw[1]} images, the bridge "
+                       f"renders {info.image_size}x{info.image_size}")
+        self.mismatch = "; ".join(why) or None
+        if self.mismatch:
+            self.get_logger().error(f"not answering this sim bridge: {self.mismatch}. Start the bridge "
+                                    f"with -p task:={self.task}, or serve a checkpoint trained on {info.task}")
+        else:
+            self.get_logger().info(f"sim bridge runs {info.task} with actions {info.action_names}: matches")
+
     def _arrive(self, stamp: int, kind: str, value: Any, t: float) -> None:
         entry = self._unpaired.get(stamp)
         if entry is None:
@@ -353,6 +381,13 @@ class PolicyNode(ProtocadNode):
         if len(entry) < 2:
             return
         del self._unpaired[stamp]
+        if self.mismatch is not None:
+            return self._count("mismatched_observations", f"observation {stamp} not answered: {self.mismatch}")
+        if self.bridge is None and self.count_publishers(self.sub_bridge_info.topic_name) > 0:
+            # A bridge that announces itself is there but its announcement has not arrived yet:
+            # answering now could send it actions of the wrong size (lock-step republishes).
+            return self._count("awaiting_bridge_info", f"observation {stamp} not answered yet: waiting "
+                               "for the bridge's announcement")
         if stamp == self._last_stamp and self._last_answer is not None:
             # The bridge published it again (its lock-step timeout): answer it again, same
             # action, without filtering it a second time.
@@ -450,8 +485,11 @@ class PolicyNode(ProtocadNode):
                or c["stale_observations"] or c["unpaired_dropped"] or c["observations_lost"]
                or self.callback_errors)
         unknown = self.unknown_parameters
-        level = "WARN" if bad or unknown or self.agent_kind == "random" else "OK"
-        message = (f"unknown parameters ignored: {unknown}" if unknown else
+        values["bridge"] = (f"{self.bridge.task} {self.bridge.action_names}" if self.bridge else "")
+        level = ("ERROR" if self.mismatch else
+                 "WARN" if bad or unknown or self.agent_kind == "random" else "OK")
+        message = (f"not answering: {self.mismatch}" if self.mismatch else
+                   f"unknown parameters ignored: {unknown}" if unknown else
                    "random agent" if self.agent_kind == "random" else
                    "rejected inputs or checkpoint errors" if bad else "serving")
         arr = DiagnosticArray()

@@ -187,6 +187,10 @@ class SimBridgeNode(ProtocadNode):
         self.pub_clock = self.create_publisher(Clock, topics.CLOCK, qos.clock_qos())
         self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
                                               qos.diagnostics_qos())
+        self.pub_bridge_info = self.create_publisher(JointState, topics.BRIDGE_INFO, qos.announcement_qos())
+        self.pub_bridge_info.publish(topics.fill_bridge_info(JointState(), topics.BridgeInfo(
+            p["task"], self.action_names, self.dt_ns / 1e9, p["image_size"])))
+        self._others_warned: set[str] = set()
         self.sub_action = self.create_subscription(
             JointState, topics.ACTION, self._on_action, qos.action_qos(),
             event_callbacks=SubscriptionEventCallbacks(matched=self._on_action_matched))
@@ -194,7 +198,7 @@ class SimBridgeNode(ProtocadNode):
         self.diag_timer = self.create_timer(p["diagnostics_period_s"], self._publish_diagnostics)
         install_parameter_guards(self, PARAMS, self._apply_param, self._parameter_rejected)
         self._obs_pubs = (self.pub_image, self.pub_info, self.pub_context)
-        self._diag_name = f"{ns.rstrip('/')}/{NODE_NAME}"
+        self._diag_name = self.get_fully_qualified_name()   # -r __node:=... renames it too
         self.get_logger().info(
             f"{p['task']} ({p['split']} contexts, seed {p['seed']}) in {p['mode']} mode: "
             f"{self.action_dim}-d actions {self.action_names}, control_dt "
@@ -556,12 +560,16 @@ class SimBridgeNode(ProtocadNode):
             values["control_rate_hz"] = self._control_rate
         # Late actions are a rate, not a state: WARN only while new ones arrive (one late
         # action must not mark the rest of a run).
+        others = self._other_publishers()
         late_now = c["late_actions"] - self._late_at_last_diag
         self._late_at_last_diag = c["late_actions"]
         warn = c["actions_rejected"] or c["lockstep_timeouts"] or late_now or self.callback_errors
         unknown = self.unknown_parameters
+        values["other_publishers"] = ", ".join(others)
         status = make_status(self._diag_name, self.params["task"], values,
-                             "WARN" if warn or unknown else "OK",
+                             "ERROR" if others else "WARN" if warn or unknown else "OK",
+                             f"another publisher on {', '.join(others)} (a second bridge in this "
+                             "namespace?)" if others else
                              f"unknown parameters ignored: {unknown}" if unknown else
                              "rejected/late actions or timeouts" if warn else "running")
         arr = DiagnosticArray()
@@ -571,6 +579,22 @@ class SimBridgeNode(ProtocadNode):
             self.pub_diag.publish(arr)
         except Exception:  # context shutting down
             pass
+
+    def _other_publishers(self) -> list[str]:
+        """The bridge's own topics that some other node publishes too: two bridges in one
+        namespace (or a stray publisher) interleave observations and /clock, so both say so."""
+        others = []
+        for pub in (self.pub_image, self.pub_info, self.pub_context, self.pub_bridge_info):
+            topic = pub.topic_name
+            if self.count_publishers(topic) > 1:
+                others.append(topic)
+        for topic in others:
+            if topic not in self._others_warned:
+                self._others_warned.add(topic)
+                self.get_logger().error(f"another node also publishes {topic} (a second sim bridge in "
+                                        f"{self.get_namespace()}?): its observations interleave with "
+                                        "ours; run each bridge in its own namespace and domain")
+        return others
 
     # ------------------------------------------------------------------ shutdown
     def close(self) -> None:

@@ -35,6 +35,13 @@ def observation_qos() -> QoSProfile:
     return _reliable(OBSERVATION_DEPTH)
 
 
+def announcement_qos() -> QoSProfile:
+    """bridge_info: reliable + transient local, depth 1: a node that starts later still gets
+    the announcement (latched, as /tf_static)."""
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
 def action_qos() -> QoSProfile:
     """action and context_features (policy -> sim bridge, recorder)."""
     return _reliable(OBSERVATION_DEPTH)

@@ -25,6 +25,7 @@ STEP_INFO = "step_info"            # sensor_msgs/msg/JointState, fields STEP_INF
 CONTEXT = "context"                # sensor_msgs/msg/JointState, the true context (eval/plots only)
 ACTION = "action"                  # sensor_msgs/msg/JointState, effort = action
 CONTEXT_FEATURES = "context_features"  # sensor_msgs/msg/JointState, u/w/e from the policy
+BRIDGE_INFO = "bridge_info"        # sensor_msgs/msg/JointState, transient local: what the bridge runs
 RESET_SERVICE = "reset"            # std_srvs/srv/Trigger on the sim bridge
 CLOCK = "/clock"                   # rosgraph_msgs/msg/Clock (sim time)
 DIAGNOSTICS = "/diagnostics"       # diagnostic_msgs/msg/DiagnosticArray
@@ -35,6 +36,7 @@ TYPES = {
     CONTEXT: "sensor_msgs/msg/JointState",
     ACTION: "sensor_msgs/msg/JointState",
     CONTEXT_FEATURES: "sensor_msgs/msg/JointState",
+    BRIDGE_INFO: "sensor_msgs/msg/JointState",
     CLOCK: "rosgraph_msgs/msg/Clock",
     DIAGNOSTICS: "diagnostic_msgs/msg/DiagnosticArray",
 }
@@ -191,6 +193,37 @@ def read_action(msg: Any) -> np.ndarray:
     if len(msg.effort) != len(msg.name):
         raise ValueError(f"action has {len(msg.name)} names but {len(msg.effort)} effort values")
     return np.asarray(msg.effort, dtype=np.float64)
+
+
+@dataclass
+class BridgeInfo:
+    """What a sim bridge runs, announced once (transient local) so that a policy can refuse a
+    bridge its checkpoint does not fit before answering anything."""
+
+    task: str
+    action_names: list[str]
+    control_dt: float
+    image_size: int
+
+
+def fill_bridge_info(msg: Any, info: BridgeInfo, t_ns: int = 0) -> Any:
+    """header.frame_id = task, name = the action names in order, position = [control_dt,
+    image_size] under the names '@control_dt', '@image_size' appended after the actions."""
+    fill_named(msg, list(info.action_names) + ["@control_dt", "@image_size"],
+               [0.0] * len(info.action_names) + [float(info.control_dt), float(info.image_size)], t_ns,
+               frame_id=info.task)
+    return msg
+
+
+def read_bridge_info(msg: Any) -> BridgeInfo:
+    d = read_named(msg)
+    if "@control_dt" not in d or "@image_size" not in d or not msg.header.frame_id:
+        raise ValueError("bridge_info lacks the task (frame_id), @control_dt or @image_size")
+    names = [n for n in msg.name if not str(n).startswith("@")]
+    size = d["@image_size"]
+    if not (math.isfinite(d["@control_dt"]) and math.isfinite(size) and size == int(size) and size > 0):
+        raise ValueError(f"bridge_info values are not usable: {d}")
+    return BridgeInfo(str(msg.header.frame_id), [str(n) for n in names], d["@control_dt"], int(size))
 
 
 def context_feature_names(proj_dim: int, num_prototypes: int, proto_dim: int) -> list[str]:

@@ -308,3 +308,39 @@ def test_realtime_latest_only_skips_to_the_newest_observation(spawn, probe):
     d = probe.node_diag("policy")
     assert int(d["observations_lost"]) == 0 and int(d["stale_observations"]) == 0, d
     assert policy.alive()
+
+
+def test_a_checkpoint_for_another_task_is_refused_at_the_first_observation(spawn, probe):
+    """A pendulum policy next to a walker bridge (the README's mistake): the policy says so at
+    once and never publishes a wrong-sized action; the bridge's image never gets an answer."""
+    import time
+
+    actions = probe.record(topics.ACTION, JointState, qos.action_qos())
+    images = probe.record(topics.IMAGE, Image, qos.observation_qos())
+    policy = spawn("policy", *policy_args())          # pendulum_swingup, random agent
+    wait_until(lambda: actions.matched() >= 1, START, "the policy's action publisher")
+    bridge = spawn("bridge", "-m", "sim_bridge.node", "--ros-args", "-p", "task:=walker_walk",
+                   "-p", "diagnostics_period_s:=0.1")
+    wait_until(lambda: len(images) >= 1, START, "the walker bridge's first observation")
+    t_first = time.monotonic()
+    wait_until(lambda: "the checkpoint is for pendulum_swingup, the bridge runs walker_walk"
+               in policy.output(), 10, "the mismatch in the policy's log")
+    assert time.monotonic() - t_first < 2.0
+    wait_until(lambda: probe.node_diag("policy").get("_level") == 2, 10, "the policy's status ERROR")
+    time.sleep(1.0)
+    assert len(actions) == 0
+    assert "not answering" in probe.node_diag("policy")["_message"]
+    assert bridge.alive() and policy.alive()
+
+
+def test_two_bridges_in_one_namespace_are_reported_by_both(spawn, probe):
+    a = spawn("bridge_a", "-m", "sim_bridge.node", "--ros-args", "-p", f"task:={TASK}", "-p", "seed:=1",
+              "-p", "diagnostics_period_s:=0.1", "-r", "__node:=sim_bridge_a")
+    b = spawn("bridge_b", "-m", "sim_bridge.node", "--ros-args", "-p", f"task:={TASK}", "-p", "seed:=2",
+              "-p", "diagnostics_period_s:=0.1", "-r", "__node:=sim_bridge_b")
+    for name in ("sim_bridge_a", "sim_bridge_b"):
+        wait_until(lambda: "/protocad/image" in probe.node_diag(name).get("other_publishers", ""), START,
+                   f"{name} to report the other bridge")
+        assert probe.node_diag(name)["_level"] == 2
+    for proc in (a, b):
+        wait_until(lambda: "another node also publishes /protocad/image" in proc.output(), 10, "the error line")

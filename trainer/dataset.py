@@ -63,7 +63,7 @@ EXPECTED_TYPES = {
     "context": T.TYPES[T.CONTEXT],
 }
 # Contract topics that a training dataset does not need (listed as unused, not as foreign).
-KNOWN_UNUSED = (T.CONTEXT_FEATURES, T.CLOCK, T.DIAGNOSTICS, "/rosout", "/parameter_events",
+KNOWN_UNUSED = (T.CONTEXT_FEATURES, T.BRIDGE_INFO, T.CLOCK, T.DIAGNOSTICS, "/rosout", "/parameter_events",
                 "/tf", "/tf_static")
 
 

@@ -30,7 +30,7 @@ from sim_bridge import topics as T
 from trainer import mcap_io
 
 #: Relative contract topics recorded by default (resolved in --namespace), plus /clock.
-DEFAULT_RELATIVE_TOPICS = (T.IMAGE, T.STEP_INFO, T.CONTEXT, T.ACTION, T.CONTEXT_FEATURES)
+DEFAULT_RELATIVE_TOPICS = (T.IMAGE, T.STEP_INFO, T.CONTEXT, T.ACTION, T.CONTEXT_FEATURES, T.BRIDGE_INFO)
 DEFAULT_QUEUE_DEPTH = 1000
 
 
