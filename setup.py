@@ -65,6 +65,7 @@ setup(
             "protocad-online = trainer.online:main",
             "protocad-visualize = trainer.visualize:main",
             "protocad-compare = trainer.compare:main",
+            "protocad-stack = trainer.stack:main",
         ]
     },
 )
