@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 import time
 import zlib
@@ -304,6 +305,12 @@ def _main(a: argparse.Namespace) -> int:
     cache_dir = a.cache_dir or run_json.get("cache_dir")
 
     print(f"[train] reading logs: {', '.join(map(str, logs))}", flush=True)
+    from trainer.dataset import default_cache_dir
+
+    where = "--cache-dir" if a.cache_dir else "the run's" if cache_dir else (
+        "$PROTOCAD_CACHE_DIR" if os.environ.get("PROTOCAD_CACHE_DIR") else "default, outside the project")
+    print(f"[train] dataset cache (decoded frames, reused across runs; not cleaned automatically): "
+          f"{Path(cache_dir) if cache_dir else default_cache_dir()} ({where})", flush=True)
     if a.resume:
         try:
             from protocad_ros.config import Config
