@@ -271,6 +271,8 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--image", default=None, metavar="PNG",
                    help="also write the learning-curve plot here, and link it from the markdown section "
                         "(a path relative to the README)")
+    g.add_argument("--rrd", default=None, metavar="RRD",
+                   help="write the curves' rerun recording here (a grid also writes OUT/curves.rrd)")
     g.add_argument("--random-baseline", action="store_true",
                    help="evaluate the uniform random policy once per task (OUT/TASK/random.json, the "
                         "final evaluation's contexts and episodes) and report it beside the variants")
@@ -314,11 +316,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             print(f"[compare] {len(specs)} runs, {failed} failed; results: {out_dir / 'results.json'}",
                   flush=True)
         print(R.format_report(doc), flush=True)
-        png = R.plot_curves(doc, out_dir / "curves.png")
-        if a.image:
+        # A grid writes its plot and recording beside results.json; --report only where asked.
+        png = R.plot_curves(doc, a.image if a.report and a.image else out_dir / "curves.png")
+        if a.image and Path(a.image) != Path(png):
             shutil.copyfile(png, a.image)
+        rrd_path = a.rrd or (None if a.report else out_dir / "curves.rrd")
         try:
-            rrd = R.log_curves_rerun(doc, out_dir / "curves.rrd")
+            rrd = R.log_curves_rerun(doc, rrd_path) if rrd_path else "not written (--rrd PATH)"
         except ImportError:   # rerun-sdk absent (the GPU machine's bare Python)
             rrd = "not written (rerun-sdk is not installed)"
         print(f"[compare] plot: {png}\n[compare] rerun: {rrd}", flush=True)

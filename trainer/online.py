@@ -235,7 +235,12 @@ def run(a: argparse.Namespace) -> int:
     cache_dir = Path(a.cache_dir) if a.cache_dir else run_dir / "cache"
     eval_dir = run_dir / "eval"
     eval_dir.mkdir(exist_ok=True)
-    run_json.update(kind="online", argv=sys.argv, task=cfg.task, variant=cfg.variant, preset=cfg.preset,
+    from trainer.results import code_version
+
+    versions = list(run_json.get("code_versions", []))
+    if code_version() not in versions:   # every invocation's code, resumes included
+        versions.append(code_version())
+    run_json.update(kind="online", argv=sys.argv, code_versions=versions, task=cfg.task, variant=cfg.variant, preset=cfg.preset,
                     seed=tr.seed, device=device, protocol={
                         "env_steps": a.env_steps, "num_envs": a.num_envs, "prefill_episodes": N,
                         "updates_per_episode": C, "action_repeat": R, "time_limit": tr.time_limit,
