@@ -43,7 +43,10 @@ INSTALL_REQUIRES = [
     "pyyaml>=6.0",
     "tqdm>=4.66",
     "scikit-learn>=1.4",
+    "scipy>=1.11",        # trim_mean (IQM) in trainer/results.py, imported directly
     "pillow>=10.1",
+    "matplotlib>=3.8",    # protocad-compare's learning-curve PNG
+    "jsonschema>=4.20",   # results.json is checked against its schema on save and load
 ]
 
 setup(
@@ -53,7 +56,7 @@ setup(
     packages=find_packages(include=["protocad_ros*", "sim_bridge*", "trainer*"]),
     python_requires=">=3.11,<3.12",
     install_requires=INSTALL_REQUIRES,
-    extras_require={"test": ["pytest==9.2.0", "pytest-timeout==2.4.0"]},
+    extras_require={"test": ["pytest==9.2.0", "pytest-timeout==2.4.0", "hypothesis==6.170.17"]},
     data_files=ament_data_files(),
     entry_points={
         "console_scripts": [
