@@ -188,3 +188,26 @@ def test_a_full_cache_disk_is_a_clear_error_and_skips_nothing(tmp_path):
         assert ds.num_steps == 2 * 60
     finally:
         subprocess.run(["umount", "-l", str(mnt)])
+
+
+def test_cache_budget_evicts_least_recently_used_bags_never_those_in_use(tmp_path):
+    import os
+
+    from trainer.dataset import MCAPDataset, TopicMap, cache_key
+
+    bags = [write_bag(tmp_path / f"bag{i}", make_steps(1, 40, first_episode=i)) for i in range(3)]
+    cache = tmp_path / "cache"
+    entry = lambda b: cache / cache_key(b, TopicMap())   # noqa: E731
+    MCAPDataset([bags[0]], seq_len=8, cache_dir=cache, cache_budget_gb=0)
+    size = sum(f.stat().st_size for f in entry(bags[0]).rglob("*") if f.is_file())
+    budget_gb = 2.5 * size / 1e9                      # room for two bags
+    MCAPDataset([bags[1]], seq_len=8, cache_dir=cache, cache_budget_gb=budget_gb)
+    assert entry(bags[0]).exists() and entry(bags[1]).exists()
+    # Last uses set explicitly (file-time resolution varies): bag0 used after bag1.
+    os.utime(entry(bags[1]), (1_000_000, 1_000_000))
+    os.utime(entry(bags[0]), (2_000_000, 2_000_000))
+    ds = MCAPDataset([bags[2]], seq_len=8, cache_dir=cache, cache_budget_gb=budget_gb)
+    assert not entry(bags[1]).exists() and entry(bags[0]).exists() and entry(bags[2]).exists()
+    # A dataset using more than the budget keeps all of its own entries.
+    big = MCAPDataset(bags, seq_len=8, cache_dir=cache, cache_budget_gb=size / 1e9)
+    assert all(entry(b).exists() for b in bags) and big.num_steps == ds.num_steps * 3

@@ -186,6 +186,45 @@ def cache_key(source: Path, topics: TopicMap) -> str:
     return h.hexdigest()[:24]
 
 
+DEFAULT_CACHE_BUDGET_GB = 4.0
+
+
+def default_cache_budget_gb() -> float:
+    """$PROTOCAD_CACHE_BUDGET_GB, else DEFAULT_CACHE_BUDGET_GB (0 = no limit)."""
+    try:
+        return float(os.environ.get("PROTOCAD_CACHE_BUDGET_GB", DEFAULT_CACHE_BUDGET_GB))
+    except ValueError:
+        return DEFAULT_CACHE_BUDGET_GB
+
+
+def _entry_size(entry: Path) -> int:
+    return sum(f.stat().st_size for f in entry.rglob("*") if f.is_file())
+
+
+def prune_cache(cache_dir: Path, budget_bytes: int, keep: Iterable[Path] = ()) -> list[Path]:
+    """Evict least-recently-used cache entries (whole bags' decoded frames) until the cache
+    fits `budget_bytes`; entries in `keep` (those a live dataset uses) are never evicted.
+    An entry's last use is the mtime of its directory, touched each time a dataset opens it.
+    Returns the evicted entries. Nothing is lost: an evicted bag is indexed again from its log."""
+    cache_dir = Path(cache_dir)
+    if budget_bytes <= 0 or not cache_dir.is_dir():
+        return []
+    keep = {Path(k).resolve() for k in keep}
+    entries = [(e.stat().st_mtime, e, _entry_size(e)) for e in cache_dir.iterdir()
+               if e.is_dir() and (e / "index.json").exists()]
+    total = sum(size for _, _, size in entries)
+    evicted = []
+    for _, entry, size in sorted(entries, key=lambda t: t[0]):
+        if total <= budget_bytes:
+            break
+        if entry.resolve() in keep:
+            continue
+        shutil.rmtree(entry, ignore_errors=True)
+        total -= size
+        evicted.append(entry)
+    return evicted
+
+
 def default_cache_dir() -> Path:
     env = os.environ.get("PROTOCAD_CACHE_DIR")
     if env:
@@ -678,8 +717,10 @@ class MCAPDataset:
     def __init__(self, paths: Iterable[str | Path] = (), *, topics: TopicMap | None = None,
                  seq_len: int = 50, seed: int = 0, cache_dir: str | Path | None = None,
                  image_shape: Sequence[int] | None = None, action_dim: int | None = None,
-                 verbose: bool = False):
+                 verbose: bool = False, cache_budget_gb: float | None = None):
         self.topics = topics or TopicMap()
+        # LRU budget of the frame cache (entries this dataset uses are never evicted).
+        self.cache_budget_gb = default_cache_budget_gb() if cache_budget_gb is None else float(cache_budget_gb)
         self.seq_len = int(seq_len)
         if self.seq_len < 1:
             raise ValueError("seq_len must be >= 1")
@@ -688,6 +729,7 @@ class MCAPDataset:
         self.samples_drawn = 0
         self.stores: list[SourceStore] = []
         self._known: set[str] = set()
+        self._warned_budget = False
         self.image_shape = tuple(image_shape) if image_shape else None
         self.action_dim = action_dim
         self.action_names: list[str] | None = None
@@ -723,6 +765,7 @@ class MCAPDataset:
                 entry.parent.mkdir(parents=True, exist_ok=True)
                 _ingest(src, self.topics, entry)
                 store = SourceStore(entry)
+            os.utime(entry)   # last use, for the LRU budget
             store.report.cached = cached
             store.report.path = str(src)
             self._check_compat(store)
@@ -731,6 +774,19 @@ class MCAPDataset:
             self.report.sources.append(store.report)
             added.append(store.report)
         self._reindex()
+        if added and self.cache_budget_gb > 0:
+            budget = int(self.cache_budget_gb * 1e9)
+            evicted = prune_cache(self.cache_dir, budget, keep=[st.entry for st in self.stores])
+            if evicted and self.verbose:
+                print(f"[dataset] cache over its {self.cache_budget_gb:g} GB budget: evicted {len(evicted)} "
+                      f"least recently used bag(s) (re-indexed from their logs if used again)",
+                      file=sys.stderr, flush=True)
+            used = sum(_entry_size(st.entry) for st in self.stores)
+            if used > budget and not self._warned_budget:
+                self._warned_budget = True
+                print(f"[dataset] this dataset alone holds {used / 1e9:.2f} GB of decoded frames, more than "
+                      f"the cache budget ({self.cache_budget_gb:g} GB; --cache-budget-gb or "
+                      f"PROTOCAD_CACHE_BUDGET_GB): nothing it uses is evicted", file=sys.stderr, flush=True)
         return added
 
     def _check_compat(self, store: SourceStore) -> None:

@@ -251,7 +251,9 @@ def run(a: argparse.Namespace) -> int:
                         "eval_split": a.eval_split, "eval_contexts": a.eval_contexts})
     runs.atomic_write_json(run_dir / "run.json", run_json)
 
-    ds = MCAPDataset([], topics=TopicMap(), seq_len=tr.seq_len, seed=tr.seed, cache_dir=cache_dir)
+    # The run's own cache is its replay buffer: every entry is in use, no budget applies.
+    ds = MCAPDataset([], topics=TopicMap(), seq_len=tr.seq_len, seed=tr.seed, cache_dir=cache_dir,
+                     cache_budget_gb=None if a.cache_dir else 0)
     existing = sorted(p for p in bags_dir.iterdir() if p.is_dir())
     if existing:
         ds.add(existing)

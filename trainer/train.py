@@ -238,6 +238,10 @@ def add_topic_args(ap: argparse.ArgumentParser) -> None:
                    help="namespace of the contract topics in the logs (default /protocad)")
     g.add_argument("--cache-dir", default=None,
                    help="dataset cache (default $PROTOCAD_CACHE_DIR or ~/.cache/protocad-ros/dataset)")
+    g.add_argument("--cache-budget-gb", type=float, default=None,
+                   help="size budget of the dataset cache: least recently used bags are evicted (and "
+                        "re-indexed from their logs if used again); bags in use never are; 0 = no "
+                        "limit (default $PROTOCAD_CACHE_BUDGET_GB or 4)")
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -309,8 +313,8 @@ def _main(a: argparse.Namespace) -> int:
 
     where = "--cache-dir" if a.cache_dir else "the run's" if cache_dir else (
         "$PROTOCAD_CACHE_DIR" if os.environ.get("PROTOCAD_CACHE_DIR") else "default, outside the project")
-    print(f"[train] dataset cache (decoded frames, reused across runs; not cleaned automatically): "
-          f"{Path(cache_dir) if cache_dir else default_cache_dir()} ({where})", flush=True)
+    print(f"[train] dataset cache (decoded frames, reused across runs): "
+          f"{Path(cache_dir) if cache_dir else default_cache_dir()} ({where}; LRU budget: --cache-budget-gb)", flush=True)
     if a.resume:
         try:
             from protocad_ros.config import Config
@@ -319,7 +323,7 @@ def _main(a: argparse.Namespace) -> int:
         except Exception as exc:  # noqa: BLE001
             raise ValueError(f"--resume: cannot read {run_dir / 'config.yaml'}: {exc}") from None
     ds = MCAPDataset(logs, topics=topics, seq_len=cfg.train.seq_len, seed=cfg.train.seed,
-                     cache_dir=cache_dir, verbose=True)
+                     cache_dir=cache_dir, verbose=True, cache_budget_gb=a.cache_budget_gb)
     print(ds.report.summary(), flush=True)
     if ds.num_windows == 0:
         raise DatasetError(f"nothing to train on: no window of {cfg.train.seq_len} steps in the logs "
