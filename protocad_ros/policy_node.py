@@ -193,11 +193,16 @@ class PolicyNode(ProtocadNode):
         obs_qos, out_qos = qos.observation_qos(), qos.action_qos()
         if p["latest_only"]:
             obs_qos.depth = 1
-        self.pub_action = self.create_publisher(JointState, topics.ACTION, out_qos)
+        # Profiles of their own: rclpy's QoS overriding changes the profile object it is given.
+        self.pub_action = self.create_publisher(JointState, topics.ACTION, qos.action_qos(),
+                                                qos_overriding_options=qos.overridable())
         self.pub_features = self.create_publisher(JointState, topics.CONTEXT_FEATURES, out_qos)
         self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
                                               qos.diagnostics_qos())
-        self.sub_image = self.create_subscription(Image, topics.IMAGE, self._on_image, obs_qos)
+        image_qos = qos.observation_qos()
+        image_qos.depth = obs_qos.depth
+        self.sub_image = self.create_subscription(Image, topics.IMAGE, self._on_image, image_qos,
+                                                  qos_overriding_options=qos.overridable())
         self.sub_info = self.create_subscription(JointState, topics.STEP_INFO, self._on_info,
                                                  obs_qos)
         self.bridge: topics.BridgeInfo | None = None

@@ -181,7 +181,9 @@ class SimBridgeNode(ProtocadNode):
         self._img_msg, self._info_msg, self._ctx_msg, self._clock_msg = (
             Image(), JointState(), JointState(), Clock())
         obs_qos = qos.observation_qos()
-        self.pub_image = self.create_publisher(Image, topics.IMAGE, obs_qos)
+        # A profile of its own: rclpy's QoS overriding changes the profile object it is given.
+        self.pub_image = self.create_publisher(Image, topics.IMAGE, qos.observation_qos(),
+                                               qos_overriding_options=qos.overridable())
         self.pub_info = self.create_publisher(JointState, topics.STEP_INFO, obs_qos)
         self.pub_context = self.create_publisher(JointState, topics.CONTEXT, obs_qos)
         self.pub_clock = self.create_publisher(Clock, topics.CLOCK, qos.clock_qos())
@@ -193,6 +195,7 @@ class SimBridgeNode(ProtocadNode):
         self._others_warned: set[str] = set()
         self.sub_action = self.create_subscription(
             JointState, topics.ACTION, self._on_action, qos.action_qos(),
+            qos_overriding_options=qos.overridable(),
             event_callbacks=SubscriptionEventCallbacks(matched=self._on_action_matched))
         self.srv_reset = self.create_service(Trigger, topics.RESET_SERVICE, self._on_reset)
         self.diag_timer = self.create_timer(p["diagnostics_period_s"], self._publish_diagnostics)

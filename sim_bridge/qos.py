@@ -61,3 +61,12 @@ def describe(qos: QoSProfile) -> str:
     """One-line summary, e.g. 'RELIABLE, VOLATILE, KEEP_LAST(100)' (for logs and docs)."""
     return (f"{qos.reliability.name}, {qos.durability.name}, "
             f"{qos.history.name}({qos.depth})")
+
+
+def overridable():
+    """rclpy's QoS overriding: `-p qos_overrides./NS/TOPIC.publisher.reliability:=best_effort`
+    (also `.subscription.`, and durability, history, depth) at start, for the image and
+    action topics (for a viewer on a lossy link; see msgs_docs/topics.md for what it costs)."""
+    from rclpy.qos_overriding_options import QoSOverridingOptions
+
+    return QoSOverridingOptions.with_default_policies()

@@ -273,3 +273,21 @@ def test_fixed_context_outside_the_split_is_a_configuration_error(spawn):
     assert bad.p.returncode == 2
     out = bad.output()
     assert "configuration error" in out and "belongs to the train split" in out
+
+
+def test_image_qos_is_overridable_by_parameter(spawn, probe):
+    """`-p qos_overrides./protocad/image.publisher.reliability:=best_effort` (rclpy's QoS
+    overriding) turns the image writer best effort, e.g. for a viewer over a lossy link."""
+    from rclpy.qos import ReliabilityPolicy
+
+    bridge = spawn("bridge_qos", *bridge_args("qos_overrides./protocad/image.publisher.reliability:=best_effort"))
+
+    def offered():
+        infos = probe.node.get_publishers_info_by_topic("/protocad/image")
+        return infos[0].qos_profile.reliability if infos else None
+
+    wait_until(lambda: offered() is not None, START, "the bridge's image publisher")
+    assert offered() == ReliabilityPolicy.BEST_EFFORT
+    assert probe.node.get_publishers_info_by_topic("/protocad/step_info")[0].qos_profile.reliability == \
+        ReliabilityPolicy.RELIABLE
+    assert "unknown parameter" not in bridge.output()
