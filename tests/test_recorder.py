@@ -1,6 +1,7 @@
 """The recorder node as a separate process, fed by real DDS traffic from this process."""
 from __future__ import annotations
 
+import json
 import signal
 import subprocess
 import sys
@@ -275,3 +276,50 @@ def test_include_and_exclude_regex_select_topics_as_ros2_bag_record(ros, tmp_pat
             rec.kill()
     assert rec.returncode == 0, out
     assert M.BagReader(bag).report.counts == {"/a/keep": 20}
+
+
+def test_loss_while_frozen_is_counted_exactly_and_shown_by_the_dataset(ros, tmp_path):
+    """A KEEP_LAST(50) writer at full speed while the recorder is frozen (SIGSTOP) for 3 s: what
+    the bag lacks equals what the recorder counted as lost, in its summary, metadata.yaml and
+    the dataset report."""
+    import yaml
+    from sensor_msgs.msg import JointState
+
+    from sim_bridge import qos
+    from trainer.dataset import MCAPDataset
+
+    q = qos.observation_qos()
+    q.depth = 50
+    pub = ros.create_publisher(JointState, T.STEP_INFO, q)
+    bag = tmp_path / "frozen"
+    rec = subprocess.Popen([sys.executable, "-m", "trainer.recorder", "-o", str(bag), T.topic_name(NS, T.STEP_INFO),
+                            "-p", "100"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        wait_for(lambda: pub.get_subscription_count() >= 1, 60, "the recorder's subscription")
+        time.sleep(0.5)
+        n = 3000
+        for i in range(n):
+            if i == 1000:
+                rec.send_signal(signal.SIGSTOP)
+            if i == 2000:
+                time.sleep(3.0)
+                rec.send_signal(signal.SIGCONT)
+            info = T.StepInfo(0.0, 1.0, i == 0, False, False, 0, i)
+            pub.publish(T.fill_step_info(JointState(), info, stamp(i)))
+            if i < 1000 or i >= 2000:
+                time.sleep(0.001)
+        time.sleep(2.0)
+        rec.send_signal(signal.SIGINT)
+        out, _ = rec.communicate(timeout=60)
+    finally:
+        if rec.poll() is None:
+            rec.send_signal(signal.SIGCONT)
+            rec.kill()
+    assert rec.returncode == 0, out
+    recorded = M.BagReader(bag).report.counts[T.topic_name(NS, T.STEP_INFO)]
+    info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    lost = json.loads(info["custom_data"]["protocad_lost_messages"])[T.topic_name(NS, T.STEP_INFO)]
+    assert lost > 0 and recorded + lost == n, (recorded, lost, out)
+    assert f"LOST before the recorder took them (sequence gaps): {lost}" in out
+    ds_report = MCAPDataset([bag], seq_len=4, cache_dir=tmp_path / "cache").report.summary()
+    assert "the recorder reported lost messages" in ds_report and str(lost) in ds_report

@@ -273,6 +273,9 @@ class SourceReport:
     action_names: list[str] | None = None
     context_names: list[str] | None = None
     rejected: str | None = None         # why the whole bag is unusable (None = usable)
+    # What the recorder reported in metadata.yaml custom_data (protocad_* keys): messages lost
+    # before it took them, published before it subscribed, a write error that ended the bag.
+    recording_losses: dict[str, str] = field(default_factory=dict)
 
     def problems(self) -> list[str]:
         p = []
@@ -304,6 +307,8 @@ class SourceReport:
             p.append(f"{self.missing_actions} observation(s) without an action answering them (segment split)")
         if self.orphan_actions:
             p.append(f"{self.orphan_actions} action(s) whose observation is not in the log")
+        for key, value in self.recording_losses.items():
+            p.append(f"the recorder reported {key[len('protocad_'):].replace('_', ' ')}: {value}")
         if self.foreign_topics:
             p.append("foreign topics (present, unused): " + ", ".join(
                 f"{t} [{v['type']}] x{v['count']}" for t, v in self.foreign_topics.items()))
@@ -451,6 +456,20 @@ def _ingest(source: Path, topics: TopicMap, entry: Path) -> None:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
+def recorder_losses(source: Path) -> dict[str, str]:
+    """The protocad_* custom_data of the bag's metadata.yaml (none for foreign bags)."""
+    import yaml
+
+    meta = Path(source) / "metadata.yaml" if Path(source).is_dir() else Path(source).parent / "metadata.yaml"
+    try:
+        info = (yaml.safe_load(meta.read_text()) or {}).get("rosbag2_bagfile_information") or {}
+    except (OSError, yaml.YAMLError, AttributeError):
+        return {}
+    custom = info.get("custom_data") or {}
+    return {str(k): str(v) for k, v in custom.items() if str(k).startswith("protocad_")} \
+        if isinstance(custom, dict) else {}
+
+
 def _ingest_into(source: Path, topics: TopicMap, tmp: Path) -> None:
     from trainer import mcap_io
 
@@ -558,6 +577,7 @@ def _ingest_into(source: Path, topics: TopicMap, tmp: Path) -> None:
             rep.foreign_topics[t] = {"type": types.get(t, "?"), "count": n}
     rep.missing_topics = [f"{k}={v}" for k, v in by_key.items() if v not in counts]
     rep.decode_errors = dec_err
+    rep.recording_losses = recorder_losses(source)
     rep.context_names = [n for n in (ctx_names or []) if n != T.SPLIT_FIELD] or None
     rep.action_dim = act_dim
     rep.image_shape = [hw[0], hw[1], 3] if hw else None

@@ -25,6 +25,7 @@ from datetime import datetime
 from typing import Any, Mapping, Sequence
 
 from sim_bridge.rosbase import ProtocadNode
+from sim_bridge.rosnode import KeyThrottle
 
 from sim_bridge import topics as T
 from trainer import mcap_io
@@ -167,8 +168,18 @@ class RecorderNode(ProtocadNode):
         self.errors = 0
         self.done = threading.Event()    # set when recording cannot go on (write failure)
         self.exit_code = 0
+        # Loss accounting from each writer's publication sequence numbers (1, 2, 3, ... per
+        # publisher): a jump is messages the middleware dropped before we took them (a stalled
+        # recorder, a KEEP_LAST writer overwriting what it held); a first number above 1 is what
+        # was published before we subscribed. Exact for a topic with one publisher; a topic with
+        # several is not tracked (their numbers interleave), and says so.
+        self.lost: dict[str, int] = {}
+        self.missed_before_subscribing: dict[str, int] = {}
+        self.untracked: set[str] = set()
+        self._last_seq: dict[str, int] = {}
         self._subs: dict[str, Any] = {}
         self._warned: set[str] = set()
+        self._throttle = KeyThrottle(self.get_logger())
         self._lock = threading.Lock()
         self._discover()
         if not p["no_discovery"]:
@@ -248,6 +259,7 @@ class RecorderNode(ProtocadNode):
         with self._lock:
             if self.writer.closed:
                 return
+            self._account(topic, int(seq) if isinstance(seq, int) else 0)
             try:
                 self.writer.write(topic, data, recv, src if src else recv, sequence=seq)
                 self.received += 1
@@ -255,6 +267,41 @@ class RecorderNode(ProtocadNode):
                 self.errors += 1
                 self._warn_once(f"write:{type(exc).__name__}", f"write to bag failed: {exc}")
                 self._check_failure()
+
+    def _account(self, topic: str, seq: int) -> None:
+        if seq <= 0 or topic in self.untracked:
+            return
+        last = self._last_seq.get(topic)
+        if last is None or seq <= last:
+            if last is not None or self.count_publishers(topic) > 1:
+                # several writers (or one restarted): their numbers say nothing about loss
+                self.untracked.add(topic)
+                self._warn_once(f"untracked:{topic}", f"{topic} has several publishers: its losses "
+                                "cannot be counted from sequence numbers")
+                return
+            if seq > 1:
+                self.missed_before_subscribing[topic] = seq - 1
+                self.get_logger().warning(f"{topic}: {seq - 1} message(s) were published before the "
+                                          "recorder subscribed (start the recorder first)")
+        elif seq > last + 1:
+            n = seq - last - 1
+            self.lost[topic] = self.lost.get(topic, 0) + n
+            self._throttle.warning(f"lost:{topic}", f"{topic}: {n} message(s) lost before the recorder took "
+                                   f"them (sequence {last} -> {seq}; {self.lost[topic]} on this topic so far)")
+        self._last_seq[topic] = seq
+
+    def loss_summary(self) -> dict[str, str]:
+        """The loss as metadata.yaml custom_data (rosbag2 keeps str -> str)."""
+        import json
+
+        out = {}
+        if self.lost:
+            out["protocad_lost_messages"] = json.dumps(self.lost, sort_keys=True)
+        if self.missed_before_subscribing:
+            out["protocad_missed_before_subscribing"] = json.dumps(self.missed_before_subscribing, sort_keys=True)
+        if self.untracked:
+            out["protocad_loss_untracked_topics"] = json.dumps(sorted(self.untracked))
+        return out
 
     def _flush_if_due(self) -> None:
         with self._lock:
@@ -290,8 +337,11 @@ class RecorderNode(ProtocadNode):
                 break
 
     def close(self) -> dict[str, int]:
-        """Close the bag (footer, summary, metadata.yaml); returns the per-topic counts."""
+        """Close the bag (footer, summary, metadata.yaml with the loss); returns the per-topic counts."""
         with self._lock:
+            loss = self.loss_summary()
+            if loss:
+                self.writer.custom_data = {**(self.writer.custom_data or {}), **loss}
             self.writer.close()
         return self.writer.topic_counts
 
@@ -496,6 +546,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         lines += [f"  {t}: {n}" for t, n in counts.items()]
         if node.errors:
             lines.append(f"  write errors: {node.errors}")
+        if node.lost:
+            lines.append(f"  LOST before the recorder took them (sequence gaps): {sum(node.lost.values())} "
+                         f"({', '.join(f'{t}: {n}' for t, n in sorted(node.lost.items()))})")
+        if node.missed_before_subscribing:
+            lines.append("  published before the recorder subscribed: " + ", ".join(
+                f"{t}: {n}" for t, n in sorted(node.missed_before_subscribing.items())))
+        if node.untracked:
+            lines.append(f"  loss not tracked (several publishers): {', '.join(sorted(node.untracked))}")
         if w.failure is not None:
             lines.append(f"  RECORDING STOPPED EARLY: {w.failure}")
             lines.append(f"  messages lost (received, not in the bag: the open chunk and everything after): "
