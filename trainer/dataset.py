@@ -308,7 +308,10 @@ class SourceReport:
         if self.orphan_actions:
             p.append(f"{self.orphan_actions} action(s) whose observation is not in the log")
         for key, value in self.recording_losses.items():
-            p.append(f"the recorder reported {key[len('protocad_'):].replace('_', ' ')}: {value}")
+            # What a long-lived writer published before this bag's recorder started (the loop's
+            # policy, whose earlier answers are in the previous bag) is no loss in this bag.
+            if key != "protocad_missed_before_subscribing":
+                p.append(f"the recorder reported {key[len('protocad_'):].replace('_', ' ')}: {value}")
         if self.foreign_topics:
             p.append("foreign topics (present, unused): " + ", ".join(
                 f"{t} [{v['type']}] x{v['count']}" for t, v in self.foreign_topics.items()))
@@ -456,8 +459,12 @@ def _ingest(source: Path, topics: TopicMap, entry: Path) -> None:
         shutil.rmtree(tmp, ignore_errors=True)
 
 
-def recorder_losses(source: Path) -> dict[str, str]:
-    """The protocad_* custom_data of the bag's metadata.yaml (none for foreign bags)."""
+def recorder_losses(source: Path, used: Iterable[str] | None = None) -> dict[str, str]:
+    """The protocad_* custom_data of the bag's metadata.yaml (none for foreign bags), per-topic
+    counts kept for the `used` topics only (what the dataset trains on: a missed /diagnostics
+    status is no problem)."""
+    import json
+
     import yaml
 
     meta = Path(source) / "metadata.yaml" if Path(source).is_dir() else Path(source).parent / "metadata.yaml"
@@ -466,8 +473,29 @@ def recorder_losses(source: Path) -> dict[str, str]:
     except (OSError, yaml.YAMLError, AttributeError):
         return {}
     custom = info.get("custom_data") or {}
-    return {str(k): str(v) for k, v in custom.items() if str(k).startswith("protocad_")} \
-        if isinstance(custom, dict) else {}
+    if not isinstance(custom, dict):
+        return {}
+    used = set(used) if used is not None else None
+    out = {}
+    for k, v in custom.items():
+        k, v = str(k), str(v)
+        if not k.startswith("protocad_"):
+            continue
+        if used is not None and k in ("protocad_lost_messages", "protocad_missed_before_subscribing",
+                                      "protocad_loss_untracked_topics"):
+            try:
+                per = json.loads(v)
+            except json.JSONDecodeError:
+                per = None
+            if isinstance(per, dict):
+                per = {t: n for t, n in per.items() if t in used}
+            elif isinstance(per, list):
+                per = [t for t in per if t in used]
+            if not per:
+                continue
+            v = json.dumps(per, sort_keys=True)
+        out[k] = v
+    return out
 
 
 def _ingest_into(source: Path, topics: TopicMap, tmp: Path) -> None:
@@ -577,7 +605,7 @@ def _ingest_into(source: Path, topics: TopicMap, tmp: Path) -> None:
             rep.foreign_topics[t] = {"type": types.get(t, "?"), "count": n}
     rep.missing_topics = [f"{k}={v}" for k, v in by_key.items() if v not in counts]
     rep.decode_errors = dec_err
-    rep.recording_losses = recorder_losses(source)
+    rep.recording_losses = recorder_losses(source, used=key_of)
     rep.context_names = [n for n in (ctx_names or []) if n != T.SPLIT_FIELD] or None
     rep.action_dim = act_dim
     rep.image_shape = [hw[0], hw[1], 3] if hw else None
