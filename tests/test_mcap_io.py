@@ -486,3 +486,48 @@ def test_a_bag_file_removed_while_recording_is_a_write_failure_not_silence(tmp_p
     w.close()
     assert "was removed while recording" in w.failure
     assert (bag / "metadata.yaml").exists() and not (bag / ".protocad-reserve").exists()
+
+
+class _FailingFile:
+    """Fault injection (named as such: a disk that fills exactly while a split starts its next
+    file cannot be produced on demand): every write to files of the given name fails ENOSPC."""
+
+    def __init__(self, real, name: str):
+        self.real, self.name = real, name
+
+    def __call__(self, path):
+        f = self.real(path)
+        if Path(path).name == self.name:
+            def fail(data):
+                raise OSError(28, "No space left on device")
+            f.write = fail
+        return f
+
+
+def test_a_split_whose_next_file_cannot_start_ends_the_bag_with_the_files_before_it(tmp_path, monkeypatch):
+    import pytest
+    from mcap.reader import make_reader
+
+    monkeypatch.setattr(M, "_CheckedFile", _FailingFile(M._CheckedFile, "bag_1.mcap"))
+    bag = tmp_path / "bag"
+    w = M.BagWriter(bag, chunk_size=2048, max_bagfile_size=4096)
+    w.add_topic("/x", "std_msgs/msg/String", [])
+    with pytest.raises(M.BagWriteError, match="No space left"):
+        for t in range(1, 1000):
+            w.write_message("/x", {"data": "y" * 200}, t)
+    w.close()
+    assert sorted(p.name for p in bag.iterdir()) == ["bag_0.mcap", "metadata.yaml"]
+    with open(bag / "bag_0.mcap", "rb") as f:
+        n = sum(1 for _ in make_reader(f).iter_messages())
+    info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    assert info["message_count"] == n > 0 and info["relative_file_paths"] == ["bag_0.mcap"]
+    assert int(info["custom_data"]["protocad_messages_lost_after_error"]) == t - n
+
+
+def test_a_bag_that_cannot_even_start_is_a_clear_error_leaving_nothing(tmp_path, monkeypatch):
+    import pytest
+
+    monkeypatch.setattr(M, "_CheckedFile", _FailingFile(M._CheckedFile, "bag_0.mcap"))
+    with pytest.raises(M.BagWriteError, match="cannot start a bag"):
+        M.BagWriter(tmp_path / "bag")
+    assert list((tmp_path / "bag").iterdir()) == []

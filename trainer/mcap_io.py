@@ -672,7 +672,11 @@ class BagWriter:
         remove_stale_temporaries(self.bag_dir / "metadata.yaml")
         self._reserve = self.bag_dir / ".protocad-reserve"
         self._make_reserve()
-        self._open_file()
+        try:
+            self._open_file()
+        except OSError as exc:
+            self._drop_reserve()
+            raise BagWriteError(f"cannot start a bag in {self.bag_dir}: {exc}") from exc
 
     # -- public API ----------------------------------------------------------------------------
     @property
@@ -737,9 +741,12 @@ class BagWriter:
         if info is None:
             raise BagWriteError(f"Failed to write on topic '{topic}'. Call add_topic() before "
                                 "first write.")
+        counted = self._count
         try:
             self._write(topic, info, data, log_time_ns, publish_time_ns, sequence)
         except OSError as exc:
+            if self._count == counted:   # the message in hand never got in
+                self.lost_after_failure += 1
             self._fail(exc)
             raise BagWriteError(f"write to {self.bag_dir} failed: {exc}; the bag was closed with "
                                 "what was written before") from exc
@@ -804,6 +811,9 @@ class BagWriter:
         that is checked here too and treated as a write failure."""
         if self._files and os.fstat(self._stream.fileno()).st_nlink == 0:
             raise OSError(2, f"{self.files[-1]} was removed while recording")
+        self._snapshot()
+
+    def _snapshot(self) -> None:
         self._committed = (self._count, {n: t.message_count for n, t in self._topics.items()},
                            self._files[-1].message_count)
 
@@ -933,17 +943,28 @@ class BagWriter:
 
     def _open_file(self) -> None:
         name = f"{self.bag_dir.name}_{len(self._files)}.mcap"
-        self._stream = _CheckedFile(self.bag_dir / name)
-        self._mcap = self._mw.Writer(self._stream, chunk_size=self.chunk_size,
-                                     compression=self._compression, enable_crcs=True)
-        self._mcap.start(profile="ros2", library=self.library)
-        self._files.append(_FileInfo(name))
-        self._channel_ids, self._schema_ids = {}, {}
-        self._pending = 0
-        self._write_metadata_record()
-        for info in self._topics.values():  # rosbag2 re-registers every topic after a split
-            self._register(info)
-        self._commit()
+        path = self.bag_dir / name
+        self._stream = _CheckedFile(path)
+        try:
+            self._mcap = self._mw.Writer(self._stream, chunk_size=self.chunk_size,
+                                         compression=self._compression, enable_crcs=True)
+            self._mcap.start(profile="ros2", library=self.library)
+            self._files.append(_FileInfo(name))
+            self._channel_ids, self._schema_ids = {}, {}
+            self._pending = 0
+            self._write_metadata_record()
+            for info in self._topics.values():  # rosbag2 re-registers every topic after a split
+                self._register(info)
+            self._commit()
+        except OSError:
+            # A file that could not even be started holds nothing: it goes, the bag ends with
+            # the files before it (salvage sees no open stream).
+            self._stream.close()
+            self._stream = None
+            path.unlink(missing_ok=True)
+            if self._files and self._files[-1].path == name:
+                self._files.pop()
+            raise
 
     def _register(self, info: _TopicInfo) -> None:
         sid = self._schema_ids.get(info.msgtype)
@@ -965,6 +986,7 @@ class BagWriter:
         self._mcap.finish()
         os.fsync(self._stream.fileno())
         self._stream.close()
+        self._snapshot()   # the file's last chunk is on disk now
 
     def _split(self) -> None:
         self._close_file()
