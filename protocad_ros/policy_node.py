@@ -207,6 +207,7 @@ class PolicyNode(ProtocadNode):
                                                  obs_qos)
         self.bridge: topics.BridgeInfo | None = None
         self.mismatch: str | None = None
+        self._announcer_checked_at, self._announcer_present = -1e9, False
         self.sub_bridge_info = self.create_subscription(JointState, topics.BRIDGE_INFO, self._on_bridge_info,
                                                         qos.announcement_qos())
         self.diag_timer = self.create_timer(p["diagnostics_period_s"], self._publish_diagnostics)
@@ -374,6 +375,16 @@ class PolicyNode(ProtocadNode):
         else:
             self.get_logger().info(f"sim bridge runs {info.task} with actions {info.action_names}: matches")
 
+    def _announcing_bridge(self) -> bool:
+        """Whether a bridge that announces itself is in the graph (a graph query, so asked at
+        most once a second: a source without announcements, e.g. a robot driver, pays nothing
+        per observation)."""
+        now = time.monotonic()
+        if now - self._announcer_checked_at >= 1.0:
+            self._announcer_checked_at = now
+            self._announcer_present = self.count_publishers(self.sub_bridge_info.topic_name) > 0
+        return self._announcer_present
+
     def _arrive(self, stamp: int, kind: str, value: Any, t: float) -> None:
         entry = self._unpaired.get(stamp)
         if entry is None:
@@ -388,7 +399,7 @@ class PolicyNode(ProtocadNode):
         del self._unpaired[stamp]
         if self.mismatch is not None:
             return self._count("mismatched_observations", f"observation {stamp} not answered: {self.mismatch}")
-        if self.bridge is None and self.count_publishers(self.sub_bridge_info.topic_name) > 0:
+        if self.bridge is None and self._announcing_bridge():
             # A bridge that announces itself is there but its announcement has not arrived yet:
             # answering now could send it actions of the wrong size (lock-step republishes).
             return self._count("awaiting_bridge_info", f"observation {stamp} not answered yet: waiting "
