@@ -60,7 +60,7 @@ setup(
     data_files=ament_data_files(),
     entry_points={
         "console_scripts": [
-            "ros2 = protocad_ros.ros2cli:main",
+            "ros2 = trainer.ros2cli:main",
             "protocad-record = trainer.recorder:main",
             "protocad-train = trainer.train:main",
             "protocad-evaluate = trainer.evaluate:main",

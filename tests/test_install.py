@@ -59,8 +59,10 @@ def test_front_end_errors_are_clear():
     assert out.returncode != 0 and "No executable found" in out.stderr and "node" in out.stderr
     out = ros2("run", "no_such_pkg", "node")
     assert out.returncode != 0 and "not found" in out.stderr
-    out = ros2("topic", "list")
+    out = ros2("launch", "sim_bridge", "x.launch.py")
     assert out.returncode == 2 and "not supported" in out.stderr and "ros2 run" in out.stderr
+    out = ros2("topic", "--help")   # the graph verbs resolve in the installed package too
+    assert out.returncode == 0 and "echo" in out.stdout and "hz" in out.stdout
 
 
 def test_front_end_defers_to_a_real_ros2cli(tmp_path):

@@ -1,0 +1,191 @@
+"""A `ros2` front-end for environments without ros2cli.
+
+ros2cli and rosbag2 are not installable from PyPI, so this environment ships a stand-in for the
+verbs ROS users reach for daily, printing what their ros2cli (Jazzy) counterparts print for the
+options supported here (`ros2 VERB --help` lists them):
+
+    ros2 run [--prefix CMD] PKG EXECUTABLE [ARGS...]        ros2 pkg list|executables|prefix
+    ros2 topic list|info|echo|hz                            ros2 node list|info
+    ros2 param list|get|set|dump|describe                   ros2 service list|type|call
+    ros2 lifecycle nodes|get|set|list                       ros2 bag info|record
+
+Graph verbs create a short-lived hidden node (`_ros2cli_<pid>`) and wait `--spin-time` for
+discovery, as ros2cli does without its daemon. Anything else says that it needs a full ROS 2
+install. Where a real ros2cli exists (importable, or another `ros2` on PATH), every call is
+handed to it.
+"""
+from __future__ import annotations
+
+import argparse
+import importlib
+import os
+import shlex
+import sys
+from pathlib import Path
+
+COMMANDS = {  # command -> (module, what it is)
+    "topic": ("trainer.ros2cli.topic", "Various topic related sub-commands"),
+    "node": ("trainer.ros2cli.node", "Various node related sub-commands"),
+    "param": ("trainer.ros2cli.param", "Various param related sub-commands"),
+    "service": ("trainer.ros2cli.service", "Various service related sub-commands"),
+    "lifecycle": ("trainer.ros2cli.lifecycle", "Various lifecycle related sub-commands"),
+    "bag": ("trainer.ros2cli.bag", "Various rosbag related sub-commands"),
+}
+SUBSET = """\
+    ros2 run [--prefix CMD] PKG EXECUTABLE [ARGS...]
+    ros2 pkg list | executables [PKG] | prefix PKG
+    ros2 topic list | info | echo | hz
+    ros2 node list | info
+    ros2 param list | get | set | dump | describe
+    ros2 service list | type | call
+    ros2 lifecycle nodes | get | set | list
+    ros2 bag info | record
+"""
+_FRONT_END_MARKERS = ("trainer.ros2cli", "protocad_ros.ros2cli")  # ours, now and in older installs
+
+
+def _real_ros2() -> list[str] | None:
+    """Command line of a real ros2cli, if there is one."""
+    try:
+        import ros2cli.cli  # noqa: F401  (present in a full ROS 2 install)
+
+        return [sys.executable, "-c", "import sys; from ros2cli.cli import main; sys.exit(main())"]
+    except ImportError:
+        pass
+    me = Path(sys.argv[0]).resolve()
+    for d in os.environ.get("PATH", "").split(os.pathsep):
+        cand = Path(d, "ros2")
+        if not (cand.is_file() and os.access(cand, os.X_OK)) or cand.resolve() == me:
+            continue
+        try:
+            head = cand.read_text(errors="replace")[:2000]
+        except OSError:
+            continue
+        if not any(m in head for m in _FRONT_END_MARKERS):
+            return [str(cand)]
+    return None
+
+
+def _die(msg: str, code: int = 1):
+    print(msg, file=sys.stderr)
+    sys.exit(code)
+
+
+def _unsupported(argv: list[str]):
+    _die(f"ros2 {' '.join(argv)}: not supported by this front-end (needs a full ROS 2 install with "
+         "ros2cli; this environment has the ROS 2 Python wheels only).\nSupported:\n\n" + SUBSET, 2)
+
+
+# ------------------------------------------------------------------ run / pkg (the ament index)
+def _packages() -> dict[str, str]:
+    from ament_index_python.packages import get_packages_with_prefixes
+
+    return get_packages_with_prefixes()
+
+
+def _executables(pkg: str) -> list[str]:
+    from ament_index_python.packages import PackageNotFoundError, get_package_prefix
+
+    try:
+        libdir = Path(get_package_prefix(pkg), "lib", pkg)
+    except PackageNotFoundError:
+        _die(f"Package '{pkg}' not found (AMENT_PREFIX_PATH={os.environ.get('AMENT_PREFIX_PATH', '')!r})")
+    if not libdir.is_dir():
+        return []
+    return sorted(p.name for p in libdir.iterdir() if p.is_file() and os.access(p, os.X_OK))
+
+
+def _run(args: list[str]) -> None:
+    prefix: list[str] = []
+    if args[:1] == ["--prefix"]:
+        if len(args) < 2:
+            _die("ros2 run: --prefix needs a value", 2)
+        prefix, args = shlex.split(args[1]), args[2:]
+    if len(args) < 2:
+        _die("usage: ros2 run [--prefix CMD] PKG EXECUTABLE [ARGS...]", 2)
+    pkg, exe, rest = args[0], args[1], args[2:]
+    if exe not in _executables(pkg):
+        _die(f"No executable found: '{exe}' in package '{pkg}' (has: {', '.join(_executables(pkg)) or 'none'})")
+    from ament_index_python.packages import get_package_prefix
+
+    path = Path(get_package_prefix(pkg), "lib", pkg, exe)
+    # Python launchers run on this interpreter, so an unactivated venv still works.
+    head = path.read_bytes()[:128]
+    cmd = [sys.executable, str(path)] if head.startswith(b"#!") and b"python" in head.split(b"\n")[0] else [str(path)]
+    cmd = prefix + cmd + rest
+    os.execvp(cmd[0], cmd)
+
+
+def _pkg(rest: list[str], argv: list[str]) -> None:
+    if rest[:1] == ["list"]:
+        print("\n".join(sorted(_packages())))
+    elif rest[:1] == ["executables"]:
+        for p in rest[1:2] or sorted(_packages()):
+            for e in _executables(p):
+                print(p, e)
+    elif rest[:1] == ["prefix"] and len(rest) == 2:
+        from ament_index_python.packages import PackageNotFoundError, get_package_prefix
+
+        try:
+            print(get_package_prefix(rest[1]))
+        except PackageNotFoundError:
+            _die(f"Package not found: {rest[1]}")
+    else:
+        _unsupported(argv)
+
+
+# ------------------------------------------------------------------ graph and bag verbs
+def _verb(command: str, rest: list[str], argv: list[str]) -> int:
+    module_name, description = COMMANDS[command]
+    module = importlib.import_module(module_name)
+    parser = argparse.ArgumentParser(prog=f"ros2 {command}", description=description)
+    sub = parser.add_subparsers(dest="verb", metavar="Commands")
+    module.register(sub)
+    if rest and not rest[0].startswith("-") and rest[0] not in sub.choices:
+        _unsupported(argv)
+    args = parser.parse_args(rest)
+    if args.verb is None:
+        parser.print_help()
+        return 0
+    try:
+        rc = args.func(args)
+    except KeyboardInterrupt:
+        return 0
+    except RuntimeError as exc:  # ros2cli's convention: the message on stderr, exit 1
+        rc = str(exc)
+    if isinstance(rc, str):
+        print(rc, file=sys.stderr)
+        return 1
+    return int(rc or 0)
+
+
+def main(argv: list[str] | None = None) -> None:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    real = _real_ros2()
+    if real is not None:
+        os.execvp(real[0], real + argv)
+    try:  # ros2cli's choice too: every printed line reaches a pipe at once (echo, hz)
+        sys.stdout.reconfigure(line_buffering=True)
+    except AttributeError:
+        pass
+    if not argv or argv[0] in ("-h", "--help"):
+        print("ros2 (protocad-ros front-end; ros2cli is not installed here). Supported:\n\n" + SUBSET)
+        return
+    command, rest = argv[0], argv[1:]
+    if command == "run":
+        if rest[:1] in (["-h"], ["--help"]):
+            print("usage: ros2 run [--prefix CMD] PKG EXECUTABLE [ARGS...]")
+            return
+        _run(rest)
+    elif command == "pkg":
+        _pkg(rest, argv)
+    elif command == "bag" and rest[:1] == ["record"]:
+        from trainer.recorder import main as record
+
+        sys.exit(record(rest[1:]))
+    elif command in COMMANDS:
+        sys.exit(_verb(command, rest, argv))
+    else:
+        _unsupported(argv)
+
+

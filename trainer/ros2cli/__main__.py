@@ -1,0 +1,3 @@
+from trainer.ros2cli import main
+
+main()
