@@ -43,6 +43,7 @@ from sim_bridge.rosnode import (ConfigError, KeyThrottle, Percentiles, declare_a
                                 install_parameter_guards)
 
 NODE_NAME = "sim_bridge"
+__all__ = ["COUNTERS", "PARAMS", "SimBridgeNode", "episode_contexts", "main"]
 
 
 class SimBridgeNode(BridgeDiagnostics, ManagedNode):
