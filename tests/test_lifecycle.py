@@ -15,7 +15,7 @@ import pytest
 from diagnostic_msgs.msg import DiagnosticArray
 from lifecycle_msgs.msg import Transition, TransitionEvent
 from lifecycle_msgs.srv import ChangeState, GetAvailableStates, GetAvailableTransitions, GetState
-from sensor_msgs.msg import JointState
+from sensor_msgs.msg import Image, JointState
 
 from ros_helpers import Probe, Responder, wait_until
 from sim_bridge import qos, topics
@@ -173,6 +173,31 @@ def test_sim_bridge_steps_only_while_active(spawn, probe):
     out = bridge.output()
     assert "Traceback" not in out
 
+
+def test_sim_bridge_realtime_holds_still_while_inactive(spawn, probe):
+    """Real time: deactivate pauses the clock-driven stepping, activate resumes it at the rate,
+    the sim time going on from where it stopped (no step lost, none skipped)."""
+    life = Lifecycle(probe, "sim_bridge")
+    diag = DiagLog(probe, "sim_bridge")
+    images = probe.record(topics.IMAGE, Image)
+    infos = probe.record(topics.STEP_INFO, JointState)
+    spawn("bridge", "-m", "sim_bridge.node", "--ros-args", "-p", f"task:={TASK}",
+          "-p", "mode:=realtime", "-p", "control_rate_hz:=50", "-p", "autostart:=false",
+          "-p", "diagnostics_period_s:=0.1", "-p", "episode_length:=100000")
+    life.wait_services()
+    life.go("configure", "inactive")
+    life.go("activate", "active")
+    wait_until(lambda: len(images) >= 10 and len(infos) >= 10, 60, "real-time steps")
+    life.go("deactivate", "inactive")
+    published = diag.after(1, "lifecycle_state", "inactive")["observations_published"]
+    assert diag.after(5, "lifecycle_state", "inactive")["observations_published"] == published
+    wait_until(lambda: len(images) >= int(published), 30, "every published image")
+    assert len(images) == int(published)
+    life.go("activate", "active")
+    wait_until(lambda: len(images) >= int(published) + 10, 60, "steps after re-activation")
+    stamps = [topics.stamp_to_ns(m.header.stamp) for m in list(images)]
+    dt = stamps[1] - stamps[0]
+    assert stamps == [i * dt for i in range(len(stamps))]
 
 def test_policy_answers_only_while_active(spawn, probe, tmp_path):
     from test_policy_node import Feeder, _save
