@@ -25,67 +25,20 @@ from typing import Any, Callable
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
-from sim_bridge.rosbase import ProtocadNode
 from sensor_msgs.msg import Image, JointState
 
 from protocad_ros.live_view import LiveView
+from protocad_ros.policy_params import COUNTERS, PARAMS
 from sim_bridge import qos, topics
-from sim_bridge.contexts import TASKS, task_actuators
-from sim_bridge.rosnode import (ConfigError, KeyThrottle, Param, Percentiles, declare_all,
-                                executor_param, install_parameter_guards, make_status, run_node,
-                                strict_param)
+from sim_bridge.contexts import task_actuators
+from sim_bridge.lifecycle import ManagedNode
+from sim_bridge.rosnode import (ConfigError, KeyThrottle, Percentiles, declare_all,
+                                install_parameter_guards, make_status, run_node)
 
 NODE_NAME = "policy"
 #: Observations whose image and step_info have not both arrived yet (oldest dropped beyond).
 MAX_UNPAIRED = 64
-
-PARAMS: tuple[Param, ...] = (
-    Param("checkpoint", "", "Checkpoint file (protocad_ros.checkpoint). Empty: a randomly "
-          "initialised agent (task, preset, variant below) with a WARNING."),
-    Param("wait_for_checkpoint", False, "If the checkpoint file does not exist yet: serve a "
-          "random agent and load the file once it appears (collect-train-reload loop) "
-          "instead of exiting with an error."),
-    Param("reload_poll_s", 2.0, "How often the checkpoint file is checked for a newer version "
-          "(mtime/inode/size); a newer one is loaded in the background and served from the "
-          "next is_first observation. 0 = never reload.", range=(0.0, 3600.0), units="s"),
-    Param("task", "pendulum_swingup", "Task of the random agent (action size, K prototypes); "
-          "with a checkpoint its config's task is used.", choices=tuple(sorted(TASKS))),
-    Param("preset", "small", "Model size preset of the random agent.",
-          choices=("paper", "small", "dreamerv3_sizes")),
-    Param("variant", "protocad", "Model variant of the random agent.",
-          choices=("protocad", "dreamer", "dreamerpro", "dreamer_context", "no_projection",
-                   "no_temporal_consistency")),
-    Param("device", "cpu", "Torch device of the model, e.g. cpu, cuda, cuda:0."),
-    Param("mode", "deterministic", "deterministic: the actor's mode; sample: a sample of the "
-          "actor's distribution.", choices=("deterministic", "sample")),
-    Param("latest_only", False, "Real time: subscribe to observations with KEEP_LAST(1), so a "
-          "policy that falls behind skips to the newest observation instead of answering every "
-          "queued one in turn (the skipped ones are counted in observations_skipped). Off for "
-          "lock-step, where every observation waits for its answer."),
-    Param("exploration_noise", 0.0, "Std of Gaussian noise added to the action (then clipped "
-          "to [-1, 1]).", range=(0.0, 10.0)),
-    Param("seed", 0, "Seeds the random agent's weights and the action sampling/noise.",
-          range=(0, 2**31 - 1)),
-    Param("num_threads", 0, "torch intra-op threads (0 = torch's default).", range=(0, 1024)),
-    Param("diagnostics_period_s", 1.0, "Period of /diagnostics.", range=(0.05, 3600.0),
-          units="s"),
-    Param("rerun_mode", "off", "Live rerun stream of image, u/w/e, assignment, action and "
-          "reward on the sim_time timeline: off, spawn (local viewer), connect (to rerun_url), "
-          "save (to rerun_path).", choices=("off", "spawn", "connect", "save")),
-    Param("rerun_url", "", "connect mode: gRPC url of a running viewer ('' = "
-          "rerun+http://127.0.0.1:9876/proxy, what a plain `rerun` listens on)."),
-    Param("rerun_path", "", "save mode: the .rrd file to write (completed at shutdown)."),
-    strict_param(),
-    executor_param(),
-)
-
-COUNTERS = ("observations_answered", "episodes", "images_received", "images_rejected",
-            "rejected_image_encoding", "rejected_image_size", "rejected_image_data",
-            "step_info_rejected", "duplicate_observations", "stale_observations", "sim_time_restarts",
-            "unpaired_dropped", "checkpoint_reloads", "checkpoint_load_errors",
-            "act_callback_errors", "unknown_parameters", "parameters_rejected",
-            "observations_lost", "observations_skipped", "fragments_discarded", "step_info_received",
-            "mismatched_observations", "awaiting_bridge_info", "bridge_info_rejected")
+__all__ = ["ActEvent", "COUNTERS", "PARAMS", "PolicyNode", "main"]
 
 
 @dataclass
@@ -109,8 +62,11 @@ def _file_signature(path: str) -> tuple[int, int, int] | None:
     return (st.st_mtime_ns, st.st_ino, st.st_size)
 
 
-class PolicyNode(ProtocadNode):
-    """See the module docstring; parameters in PARAMS, counters in COUNTERS."""
+class PolicyNode(ManagedNode):
+    """See the module docstring; parameters in PARAMS, counters in COUNTERS. A managed node
+    (sim_bridge/lifecycle.py): configure loads the checkpoint (or builds the random agent) and
+    starts its file watcher, activate serves, deactivate stops answering, cleanup drops the
+    model."""
 
     def __init__(self, *, namespace: str = topics.DEFAULT_NAMESPACE, **kw: Any):
         super().__init__(NODE_NAME, namespace=namespace, **kw)
@@ -130,18 +86,77 @@ class PolicyNode(ProtocadNode):
             raise ConfigError(f"device {p['device']!r} requested but CUDA is not available "
                               "(torch.cuda.is_available() is False); use device:=cpu")
         self._lock = threading.Lock()            # guards _pending_policy and counters
-        self._stop = threading.Event()
+        self._stop = threading.Event()           # set: the checkpoint watcher ends (cleanup)
         self.counters = dict.fromkeys(COUNTERS, 0)
         self.counters["unknown_parameters"] = len(self.unknown_parameters)
         self._throttle = KeyThrottle(self.get_logger())
         self.latency = Percentiles()             # completing message -> action published
         self.act_time = Percentiles()            # model time (Policy.act)
         self._act_callbacks: list[Callable[[ActEvent], None]] = []
+        self._release_model()
 
-        path = p["checkpoint"]
+        obs_qos, out_qos = qos.observation_qos(), qos.action_qos()
+        if p["latest_only"]:
+            obs_qos.depth = 1
+        # Profiles of their own: rclpy's QoS overriding changes the profile object it is given.
+        # Lifecycle publishers: no action goes out unless active.
+        self.pub_action = self.create_lifecycle_publisher(JointState, topics.ACTION, qos.action_qos(),
+                                                          qos_overriding_options=qos.overridable())
+        self.pub_features = self.create_lifecycle_publisher(JointState, topics.CONTEXT_FEATURES, out_qos)
+        self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
+                                              qos.diagnostics_qos())
+        image_qos = qos.observation_qos()
+        image_qos.depth = obs_qos.depth
+        self.sub_image = self.create_subscription(Image, topics.IMAGE, self._on_image, image_qos,
+                                                  qos_overriding_options=qos.overridable())
+        self.sub_info = self.create_subscription(JointState, topics.STEP_INFO, self._on_info,
+                                                 obs_qos)
+        self.bridge: topics.BridgeInfo | None = None
+        self._announcer_checked_at, self._announcer_present = -1e9, False
+        self.sub_bridge_info = self.create_subscription(JointState, topics.BRIDGE_INFO, self._on_bridge_info,
+                                                        qos.announcement_qos())
+        self.diag_timer = self.create_timer(p["diagnostics_period_s"], self._publish_diagnostics)
+        install_parameter_guards(self, PARAMS, lambda name, value: None,
+                                 lambda reason: self._count("parameters_rejected",
+                                                            f"parameter change rejected: {reason}"))
+        self._diag_name = self.get_fully_qualified_name()
+        if p["autostart"]:
+            self.autostart()
+        else:
+            self.get_logger().info("autostart:=false: unconfigured, waiting for lifecycle "
+                                   f"transitions on {self._diag_name}/change_state")
+
+    def _release_model(self) -> None:
+        """No model, no per-episode state (unconfigured)."""
+        self.policy = None
+        self.ckpt_counters: dict[str, Any] = {}
+        self.agent_kind = "none"
+        self.task = self.params["task"]
+        self.action_dim, self.image_hw, self.action_names = 0, (0, 0), []
+        self.live_view: LiveView | None = None
+        self._watcher: threading.Thread | None = None
         self._loaded_sig: tuple | None = None
         self._failed_sig: tuple | None = None
-        self._pending_policy: tuple | None = None   # (policy, counters, sig) to swap in
+        with self._lock:
+            self._pending_policy: tuple | None = None   # (policy, counters, sig) to swap in
+        self.mismatch: str | None = None
+        self._reset_filter()
+
+    def _reset_filter(self) -> None:
+        # Per-episode filter state (the RSSM state itself lives in self.policy).
+        self._prev_action = np.zeros(self.action_dim, np.float32)
+        self._unpaired: collections.OrderedDict[int, dict[str, Any]] = collections.OrderedDict()
+        self._last_stamp: int | None = None
+        self._last_answer: tuple[Any, Any] | None = None
+        self._episode = -1
+        self._step = -1
+
+    # ------------------------------------------------------------------ lifecycle
+    def configure_node(self) -> None:
+        """Load the checkpoint (or build the random agent), start the file watcher; a missing
+        or unloadable checkpoint is a ConfigError."""
+        p = self.params
+        path = p["checkpoint"]
         sig = _file_signature(path) if path else None
         if sig is not None:
             try:
@@ -174,57 +189,41 @@ class PolicyNode(ProtocadNode):
         self.action_names = names if len(names) == self.action_dim else [
             f"a{i}" for i in range(self.action_dim)]
         self.policy.reset()
+        self._reset_filter()
         try:
             self.live_view = LiveView.from_params(p["rerun_mode"], p["rerun_url"],
                                                   p["rerun_path"], action_names=self.action_names)
         except ValueError as e:
             raise ConfigError(f"rerun: {e}") from None
-        if self.live_view.enabled:
-            self.add_act_callback(self.live_view.on_act)
-
-        # Per-episode filter state (the RSSM state itself lives in self.policy).
-        self._prev_action = np.zeros(self.action_dim, np.float32)
-        self._unpaired: collections.OrderedDict[int, dict[str, Any]] = collections.OrderedDict()
-        self._last_stamp: int | None = None
-        self._last_answer: tuple[Any, Any] | None = None
-        self._episode = -1
-        self._step = -1
-
-        obs_qos, out_qos = qos.observation_qos(), qos.action_qos()
-        if p["latest_only"]:
-            obs_qos.depth = 1
-        # Profiles of their own: rclpy's QoS overriding changes the profile object it is given.
-        self.pub_action = self.create_publisher(JointState, topics.ACTION, qos.action_qos(),
-                                                qos_overriding_options=qos.overridable())
-        self.pub_features = self.create_publisher(JointState, topics.CONTEXT_FEATURES, out_qos)
-        self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
-                                              qos.diagnostics_qos())
-        image_qos = qos.observation_qos()
-        image_qos.depth = obs_qos.depth
-        self.sub_image = self.create_subscription(Image, topics.IMAGE, self._on_image, image_qos,
-                                                  qos_overriding_options=qos.overridable())
-        self.sub_info = self.create_subscription(JointState, topics.STEP_INFO, self._on_info,
-                                                 obs_qos)
-        self.bridge: topics.BridgeInfo | None = None
-        self.mismatch: str | None = None
-        self._announcer_checked_at, self._announcer_present = -1e9, False
-        self.sub_bridge_info = self.create_subscription(JointState, topics.BRIDGE_INFO, self._on_bridge_info,
-                                                        qos.announcement_qos())
-        self.diag_timer = self.create_timer(p["diagnostics_period_s"], self._publish_diagnostics)
-        install_parameter_guards(self, PARAMS, lambda name, value: None,
-                                 lambda reason: self._count("parameters_rejected",
-                                                            f"parameter change rejected: {reason}"))
-        self._diag_name = self.get_fully_qualified_name()
-        self._watcher = None
+        if self.bridge is not None:   # announced before we could check it
+            self._check_bridge()
+        self._stop.clear()
         if path and p["reload_poll_s"] > 0:
             self._watcher = threading.Thread(target=self._watch, name="checkpoint_watcher",
                                              daemon=True)
             self._watcher.start()
+
+    def activate_node(self) -> None:
+        p = self.params
         self.get_logger().info(
             f"serving {self._describe_agent()} on {p['device']} ({p['mode']}, exploration "
             f"noise {p['exploration_noise']}); {self.action_dim}-d actions {self.action_names}; "
             f"expects {self.image_hw[0]}x{self.image_hw[1]} rgb8 on "
             f"{self.resolve_topic_name(topics.IMAGE)}")
+
+    def deactivate_node(self) -> None:
+        # Halves of observations that arrived before: they will not be answered.
+        self._unpaired.clear()
+
+    def cleanup_node(self) -> None:
+        self._stop.set()
+        if self._watcher is not None:
+            self._watcher.join(timeout=10.0)
+            if self._watcher.is_alive():
+                raise RuntimeError("the checkpoint watcher did not end within 10 s")
+        if self.live_view is not None:
+            self.live_view.close()
+        self._release_model()
 
     # ------------------------------------------------------------------ model
     def _policy_kwargs(self) -> dict[str, Any]:
@@ -294,6 +293,8 @@ class PolicyNode(ProtocadNode):
             self.get_logger().info(f"loaded checkpoint {path} (updates="
                                    f"{counters.get('updates', '?')}); serving it from the "
                                    "next episode")
+            # At once, not at the next period: launchers wait for pending_checkpoint_updates.
+            self._publish_diagnostics()
 
     def _swap_if_pending(self) -> None:
         with self._lock:
@@ -320,7 +321,16 @@ class PolicyNode(ProtocadNode):
         if why:
             self._throttle.warning(key, f"{why} ({key}: {n} so far)")
 
+    def _inactive(self) -> bool:
+        """Observations are answered only while active (counted, not kept, otherwise)."""
+        if self.is_active:
+            return False
+        self._count("observations_while_inactive")
+        return True
+
     def _on_image(self, msg) -> None:
+        if self._inactive():
+            return
         t = time.monotonic()
         stamp = topics.stamp_to_ns(msg.header.stamp)
         self._count("images_received")
@@ -343,6 +353,8 @@ class PolicyNode(ProtocadNode):
         self._arrive(stamp, "image", image, t)
 
     def _on_info(self, msg) -> None:
+        if self._inactive():
+            return
         t = time.monotonic()
         stamp = topics.stamp_to_ns(msg.header.stamp)
         self._count("step_info_received")
@@ -359,6 +371,11 @@ class PolicyNode(ProtocadNode):
         except ValueError as e:
             return self._count("bridge_info_rejected", f"bridge_info rejected: {e}")
         self.bridge = info
+        if self.policy is not None:   # else configure checks it
+            self._check_bridge()
+
+    def _check_bridge(self) -> None:
+        info = self.bridge
         why = []
         if info.task != self.task:
             why.append(f"the checkpoint is for {self.task}, the bridge runs {info.task}")
@@ -468,9 +485,11 @@ class PolicyNode(ProtocadNode):
             with self._lock:
                 self.counters["fragments_discarded"] += len(stale)
         self._count("observations_answered")
-        if self._act_callbacks:
+        callbacks = self._act_callbacks + (
+            [self.live_view.on_act] if self.live_view is not None and self.live_view.enabled else [])
+        if callbacks:
             event = ActEvent(stamp, info, image, action, feats, latency, self.checkpoint_updates)
-            for fn in self._act_callbacks:
+            for fn in callbacks:
                 try:
                     fn(event)
                 except Exception as exc:  # noqa: BLE001
@@ -478,6 +497,7 @@ class PolicyNode(ProtocadNode):
 
     # ------------------------------------------------------------------ diagnostics
     def _publish_diagnostics(self) -> None:
+        state = self.lifecycle_state
         with self._lock:
             c = dict(self.counters)
             pending = self._pending_policy
@@ -495,6 +515,7 @@ class PolicyNode(ProtocadNode):
             "act_ms_p50": self.act_time.percentile(50) * 1e3,
             "act_ms_p99": self.act_time.percentile(99) * 1e3,
             "episode": self._episode, "step": self._step, "callback_errors": self.callback_errors,
+            "lifecycle_state": state, "transition_errors": self.transition_errors,
             **c,
         }
         bad = (c["images_rejected"] or c["step_info_rejected"] or c["checkpoint_load_errors"]
@@ -506,6 +527,7 @@ class PolicyNode(ProtocadNode):
                  "WARN" if bad or unknown or self.agent_kind == "random" else "OK")
         message = (f"not answering: {self.mismatch}" if self.mismatch else
                    f"unknown parameters ignored: {unknown}" if unknown else
+                   f"{state}: not answering" if state != "active" else
                    "random agent" if self.agent_kind == "random" else
                    "rejected inputs or checkpoint errors" if bad else "serving")
         arr = DiagnosticArray()
@@ -517,14 +539,13 @@ class PolicyNode(ProtocadNode):
             pass
 
     def close(self) -> None:
-        self._stop.set()
-        if self._watcher is not None:
-            self._watcher.join(timeout=5.0)
-        self.live_view.close()
+        """Last diagnostics (what was served), then the shutdown transition (the watcher
+        ends, the live view's recording is completed)."""
         try:
             self._publish_diagnostics()
         except Exception:
             pass
+        self.shutdown_lifecycle()
         c = self.counters
         self.get_logger().info("stopped: " + ", ".join(f"{k}={c[k]}" for k in COUNTERS if c[k])
                                + f"; latency p50 {self.latency.percentile(50) * 1e3:.2f} ms, "

@@ -30,95 +30,26 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.duration import Duration
 from rclpy.event_handler import SubscriptionEventCallbacks
-from sim_bridge.rosbase import ProtocadNode
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Image, JointState
 from std_srvs.srv import Trigger
 
 from sim_bridge import qos, topics
-from sim_bridge.contexts import TASKS
-from sim_bridge.rosnode import (ConfigError, KeyThrottle, Param, Percentiles, declare_all,
-                                executor_param, install_parameter_guards, make_status, strict_param)
+from sim_bridge.bridge_diagnostics import BridgeDiagnostics
+from sim_bridge.bridge_params import (ACTION_HIGH, ACTION_LOW, COUNTERS, FLUSH_TIMEOUT_S,
+                                      PARAMS, READY_GRACE_S, episode_contexts)
+from sim_bridge.lifecycle import ManagedNode
+from sim_bridge.rosnode import (ConfigError, KeyThrottle, Percentiles, declare_all,
+                                install_parameter_guards)
 
 NODE_NAME = "sim_bridge"
+__all__ = ["COUNTERS", "PARAMS", "SimBridgeNode", "episode_contexts", "main"]
 
 
-def episode_contexts(task: str, split: str, schedule: str, fixed: str) -> list[dict[str, float]]:
-    """The contexts episodes cycle through: [] = a uniform draw per reset. ConfigError for a
-    malformed or out-of-table fixed context, naming the allowed values."""
-    spec = TASKS[task]
-    if fixed.strip():
-        try:
-            pairs = [item.split("=", 1) for item in fixed.replace(" ", "").split(",") if item]
-            context = {k: float(v) for k, v in pairs}
-        except ValueError:
-            raise ConfigError(f"parameter context: {fixed!r} is not like 'm=0.2,d=1.5'") from None
-        try:
-            return [spec.validate(context, split)]
-        except ValueError as e:
-            raise ConfigError(f"parameter context: {e}") from None
-    return spec.contexts(split) if schedule == "cycle" else []
-MODES = ("lockstep", "realtime")
-
-PARAMS: tuple[Param, ...] = (
-    Param("task", "pendulum_swingup", "Context-randomized DMC task (sim_bridge.contexts.TASKS).",
-          choices=tuple(sorted(TASKS))),
-    Param("split", "train", "Context split drawn at each reset: train (C_train) or test (C_test).",
-          choices=("train", "test")),
-    Param("context_schedule", "sample", "How each reset picks its context from the split: "
-          "sample = uniform draw (training, the paper's protocol); cycle = the split's grid in "
-          "order, episode i gets context i mod n (evaluation: max_episodes = E * n gives exactly "
-          "E episodes per context).", choices=("sample", "cycle")),
-    Param("context", "", "A fixed context for every episode, e.g. 'm=0.2,d=1.5' (values from "
-          "the split's table); empty = context_schedule decides."),
-    Param("seed", 0, "Seeds the context draws and dm_control's initial states: a lock-step run "
-          "is reproducible given the seed.", range=(0, 2**31 - 1)),
-    Param("mode", "lockstep", "lockstep: each step waits for the action answering it; "
-          "realtime: steps at control_rate_hz holding the latest action.", choices=MODES),
-    Param("control_rate_hz", 0.0, "Real-time mode: agent steps per wall-clock second; 0 = the "
-          "task's own rate 1/control_dt (real-time factor 1). Unused in lock-step.",
-          read_only=False, range=(0.0, 1000.0), units="Hz"),
-    Param("render_quality", "fast", "fast: no shadows/reflections/MSAA, 64x64 framebuffer "
-          "(about 4x faster); default: the suite's look.", choices=("fast", "default")),
-    Param("image_size", 64, "Image height and width (the model expects 64).", range=(16, 512),
-          units="px"),
-    Param("action_repeat", 2, "Physics control steps per agent step (the action is repeated).",
-          range=(1, 100)),
-    Param("episode_length", 500, "Agent steps per episode before the time limit ends it "
-          "(time_limit = episode_length * action_repeat env steps; 500 = DMC's 1000 env steps).",
-          range=(1, 1_000_000), units="agent steps"),
-    Param("lockstep_timeout_s", 5.0, "Lock-step: with a policy matched and no valid answer "
-          "after this long, the same observation is published again (counted in "
-          "lockstep_timeouts).", read_only=False, range=(0.01, 3600.0), units="s"),
-    Param("max_episodes", 0, "Exit (code 0) after this many complete episodes (lock-step: once "
-          "the answer to the last is_last has arrived); 0 = run until stopped.", read_only=False,
-          range=(0, 1_000_000_000)),
-    Param("min_subscribers", 1, "Readers that must be matched on image and on step_info before "
-          "the first observation is published (e.g. 2 = policy + recorder); readers already "
-          "visible in the graph on image/step_info/context are awaited too (up to 2 s).",
-          range=(0, 1000)),
-    Param("diagnostics_period_s", 1.0, "Period of /diagnostics.", range=(0.05, 3600.0),
-          units="s"),
-    strict_param(),
-    executor_param(),
-)
-
-ACTION_LOW, ACTION_HIGH = -1.0, 1.0
-#: Longest wait, once min_subscribers are matched, for readers already in the graph to match.
-READY_GRACE_S = 2.0
-#: Longest wait at shutdown for reliable readers to acknowledge the last observations.
-FLUSH_TIMEOUT_S = 1.0
-#: Counters reported on /diagnostics (all cumulative since start).
-COUNTERS = ("steps", "episodes", "observations_published", "observations_republished",
-            "actions_received", "actions_accepted", "actions_rejected", "rejected_malformed",
-            "rejected_wrong_length", "rejected_nonfinite", "rejected_stale_stamp",
-            "rejected_duplicate", "actions_clipped", "late_actions", "lockstep_timeouts",
-            "realtime_overruns", "resets_requested", "unknown_parameters",
-            "parameters_rejected")
-
-
-class SimBridgeNode(ProtocadNode):
-    """See the module docstring; parameters in PARAMS, counters in COUNTERS."""
+class SimBridgeNode(BridgeDiagnostics, ManagedNode):
+    """See the module docstring; parameters in PARAMS, counters in COUNTERS. A managed node
+    (sim_bridge/lifecycle.py): configure builds the env and its stepping thread, activate
+    lets it step, deactivate pauses it, cleanup closes the env."""
 
     def __init__(self, *, namespace: str = topics.DEFAULT_NAMESPACE, env_factory=None, **kw: Any):
         super().__init__(NODE_NAME, namespace=namespace, **kw)
@@ -128,32 +59,60 @@ class SimBridgeNode(ProtocadNode):
         self.executor_kind = p["executor"]
         self._contexts = episode_contexts(p["task"], p["split"], p["context_schedule"],
                                           p["context"])
-        self._episodes_begun = 0
         self.lockstep = p["mode"] == "lockstep"
-        # The GL context of the renderer is bound to the thread that creates it: the stepping
-        # thread builds the env, __init__ waits for it (and reports a bad configuration).
         self._env_factory = env_factory or self._make_env
-        self._go = threading.Event()
-        self._stop = threading.Event()
-        self._env_error: BaseException | None = None
-        self._env_ready = threading.Event()
-        self.env = None
-        self._thread = threading.Thread(target=self._run, name="sim_bridge_stepper", daemon=True)
-        self._thread.start()
-        while not self._env_ready.wait(0.1):
-            if not self._thread.is_alive():
-                break
-        if self._env_error is not None:
-            if isinstance(self._env_error, (TypeError, ValueError)):
-                raise ConfigError(str(self._env_error))
-            raise self._env_error
-        env = self.env
-        self.action_dim = int(env.action_dim)
-        self.action_names = list(env.action_names)
-        self.dt_ns = int(round(env.control_dt * 1e9))
-
-        # Shared state between the executor thread (callbacks) and the stepping thread.
         self._cond = threading.Condition()
+        self._stop = threading.Event()           # set: the stepping thread ends (cleanup)
+        self._thread: threading.Thread | None = None
+        self._go = False                         # active: the stepping thread may step
+        self._control_rate = p["control_rate_hz"]   # the task's rate once configured
+        self.env = None
+        self.action_dim, self.action_names, self.dt_ns = 0, [], 0
+        self._reset_run_state()
+        self.counters = dict.fromkeys(COUNTERS, 0)
+        self.counters["unknown_parameters"] = len(self.unknown_parameters)
+        self._throttle = KeyThrottle(self.get_logger())
+        self.latency = Percentiles()             # observation published -> answer received
+        self._late_at_last_diag = 0
+        self._rate_window = collections.deque(maxlen=2)
+        self._rate_window.append((time.monotonic(), 0))
+
+        # Every ROS interface exists in every state (the graph shows the node's topics even
+        # while unconfigured); observations go out only while active (lifecycle publishers,
+        # and _publish checks _go), actions are taken only while active.
+        self._img_msg, self._info_msg, self._ctx_msg, self._clock_msg = (
+            Image(), JointState(), JointState(), Clock())
+        obs_qos = self._obs_qos = qos.observation_qos()
+        # A profile of its own: rclpy's QoS overriding changes the profile object it is given.
+        self.pub_image = self.create_lifecycle_publisher(Image, topics.IMAGE, qos.observation_qos(),
+                                                         qos_overriding_options=qos.overridable())
+        self.pub_info = self.create_lifecycle_publisher(JointState, topics.STEP_INFO, obs_qos)
+        self.pub_context = self.create_lifecycle_publisher(JointState, topics.CONTEXT, obs_qos)
+        self.pub_clock = self.create_lifecycle_publisher(Clock, topics.CLOCK, qos.clock_qos())
+        self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
+                                              qos.diagnostics_qos())
+        # Not a lifecycle publisher: the announcement goes out at configure, so a policy can
+        # check that it fits before the bridge steps.
+        self.pub_bridge_info = self.create_publisher(JointState, topics.BRIDGE_INFO, qos.announcement_qos())
+        self._others_warned: set[str] = set()
+        self.sub_action = self.create_subscription(
+            JointState, topics.ACTION, self._on_action, qos.action_qos(),
+            qos_overriding_options=qos.overridable(),
+            event_callbacks=SubscriptionEventCallbacks(matched=self._on_action_matched))
+        self.srv_reset = self.create_service(Trigger, topics.RESET_SERVICE, self._on_reset)
+        self.diag_timer = self.create_timer(p["diagnostics_period_s"], self._publish_diagnostics)
+        install_parameter_guards(self, PARAMS, self._apply_param, self._parameter_rejected)
+        self._obs_pubs = (self.pub_image, self.pub_info, self.pub_context)
+        self._diag_name = self.get_fully_qualified_name()   # -r __node:=... renames it too
+        if p["autostart"]:
+            self.autostart()
+        else:
+            self.get_logger().info("autostart:=false: unconfigured, waiting for lifecycle "
+                                   f"transitions on {self._diag_name}/change_state")
+
+    def _reset_run_state(self) -> None:
+        """State of one configured run (stepping thread <-> executor thread, under _cond)."""
+        self._episodes_begun = 0
         self._pending_stamp: int | None = None   # lock-step: stamp awaiting its answer
         self._answer: np.ndarray | None = None   # lock-step: valid answer to _pending_stamp
         self._answered_stamps: collections.deque[int] = collections.deque(maxlen=64)
@@ -165,55 +124,74 @@ class SimBridgeNode(ProtocadNode):
         self._reset_served = 0                   # incremented by the stepping thread
         self._reset_note = ""
         self._started = False
-        self.counters = dict.fromkeys(COUNTERS, 0)
-        self.counters["unknown_parameters"] = len(self.unknown_parameters)
-        self._throttle = KeyThrottle(self.get_logger())
-        self.latency = Percentiles()             # observation published -> answer received
-        self._late_at_last_diag = 0
-        self._rate_window = collections.deque(maxlen=2)
-        self._rate_window.append((time.monotonic(), 0))
         self._episode = -1
         self._step = -1
+        self._tick = -1
         self._obs_context: dict[str, float] = {}
-        self._control_rate = p["control_rate_hz"] or 1e9 / self.dt_ns
 
-        ns = self.get_namespace()
-        self._img_msg, self._info_msg, self._ctx_msg, self._clock_msg = (
-            Image(), JointState(), JointState(), Clock())
-        obs_qos = qos.observation_qos()
-        # A profile of its own: rclpy's QoS overriding changes the profile object it is given.
-        self.pub_image = self.create_publisher(Image, topics.IMAGE, qos.observation_qos(),
-                                               qos_overriding_options=qos.overridable())
-        self.pub_info = self.create_publisher(JointState, topics.STEP_INFO, obs_qos)
-        self.pub_context = self.create_publisher(JointState, topics.CONTEXT, obs_qos)
-        self.pub_clock = self.create_publisher(Clock, topics.CLOCK, qos.clock_qos())
-        self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
-                                              qos.diagnostics_qos())
-        self.pub_bridge_info = self.create_publisher(JointState, topics.BRIDGE_INFO, qos.announcement_qos())
+    # ------------------------------------------------------------------ lifecycle
+    def configure_node(self) -> None:
+        """Build the env in a new stepping thread (the renderer's GL context is bound to the
+        thread that creates it) and wait for it; a bad configuration is a ConfigError."""
+        if self._thread is not None and self._thread.is_alive():
+            raise RuntimeError("the previous stepping thread has not ended")
+        p = self.params
+        self._stop.clear()
+        self._env_error: BaseException | None = None
+        self._env_ready = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="sim_bridge_stepper", daemon=True)
+        self._thread.start()
+        while not self._env_ready.wait(0.1):
+            if not self._thread.is_alive():
+                break
+        if self._env_error is not None or self.env is None:
+            err = self._env_error or RuntimeError("the stepping thread ended before the env was built")
+            if isinstance(err, (TypeError, ValueError)):
+                raise ConfigError(str(err))
+            raise err
+        env = self.env
+        with self._cond:
+            self.action_dim = int(env.action_dim)
+            self.action_names = list(env.action_names)
+            self.dt_ns = int(round(env.control_dt * 1e9))
+            self._control_rate = p["control_rate_hz"] or 1e9 / self.dt_ns
+            self._reset_run_state()
         self.pub_bridge_info.publish(topics.fill_bridge_info(JointState(), topics.BridgeInfo(
             p["task"], self.action_names, self.dt_ns / 1e9, p["image_size"])))
-        self._others_warned: set[str] = set()
-        self.sub_action = self.create_subscription(
-            JointState, topics.ACTION, self._on_action, qos.action_qos(),
-            qos_overriding_options=qos.overridable(),
-            event_callbacks=SubscriptionEventCallbacks(matched=self._on_action_matched))
-        self.srv_reset = self.create_service(Trigger, topics.RESET_SERVICE, self._on_reset)
-        self.diag_timer = self.create_timer(p["diagnostics_period_s"], self._publish_diagnostics)
-        install_parameter_guards(self, PARAMS, self._apply_param, self._parameter_rejected)
-        self._obs_pubs = (self.pub_image, self.pub_info, self.pub_context)
-        self._diag_name = self.get_fully_qualified_name()   # -r __node:=... renames it too
         self.get_logger().info(
             f"{p['task']} ({p['split']} contexts, seed {p['seed']}) in {p['mode']} mode: "
             f"{self.action_dim}-d actions {self.action_names}, control_dt "
             f"{self.dt_ns / 1e9:g} s, {p['episode_length']} steps/episode; topics under "
-            f"{ns}; QoS {qos.describe(obs_qos)}")
-        self._go.set()   # the stepping thread may start waiting for readers
+            f"{self.get_namespace()}; QoS {qos.describe(self._obs_qos)}")
+
+    def activate_node(self) -> None:
+        with self._cond:   # the stepping thread starts (or resumes) once it sees this
+            self._go = True
+            self._cond.notify_all()
+
+    def deactivate_node(self) -> None:
+        # Under _cond, so an observation is published whole or not at all (see _publish).
+        with self._cond:
+            self._go = False
+            self._cond.notify_all()
+
+    def cleanup_node(self) -> None:
+        """End the stepping thread; it closes the env (in the thread that owns the GL context)."""
+        self._stop.set()
+        with self._cond:
+            self._go = False
+            self._cond.notify_all()
+        if self._thread is not None:
+            self._thread.join(timeout=10.0)
+            if self._thread.is_alive():
+                raise RuntimeError("the stepping thread did not end within 10 s")
+        self._thread = None
 
     # ------------------------------------------------------------------ callbacks
     def _apply_param(self, name: str, value: Any) -> None:
         with self._cond:
             self.params[name] = value
-            if name == "control_rate_hz":
+            if name == "control_rate_hz" and self.dt_ns:
                 self._control_rate = value or 1e9 / self.dt_ns
             self._cond.notify_all()
 
@@ -239,6 +217,9 @@ class SimBridgeNode(ProtocadNode):
         now = time.monotonic()
         stamp = topics.stamp_to_ns(msg.header.stamp)
         with self._cond:
+            if not self._go:   # not active: no observation awaits an answer (dropped, counted)
+                self.counters["actions_while_inactive"] += 1
+                return
             self.counters["actions_received"] += 1
             try:
                 a = topics.read_action(msg)
@@ -293,6 +274,10 @@ class SimBridgeNode(ProtocadNode):
     def _on_reset(self, request, response):
         with self._cond:
             self.counters["resets_requested"] += 1
+            if not self._go:
+                response.success = False
+                response.message = f"not active (lifecycle state {self.lifecycle_state})"
+                return response
             if not self._started:
                 response.success = False
                 response.message = "no episode running yet (waiting for subscribers)"
@@ -317,28 +302,29 @@ class SimBridgeNode(ProtocadNode):
                              time_limit=p["episode_length"] * p["action_repeat"])
 
     def _run(self) -> None:
+        """The stepping thread of one configured run: build the env, wait for activation and
+        for the readers, step until cleanup (_stop) or max_episodes; close the env."""
         try:
             try:
                 self.env = self._env_factory()
-            except BaseException as e:  # noqa: BLE001 (reported by __init__)
+            except BaseException as e:  # noqa: BLE001 (reported by configure_node)
                 self._env_error = e
                 return
             finally:
                 self._env_ready.set()
-            while not self._go.wait(0.1):
-                if self._stop.is_set():
-                    return
-            if not self._wait_ready():
+            if not self._wait_active() or not self._wait_ready():
                 return
             (self._run_lockstep if self.lockstep else self._run_realtime)()
+            if not self._stop.is_set():
+                self.done.set()   # max_episodes reached: the process exits
         except Exception as e:  # noqa: BLE001
             if not self._stop.is_set():
                 import traceback
 
                 self.get_logger().fatal(f"stepping thread failed: {e}\n{traceback.format_exc()}")
                 self.exit_code = 1
+                self.done.set()
         finally:
-            self.done.set()
             env, self.env = self.env, None
             if env is not None and hasattr(env, "close"):
                 try:
@@ -346,7 +332,15 @@ class SimBridgeNode(ProtocadNode):
                 except Exception:
                     pass
 
+    def _wait_active(self) -> bool:
+        """Block while not active; False once the thread is to end."""
+        with self._cond:
+            self._cond.wait_for(lambda: self._go or self._stop.is_set())
+        return not self._stop.is_set()
+
     def _readers_ready(self) -> bool:
+        if not self._go:
+            return False
         n = self.params["min_subscribers"]
         if min(self.pub_image.get_subscription_count(),
                self.pub_info.get_subscription_count()) < n:
@@ -384,7 +378,8 @@ class SimBridgeNode(ProtocadNode):
         self._tick += 1
         return self._tick * self.dt_ns
 
-    def _publish(self, obs, stamp: int, republish: bool = False) -> None:
+    def _publish(self, obs, stamp: int, republish: bool = False) -> bool:
+        """Publish observation `obs` (stamp); False, and nothing sent, while not active."""
         img, info, ctx = self._img_msg, self._info_msg, self._ctx_msg
         if not republish:
             topics.fill_image(img, obs.image, stamp)
@@ -394,7 +389,10 @@ class SimBridgeNode(ProtocadNode):
             topics.fill_context(ctx, obs.context, obs.split, stamp)
             topics.set_stamp(self._clock_msg.clock, stamp)
             self._episode, self._step, self._obs_context = obs.episode, obs.step, obs.context
+        # Under _cond: a deactivation waits for a started observation to go out whole.
         with self._cond:
+            if not self._go:
+                return False
             self._published[stamp] = time.monotonic()
             while len(self._published) > 256:
                 self._published.popitem(last=False)
@@ -403,10 +401,16 @@ class SimBridgeNode(ProtocadNode):
                 self._pending_stamp, self._answer = stamp, None
             self.counters["observations_republished" if republish
                           else "observations_published"] += 1
-        self.pub_clock.publish(self._clock_msg)
-        self.pub_context.publish(ctx)
-        self.pub_info.publish(info)
-        self.pub_image.publish(img)
+            self.pub_clock.publish(self._clock_msg)
+            self.pub_context.publish(ctx)
+            self.pub_info.publish(info)
+            self.pub_image.publish(img)
+        return True
+
+    def _resume(self, stamp: int) -> bool:
+        """Deactivated: hold the episode until active again (False: the thread is to end)."""
+        self.get_logger().info(f"inactive: holding observation {stamp} until activated again")
+        return self._wait_active()
 
     def _begin_episode(self):
         # None: the env draws uniformly from the split; else the schedule's next context.
@@ -446,18 +450,17 @@ class SimBridgeNode(ProtocadNode):
         return obs
 
     def _run_lockstep(self) -> None:
-        self._tick = -1
         with self._cond:
             self._started = True
         obs = self._begin_episode()
         stamp = self._stamp()
-        self._publish(obs, stamp)
+        sent = self._publish(obs, stamp)
         while not self._stop.is_set():
             with self._cond:
                 since = time.monotonic()   # the timeout may be changed while waiting
                 rematched = False
                 while not (self._stop.is_set() or self._answer is not None
-                           or self._reset_requested):
+                           or self._reset_requested or not self._go):
                     if not self._policy_present():
                         # Nobody can answer: wait without timing out; when a policy appears
                         # again the observation is published again at once.
@@ -470,26 +473,31 @@ class SimBridgeNode(ProtocadNode):
                     if left <= 0:
                         break
                     self._cond.wait(left)
-                answer, reset = self._answer, self._reset_requested
+                answer, reset, go = self._answer, self._reset_requested, self._go
             if self._stop.is_set():
                 return
+            if not go:   # paused: once active again the same observation goes out again
+                if not self._resume(stamp):
+                    return
+                sent = self._publish(obs, stamp, republish=sent)
+                continue
             if reset:
                 obs = self._serve_reset(obs)
                 stamp = self._stamp()
-                self._publish(obs, stamp)
+                sent = self._publish(obs, stamp)
                 continue
             if answer is None:   # timeout: publish the same observation again, unchanged
                 if rematched:
                     self.get_logger().info(f"action publisher matched again: publishing stamp "
                                            f"{stamp} again")
-                else:
+                elif sent:
                     with self._cond:
                         self.counters["lockstep_timeouts"] += 1
                     self._throttle.warning(
                         "lockstep_timeouts", f"no valid action for stamp {stamp} within "
                         f"{self.params['lockstep_timeout_s']} s: publishing it again "
                         f"({self.counters['lockstep_timeouts']} timeouts so far)")
-                self._publish(obs, stamp, republish=True)
+                sent = self._publish(obs, stamp, republish=sent)
                 continue
             if obs.is_last:
                 if self._finish_episode():
@@ -499,26 +507,33 @@ class SimBridgeNode(ProtocadNode):
                 obs = self.env.step(answer)
                 self._count_step()
             stamp = self._stamp()
-            self._publish(obs, stamp)
+            sent = self._publish(obs, stamp)
 
     def _run_realtime(self) -> None:
-        self._tick = -1
         with self._cond:
             self._started = True
         obs = self._begin_episode()
-        self._publish(obs, self._stamp())
+        stamp = self._stamp()
+        sent = self._publish(obs, stamp)
         next_t = time.monotonic()
         while not self._stop.is_set():
             with self._cond:
                 next_t += 1.0 / self._control_rate
-                while not (self._stop.is_set() or self._reset_requested):
+                while not (self._stop.is_set() or self._reset_requested or not self._go):
                     left = next_t - time.monotonic()
                     if left <= 0:
                         break
                     self._cond.wait(left)
-                reset, action = self._reset_requested, self._held.copy()
+                reset, action, go = self._reset_requested, self._held.copy(), self._go
             if self._stop.is_set():
                 return
+            if not go:   # paused: the sim holds still; it goes on at the rate once active
+                if not self._resume(stamp):
+                    return
+                next_t = time.monotonic()
+                if not sent:
+                    sent = self._publish(obs, stamp)
+                continue
             now = time.monotonic()
             if now - next_t > 1.0 / self._control_rate:   # fell behind: don't catch up
                 with self._cond:
@@ -534,78 +549,14 @@ class SimBridgeNode(ProtocadNode):
             else:
                 obs = self.env.step(action)
                 self._count_step()
-            self._publish(obs, self._stamp())
-
-    # ------------------------------------------------------------------ diagnostics
-    def _publish_diagnostics(self) -> None:
-        now = time.monotonic()
-        with self._cond:
-            c = dict(self.counters)
-            t0, s0 = self._rate_window[0]
-            self._rate_window.append((now, c["steps"]))
-            episode, step, context = self._episode, self._step, dict(self._obs_context)
-            tick = getattr(self, "_tick", -1)
-        rate = (c["steps"] - s0) / (now - t0) if now > t0 else 0.0
-        values: dict[str, Any] = {
-            "task": self.params["task"], "split": self.params["split"],
-            "seed": self.params["seed"], "mode": self.params["mode"],
-            "steps_per_s": rate,
-            "action_latency_ms_p50": self.latency.percentile(50) * 1e3,
-            "action_latency_ms_p99": self.latency.percentile(99) * 1e3,
-            "episode": episode, "step": step,
-            "sim_time_s": max(tick, 0) * self.dt_ns / 1e9,
-            "action_publishers": self.sub_action.get_publisher_count(),
-            "callback_errors": self.callback_errors,
-            **{f"context/{k}": v for k, v in context.items()},
-            **c,
-        }
-        if not self.lockstep:
-            values["control_rate_hz"] = self._control_rate
-        # Late actions are a rate, not a state: WARN only while new ones arrive (one late
-        # action must not mark the rest of a run).
-        others = self._other_publishers()
-        late_now = c["late_actions"] - self._late_at_last_diag
-        self._late_at_last_diag = c["late_actions"]
-        warn = c["actions_rejected"] or c["lockstep_timeouts"] or late_now or self.callback_errors
-        unknown = self.unknown_parameters
-        values["other_publishers"] = ", ".join(others)
-        status = make_status(self._diag_name, self.params["task"], values,
-                             "ERROR" if others else "WARN" if warn or unknown else "OK",
-                             f"another publisher on {', '.join(others)} (a second bridge in this "
-                             "namespace?)" if others else
-                             f"unknown parameters ignored: {unknown}" if unknown else
-                             "rejected/late actions or timeouts" if warn else "running")
-        arr = DiagnosticArray()
-        arr.header.stamp = self.get_clock().now().to_msg()
-        arr.status = [status]
-        try:
-            self.pub_diag.publish(arr)
-        except Exception:  # context shutting down
-            pass
-
-    def _other_publishers(self) -> list[str]:
-        """The bridge's own topics that some other node publishes too: two bridges in one
-        namespace (or a stray publisher) interleave observations and /clock, so both say so."""
-        others = []
-        for pub in (self.pub_image, self.pub_info, self.pub_context, self.pub_bridge_info):
-            topic = pub.topic_name
-            if self.count_publishers(topic) > 1:
-                others.append(topic)
-        for topic in others:
-            if topic not in self._others_warned:
-                self._others_warned.add(topic)
-                self.get_logger().error(f"another node also publishes {topic} (a second sim bridge in "
-                                        f"{self.get_namespace()}?): its observations interleave with "
-                                        "ours; run each bridge in its own namespace and domain")
-        return others
+            stamp = self._stamp()
+            sent = self._publish(obs, stamp)
 
     # ------------------------------------------------------------------ shutdown
     def close(self) -> None:
-        """Stop the stepping thread, flush the last messages to reliable readers."""
-        self._stop.set()
-        with self._cond:
-            self._cond.notify_all()
-        self._thread.join(timeout=10.0)
+        """The shutdown transition (ends the stepping thread), then flush the last messages to
+        reliable readers."""
+        self.shutdown_lifecycle()
         try:
             self._publish_diagnostics()
             # Reliable readers acknowledge lazily (on the writer's next heartbeat): give the

@@ -279,6 +279,12 @@ def strict_param() -> Param:
                  "WARN on /diagnostics (unknown_parameters).", read_only=True)
 
 
+def autostart_param() -> Param:
+    return Param("autostart", True, "Configure and activate at start (one command runs the "
+                 "node); false: the node starts unconfigured and waits for lifecycle "
+                 "transitions (ros2 lifecycle set NODE configure, then activate).")
+
+
 def executor_param(default: str = "events") -> Param:
     return Param("executor", default, "rclpy executor spinning the node's callbacks: events = "
                  "rclpy.experimental.EventsExecutor (lower latency per callback), single = "

@@ -16,7 +16,8 @@ one unless --domain-id):
    E episodes, then C x E updates and a new checkpoint, which the policy node reloads (its
    file watcher loads it in the background and serves it from the next is_first); the loop
    waits until the node has loaded the newest checkpoint before the next cycle starts, and
-   reads from the node's log which checkpoint (update counter) served each cycle;
+   reads from the node's /diagnostics which checkpoint (update counter) served each cycle
+   (readiness and these reads are ROS state, lifecycle and diagnostics, never log text);
 4. the end: an evaluation table on the test contexts (in-process, deterministic), JSON in
    RUN_DIR/eval/, and a rerun recording of the context view (trainer.visualize).
 
@@ -29,7 +30,6 @@ episodes, env steps) and the checkpoint (weights, optimizers, counters, sampler 
 from __future__ import annotations
 
 import argparse
-import re
 import sys
 import time
 from pathlib import Path
@@ -247,18 +247,36 @@ class Loop:
                                 wait_for_checkpoint=True, reload_poll_s=0.5, mode="sample",
                                 exploration_noise=a.exploration_noise, seed=cfg.train.seed, device=self.device)
 
+    def _policy_diagnostics(self, newer_than: float | None = None, timeout: float = 5.0) -> dict[str, str]:
+        """The policy node's latest /diagnostics values (stamped after `newer_than`, if
+        given and one comes within `timeout`)."""
+        graph, fqn = self.stack.graph, self.stack.node_fqn("policy")
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            values = graph.diagnostics(fqn, newer_than)
+            if values is not None:
+                return values
+            graph.spin(0.1)
+        return graph.diagnostics(fqn) or {}
+
     def _served_updates(self) -> int | None:
-        """The update counter of the checkpoint the policy node served last (from its log)."""
-        text = self.stack.procs["policy"].output()
-        hits = re.findall(r"(?:now serving|serving) checkpoint \S+ \(updates=(\d+)\)", text)
-        return int(hits[-1]) if hits else None
+        """The update counter of the checkpoint the policy node serves now (its diagnostics'
+        checkpoint_updates, from a report made after the phase ended)."""
+        value = self._policy_diagnostics(newer_than=time.time()).get("checkpoint_updates")
+        return int(value) if value is not None and int(value) >= 0 else None
 
     def _wait_policy_loaded(self, updates: int, stop, timeout: float = 120.0) -> None:
-        """Block until the policy node has loaded the checkpoint with this update counter
-        (its log says 'serving checkpoint ... (updates=N)' at start-up, 'loaded checkpoint ...
-        (updates=N)' when its watcher picked up a newer file)."""
-        proc = self.stack.procs["policy"]
-        proc.wait_for(rf"(loaded|serving) checkpoint \S+ \(updates={updates}\)", timeout, stop=stop)
+        """Block until the policy node has loaded the checkpoint with this update counter:
+        its diagnostics say checkpoint_updates=N (serving it) or pending_checkpoint_updates=N
+        (its watcher loaded it; served from the next is_first)."""
+        graph, fqn, want = self.stack.graph, self.stack.node_fqn("policy"), str(updates)
+
+        def loaded() -> bool:
+            values = graph.diagnostics(fqn) or {}
+            return want in (values.get("checkpoint_updates"), values.get("pending_checkpoint_updates"))
+
+        self.stack.wait_until(self.stack.procs["policy"], loaded,
+                         f"policy diagnostics with checkpoint updates={updates}", timeout, stop)
 
     def _train(self, stop: runs.StopFlag) -> bool:
         target = self.target_updates()

@@ -8,13 +8,17 @@ one unless given), output to LOG_DIR/<name>.log. Processes get their own session
 in the terminal reaches only the orchestrator, which stops them in order: bridge, actor,
 recorder last so that it drains and closes its bag) and die with the orchestrator
 (PR_SET_PDEATHSIG) if it is killed.
+
+Readiness comes from ROS, not from the logs (trainer/rosgraph.py): the managed nodes (bridge,
+policy) are ready when their lifecycle state is `active`, the recorder and the random actor
+when the graph shows their endpoints (the recorder's subscription to `action`, the actor's
+action publisher and observation subscriptions). The logs stay for people.
 """
 from __future__ import annotations
 
 import ctypes
 import os
 import random
-import re
 import signal
 import subprocess
 import sys
@@ -64,6 +68,12 @@ def ros_env(domain_id: int | None = None) -> dict[str, str]:
     return env
 
 
+def recorder_endpoints(wait_topics: Iterable[str]) -> list[tuple[str, str]]:
+    """What shows a recorder ready in the graph: its subscriptions to `wait_topics` (it
+    subscribes only once its bag is open), or without any its /rosout publisher (it is up)."""
+    return [(t, "sub") for t in wait_topics] or [("/rosout", "pub")]
+
+
 class NodeProc:
     def __init__(self, name: str, args: Sequence[str], log_path: Path, env: dict[str, str]):
         self.name, self.args, self.log_path = name, list(args), Path(log_path)
@@ -92,24 +102,11 @@ class NodeProc:
     def tail(self, n: int = 25) -> str:
         return "\n".join(self.output().splitlines()[-n:])
 
-    def wait_for(self, pattern: str, timeout: float, since: int = 0, stop=None) -> re.Match | None:
-        """Wait until the log (from character `since`) matches `pattern`; NodeFailed if the
-        process exits first or the time runs out; None when `stop` (a runs.StopFlag) is raised."""
-        rx = re.compile(pattern)
-        deadline = time.monotonic() + timeout
-        while True:
-            m = rx.search(self.output()[since:])
-            if m:
-                return m
-            if stop is not None and stop.stop:
-                return None
-            if not self.alive():
-                raise NodeFailed(f"{self.name} exited with code {self.p.returncode} before "
-                                 f"/{pattern}/; log {self.log_path}:\n{self.tail()}")
-            if time.monotonic() > deadline:
-                raise NodeFailed(f"{self.name}: no /{pattern}/ within {timeout:.0f}s; log "
-                                 f"{self.log_path}:\n{self.tail()}")
-            time.sleep(0.1)
+    def gone(self) -> str | None:
+        """Why the process is no longer running (exit code and log tail), None while it runs."""
+        if self.alive():
+            return None
+        return f"{self.name} exited with code {self.p.returncode}"
 
     def stop(self, sig: int = signal.SIGINT, timeout: float = 20.0) -> int | None:
         if self.alive():
@@ -141,6 +138,47 @@ class RosStack:
         self.domain_id = int(self.env["ROS_DOMAIN_ID"])
         self.namespace = namespace
         self.procs: dict[str, NodeProc] = {}
+        self._graph = None
+
+    @property
+    def graph(self):
+        """The launcher's RosGraph on this stack's domain (made at first use)."""
+        if self._graph is None:
+            from trainer.rosgraph import RosGraph
+
+            self._graph = RosGraph(self.domain_id)
+        return self._graph
+
+    def close_graph(self) -> None:
+        if self._graph is not None:
+            graph, self._graph = self._graph, None
+            graph.close()
+
+    def node_fqn(self, node_name: str) -> str:
+        return T.topic_name(self.namespace, node_name)
+
+    def wait_until(self, proc: NodeProc, ready, what: str, timeout: float, stop=None) -> bool:
+        """Wait for `ready()` (NodeFailed with the log tail if the process exits first or the
+        time runs out); False when `stop` (a runs.StopFlag) is raised."""
+        try:
+            return self.graph.wait(ready, what=what, timeout=timeout, alive=proc.gone, stop=stop)
+        except (RuntimeError, TimeoutError) as exc:
+            raise NodeFailed(f"{proc.name}: {exc}; log {proc.log_path}:\n{proc.tail()}") from None
+
+    def wait_active(self, proc: NodeProc, node_name: str, timeout: float, stop=None) -> bool:
+        """A managed node: wait until its lifecycle state is `active` (get_state)."""
+        fqn = self.node_fqn(node_name)
+        return self.wait_until(proc, lambda: self.graph.lifecycle_state(fqn) == "active",
+                          f"lifecycle state active of {fqn}", timeout, stop)
+
+    def wait_endpoints(self, proc: NodeProc, node_name: str, node_ns: str,
+                       wants: Sequence[tuple[str, str]], timeout: float, stop=None,
+                       old: set = frozenset()) -> bool:
+        """An unmanaged node: wait until the graph shows its new endpoints `wants`, (topic,
+        'pub' | 'sub') pairs; `old` = endpoints of an earlier process (RosGraph.snapshot)."""
+        what = ", ".join(f"{kind} {topic}" for topic, kind in wants)
+        return self.wait_until(proc, lambda: self.graph.has_endpoints(node_name, node_ns, wants, old),
+                          f"{node_name} in the ROS graph with {what}", timeout, stop)
 
     def _spawn(self, name: str, module: str, args: Sequence[str], log_name: str | None = None) -> NodeProc:
         old = self.procs.get(name)
@@ -184,13 +222,17 @@ class RosStack:
             seed=seed, device=device, preset=preset, variant=variant, num_threads=num_threads),
             "-r", f"__ns:={self.namespace}"]
         proc = self._spawn("policy", "protocad_ros.policy_node", args)
-        proc.wait_for(r"serving ", ready_timeout)
+        self.wait_active(proc, "policy", ready_timeout)
         return proc
 
     def start_random_actor(self, *, task: str, seed: int = 0, ready_timeout: float = 60.0) -> NodeProc:
         args = ["--task", task, "--seed", str(seed), "--ros-args", "-r", f"__ns:={self.namespace}"]
+        ns = "/" + self.namespace.strip("/")
+        wants = [(self.node_fqn(T.ACTION), "pub"), (self.node_fqn(T.IMAGE), "sub"),
+                 (self.node_fqn(T.STEP_INFO), "sub")]
+        old = self.graph.snapshot("random_actor", ns, wants)
         proc = self._spawn("actor", "trainer.random_actor", args)
-        proc.wait_for(r"random actor ready", ready_timeout)
+        self.wait_endpoints(proc, "random_actor", ns, wants, ready_timeout, old=old)
         return proc
 
     def start_recorder(self, bag: str | Path, *, extra_topics: Iterable[str] = (T.DIAGNOSTICS,),
@@ -201,10 +243,10 @@ class RosStack:
         topics = default_topics(self.namespace) + [t for t in extra_topics]
         args = ["-o", str(bag), "--namespace", self.namespace, "--flush-interval", "1.0",
                 "--topics", *topics]
+        wants = recorder_endpoints(wait_topics)
+        old = self.graph.snapshot("recorder", "/", wants)
         proc = self._spawn("recorder", "trainer.recorder", args, log_name)
-        proc.wait_for(r"recording to", ready_timeout)
-        for t in wait_topics:
-            proc.wait_for(rf"subscribed to {re.escape(t)} ", ready_timeout)
+        self.wait_endpoints(proc, "recorder", "/", wants, ready_timeout, old=old)
         return proc
 
     def wait_exit(self, proc: NodeProc, timeout: float, *, watch: Sequence[str] = ("policy", "actor", "recorder"),
@@ -233,6 +275,7 @@ class RosStack:
 
     def stop_all(self) -> dict[str, int | None]:
         """Bridge first (no new observations), then actors, the recorder last (drains)."""
+        self.close_graph()
         codes = {}
         for name in ("bridge", "actor", "policy", "recorder"):
             if name in self.procs:

@@ -12,8 +12,9 @@ are that node's ROS parameters, as `-p key:=value`; `recorder: false` records no
     policy:   {checkpoint: runs/X/checkpoints/latest.pt}
     recorder: {output: runs/X/bags/session1}
 
-Order: the recorder starts first, then the policy; once the recorder has subscribed to the
-policy's `action` topic, the bridge starts with `min_subscribers` = the policy and the
+Order: the recorder starts first, then the policy; once the policy is active (its lifecycle
+state) and the ROS graph shows the recorder subscribed to the policy's `action` topic, the
+bridge starts with `min_subscribers` = the policy and the
 recorder, so it publishes its first observation only when both read it: the bag holds every
 step and every action from stamp 0. Each node logs to LOG_DIR/NAME.log (default beside the
 bag, else runs/stack-STAMP/logs) and to this terminal with a `[name]` prefix. The stack ends
@@ -105,7 +106,7 @@ class LogFollower(threading.Thread):
 
 
 def run(doc: dict[str, Any], *, log_dir: Path, domain_id: int | None, ready_timeout: float) -> int:
-    from trainer.rosprocs import NodeFailed, RosStack
+    from trainer.rosprocs import NodeFailed, RosStack, recorder_endpoints
 
     ns = doc.get("namespace") or T.DEFAULT_NAMESPACE
     stack = RosStack(log_dir, domain_id=domain_id, namespace=ns)
@@ -119,16 +120,19 @@ def run(doc: dict[str, Any], *, log_dir: Path, domain_id: int | None, ready_time
             if record:
                 rec = dict(doc.get("recorder") or {})
                 output = rec.pop("output", None) or str(log_dir.parent / "bag")
+                up, reading = recorder_endpoints([]), recorder_endpoints([T.topic_name(ns, T.ACTION)])
+                # Endpoints of another recorder on this domain (e.g. a previous stack's, going).
+                old = stack.graph.snapshot("recorder", "/", up + reading)
                 proc = stack._spawn("recorder", MODULES["recorder"], ["-o", str(output), "--namespace", ns,
                                                                        "--ros-args", *ros_params(rec)])
-                proc.wait_for(r"recording to", ready_timeout, stop=stop)
+                stack.wait_endpoints(proc, "recorder", "/", up, ready_timeout, stop=stop, old=old)
             policy = dict(doc.get("policy") or {})
             policy.setdefault("task", (doc.get("bridge") or {}).get("task", "pendulum_swingup"))
             proc = stack._spawn("policy", MODULES["policy"], ["--ros-args", *ros_params(policy), "-r", f"__ns:={ns}"])
-            proc.wait_for(r"serving |RANDOMLY INITIALISED", ready_timeout, stop=stop)
+            stack.wait_active(proc, "policy", ready_timeout, stop=stop)
             if record:   # the action topic exists now: wait until the recorder reads it
-                stack.procs["recorder"].wait_for(rf"subscribed to {T.topic_name(ns, T.ACTION)} ", ready_timeout,
-                                                 stop=stop)
+                stack.wait_endpoints(stack.procs["recorder"], "recorder", "/", reading, ready_timeout,
+                                     stop=stop, old=old)
             bridge = dict(doc.get("bridge") or {})
             bridge.setdefault("min_subscribers", 2 if record else 1)
             stack._spawn("bridge", MODULES["bridge"], ["--ros-args", *ros_params(bridge), "-r", f"__ns:={ns}"])
