@@ -183,6 +183,8 @@ def cmd_echo(args) -> int | str | None:
 
     with graph.direct_node(args) as node:
         msg_type = _message_class(node, args)
+        # The QoS adapts to the publishers (a latched topic needs TRANSIENT_LOCAL): wait for one.
+        graph.wait_for(lambda: node.count_publishers(args.topic_name) > 0, node)
         events = None if args.no_lost_messages else SubscriptionEventCallbacks(message_lost=on_lost)
         try:
             node.create_subscription(msg_type, args.topic_name, on_message, choose_qos(node, args),
