@@ -348,7 +348,7 @@ class PolicyNode(ManagedNode):
                 reason = ("rejected_image_data", str(e))
         if reason is not None:
             self._count("images_rejected")
-            self._count(reason[0], f"image rejected (stamp {stamp}): {reason[1]}")
+            self._count(reason[0], f"image rejected (stamp {topics.format_stamp(stamp)}): {reason[1]}")
             return
         self._arrive(stamp, "image", image, t)
 
@@ -361,7 +361,7 @@ class PolicyNode(ManagedNode):
         try:
             info = topics.read_step_info(msg)
         except (ValueError, TypeError, IndexError) as e:
-            return self._count("step_info_rejected", f"step_info rejected (stamp {stamp}): {e}")
+            return self._count("step_info_rejected", f"step_info rejected (stamp {topics.format_stamp(stamp)}): {e}")
         self._arrive(stamp, "info", info, t)
 
     def _on_bridge_info(self, msg) -> None:
@@ -415,11 +415,11 @@ class PolicyNode(ManagedNode):
             return
         del self._unpaired[stamp]
         if self.mismatch is not None:
-            return self._count("mismatched_observations", f"observation {stamp} not answered: {self.mismatch}")
+            return self._count("mismatched_observations", f"observation {topics.format_stamp(stamp)} not answered: {self.mismatch}")
         if self.bridge is None and self._announcing_bridge():
             # A bridge that announces itself is there but its announcement has not arrived yet:
             # answering now could send it actions of the wrong size (lock-step republishes).
-            return self._count("awaiting_bridge_info", f"observation {stamp} not answered yet: waiting "
+            return self._count("awaiting_bridge_info", f"observation {topics.format_stamp(stamp)} not answered yet: waiting "
                                "for the bridge's announcement")
         if stamp == self._last_stamp and self._last_answer is not None:
             # The bridge published it again (its lock-step timeout): answer it again, same
@@ -430,13 +430,13 @@ class PolicyNode(ManagedNode):
             return
         if self._last_stamp is not None and stamp < self._last_stamp:
             if not entry["info"].is_first:
-                return self._count("stale_observations", f"observation {stamp} is older than "
-                                   f"the last answered one ({self._last_stamp}): not answered")
+                return self._count("stale_observations", f"observation {topics.format_stamp(stamp)} is older than "
+                                   f"the last answered one ({topics.format_stamp(self._last_stamp)}): not answered")
             # Sim time went back at an episode start: a new bridge run (its clock starts at 0
             # again), as in the collect-train-reload loop. Lone pieces of the old run could
             # pair with the new run's equal stamps, so they go.
-            self._count("sim_time_restarts", f"sim time went back to {stamp} at an episode "
-                        f"start (last answered {self._last_stamp}): a new sim run")
+            self._count("sim_time_restarts", f"sim time went back to {topics.format_stamp(stamp)} at an episode "
+                        f"start (last answered {topics.format_stamp(self._last_stamp)}): a new sim run")
             self._unpaired.clear()
             self._last_stamp = self._last_answer = None
         self._answer(stamp, entry["image"], entry["info"], t)

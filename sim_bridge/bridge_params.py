@@ -56,6 +56,12 @@ PARAMS: tuple[Param, ...] = (
     Param("lockstep_timeout_s", 5.0, "Lock-step: with a policy matched and no valid answer "
           "after this long, the same observation is published again (counted in "
           "lockstep_timeouts).", read_only=False, range=(0.01, 3600.0), units="s"),
+    Param("lossless", True, "Lock-step: image, step_info and context keep every sample a "
+          "reliable reader has not acknowledged (KEEP_ALL history): a stalled reader, e.g. a "
+          "frozen recorder, costs the bridge memory (about 12 KB per 64x64 step, until it catches "
+          "up or its process is gone) instead of losing steps. false = KEEP_LAST(100), as in "
+          "real time, where a reader more than 100 steps behind loses the oldest (counted by the "
+          "recorder). Unused in real time.", read_only=True),
     Param("max_episodes", 0, "Exit (code 0) after this many complete episodes (lock-step: once "
           "the answer to the last is_last has arrived); 0 = run until stopped.", read_only=False,
           range=(0, 1_000_000_000)),
@@ -75,6 +81,8 @@ ACTION_LOW, ACTION_HIGH = -1.0, 1.0
 READY_GRACE_S = 2.0
 #: Longest wait at shutdown for reliable readers to acknowledge the last observations.
 FLUSH_TIMEOUT_S = 1.0
+#: The same wait in lossless lock-step: long enough for a recorder that was stalled to catch up.
+LOSSLESS_FLUSH_TIMEOUT_S = 30.0
 #: Counters reported on /diagnostics (all cumulative since start).
 COUNTERS = ("steps", "episodes", "observations_published", "observations_republished",
             "actions_received", "actions_accepted", "actions_rejected", "rejected_malformed",

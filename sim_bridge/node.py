@@ -36,7 +36,7 @@ from std_srvs.srv import Trigger
 
 from sim_bridge import qos, topics
 from sim_bridge.bridge_diagnostics import BridgeDiagnostics
-from sim_bridge.bridge_params import (ACTION_HIGH, ACTION_LOW, COUNTERS, FLUSH_TIMEOUT_S,
+from sim_bridge.bridge_params import (ACTION_HIGH, ACTION_LOW, COUNTERS, FLUSH_TIMEOUT_S, LOSSLESS_FLUSH_TIMEOUT_S,
                                       PARAMS, READY_GRACE_S, episode_contexts)
 from sim_bridge.lifecycle import ManagedNode
 from sim_bridge.rosnode import (ConfigError, KeyThrottle, Percentiles, declare_all,
@@ -82,9 +82,10 @@ class SimBridgeNode(BridgeDiagnostics, ManagedNode):
         # and _publish checks _go), actions are taken only while active.
         self._img_msg, self._info_msg, self._ctx_msg, self._clock_msg = (
             Image(), JointState(), JointState(), Clock())
-        obs_qos = self._obs_qos = qos.observation_qos()
+        lossless = p["mode"] == "lockstep" and p["lossless"]
+        obs_qos = self._obs_qos = qos.observation_qos(lossless)
         # A profile of its own: rclpy's QoS overriding changes the profile object it is given.
-        self.pub_image = self.create_lifecycle_publisher(Image, topics.IMAGE, qos.observation_qos(),
+        self.pub_image = self.create_lifecycle_publisher(Image, topics.IMAGE, qos.observation_qos(lossless),
                                                          qos_overriding_options=qos.overridable())
         self.pub_info = self.create_lifecycle_publisher(JointState, topics.STEP_INFO, obs_qos)
         self.pub_context = self.create_lifecycle_publisher(JointState, topics.CONTEXT, obs_qos)
@@ -224,29 +225,29 @@ class SimBridgeNode(BridgeDiagnostics, ManagedNode):
             try:
                 a = topics.read_action(msg)
             except (ValueError, TypeError) as e:
-                return self._reject("rejected_malformed", f"{e} (stamp {stamp})")
+                return self._reject("rejected_malformed", f"{e} (stamp {topics.format_stamp(stamp)})")
             if a.shape != (self.action_dim,):
                 return self._reject("rejected_wrong_length",
                                     f"{a.size} values, expected {self.action_dim} "
-                                    f"{self.action_names} (stamp {stamp})")
+                                    f"{self.action_names} (stamp {topics.format_stamp(stamp)})")
             if not np.all(np.isfinite(a)):
-                return self._reject("rejected_nonfinite", f"{a.tolist()} (stamp {stamp})")
+                return self._reject("rejected_nonfinite", f"{a.tolist()} (stamp {topics.format_stamp(stamp)})")
             if self.lockstep:
                 if stamp != self._pending_stamp:
                     if stamp in self._answered_stamps:
                         return self._reject("rejected_duplicate",
-                                            f"stamp {stamp} was already answered")
+                                            f"stamp {topics.format_stamp(stamp)} was already answered")
                     return self._reject("rejected_stale_stamp",
-                                        f"stamp {stamp} is not the observation awaiting an "
-                                        f"answer ({self._pending_stamp})" if self._pending_stamp is not None
-                                        else f"stamp {stamp} arrived while no observation awaits an answer")
+                                        f"stamp {topics.format_stamp(stamp)} is not the observation awaiting an "
+                                        f"answer ({topics.format_stamp(self._pending_stamp)})" if self._pending_stamp is not None
+                                        else f"stamp {topics.format_stamp(stamp)} arrived while no observation awaits an answer")
             else:
                 if stamp not in self._published:
                     return self._reject("rejected_stale_stamp",
-                                        f"stamp {stamp} answers no recent observation")
+                                        f"stamp {topics.format_stamp(stamp)} answers no recent observation")
                 if stamp in self._answered_stamps:
                     return self._reject("rejected_duplicate",
-                                        f"stamp {stamp} was already answered")
+                                        f"stamp {topics.format_stamp(stamp)} was already answered")
             clipped = np.clip(a, ACTION_LOW, ACTION_HIGH)
             if np.any(clipped != a):
                 self.counters["actions_clipped"] += 1
@@ -266,8 +267,8 @@ class SimBridgeNode(BridgeDiagnostics, ManagedNode):
                 if stamp != self._newest_stamp:
                     self.counters["late_actions"] += 1
                     self._throttle.warning(
-                        "late_actions", f"late action for stamp {stamp} (newest observation "
-                        f"{self._newest_stamp}; {self.counters['late_actions']} late so far)")
+                        "late_actions", f"late action for stamp {topics.format_stamp(stamp)} (newest observation "
+                        f"{topics.format_stamp(self._newest_stamp)}; {self.counters['late_actions']} late so far)")
                 if stamp > self._held_stamp:
                     self._held, self._held_stamp = clipped, stamp
 
@@ -409,7 +410,7 @@ class SimBridgeNode(BridgeDiagnostics, ManagedNode):
 
     def _resume(self, stamp: int) -> bool:
         """Deactivated: hold the episode until active again (False: the thread is to end)."""
-        self.get_logger().info(f"inactive: holding observation {stamp} until activated again")
+        self.get_logger().info(f"inactive: holding observation {topics.format_stamp(stamp)} until activated again")
         return self._wait_active()
 
     def _begin_episode(self):
@@ -489,12 +490,12 @@ class SimBridgeNode(BridgeDiagnostics, ManagedNode):
             if answer is None:   # timeout: publish the same observation again, unchanged
                 if rematched:
                     self.get_logger().info(f"action publisher matched again: publishing stamp "
-                                           f"{stamp} again")
+                                           f"{topics.format_stamp(stamp)} again")
                 elif sent:
                     with self._cond:
                         self.counters["lockstep_timeouts"] += 1
                     self._throttle.warning(
-                        "lockstep_timeouts", f"no valid action for stamp {stamp} within "
+                        "lockstep_timeouts", f"no valid action for stamp {topics.format_stamp(stamp)} within "
                         f"{self.params['lockstep_timeout_s']} s: publishing it again "
                         f"({self.counters['lockstep_timeouts']} timeouts so far)")
                 sent = self._publish(obs, stamp, republish=sent)
@@ -560,11 +561,16 @@ class SimBridgeNode(BridgeDiagnostics, ManagedNode):
         try:
             self._publish_diagnostics()
             # Reliable readers acknowledge lazily (on the writer's next heartbeat): give the
-            # last samples a bounded chance to be acknowledged (or repaired) before exiting.
-            deadline = time.monotonic() + FLUSH_TIMEOUT_S
+            # last samples a bounded chance to be acknowledged (or repaired) before exiting;
+            # lossless, the backlog of a reader that was stalled too (what exiting would lose).
+            lossless = self.lockstep and self.params["lossless"]
+            deadline = time.monotonic() + (LOSSLESS_FLUSH_TIMEOUT_S if lossless else FLUSH_TIMEOUT_S)
             for pub in (*self._obs_pubs, self.pub_clock):
                 left = max(0.0, deadline - time.monotonic())
-                pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9)))
+                if not pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))) and lossless:
+                    self.get_logger().warning(
+                        f"{pub.topic_name}: exiting with samples a reader has not acknowledged "
+                        f"after {LOSSLESS_FLUSH_TIMEOUT_S:g} s (a reader stalled or gone)")
         except Exception:
             pass
         c = self.counters

@@ -30,8 +30,17 @@ def _reliable(depth: int) -> QoSProfile:
                       reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 
 
-def observation_qos() -> QoSProfile:
-    """image, step_info, context (sim bridge -> policy, recorder)."""
+def observation_qos(lossless: bool = False) -> QoSProfile:
+    """image, step_info, context (sim bridge -> policy, recorder).
+
+    lossless (the bridge's writers in lock-step): KEEP_ALL, so a sample leaves the writer's
+    history only once every reliable reader acknowledged it. A stalled reader then costs memory,
+    not data, at no cost per step (measured in scripts/bench_ros_loop.py). Waiting for the
+    acknowledgements of each step instead (Publisher.wait_for_all_acked) made lock-step
+    3.6-6.7x slower here: Fast DDS readers acknowledge at the writer's heartbeat, 5 ms to 3 s later."""
+    if lossless:
+        return QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=OBSERVATION_DEPTH,
+                          reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
     return _reliable(OBSERVATION_DEPTH)
 
 
@@ -43,8 +52,11 @@ def announcement_qos() -> QoSProfile:
 
 
 def action_qos() -> QoSProfile:
-    """action and context_features (policy -> sim bridge, recorder)."""
-    return _reliable(OBSERVATION_DEPTH)
+    """action and context_features (policy -> sim bridge, recorder): KEEP_ALL. A few hundred
+    bytes a step, so keeping every sample a stalled reader (a frozen recorder) has not
+    acknowledged costs little memory, and the bag of a lock-step run has every action."""
+    return QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=OBSERVATION_DEPTH,
+                      reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 
 
 def clock_qos() -> QoSProfile:
@@ -59,8 +71,8 @@ def diagnostics_qos() -> QoSProfile:
 
 def describe(qos: QoSProfile) -> str:
     """One-line summary, e.g. 'RELIABLE, VOLATILE, KEEP_LAST(100)' (for logs and docs)."""
-    return (f"{qos.reliability.name}, {qos.durability.name}, "
-            f"{qos.history.name}({qos.depth})")
+    history = "KEEP_ALL" if qos.history == HistoryPolicy.KEEP_ALL else f"{qos.history.name}({qos.depth})"
+    return f"{qos.reliability.name}, {qos.durability.name}, {history}"
 
 
 def overridable():

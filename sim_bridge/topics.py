@@ -59,6 +59,14 @@ def stamp_to_ns(stamp: Any) -> int:
     return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
+def format_stamp(t_ns: int | None) -> str:
+    """A stamp (sim time in ns) for log lines: 2480000000 -> '2.48 s', exact to the ns."""
+    if t_ns is None:
+        return "none"
+    sec, ns = divmod(int(t_ns), 1_000_000_000)
+    return f"{sec}.{(f'{ns:09d}'.rstrip('0') or '0')} s"
+
+
 def set_stamp(stamp: Any, t_ns: int) -> None:
     stamp.sec, stamp.nanosec = divmod(int(t_ns), 1_000_000_000)
 

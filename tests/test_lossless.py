@@ -1,0 +1,93 @@
+"""Collection under a stalled recorder (SIGSTOP), through real processes: the bridge, a
+responder in this process standing in for the policy, and trainer.recorder.
+
+Lock-step: the bridge's observation writers keep every sample a reliable reader has not
+acknowledged (lossless, KEEP_ALL), so a frozen recorder gets the backlog once it runs again and
+every published step is in the bag. Real time: the bridge cannot wait (the clock runs), so steps are lost, and the
+recorder counts exactly what the bag lacks, which the dataset report names.
+"""
+from __future__ import annotations
+
+import json
+import signal
+import sys
+import time
+
+import yaml
+
+from conftest import wait_for
+from ros_helpers import Probe, Responder
+from sim_bridge import topics as T
+from trainer import mcap_io as M
+
+TASK, NS = "pendulum_swingup", T.DEFAULT_NAMESPACE
+START = 90.0
+
+
+def bag_stamps(bag, rel: str) -> list[int]:
+    reader = M.BagReader(bag)
+    return [T.stamp_to_ns(reader.decode(m).header.stamp) for m in reader.messages([T.topic_name(NS, rel)])]
+
+
+def start(spawn, tmp_path, mode: list[str]):
+    probe = Probe("lossless_probe")
+    resp = Responder(probe, lambda info: [0.0], names=["torque"])
+    bag = tmp_path / "bag"
+    rec = spawn("recorder", "-m", "trainer.recorder", "-o", str(bag), T.topic_name(NS, T.STEP_INFO),
+                T.topic_name(NS, T.IMAGE), T.topic_name(NS, T.ACTION))
+    wait_for(lambda: "recording to" in rec.output(), START, "the recorder")
+    bridge = spawn("bridge", "-m", "sim_bridge.node", "--ros-args", "-p", f"task:={TASK}", "-p", "seed:=1",
+                   "-p", "min_subscribers:=2", "-p", "diagnostics_period_s:=0.2", *mode)
+    return probe, resp, bag, rec, bridge
+
+
+def test_lockstep_loses_nothing_while_the_recorder_is_frozen(spawn, tmp_path):
+    probe, resp, bag, rec, bridge = start(spawn, tmp_path, ["-p", "episode_length:=150"])
+    try:
+        wait_for(lambda: len(resp.steps) >= 40, START, "40 lock-step steps")
+        rec.p.send_signal(signal.SIGSTOP)
+        frozen_at = len(resp.steps)
+        wait_for(lambda: len(resp.steps) >= frozen_at + 600, 120, "600 steps while the recorder is frozen")
+        rec.p.send_signal(signal.SIGCONT)
+        resumed_at = len(resp.steps)
+        wait_for(lambda: len(resp.steps) >= resumed_at + 100, 60, "100 more steps")
+        assert bridge.stop() == 0, bridge.output()[-2000:]     # SIGINT: flushes to every reader
+        assert rec.stop() == 0, rec.output()[-2000:]
+    finally:
+        probe.close()
+    published = [s for s, _, _ in resp.steps]
+    for rel in (T.STEP_INFO, T.IMAGE):
+        assert bag_stamps(bag, rel) == published, rel          # every step, in order, no repeats
+    assert set(bag_stamps(bag, T.ACTION)) == set(resp.answered)
+    info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    lost = json.loads((info.get("custom_data") or {}).get("protocad_lost_messages", "{}"))
+    assert not any(lost.values()), lost
+
+
+def test_realtime_loss_is_counted_exactly_and_named_by_the_dataset(spawn, tmp_path):
+    from trainer.dataset import MCAPDataset
+
+    probe, resp, bag, rec, bridge = start(spawn, tmp_path, ["-p", "mode:=realtime", "-p", "control_rate_hz:=100.0"])
+    try:
+        wait_for(lambda: len(resp.steps) >= 100, START, "100 real-time steps")
+        rec.p.send_signal(signal.SIGSTOP)
+        n0 = len(resp.steps)
+        wait_for(lambda: len(resp.steps) >= n0 + 300, 60, "300 steps while the recorder is frozen")
+        rec.p.send_signal(signal.SIGCONT)
+        n1 = len(resp.steps)
+        wait_for(lambda: len(resp.steps) >= n1 + 100, 60, "100 more steps")
+        assert bridge.stop() == 0
+        time.sleep(1.0)                     # the last samples in flight reach the recorder
+        out_code = rec.stop()
+    finally:
+        probe.close()
+    assert out_code == 0, rec.output()[-2000:]
+    info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    lost = json.loads(info["custom_data"]["protocad_lost_messages"])
+    topic = T.topic_name(NS, T.STEP_INFO)
+    recorded = bag_stamps(bag, T.STEP_INFO)
+    published = {s for s, _, _ in resp.steps}
+    assert set(recorded) <= published
+    assert lost[topic] > 0 and len(recorded) + lost[topic] == len(published), (len(recorded), lost, len(published))
+    report = MCAPDataset([bag], seq_len=4, cache_dir=tmp_path / "cache").report.summary()
+    assert "the recorder reported lost messages" in report and str(lost[topic]) in report
