@@ -112,6 +112,10 @@ def test_context_recording_covers_every_context_of_both_splits(tmp_path, pendulu
 
     with Image.open(png) as im:
         assert im.size[0] > 600 and im.size[1] > 600
+        # the prototypes are drawn (red crosses) in the panels, above the legend rows
+        panels = np.asarray(im.convert("RGB"))[:-60].reshape(-1, 3)
+        cross = np.array(V.CLASS_COLORS[V.PROTOTYPE_CLASS], np.uint8)
+        assert (panels == cross).all(axis=1).sum() > 100
     verify = _rerun(tmp_path, "rrd", "verify", str(out))
     assert verify.returncode == 0, verify.stderr
 

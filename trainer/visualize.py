@@ -829,14 +829,11 @@ def render_context_png(view: ContextView, path: str | Path, *, dim: int = 2, pan
         Y = view.points[(feat, dim)]
         C = view.context_points[(feat, dim)]
         P = view.prototype_points.get((feat, dim))
-        # Frame the points (as the blueprint does); prototypes outside are left out and counted.
-        lo, hi = Y.min(0), Y.max(0)
+        # Frame the points and the prototypes together: every prototype is drawn (a frame of
+        # the points alone left all of them out in an early recording, hidden behind a note).
+        framed = Y if P is None else np.concatenate([Y[:, :2], P[:, :2]])
+        lo, hi = framed[:, :2].min(0), framed[:, :2].max(0)
         span = np.where(hi - lo > 1e-9, hi - lo, 1.0)
-        if P is not None:
-            inside = np.all((P[:, :2] >= lo[:2]) & (P[:, :2] <= hi[:2]), axis=1)
-            n_out, P = int((~inside).sum()), P[inside]
-        else:
-            n_out = 0
         y0 = title_h + r * (panel + title_h + margin)
         for c, col in enumerate(cols):
             x0 = margin + c * (panel + margin)
@@ -850,9 +847,6 @@ def render_context_png(view: ContextView, path: str | Path, *, dim: int = 2, pan
             draw.rectangle([x0, top, x0 + panel, top + panel], outline=(180, 180, 180))
             draw.text((x0 + 4, y0 + 6), f"{names.get(feat, feat)}, coloured {col.replace('_', ' ')}",
                       fill="black", font=font)
-            if n_out:
-                draw.text((x0 + 6, top + 4), f"{n_out} of {view.num_prototypes} prototypes lie "
-                          "outside this frame", fill=(120, 120, 120), font=small)
             if col == "by_split":
                 pcol, ccol = split_col[p_ep], ctx_split_col
             else:
