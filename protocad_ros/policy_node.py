@@ -443,6 +443,11 @@ class PolicyNode(ManagedNode):
 
     def _answer(self, stamp: int, image: np.ndarray, info: topics.StepInfo, t_recv: float) -> None:
         if info.is_first:
+            if self._last_stamp is not None:   # the latency while running, not only at exit
+                self.get_logger().info(
+                    f"episode {self._episode} answered ({self._step + 1} steps); latency obs -> action "
+                    f"p50 {self.latency.percentile(50) * 1e3:.2f} ms, p99 {self.latency.percentile(99) * 1e3:.2f} ms "
+                    f"(model p50 {self.act_time.percentile(50) * 1e3:.2f} ms)")
             self._swap_if_pending()
             self._prev_action[:] = 0.0
             self._count("episodes")
