@@ -95,14 +95,14 @@ def test_three_terminals_then_the_everyday_ros2_verbs_as_written(workdir, probe)
     node = probe.node
     action = T.topic_name(NS, T.ACTION)
     procs = [terminal(workdir, record, workdir / "record.log")]
-    wait_until(lambda: "recorder" in [n for n, _ in node.get_node_names_and_namespaces()], START,
-               "the recorder in the graph")
-    procs.append(terminal(workdir, policy, workdir / "policy.log"))
-    # The recorder subscribes to each topic once it appears: the policy's action topic first.
-    wait_until(lambda: node.count_publishers(action) >= 1 and node.count_subscribers(action) >= 1, START,
-               "the policy publishing actions and the recorder reading them")
-    procs.append(terminal(workdir, bridge, workdir / "bridge.log"))
     try:
+        wait_until(lambda: "recorder" in [n for n, _ in node.get_node_names_and_namespaces()], START,
+                   "the recorder in the graph")
+        procs.append(terminal(workdir, policy, workdir / "policy.log"))
+        # The recorder subscribes to each topic once it appears: the policy's action topic first.
+        wait_until(lambda: node.count_publishers(action) >= 1 and node.count_subscribers(action) >= 1, START,
+                   "the policy publishing actions and the recorder reading them")
+        procs.append(terminal(workdir, bridge, workdir / "bridge.log"))
         wait_until(lambda: len(seen) >= 30, START, "30 steps")
     finally:
         codes = [ctrl_c(p) for p in reversed(procs)]       # bridge, policy, then the recorder

@@ -791,14 +791,17 @@ class MCAPDataset:
             self.add(paths)
 
     # -- building
-    def add(self, paths: Iterable[str | Path]) -> list[SourceReport]:
-        """Index new bags (streamed once into the cache, or reused from it)."""
+    def add(self, paths: Iterable[str | Path], topics: TopicMap | None = None) -> list[SourceReport]:
+        """Index new bags (streamed once into the cache, or reused from it). `topics`: read
+        these bags through another topic map than the dataset's (one bag that recorded several
+        robots is added once per robot namespace)."""
+        topics = topics or self.topics
         added = []
         for src in find_sources(paths):
-            rid = str(src.resolve())
+            rid = f"{src.resolve()}|{topics.step_info}"
             if rid in self._known:
                 continue
-            key = cache_key(src, self.topics)
+            key = cache_key(src, topics)
             entry = self.cache_dir / key
             cached = (entry / "index.json").exists()
             if cached:
@@ -811,7 +814,7 @@ class MCAPDataset:
                 if self.verbose:
                     print(f"[dataset] indexing {src} ...", file=sys.stderr, flush=True)
                 entry.parent.mkdir(parents=True, exist_ok=True)
-                _ingest(src, self.topics, entry)
+                _ingest(src, topics, entry)
                 store = SourceStore(entry)
             os.utime(entry)   # last use, for the LRU budget
             store.report.cached = cached

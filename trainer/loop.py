@@ -35,6 +35,7 @@ import time
 from pathlib import Path
 from typing import Any, Sequence
 
+from sim_bridge import topics as T
 from trainer import runs
 from trainer.dataset import MCAPDataset, TopicMap
 from trainer.train import Trainer, add_common_model_args, config_from_args
@@ -73,6 +74,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="final evaluation: episodes per test context (0: none; default 5, demo 1)")
     g.add_argument("--eval-max-contexts", type=int, default=0, help="final evaluation: at most K test contexts (0: all)")
     g.add_argument("--no-visualize", action="store_true", help="skip the rerun context recording at the end")
+    g.add_argument("--robots", type=int, default=None,
+                   help="N robots collecting at once: a bridge and a policy node each in /protocad/robotI "
+                        "(own /clock), one recorder recording all of them, training on every robot's "
+                        "episodes; each records --episodes-per-cycle episodes per cycle (default 1)")
     g = ap.add_argument_group("run")
     g.add_argument("--run-dir", default=None, help="output directory (default runs/loop-TASK-VARIANT-TIME)")
     g.add_argument("--resume", action="store_true", help="continue RUN_DIR (bags + checkpoint + counters)")
@@ -126,9 +131,9 @@ class Loop:
             self.cfg = Config.load(self.run_dir / "config.yaml")
             p = state["protocol"]
             for k in ("cycles", "episodes_per_cycle", "prefill_episodes", "updates_per_episode", "episode_length",
-                      "exploration_noise", "eval_episodes"):
+                      "exploration_noise", "eval_episodes", "robots"):
                 if getattr(a, k) is None:
-                    setattr(a, k, p[k])
+                    setattr(a, k, p.get(k, 1 if k == "robots" else None))
             self.run_json = state
         else:
             self.cfg = config_from_args(a)
@@ -145,11 +150,15 @@ class Loop:
         a.episode_length = a.episode_length or max(1, tr.time_limit // tr.action_repeat)
         a.exploration_noise = tr.expl_noise if a.exploration_noise is None else a.exploration_noise
         a.eval_episodes = 5 if a.eval_episodes is None else a.eval_episodes
+        a.robots = a.robots or 1
+        from trainer.rosprocs import robot_namespaces
+
+        self.namespaces = robot_namespaces(T.DEFAULT_NAMESPACE, a.robots)
         self.run_json.update(kind="loop", argv=sys.argv, task=self.cfg.task, variant=self.cfg.variant,
                              preset=self.cfg.preset, seed=tr.seed, device=self.device, protocol={
                                  k: getattr(a, k) for k in ("cycles", "episodes_per_cycle", "prefill_episodes",
                                                             "updates_per_episode", "episode_length",
-                                                            "exploration_noise", "eval_episodes")})
+                                                            "exploration_noise", "eval_episodes", "robots")})
         runs.atomic_write_json(self.run_dir / "run.json", self.run_json)
         self.bags_dir = self.run_dir / "bags"
         self.bags_dir.mkdir(exist_ok=True)
@@ -160,8 +169,9 @@ class Loop:
             self._add_bag(bag, resumed=True)
 
     def _bag_stats(self, bag: Path) -> dict[str, Any]:
-        store = next(s for s in self.ds.stores if Path(s.report.path).resolve() == bag.resolve())
-        eps = [e for e in store.episodes]
+        """The bag's episodes, over every robot namespace it recorded."""
+        stores = [s for s in self.ds.stores if Path(s.report.path).resolve() == bag.resolve()]
+        eps = [e for s in stores for e in s.episodes]
         complete = [e for e in eps if e["has_first"] and e["has_last"]]
         R = self.cfg.train.action_repeat
         steps = sum(max(e["length"] - 1, 0) for e in eps)
@@ -169,10 +179,11 @@ class Loop:
                 "episodes": len(complete), "partial_episodes": len(eps) - len(complete),
                 "env_steps": steps * R, "returns": [round(e["return"], 2) for e in complete],
                 "contexts": [e["context"] for e in complete],
-                "problems": store.report.problems()}
+                "problems": [p for s in stores for p in s.report.problems()]}
 
     def _add_bag(self, bag: Path, resumed: bool = False) -> dict[str, Any]:
-        self.ds.add([bag])
+        for ns in self.namespaces:   # a bag of several robots: each namespace's episodes
+            self.ds.add([bag], topics=TopicMap.for_namespace(ns))
         st = self._bag_stats(bag)
         self.phases.append(st)
         if resumed:
@@ -208,26 +219,35 @@ class Loop:
         return self.bags_dir / f"{len(self.phases):02d}_{kind}"
 
     def _collect(self, kind: str, episodes: int, stop: runs.StopFlag) -> dict[str, Any] | None:
-        """One recorded bridge run of `episodes` episodes; returns the phase stats (None when
-        interrupted before the bag holds anything)."""
+        """One recorded run of every robot's bridge, `episodes` episodes each; returns the phase
+        stats (None when interrupted before the bag holds anything)."""
         a, tr = self.a, self.cfg.train
         bag = self._next_bag(kind)
         stack = self.stack
         actor = "actor" if kind == "prefill" else "policy"
-        seed = tr.seed * 1000 + len(self.phases)
-        stack.start_recorder(bag, log_name=f"recorder_{bag.name}",
-                             wait_topics=[f"{stack.namespace}/action"])
+        stack.start_recorder(bag, log_name=f"recorder_{bag.name}", namespaces=self.namespaces,
+                             wait_topics=[T.topic_name(ns, T.ACTION) for ns in self.namespaces])
         t0 = time.monotonic()
-        bridge = stack.start_bridge(task=self.cfg.task, split="train", seed=seed, max_episodes=episodes,
-                                    episode_length=a.episode_length, action_repeat=tr.action_repeat,
-                                    min_subscribers=2, log_name=f"bridge_{bag.name}")
+        bridges = []
+        for i, ns in enumerate(self.namespaces):
+            seed = tr.seed * 1000 + len(self.phases) * len(self.namespaces) + i
+            bridges.append(stack.start_bridge(
+                task=self.cfg.task, split="train", seed=seed, max_episodes=episodes,
+                episode_length=a.episode_length, action_repeat=tr.action_repeat, min_subscribers=2,
+                log_name=f"bridge_{bag.name}" + (f"_robot{i}" if len(self.namespaces) > 1 else ""), ns=ns))
         print(f"[loop] {bag.name}: {episodes} episode(s) of {a.episode_length} steps on training contexts "
-              f"({'random actions' if kind == 'prefill' else 'policy node'}; bridge pid {bridge.pid})", flush=True)
-        code = stack.wait_exit(bridge, a.phase_timeout, watch=(actor, "recorder"), stop=stop)
-        stack.stop("bridge")
+              f"({'random actions' if kind == 'prefill' else 'policy node'}"
+              + (f"; {len(bridges)} robots" if len(bridges) > 1 else "")
+              + f"; bridge pid {', '.join(str(b.pid) for b in bridges)})", flush=True)
+        code = 0
+        for b in bridges:
+            code = stack.wait_exit(b, a.phase_timeout, watch=(actor, "recorder"), stop=stop) or code
+        for ns in self.namespaces:
+            stack.stop(stack.key("bridge", ns))
         stack.stop("recorder")
         if kind == "prefill":
-            stack.stop("actor")
+            for ns in self.namespaces:
+                stack.stop(stack.key("actor", ns))
         if not any(bag.glob("*.mcap")):
             return None
         st = self._add_bag(bag)
@@ -241,16 +261,21 @@ class Loop:
               flush=True)
         return st
 
-    def _start_policy(self) -> None:
+    def _start_policies(self) -> None:
         a, cfg = self.a, self.cfg
-        self.stack.start_policy(checkpoint=runs.checkpoint_path(self.run_dir), task=cfg.task,
-                                wait_for_checkpoint=True, reload_poll_s=0.5, mode="sample",
-                                exploration_noise=a.exploration_noise, seed=cfg.train.seed, device=self.device)
+        for i, ns in enumerate(self.namespaces):
+            proc = self.stack.procs.get(self.stack.key("policy", ns))
+            if proc is None or not proc.alive():
+                self.stack.start_policy(checkpoint=runs.checkpoint_path(self.run_dir), task=cfg.task,
+                                        wait_for_checkpoint=True, reload_poll_s=0.5, mode="sample",
+                                        exploration_noise=a.exploration_noise, seed=cfg.train.seed + i,
+                                        device=self.device, ns=ns)
 
-    def _policy_diagnostics(self, newer_than: float | None = None, timeout: float = 5.0) -> dict[str, str]:
-        """The policy node's latest /diagnostics values (stamped after `newer_than`, if
-        given and one comes within `timeout`)."""
-        graph, fqn = self.stack.graph, self.stack.node_fqn("policy")
+    def _policy_diagnostics(self, newer_than: float | None = None, timeout: float = 5.0,
+                            ns: str | None = None) -> dict[str, str]:
+        """A policy node's latest /diagnostics values (stamped after `newer_than`, if given and
+        one comes within `timeout`); the first robot's unless `ns`."""
+        graph, fqn = self.stack.graph, self.stack.node_fqn("policy", ns or self.namespaces[0])
         deadline = time.monotonic() + timeout
         while time.monotonic() < deadline:
             values = graph.diagnostics(fqn, newer_than)
@@ -260,23 +285,25 @@ class Loop:
         return graph.diagnostics(fqn) or {}
 
     def _served_updates(self) -> int | None:
-        """The update counter of the checkpoint the policy node serves now (its diagnostics'
-        checkpoint_updates, from a report made after the phase ended)."""
+        """The update counter of the checkpoint the (first) policy node serves now (its
+        diagnostics' checkpoint_updates, from a report made after the phase ended)."""
         value = self._policy_diagnostics(newer_than=time.time()).get("checkpoint_updates")
         return int(value) if value is not None and int(value) >= 0 else None
 
     def _wait_policy_loaded(self, updates: int, stop, timeout: float = 120.0) -> None:
-        """Block until the policy node has loaded the checkpoint with this update counter:
+        """Block until every policy node has loaded the checkpoint with this update counter:
         its diagnostics say checkpoint_updates=N (serving it) or pending_checkpoint_updates=N
         (its watcher loaded it; served from the next is_first)."""
-        graph, fqn, want = self.stack.graph, self.stack.node_fqn("policy"), str(updates)
+        graph, want = self.stack.graph, str(updates)
+        for ns in self.namespaces:
+            fqn = self.stack.node_fqn("policy", ns)
 
-        def loaded() -> bool:
-            values = graph.diagnostics(fqn) or {}
-            return want in (values.get("checkpoint_updates"), values.get("pending_checkpoint_updates"))
+            def loaded(fqn: str = fqn) -> bool:
+                values = graph.diagnostics(fqn) or {}
+                return want in (values.get("checkpoint_updates"), values.get("pending_checkpoint_updates"))
 
-        self.stack.wait_until(self.stack.procs["policy"], loaded,
-                         f"policy diagnostics with checkpoint updates={updates}", timeout, stop)
+            self.stack.wait_until(self.stack.procs[self.stack.key("policy", ns)], loaded,
+                                  f"{fqn} diagnostics with checkpoint updates={updates}", timeout, stop)
 
     def _train(self, stop: runs.StopFlag) -> bool:
         target = self.target_updates()
@@ -336,8 +363,11 @@ class Loop:
             try:
                 # 1. prefill
                 while self.prefill_episodes_done < a.prefill_episodes and not stop.stop:
-                    self.stack.start_random_actor(task=cfg.task, seed=cfg.train.seed + len(self.phases))
-                    st = self._collect("prefill", a.prefill_episodes - self.prefill_episodes_done, stop)
+                    for i, ns in enumerate(self.namespaces):
+                        self.stack.start_random_actor(task=cfg.task, seed=cfg.train.seed + len(self.phases) + 100 * i,
+                                                      ns=ns)
+                    left = a.prefill_episodes - self.prefill_episodes_done
+                    st = self._collect("prefill", -(-left // len(self.namespaces)), stop)
                     if st is None or (st["episodes"] == 0 and not stop.stop):
                         raise RuntimeError("the prefill phase recorded no complete episode; see "
                                            f"{self.stack.log_dir}")
@@ -350,8 +380,7 @@ class Loop:
                         self.trainer.save()
                     if self.collect_phases >= a.cycles or stop.stop:
                         break
-                    if "policy" not in self.stack.procs or not self.stack.procs["policy"].alive():
-                        self._start_policy()
+                    self._start_policies()
                     self._wait_policy_loaded(self.trainer.updates, stop)
                     if stop.stop:
                         break

@@ -127,8 +127,22 @@ class NodeProc:
         return self.p.returncode
 
 
+def robot_namespaces(base: str, robots: int) -> list[str]:
+    """One robot: the base namespace; several: BASE/robot0, BASE/robot1, ... (each its own
+    bridge, policy and /clock)."""
+    if robots < 1:
+        raise ValueError(f"robots must be >= 1, got {robots}")
+    return [base] if robots == 1 else [T.topic_name(base, f"robot{i}") for i in range(robots)]
+
+
+def clock_topic(ns: str, base: str) -> str:
+    """/clock for the base namespace, NS/clock for a robot of several (so clocks do not mix)."""
+    return T.CLOCK if ns == base else T.topic_name(ns, "clock")
+
+
 class RosStack:
-    """The node processes of one run, sharing a namespace and a ROS domain."""
+    """The node processes of one run, sharing a ROS domain: one robot in `namespace`, or
+    several (`ns` of each start_* call; process names then carry '@NS')."""
 
     def __init__(self, log_dir: str | Path, *, domain_id: int | None = None,
                  namespace: str = T.DEFAULT_NAMESPACE):
@@ -154,8 +168,19 @@ class RosStack:
             graph, self._graph = self._graph, None
             graph.close()
 
-    def node_fqn(self, node_name: str) -> str:
-        return T.topic_name(self.namespace, node_name)
+    def node_fqn(self, node_name: str, ns: str | None = None) -> str:
+        return T.topic_name(ns or self.namespace, node_name)
+
+    def key(self, name: str, ns: str | None = None) -> str:
+        """The process name of `name` in robot namespace `ns` ('bridge', 'bridge@/protocad/robot1')."""
+        return name if ns in (None, self.namespace) else f"{name}@{ns}"
+
+    def _ns_args(self, ns: str | None) -> list[str]:
+        ns = ns or self.namespace
+        out = ["-r", f"__ns:={ns}"]
+        if ns != self.namespace:
+            out += ["-r", f"{T.CLOCK}:={clock_topic(ns, self.namespace)}"]
+        return out
 
     def wait_until(self, proc: NodeProc, ready, what: str, timeout: float, stop=None) -> bool:
         """Wait for `ready()` (NodeFailed with the log tail if the process exits first or the
@@ -165,9 +190,10 @@ class RosStack:
         except (RuntimeError, TimeoutError) as exc:
             raise NodeFailed(f"{proc.name}: {exc}; log {proc.log_path}:\n{proc.tail()}") from None
 
-    def wait_active(self, proc: NodeProc, node_name: str, timeout: float, stop=None) -> bool:
+    def wait_active(self, proc: NodeProc, node_name: str, timeout: float, stop=None,
+                    ns: str | None = None) -> bool:
         """A managed node: wait until its lifecycle state is `active` (get_state)."""
-        fqn = self.node_fqn(node_name)
+        fqn = self.node_fqn(node_name, ns)
         return self.wait_until(proc, lambda: self.graph.lifecycle_state(fqn) == "active",
                           f"lifecycle state active of {fqn}", timeout, stop)
 
@@ -184,7 +210,10 @@ class RosStack:
         old = self.procs.get(name)
         if old is not None and old.alive():
             raise RuntimeError(f"{name} is already running (pid {old.pid})")
-        proc = NodeProc(name, [sys.executable, "-m", module, *args], self.log_dir / f"{log_name or name}.log",
+        if log_name is None:   # 'policy@/protocad/robot1' -> policy_robot1.log
+            kind, _, ns = name.partition("@")
+            log_name = kind + (f"_{ns.rstrip('/').rsplit('/', 1)[-1]}" if ns else "")
+        proc = NodeProc(name, [sys.executable, "-m", module, *args], self.log_dir / f"{log_name}.log",
                         self.env)
         self.procs[name] = proc
         return proc
@@ -203,44 +232,48 @@ class RosStack:
     def start_bridge(self, *, task: str, split: str = "train", seed: int = 0, max_episodes: int = 0,
                      episode_length: int = 500, action_repeat: int = 2, min_subscribers: int = 2,
                      lockstep_timeout_s: float = 5.0, context_schedule: str = "sample",
-                     log_name: str | None = None) -> NodeProc:
+                     log_name: str | None = None, ns: str | None = None) -> NodeProc:
         args = ["--ros-args", *self._params(task=task, split=split, seed=seed, mode="lockstep",
                                             context_schedule=context_schedule,
                                             max_episodes=max_episodes, episode_length=episode_length,
                                             action_repeat=action_repeat, min_subscribers=min_subscribers,
                                             lockstep_timeout_s=float(lockstep_timeout_s)),
-                "-r", f"__ns:={self.namespace}"]
-        return self._spawn("bridge", "sim_bridge.node", args, log_name)
+                *self._ns_args(ns)]
+        return self._spawn(self.key("bridge", ns), "sim_bridge.node", args, log_name)
 
     def start_policy(self, *, checkpoint: str | Path | None, task: str, wait_for_checkpoint: bool = False,
                      reload_poll_s: float = 0.5, mode: str = "deterministic", exploration_noise: float = 0.0,
                      seed: int = 0, device: str = "cpu", preset: str | None = None, variant: str | None = None,
-                     num_threads: int = 0, ready_timeout: float = 120.0) -> NodeProc:
+                     num_threads: int = 0, ready_timeout: float = 120.0, ns: str | None = None) -> NodeProc:
         args = ["--ros-args", *self._params(
             checkpoint=str(checkpoint) if checkpoint else None, wait_for_checkpoint=wait_for_checkpoint,
             reload_poll_s=float(reload_poll_s), task=task, mode=mode, exploration_noise=float(exploration_noise),
             seed=seed, device=device, preset=preset, variant=variant, num_threads=num_threads),
-            "-r", f"__ns:={self.namespace}"]
-        proc = self._spawn("policy", "protocad_ros.policy_node", args)
-        self.wait_active(proc, "policy", ready_timeout)
+            *self._ns_args(ns)]
+        proc = self._spawn(self.key("policy", ns), "protocad_ros.policy_node", args)
+        self.wait_active(proc, "policy", ready_timeout, ns=ns)
         return proc
 
-    def start_random_actor(self, *, task: str, seed: int = 0, ready_timeout: float = 60.0) -> NodeProc:
-        args = ["--task", task, "--seed", str(seed), "--ros-args", "-r", f"__ns:={self.namespace}"]
-        ns = "/" + self.namespace.strip("/")
-        wants = [(self.node_fqn(T.ACTION), "pub"), (self.node_fqn(T.IMAGE), "sub"),
-                 (self.node_fqn(T.STEP_INFO), "sub")]
-        old = self.graph.snapshot("random_actor", ns, wants)
-        proc = self._spawn("actor", "trainer.random_actor", args)
-        self.wait_endpoints(proc, "random_actor", ns, wants, ready_timeout, old=old)
+    def start_random_actor(self, *, task: str, seed: int = 0, ready_timeout: float = 60.0,
+                           ns: str | None = None) -> NodeProc:
+        args = ["--task", task, "--seed", str(seed), "--ros-args", *self._ns_args(ns)]
+        node_ns = "/" + (ns or self.namespace).strip("/")
+        wants = [(self.node_fqn(T.ACTION, ns), "pub"), (self.node_fqn(T.IMAGE, ns), "sub"),
+                 (self.node_fqn(T.STEP_INFO, ns), "sub")]
+        old = self.graph.snapshot("random_actor", node_ns, wants)
+        proc = self._spawn(self.key("actor", ns), "trainer.random_actor", args)
+        self.wait_endpoints(proc, "random_actor", node_ns, wants, ready_timeout, old=old)
         return proc
 
     def start_recorder(self, bag: str | Path, *, extra_topics: Iterable[str] = (T.DIAGNOSTICS,),
                        wait_topics: Iterable[str] = (), ready_timeout: float = 60.0,
-                       log_name: str | None = None) -> NodeProc:
+                       log_name: str | None = None, namespaces: Sequence[str] | None = None) -> NodeProc:
+        """One recorder for the robots in `namespaces` (default: this stack's namespace)."""
         from trainer.recorder import default_topics
 
-        topics = default_topics(self.namespace) + [t for t in extra_topics]
+        topics = [t if t != T.CLOCK else clock_topic(ns, self.namespace)
+                  for ns in (namespaces or [self.namespace]) for t in default_topics(ns)]
+        topics += [t for t in extra_topics]
         args = ["-o", str(bag), "--namespace", self.namespace, "--flush-interval", "1.0",
                 "--topics", *topics]
         wants = recorder_endpoints(wait_topics)
@@ -257,9 +290,10 @@ class RosStack:
         while proc.alive():
             if stop is not None and stop.stop:
                 return -1
-            for name in watch:
-                other = self.procs.get(name)
-                if other is not None and other is not proc and not other.alive() and other.p.returncode not in (0, None):
+            for name, other in list(self.procs.items()):
+                if name.split("@")[0] not in watch:
+                    continue
+                if other is not proc and not other.alive() and other.p.returncode not in (0, None):
                     raise NodeFailed(f"{name} died with code {other.p.returncode}; log "
                                      f"{other.log_path}:\n{other.tail()}")
             if time.monotonic() > deadline:
@@ -274,11 +308,11 @@ class RosStack:
         return proc.stop(sig, timeout) if proc is not None else None
 
     def stop_all(self) -> dict[str, int | None]:
-        """Bridge first (no new observations), then actors, the recorder last (drains)."""
+        """Bridges first (no new observations), then actors, the recorder last (drains)."""
         self.close_graph()
         codes = {}
-        for name in ("bridge", "actor", "policy", "recorder"):
-            if name in self.procs:
+        for kind in ("bridge", "actor", "policy", "recorder"):
+            for name in [n for n in self.procs if n.split("@")[0] == kind]:
                 codes[name] = self.stop(name)
         for name in list(self.procs):
             if name not in codes:

@@ -234,8 +234,10 @@ def add_topic_args(ap: argparse.ArgumentParser) -> None:
     g.add_argument("--topic", action="append", default=[], metavar="KEY=/TOPIC",
                    help="read KEY (image, step_info, action, context) from /TOPIC, for logs "
                         "recorded under other names (e.g. --topic image=/cam/rgb; context=none)")
-    g.add_argument("--namespace", default=None,
-                   help="namespace of the contract topics in the logs (default /protocad)")
+    g.add_argument("--namespace", nargs="+", default=None, metavar="NS",
+                   help="namespace(s) of the contract topics in the logs (default /protocad); several = "
+                        "one robot each, e.g. the bags of `protocad-loop --robots 2`: --namespace "
+                        "/protocad/robot0 /protocad/robot1")
     g.add_argument("--cache-dir", default=None,
                    help="dataset cache (default $PROTOCAD_CACHE_DIR or ~/.cache/protocad-ros/dataset)")
     g.add_argument("--cache-budget-gb", type=float, default=None,
@@ -304,8 +306,9 @@ def _main(a: argparse.Namespace) -> int:
     if not logs:
         raise ValueError("give --logs PATH... (bag directories, .mcap files or folders of bags)")
     topic_args = a.topic or run_json.get("topics_args", [])
-    namespace = a.namespace or run_json.get("namespace")
-    topics = TopicMap.parse(topic_args, namespace)
+    namespaces = a.namespace or run_json.get("namespace") or [None]
+    namespaces = [namespaces] if isinstance(namespaces, str) else list(namespaces)   # older run.json: one
+    topics = TopicMap.parse(topic_args, namespaces[0])
     cache_dir = a.cache_dir or run_json.get("cache_dir")
 
     print(f"[train] reading logs: {', '.join(map(str, logs))}", flush=True)
@@ -324,6 +327,8 @@ def _main(a: argparse.Namespace) -> int:
             raise ValueError(f"--resume: cannot read {run_dir / 'config.yaml'}: {exc}") from None
     ds = MCAPDataset(logs, topics=topics, seq_len=cfg.train.seq_len, seed=cfg.train.seed,
                      cache_dir=cache_dir, verbose=True, cache_budget_gb=a.cache_budget_gb)
+    for ns in namespaces[1:]:   # the same logs, read once more per robot namespace
+        ds.add(logs, topics=TopicMap.parse(topic_args, ns))
     print(ds.report.summary(), flush=True)
     if ds.num_windows == 0:
         raise DatasetError(f"nothing to train on: no window of {cfg.train.seq_len} steps in the logs "
@@ -358,7 +363,7 @@ def _main(a: argparse.Namespace) -> int:
         raise ValueError(f"the logs have {trainer.dataset.action_dim}-d actions but the agent "
                          f"{trainer.agent.action_dim}-d")
     run_json.update(kind="train", argv=sys.argv, logs=[str(Path(p).resolve()) for p in logs],
-                    topics_args=list(topic_args), namespace=namespace,
+                    topics_args=list(topic_args), namespace=[n for n in namespaces if n] or None,
                     cache_dir=str(Path(cache_dir).resolve()) if cache_dir else None, task=cfg.task,
                     variant=cfg.variant, preset=cfg.preset, seed=cfg.train.seed, device=device, updates=target,
                     checkpoint_every=a.checkpoint_every, log_every=a.log_every,

@@ -31,6 +31,17 @@ def _require_node(node, args) -> str | None:
                                                  max(args.timeout, graph.SETTLE_MAX_S)) else None
 
 
+def _target_client(node, args):
+    """(absolute node name, its parameter client), or ros2cli's message saying why not."""
+    target = _require_node(node, args)
+    if target is None:
+        return "Node not found"
+    client = _client(node, target)
+    if client is None:
+        return f"Wait for service timed out waiting for parameter services for node {target}"
+    return target, client
+
+
 def _call(node, future):
     result = graph.spin_until_future(node, future, SERVICE_TIMEOUT_S)
     if result is None:
@@ -83,12 +94,10 @@ def _label_and_value(pv) -> tuple[str, object] | str:
 
 def cmd_get(args) -> int | str | None:
     with graph.direct_node(args) as node:
-        target = _require_node(node, args)
-        if target is None:
-            return "Node not found"
-        client = _client(node, target)
-        if client is None:
-            return f"Wait for service timed out waiting for parameter services for node {target}"
+        got = _target_client(node, args)
+        if isinstance(got, str):
+            return got
+        target, client = got
         values = _call(node, client.get_parameters([args.parameter_name])).values
     if not values:
         return "Parameter not set"
@@ -108,12 +117,10 @@ def cmd_set(args) -> int | str | None:
     from rclpy.parameter import get_parameter_value
 
     with graph.direct_node(args) as node:
-        target = _require_node(node, args)
-        if target is None:
-            return "Node not found"
-        client = _client(node, target)
-        if client is None:
-            return f"Wait for service timed out waiting for parameter services for node {target}"
+        got = _target_client(node, args)
+        if isinstance(got, str):
+            return got
+        target, client = got
         param = Parameter(name=args.parameter_name, value=get_parameter_value(string_value=args.value))
         result = _call(node, client.set_parameters([param])).results[0]
     if result.successful:
@@ -135,13 +142,10 @@ def cmd_dump(args) -> int | str | None:
     from rclpy.parameter import parameter_value_to_python
 
     with graph.direct_node(args) as node:
-        target = _require_node(node, args)
-        if target is None:
-            return "Node not found"
-        client = _client(node, target)
-        if client is None:
-            print(f"Wait for service timed out waiting for parameter services for node {target}", file=sys.stderr)
-            return None
+        got = _target_client(node, args)
+        if isinstance(got, str):
+            return got
+        target, client = got
         names = sorted(_call(node, client.list_parameters()).result.names)
         values = _call(node, client.get_parameters(names)).values
     params: dict = {}
@@ -153,12 +157,10 @@ def cmd_dump(args) -> int | str | None:
 
 def cmd_describe(args) -> int | str | None:
     with graph.direct_node(args) as node:
-        target = _require_node(node, args)
-        if target is None:
-            return "Node not found"
-        client = _client(node, target)
-        if client is None:
-            return f"Wait for service timed out waiting for parameter services for node {target}"
+        got = _target_client(node, args)
+        if isinstance(got, str):
+            return got
+        target, client = got
         descriptors = _call(node, client.describe_parameters(args.parameter_names)).descriptors
     for d in descriptors:
         print(f"Parameter name: {d.name}")
