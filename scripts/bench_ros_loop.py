@@ -97,10 +97,42 @@ def direct(args, with_policy: bool) -> tuple[float, list[float]]:
         return steps / (time.perf_counter() - start), lat
 
 
+PROFILE: Path | None = None   # --profile DIR: every node process runs under py-spy
+
+
 def spawn(name: str, *argv: str, logdir: Path) -> subprocess.Popen:
     log = open(logdir / f"{name}.log", "wb")
-    return subprocess.Popen([sys.executable, *argv], stdout=log, stderr=subprocess.STDOUT,
-                            cwd=ROOT, start_new_session=True)
+    cmd = [sys.executable, *argv]
+    if PROFILE is not None:   # sampled where the CPU goes (idle threads left out), as collapsed stacks
+        cmd = ["py-spy", "record", "--rate", "500", "--format", "raw", "--nonblocking",
+               "--output", str(PROFILE / f"{name}.txt"), "--", *cmd]
+    return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, cwd=ROOT, start_new_session=True)
+
+
+#: Frames of a node at work (stepping, spinning, answering): start-up (imports, model load) is left out.
+STEADY = ("_run_lockstep", "_run_realtime", "spin_once", "_answer")
+
+
+def profile_top(path: Path, n: int = 12) -> list[tuple[float, float, str]]:
+    """(self %, inclusive %, function) of a py-spy raw profile, by self time, over the samples
+    of the node at work (a STEADY frame in the stack)."""
+    own: dict[str, int] = {}
+    incl: dict[str, int] = {}
+    total = 0
+    for line in path.read_text(errors="replace").splitlines():
+        stack, _, count = line.rpartition(" ")
+        if not stack or not count.isdigit():
+            continue
+        k = int(count)
+        if not any(m in stack for m in STEADY):
+            continue
+        total += k
+        frames = [f.split(" (")[0] + " (" + f.rsplit("/", 1)[-1] if "(" in f else f for f in stack.split(";")]
+        own[frames[-1]] = own.get(frames[-1], 0) + k
+        for f in set(frames):
+            incl[f] = incl.get(f, 0) + k
+    top = sorted(own.items(), key=lambda kv: -kv[1])[:n]
+    return [(100 * c / total, 100 * incl[f] / total, f) for f, c in top] if total else []
 
 
 def ros_loop(args, with_policy: bool, logdir: Path, acks: bool) -> dict[str, float]:
@@ -121,7 +153,7 @@ def ros_loop(args, with_policy: bool, logdir: Path, acks: bool) -> dict[str, flo
     procs = []
     try:
         if with_policy:
-            procs.append(spawn("policy", "-m", "protocad_ros.policy_node", "--ros-args",
+            procs.append(spawn("policy" + ns.replace("/", "_"), "-m", "protocad_ros.policy_node", "--ros-args",
                                "-p", f"task:={args.task}", "-p", f"preset:={args.preset}",
                                "-p", f"num_threads:={args.threads}",
                                "-p", "diagnostics_period_s:=0.5", "-r", f"__ns:={ns}",
@@ -133,7 +165,7 @@ def ros_loop(args, with_policy: bool, logdir: Path, acks: bool) -> dict[str, flo
 
             zero = np.zeros(len(task_actuators(args.task)))
             Responder(probe, lambda info: zero, ns=ns)
-        bridge = spawn("bridge", "-m", "sim_bridge.node", "--ros-args",
+        bridge = spawn("bridge" + ns.replace("/", "_"), "-m", "sim_bridge.node", "--ros-args",
                        "-p", f"task:={args.task}", "-p", f"seed:={args.seed}",
                        "-p", f"episode_length:={args.length}",
                        "-p", f"max_episodes:={args.episodes}",
@@ -188,9 +220,17 @@ def main() -> None:
     ap.add_argument("--render-quality", default="fast", choices=("fast", "default"))
     ap.add_argument("--threads", type=int, default=1, help="torch threads (node and direct)")
     ap.add_argument("--logdir", default="/tmp/bench_ros_loop", help="node logs")
+    ap.add_argument("--profile", action="store_true",
+                    help="run the nodes under py-spy (pip install py-spy) and print the top functions of "
+                         "the bridge and the policy node (profiled runs are slower; their figures are "
+                         "not the benchmark's)")
     args = ap.parse_args()
     logdir = Path(args.logdir)
     logdir.mkdir(parents=True, exist_ok=True)
+    if args.profile:
+        global PROFILE
+        PROFILE = logdir / "profile"
+        PROFILE.mkdir(exist_ok=True)
 
     import torch
 
@@ -232,6 +272,11 @@ def main() -> None:
     ]
     for name, p50, p99 in lat_rows:
         print(f"  {name:32s} {p50:7.2f}  {p99:7.2f}")
+    if PROFILE is not None:
+        for f in sorted(PROFILE.glob("*.txt")):
+            print(f"profile {f.stem} (py-spy, non-idle samples at work): self %  incl %  function")
+            for own, incl, fn in profile_top(f):
+                print(f"  {own:6.1f} {incl:7.1f}  {fn}")
 
 
 if __name__ == "__main__":

@@ -402,10 +402,12 @@ class SimBridgeNode(BridgeDiagnostics, ManagedNode):
                 self._pending_stamp, self._answer = stamp, None
             self.counters["observations_republished" if republish
                           else "observations_published"] += 1
-            self.pub_clock.publish(self._clock_msg)
-            self.pub_context.publish(ctx)
-            self.pub_info.publish(info)
+            # What the policy waits for first (it answers once image and step_info are in);
+            # the true context and the clock follow while it computes.
             self.pub_image.publish(img)
+            self.pub_info.publish(info)
+            self.pub_context.publish(ctx)
+            self.pub_clock.publish(self._clock_msg)
         return True
 
     def _resume(self, stamp: int) -> bool:

@@ -10,6 +10,7 @@ No rclpy import at module level.
 """
 from __future__ import annotations
 
+import functools
 import math
 
 from dataclasses import dataclass
@@ -234,9 +235,16 @@ def read_bridge_info(msg: Any) -> BridgeInfo:
     return BridgeInfo(str(msg.header.frame_id), [str(n) for n in names], d["@control_dt"], int(size))
 
 
+@functools.lru_cache(maxsize=16)
+def _feature_names(proj_dim: int, num_prototypes: int, proto_dim: int) -> tuple[str, ...]:
+    return tuple([f"u/{i}" for i in range(proj_dim)] + [f"w/{k}" for k in range(num_prototypes)]
+                 + [f"e/{i}" for i in range(proto_dim)])
+
+
 def context_feature_names(proj_dim: int, num_prototypes: int, proto_dim: int) -> list[str]:
-    return ([f"u/{i}" for i in range(proj_dim)] + [f"w/{k}" for k in range(num_prototypes)]
-            + [f"e/{i}" for i in range(proto_dim)])
+    """u/0.., w/0.., e/0..: the same few hundred names every step, built once (they were a
+    measurable share of the policy node's step)."""
+    return list(_feature_names(proj_dim, num_prototypes, proto_dim))
 
 
 def fill_context_features(msg: Any, u: np.ndarray, w: np.ndarray, e: np.ndarray, t_ns: int) -> Any:
