@@ -59,7 +59,7 @@ def cmd_nodes(args) -> int | str | None:
 
 
 def cmd_get(args) -> int | str | None:
-    with graph.direct_node(args) as node:
+    with graph.direct_node(args, discover=not args.node_name) as node:
         target = graph.absolute(args.node_name)
         if target and not graph.wait_for_node(node, target, args.include_hidden_nodes):
             return "Node not found"
@@ -77,7 +77,7 @@ def cmd_get(args) -> int | str | None:
 
 
 def cmd_set(args) -> int | str | None:
-    with graph.direct_node(args) as node:
+    with graph.direct_node(args, discover=False) as node:
         target = graph.absolute(args.node_name)
         if not graph.wait_for_node(node, target, args.include_hidden_nodes):
             return "Node not found"
@@ -103,7 +103,7 @@ def cmd_set(args) -> int | str | None:
 
 
 def cmd_list(args) -> int | str | None:
-    with graph.direct_node(args) as node:
+    with graph.direct_node(args, discover=False) as node:
         target = graph.absolute(args.node_name)
         if not graph.wait_for_node(node, target, args.include_hidden_nodes):
             return "Node not found"

@@ -93,7 +93,7 @@ def _label_and_value(pv) -> tuple[str, object] | str:
 
 
 def cmd_get(args) -> int | str | None:
-    with graph.direct_node(args) as node:
+    with graph.direct_node(args, discover=False) as node:
         got = _target_client(node, args)
         if isinstance(got, str):
             return got
@@ -116,7 +116,7 @@ def cmd_set(args) -> int | str | None:
     from rcl_interfaces.msg import Parameter
     from rclpy.parameter import get_parameter_value
 
-    with graph.direct_node(args) as node:
+    with graph.direct_node(args, discover=False) as node:
         got = _target_client(node, args)
         if isinstance(got, str):
             return got
@@ -141,7 +141,7 @@ def _insert(d: dict, dotted: str, value) -> None:
 def cmd_dump(args) -> int | str | None:
     from rclpy.parameter import parameter_value_to_python
 
-    with graph.direct_node(args) as node:
+    with graph.direct_node(args, discover=False) as node:
         got = _target_client(node, args)
         if isinstance(got, str):
             return got
@@ -156,7 +156,7 @@ def cmd_dump(args) -> int | str | None:
 
 
 def cmd_describe(args) -> int | str | None:
-    with graph.direct_node(args) as node:
+    with graph.direct_node(args, discover=False) as node:
         got = _target_client(node, args)
         if isinstance(got, str):
             return got
@@ -193,7 +193,7 @@ def _node_args(p: argparse.ArgumentParser, *, optional: bool = False, timeout: b
     if timeout:
         p.add_argument("--timeout", metavar="N", type=int, default=1,
                        help="Wait at least N seconds until node becomes available (default %(default)s sec; "
-                            "the front-end waits up to 3 s whatever N)")
+                            "the front-end waits up to 4 s whatever N)")
 
 
 def register(sub: argparse._SubParsersAction) -> None:

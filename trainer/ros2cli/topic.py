@@ -181,7 +181,7 @@ def cmd_echo(args) -> int | str | None:
         print(f"A message was lost!!!\n\ttotal count change:{status.total_count_change}"
               f"\n\ttotal count: {status.total_count}", end="---\n")
 
-    with graph.direct_node(args) as node:
+    with graph.direct_node(args, discover=False) as node:
         msg_type = _message_class(node, args)
         # The QoS adapts to the publishers (a latched topic needs TRANSIENT_LOCAL): wait for one.
         graph.wait_for(lambda: node.count_publishers(args.topic_name) > 0, node)
@@ -250,7 +250,7 @@ def cmd_hz(args) -> int | str | None:
     from rclpy.qos import qos_profile_sensor_data
 
     keep = eval(f"lambda m: ({args.filter_expr})") if args.filter_expr else None  # noqa: S307  (ros2cli's --filter)
-    with graph.direct_node(args) as node:
+    with graph.direct_node(args, discover=False) as node:
         name = None
         while rclpy.ok() and name is None:  # ros2cli waits for the topic to appear
             name = topic_type(node, args.topic_name)
