@@ -182,10 +182,11 @@ class ContextModule(nn.Module):
         temporal_consistency: True -> TC-SwAV (eq. 5); False -> in-place ablation.
         drop_first_steps: leading time steps left out of the SwAV loss (DreamerPro drops 1:
             the posterior at a sequence's first step has seen one frame and no transition, so
-            it carries no dynamics/context information).  If the remaining length is odd, one
-            more step is dropped at the FRONT (the least-informed one; the last step has seen
-            the most transitions), so M=50 keeps steps 2..49 (48 steps, halves 2..25 / 26..49).
-            The ablation keeps the same steps, so the two variants differ only in the pairing.
+            it carries no dynamics/context information). TC-SwAV then pairs tau with
+            tau + M/2 exactly (eq. 5, M = the sequence length), for every kept tau whose
+            partner is inside the sequence: M=50 pairs (1, 26) ... (24, 49), 24 pairs (step 25
+            has no partner); DreamerPro's M=51 pairs (1, 26) ... (25, 50). The ablation scores
+            every kept step in place, so the two variants differ only in the pairing.
 
     Call order in one world-model update (the agent owns the optimizer):
         ctx.normalize_prototypes()            # unit-norm c_k before any forward (idempotent)
@@ -315,12 +316,19 @@ class ContextModule(nn.Module):
     def kept_steps(self, seq_len: int) -> slice:
         """Time steps of a length-M sequence that enter the SwAV loss (see drop_first_steps)."""
         start = min(self.drop_first_steps, seq_len)
-        if (seq_len - start) % 2 == 1:
-            start += 1  # even length for the two halves; drop the least-informed step
         if seq_len - start < 2:
             raise ValueError(f"sequence length {seq_len} leaves {seq_len - start} steps after "
                              f"dropping the first {self.drop_first_steps}; need >= 2")
         return slice(start, seq_len)
+
+    def tc_pairs(self, seq_len: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """(tau, tau + M/2) time indices TC-SwAV pairs in a length-M sequence (eq. 5)."""
+        h = seq_len // 2
+        first = torch.arange(min(self.drop_first_steps, seq_len), seq_len - h)
+        if first.numel() < 1:
+            raise ValueError(f"sequence length {seq_len} has no pair (tau, tau + {h}) after dropping "
+                             f"the first {self.drop_first_steps} step(s)")
+        return first, first + h
 
     @torch.no_grad()
     def targets(self, s2: torch.Tensor) -> torch.Tensor:
@@ -345,7 +353,7 @@ class ContextModule(nn.Module):
             raise ValueError(f"expected s1, s2 (B, M, S) of the same shape, got "
                              f"{tuple(s1.shape)} and {tuple(s2.shape)}")
         keep = self.kept_steps(s1.shape[1])
-        s1, s2 = s1[:, keep], s2[:, keep]  # (B, M', S), M' even
+        s1, s2 = s1[:, keep], s2[:, keep]  # (B, M', S), the steps after the warm-up
 
         frozen = self.prototypes_frozen(step)
         # Frozen: the loss still trains the projector, but c_k gets no gradient from it.
@@ -355,13 +363,15 @@ class ContextModule(nn.Module):
         wbar = self.targets(s2)  # (B, M', K), no grad
 
         if self.temporal_consistency:
+            first, second = self.tc_pairs(keep.stop)
+            # tc_swav_loss pairs step j of the first half with step j of the second half.
+            idx = (torch.cat([first, second]) - keep.start).to(log_w.device)
             pair_mask = None
             if is_first is not None:
                 # Segment ids from the full sequence, so resets in dropped steps still count.
-                episode = torch.cumsum(is_first.to(s1.device).long(), dim=1)[:, keep]
-                h = episode.shape[1] // 2
-                pair_mask = episode[:, :h] == episode[:, h:]
-            loss = tc_swav_loss(log_w, wbar, pair_mask)
+                episode = torch.cumsum(is_first.to(s1.device).long(), dim=1)
+                pair_mask = episode[:, first.to(s1.device)] == episode[:, second.to(s1.device)]
+            loss = tc_swav_loss(log_w[:, idx], wbar[:, idx], pair_mask)
         else:
             loss = swav_loss(log_w, wbar)
 

@@ -196,13 +196,31 @@ def test_ema_first_update_copies_then_moves_by_eta():
     assert int(restored.ema_updates) == 2
 
 
-def test_kept_steps_drop_first_and_keep_even():
-    ctx = _module()
-    assert ctx.kept_steps(50) == slice(2, 50)  # drop step 0, then step 1 for an even 48
-    assert ctx.kept_steps(51) == slice(1, 51)  # 50 left after dropping step 0
-    assert _module(drop_first_steps=0).kept_steps(50) == slice(0, 50)
+def test_tc_swav_pairs_are_exactly_m_over_2_apart():
+    ctx = _module()                                  # drop_first_steps = 1 (DreamerPro warm_up)
+    first, second = ctx.tc_pairs(50)                 # the paper's M = 50
+    assert first.tolist() == list(range(1, 25)) and ((second - first) == 25).all()
+    first, second = ctx.tc_pairs(51)                 # DreamerPro's length 51
+    assert first.tolist() == list(range(1, 26)) and second.tolist() == list(range(26, 51))
+    first, second = _module(drop_first_steps=0).tc_pairs(50)
+    assert first.tolist() == list(range(25)) and second.tolist() == list(range(25, 50))
+    assert ctx.kept_steps(50) == slice(1, 50)        # the in-place ablation scores steps 1..49
     with pytest.raises(ValueError):
-        ctx.kept_steps(2)
+        ctx.tc_pairs(2)
+
+
+def test_tc_swav_loss_at_m_50_uses_the_m_over_2_pairs():
+    g = _gen(11)
+    ctx = _module(freeze_prototypes_steps=0)
+    s1, s2 = torch.randn(2, 50, 10, generator=g), torch.randn(2, 50, 10, generator=g)
+    loss, _ = ctx.loss(s1, s2, step=0)
+    c = ctx.prototypes.detach()
+    log_w = torch.log_softmax(F.normalize(ctx.projector(s1[:, 1:]), dim=-1) @ c.t() / 0.1, -1)
+    ubar = F.normalize(ctx.target_projector(s2[:, 1:]), dim=-1)
+    wbar = sinkhorn_knopp((ubar @ c.t()).reshape(-1, 5), 3, 0.05).reshape(2, 49, 5)
+    # kept index i is time step i + 1: pairs (1, 26) .. (24, 49) are kept (0, 25) .. (23, 48)
+    idx = torch.cat([torch.arange(0, 24), torch.arange(25, 49)])
+    assert loss.item() == pytest.approx(_tc_reference(log_w.detach()[:, idx], wbar[:, idx]), rel=1e-5)
 
 
 def test_from_config_maps_config_names():

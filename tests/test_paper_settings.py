@@ -1,0 +1,76 @@
+"""Baselines at the settings they were published with, and ProtoCAD's where the paper defers.
+
+DreamerPro's values are those of its released config, fdeng18/dreamer-pro
+DreamerPro/dreamerv2/configs.yaml at commit 033edd7 (the `defaults` section with the `dmc`
+section applied), read from that file when these numbers were written down.
+"""
+from __future__ import annotations
+
+import pytest
+
+from protocad_ros.config import make_config
+
+DREAMERPRO_DMC = {
+    # dataset: {batch: 50, length: 51}
+    ("train", "batch_size"): 50, ("train", "seq_len"): 51,
+    # dmc: rssm {hidden: 200, deter: 200, discrete: False, sinkhorn_eps: 0.0125}; defaults: stoch 32,
+    # warm_up 1, num_prototypes 2500, proto 32, temperature 0.1, sinkhorn_iters 3
+    ("world_model", "hidden"): 200, ("world_model", "deter"): 200, ("world_model", "stoch"): 32,
+    ("world_model", "discrete"): 0, ("context", "sinkhorn_eps"): 0.0125,
+    ("context", "drop_first_steps"): 1, ("context", "dreamerpro_num_prototypes"): 2500,
+    ("context", "proto_dim"): 32, ("context", "temperature"): 0.1, ("context", "sinkhorn_iters"): 3,
+    # freeze_prototypes_iters 10000, ema_update_fraction 0.05, aug.max_delta 3
+    ("context", "freeze_prototypes_updates"): 10000, ("context", "ema"): 0.05, ("context", "aug_pad"): 3,
+    # loss_scales {swav 1, temp 1, norm 1, kl 1, reward 1}; dmc kl.free 1.0; kl balance 0.8, free_avg
+    ("context", "swav_scale"): 1.0, ("context", "dreamerpro_temp_scale"): 1.0,
+    ("context", "dreamerpro_norm_scale"): 1.0, ("world_model", "kl_scale"): 1.0,
+    ("world_model", "kl_free"): 1.0, ("world_model", "kl_balance"): 0.8, ("world_model", "kl_free_avg"): True,
+    # encoder depth 48; heads 4 x 400 elu; model_opt lr 3e-4 eps 1e-5 clip 100 wd 1e-6
+    ("world_model", "cnn_depth"): 48, ("world_model", "mlp_layers"): 4, ("world_model", "mlp_units"): 400,
+    ("world_model", "lr"): 3e-4, ("world_model", "eps"): 1e-5, ("world_model", "grad_clip"): 100.0,
+    ("world_model", "weight_decay"): 1e-6, ("world_model", "discount_head"): False,   # dmc pred_discount
+    # actor {layers 4, units 400, dist tanh_normal, min_std 0.1}; dmc actor/critic lr 8e-5, actor_ent 1e-4,
+    # actor_grad dynamics; discount 0.99, discount_lambda 0.95, imag_horizon 15; slow_target every 100
+    ("behavior", "actor_dist"): "tanh_normal", ("behavior", "actor_min_std"): 0.1,
+    ("behavior", "actor_layers"): 4, ("behavior", "actor_units"): 400, ("behavior", "critic_layers"): 4,
+    ("behavior", "actor_lr"): 8e-5, ("behavior", "critic_lr"): 8e-5, ("behavior", "actor_entropy"): 1e-4,
+    ("behavior", "actor_grad"): "dynamics", ("behavior", "discount"): 0.99, ("behavior", "lambda_"): 0.95,
+    ("behavior", "horizon"): 15, ("behavior", "slow_critic"): True, ("behavior", "slow_critic_update"): 100,
+    # dmc: action_repeat 2, time_limit 1000, train_every 5 (200 updates per 1000-step episode),
+    # prefill 5000 env steps (5 episodes), expl_noise 0
+    ("train", "action_repeat"): 2, ("train", "time_limit"): 1000, ("train", "collect_interval"): 200,
+    ("train", "prefill_episodes"): 5, ("train", "expl_noise"): 0.0,
+}
+
+
+@pytest.mark.parametrize("task", ["walker_walk", "cheetah_run"])
+def test_dreamerpro_runs_at_its_released_dmc_settings(task):
+    cfg = make_config(task, "paper", "dreamerpro")
+    got = {k: getattr(getattr(cfg, k[0]), k[1]) for k in DREAMERPRO_DMC}
+    assert got == DREAMERPRO_DMC
+    assert cfg.own_settings and cfg.uses_decoder is False       # reconstruction-free
+
+
+def test_dreamerpro_at_protocad_settings_is_the_ablation_option():
+    own, same = make_config("walker_walk", "paper", "dreamerpro"), make_config(
+        "walker_walk", "paper", "dreamerpro", own_settings=False)
+    ours = make_config("walker_walk", "paper", "protocad")
+    assert not same.own_settings
+    for section, key in (("train", "batch_size"), ("train", "seq_len"), ("context", "sinkhorn_eps"),
+                         ("train", "collect_interval"), ("train", "prefill_episodes")):
+        assert getattr(getattr(same, section), key) == getattr(getattr(ours, section), key)
+        assert getattr(getattr(own, section), key) != getattr(getattr(ours, section), key)
+
+
+def test_protocad_defaults_are_the_paper_tables_and_dreamerpro_where_it_defers():
+    cfg = make_config("walker_walk", "paper", "protocad")
+    # Table hyperpara: D 32, T 0.1, SK-itr 3, SK-eps 0.05, eta 0.05; B 16, M 50, H 15; K (setting_k)
+    assert (cfg.context.proto_dim, cfg.context.temperature, cfg.context.sinkhorn_iters,
+            cfg.context.sinkhorn_eps, cfg.context.ema) == (32, 0.1, 3, 0.05, 0.05)
+    assert (cfg.train.batch_size, cfg.train.seq_len, cfg.behavior.horizon) == (16, 50, 15)
+    assert cfg.context.num_prototypes == 100
+    assert cfg.behavior.actor_dist == "tanh_normal"              # DreamerPro dmc actor
+    # the other variants have no published settings of their own here: own_settings changes nothing
+    for variant in ("dreamer", "dreamer_context", "no_projection", "no_temporal_consistency"):
+        assert make_config("walker_walk", "paper", variant).to_dict() | {"own_settings": False} == \
+            make_config("walker_walk", "paper", variant, own_settings=False).to_dict()
