@@ -142,9 +142,10 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--final-episodes", type=int, default=None,
                    help="episodes per context of the final evaluation and --random-baseline "
                         "(default --eval-episodes)")
-    g.add_argument("--eval-max-contexts", type=int, default=16,
+    g.add_argument("--eval-max-contexts", type=int, default=None,
                    help="periodic evaluations use at most K test contexts evenly spaced over the grid "
-                        "(0: all; only the (m, d) tasks have more than 16)")
+                        "(0: all, the paper's protocol and the default with --preset paper; else 16, "
+                        "a subset for fast runs: only the (m, d) tasks have more than 16)")
     g.add_argument("--final-max-contexts", type=int, default=0,
                    help="the final evaluation (and --random-baseline): at most K test contexts "
                         "evenly spaced over the grid (0: all, the paper protocol)")
@@ -228,6 +229,8 @@ def run(a: argparse.Namespace) -> int:
         run_dir = runs.new_run_dir(a.run_dir, "online", cfg.task, cfg.variant)
         run_dir.mkdir(parents=True, exist_ok=True)
         cfg.save(run_dir / "config.yaml")
+    if a.eval_max_contexts is None:   # the paper averages over every test context
+        a.eval_max_contexts = 0 if cfg.preset == "paper" else 16
     tr = cfg.train
     N, C, R = tr.prefill_episodes, tr.collect_interval, tr.action_repeat
     bags_dir = run_dir / "bags"
