@@ -270,7 +270,7 @@ class WorldModel(nn.Module):
                     self.encoder(view2), action, is_first, with_prior=False)[0])
             terms["swav"], swav_metrics = self.context.loss(s, s2, step, is_first)
             metrics.update(swav_metrics)
-            ctx = self.context.features(s)
+            ctx = self.context.features(s, train_module=cfg.context.recon_trains_context)
         elif self.dreamerpro is not None:
             terms["swav"], pro_metrics = self.dreamerpro.loss(embed, s, image, step)
             metrics.update(pro_metrics)

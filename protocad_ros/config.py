@@ -107,6 +107,10 @@ class ContextConfig:
     drop_first_steps: int = 1      # DreamerPro rssm.warm_up: first step out of the SwAV scores
     swav_scale: float = 1.0        # DreamerPro loss_scales.swav
     aug_pad: int = 3               # DreamerPro aug.max_delta: random shift +-3 px, bilinear
+    # The reconstruction loss on x = (s, u, e) also trains projector and prototypes (Algorithm 1,
+    # line 13: one gradient step of J_ProtoCAD on all world-model parameters). false = only
+    # TC-SwAV trains them (how the Fig. 1 caption can be read); gradients still reach s.
+    recon_trains_context: bool = True
     # DreamerPro baseline only (variant 'dreamerpro'): its own K and extra loss scales.
     dreamerpro_num_prototypes: int = 2500  # DreamerPro rssm.num_prototypes
     dreamerpro_temp_scale: float = 1.0     # DreamerPro loss_scales.temp

@@ -300,16 +300,24 @@ class ContextModule(nn.Module):
         c = self.prototypes if prototypes is None else prototypes
         return u @ c.t() / self.temperature
 
-    def features(self, s: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    def features(self, s: torch.Tensor, train_module: bool = True
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
         """Context features of states s (..., S) -> u (..., D), w (..., K), e (..., D).
 
         u = normalize(f_theta(s)); w = softmax(u . c / T) (eq. 3); e = sum_k w_k c_k.
         Differentiable: u in projector (and s), e in prototypes (directly and through w) and
-        projector, so decoder / actor / critic losses on x = (s, u, e) train both.
+        projector, so decoder / actor / critic losses on x = (s, u, e) train both (Algorithm 1,
+        line 13). train_module=False: theta and c_k are constants here (gradients still reach
+        s through them), so only TC-SwAV trains the context module (the Fig. 1 caption's reading).
         """
-        u = self.project(s)  # (..., D)
-        w = torch.softmax(self.logits(u), dim=-1)  # (..., K)
-        e = w @ self.prototypes  # (..., D) = sum_k w_k c_k
+        if train_module:
+            u, c = self.project(s), self.prototypes
+        else:
+            params = {k: v.detach() for k, v in self.projector.named_parameters()}
+            u = F.normalize(torch.func.functional_call(self.projector, params, (s,)), dim=-1)
+            c = self.prototypes.detach()
+        w = torch.softmax(self.logits(u, c), dim=-1)  # (..., K)
+        e = w @ c  # (..., D) = sum_k w_k c_k
         return u, w, e
 
     # ---- loss -------------------------------------------------------------------------------

@@ -394,3 +394,20 @@ def test_shift_images_identity_integer_and_bilinear_half_pixel():
         random_shift(torch.zeros(1, 1, 3, 4, 4, dtype=torch.uint8))
     with pytest.raises(ValueError):
         shift_images(x, torch.full((B, 2), 4.0, dtype=torch.float64), 3)
+
+
+def test_reconstruction_trains_the_context_module_only_when_asked():
+    """Algorithm 1 (default): a loss on x = (s, u, e) reaches projector and prototypes; the
+    Fig. 1 reading (recon_trains_context = false): it reaches s only."""
+    for train_module, reaches_module in ((True, True), (False, False)):
+        ctx = _module(freeze_prototypes_steps=0)
+        s = torch.randn(4, 10, generator=_gen(3), requires_grad=True)
+        u, w, e = ctx.features(s, train_module=train_module)
+        (u.sum() + e.pow(2).sum() + w[:, 0].sum()).backward()
+        grads = _grads(ctx)
+        assert grads["prototypes"] is reaches_module
+        assert any(v for k, v in grads.items() if k.startswith("projector.")) is reaches_module
+        assert s.grad is not None and s.grad.abs().sum() > 0
+        # the features themselves do not depend on the switch
+        u2, w2, e2 = ctx.features(s.detach(), train_module=not train_module)
+        torch.testing.assert_close((u.detach(), w.detach(), e.detach()), (u2, w2, e2))
