@@ -13,11 +13,17 @@ defaults captured once at construction, so contexts never compound across episod
 - pendulum: ``m`` scales the pole;
 - quadruped: ``m`` scales the leg bodies (hip, knee, ankle, toe of each leg), not the torso.
 
-Body inertia is scaled with the mass: scaling mass alone would describe a body whose mass
-changed while its mass distribution somehow did not (uniform density change of the same
-geometry scales both by the same factor). After editing the model, ``mj_setConst`` recomputes
-the derived constants (subtree masses, dof_M0 and invweight0 used by constraint regularisation,
-actuator_acc0, trackcom camera offsets), exactly as if the scaled model had been compiled.
+Only ``body_mass`` (and ``dof_damping``) are scaled, not ``body_inertia``: that is what the
+environments of this line of work do (CaDM's ``change_env`` sets ``model.body_mass`` and
+``model.dof_damping`` from scaled copies, younggyoseo/CaDM cadm/envs/half_cheetah_env.py; RIA, whose
+settings the paper follows, builds on them), and MuJoCo keeps the two independent: a run-time
+``body_mass`` edit leaves the compiled ``body_inertia`` as it was (``mj_setConst`` does not
+recompute inertia from geoms). ``scale_inertia=True`` scales the inertia by the same factor
+instead (a uniform density change of the same geometry), this project's behaviour before
+2026-12-01 and the physics behind the committed CPU results. After editing the model,
+``mj_setConst`` recomputes the derived constants (subtree masses, dof_M0 and invweight0 used by
+constraint regularisation, actuator_acc0, trackcom camera offsets), exactly as if the scaled
+model had been compiled.
 
 Actions are in [-1, 1]^A for every task and mapped affinely onto the task's actuator range
 (DreamerV2/DreamerPro ``NormalizeAction``; only quadruped's range differs from [-1, 1]);
@@ -120,12 +126,14 @@ class ContextDMCEnv:
     def __init__(self, task: str, split: str = "train", seed: int | np.random.SeedSequence = 0,
                  action_repeat: int = 2, image_size: int = 64,
                  render_quality: RenderQuality = "fast",
-                 context: Mapping[str, float] | None = None, time_limit: int = 1000):
+                 context: Mapping[str, float] | None = None, time_limit: int = 1000,
+                 scale_inertia: bool = False):
         self.spec, self._fixed_context = check_env_args(
             task, split, seed, action_repeat=action_repeat, image_size=image_size,
             render_quality=render_quality, context=context, time_limit=time_limit)
         self.split, self.action_repeat, self.time_limit = split, int(action_repeat), int(time_limit)
         self.image_size, self.render_quality = int(image_size), render_quality
+        self.scale_inertia = bool(scale_inertia)
 
         import mujoco
         from dm_control import suite
@@ -251,7 +259,7 @@ class ContextDMCEnv:
         model = self.physics.model
         m, d = context["m"], context.get("d", 1.0)
         model.body_mass[self._bodies] = self._default_mass * m
-        model.body_inertia[self._bodies] = self._default_inertia * m
+        model.body_inertia[self._bodies] = self._default_inertia * (m if self.scale_inertia else 1.0)
         model.dof_damping[self._dofs] = self._default_damping * d
         # mj_setConst overwrites mjData (it evaluates qpos0); the reset that follows restores it.
         self._mujoco.mj_setConst(model.ptr, self.physics.data.ptr)

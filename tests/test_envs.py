@@ -107,11 +107,9 @@ def test_every_context_scales_exactly_the_intended_bodies_and_joints(task, make_
             assert obs.context == context and obs.split == split and obs.is_first
             m, d = context["m"], context.get("d", 1.0)
             np.testing.assert_array_equal(model.body_mass[mass_mask], ref.body_mass[mass_mask] * m)
-            np.testing.assert_array_equal(model.body_inertia[mass_mask],
-                                          ref.body_inertia[mass_mask] * m)
+            # CaDM/RIA: mass only, the compiled inertia stays
+            np.testing.assert_array_equal(model.body_inertia, ref.body_inertia)
             np.testing.assert_array_equal(model.body_mass[~mass_mask], ref.body_mass[~mass_mask])
-            np.testing.assert_array_equal(model.body_inertia[~mass_mask],
-                                          ref.body_inertia[~mass_mask])
             np.testing.assert_array_equal(model.dof_damping[dof_mask], ref.dof_damping[dof_mask] * d)
             np.testing.assert_array_equal(model.dof_damping[~dof_mask], ref.dof_damping[~dof_mask])
             # Derived constants follow the new masses (mj_setConst ran).
@@ -133,8 +131,7 @@ def test_100_resets_stay_in_split_and_never_compound(task, split, make_env, refe
     mask = np.isin(np.arange(ref.nbody),
                    [ref.name2id(n, "body") for n in MASS_BODIES[get_task(task).domain]])
     np.testing.assert_array_equal(env.physics.model.body_mass[mask], ref.body_mass[mask] * m)
-    np.testing.assert_array_equal(env.physics.model.body_inertia[mask],
-                                  ref.body_inertia[mask] * m)
+    np.testing.assert_array_equal(env.physics.model.body_inertia, ref.body_inertia)
     if "d" in obs.context:
         np.testing.assert_array_equal(env.physics.model.dof_damping, ref.dof_damping * d)
 
@@ -271,3 +268,16 @@ def test_stored_actuator_names_are_the_models_in_action_order(task):
     root = list(importlib.util.find_spec("dm_control").submodule_search_locations)[0]
     model = mujoco.MjModel.from_xml_path(str(Path(root, "suite", f"{spec.domain}.xml")))
     assert task_actuators(task) == [model.actuator(i).name for i in range(model.nu)]
+
+
+def test_scale_inertia_scales_the_inertia_of_the_scaled_bodies_too(reference):
+    from sim_bridge.envs import ContextDMCEnv
+
+    ref = reference("pendulum_swingup")
+    mask = np.isin(np.arange(ref.nbody), [ref.name2id(n, "body") for n in MASS_BODIES["pendulum"]])
+    with ContextDMCEnv("pendulum_swingup", split="test", seed=0, scale_inertia=True) as env:
+        m = env.reset().context["m"]
+        model = env.physics.model
+        np.testing.assert_array_equal(model.body_inertia[mask], ref.body_inertia[mask] * m)
+        np.testing.assert_array_equal(model.body_inertia[~mask], ref.body_inertia[~mask])
+        np.testing.assert_array_equal(model.body_mass[mask], ref.body_mass[mask] * m)
