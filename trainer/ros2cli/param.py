@@ -50,13 +50,14 @@ def _call(node, future):
 
 
 def cmd_list(args) -> int | str | None:
-    with graph.direct_node(args) as node:
-        names = graph.node_names(node, include_hidden=args.include_hidden_nodes)
-        target = graph.absolute(args.node_name)
+    target = graph.absolute(args.node_name)
+    with graph.direct_node(args, discover=not target) as node:   # one node: wait for it alone
         if target:
-            if target not in {n.full_name for n in names}:
+            if not graph.wait_for_node(node, target, args.include_hidden_nodes):
                 return "Node not found"
-            names = [n for n in names if n.full_name == target]
+            names = [graph.parse_node_name(target)]
+        else:
+            names = graph.node_names(node, include_hidden=args.include_hidden_nodes)
         pattern = re.compile(args.filter[0]) if args.filter else None
         for nn in sorted(names):  # as ros2cli: NodeName tuples, i.e. by base name first
             client = _client(node, nn.full_name)

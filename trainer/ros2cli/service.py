@@ -27,7 +27,8 @@ def cmd_list(args) -> int | str | None:
 
 
 def cmd_type(args) -> int | str | None:
-    with graph.direct_node(args) as node:
+    with graph.direct_node(args, discover=False) as node:   # wait for this one service instead
+        graph.wait_for(lambda: args.service_name in dict(service_names_and_types(node, True)), node)
         types = dict(service_names_and_types(node, include_hidden=True)).get(args.service_name)
     if types is None:
         return "Unknown service name"
