@@ -5,6 +5,8 @@ from __future__ import annotations
 import argparse
 import re
 import sys
+from contextlib import contextmanager
+from typing import Any, Iterator
 
 from trainer.ros2cli import graph
 from trainer.ros2cli.msgyaml import dump
@@ -31,15 +33,18 @@ def _require_node(node, args) -> str | None:
                                                  max(args.timeout, graph.SETTLE_MAX_S)) else None
 
 
-def _target_client(node, args):
-    """(absolute node name, its parameter client), or ros2cli's message saying why not."""
-    target = _require_node(node, args)
-    if target is None:
-        return "Node not found"
-    client = _client(node, target)
-    if client is None:
-        return f"Wait for service timed out waiting for parameter services for node {target}"
-    return target, client
+@contextmanager
+def _parameter_client(args) -> Iterator[tuple[Any, str, Any]]:
+    """(node, absolute node name, its parameter client) for args.node_name; RuntimeError with
+    ros2cli's message (exit 1) when the node or its parameter services are not there."""
+    with graph.direct_node(args, discover=False) as node:   # waits for its one node instead
+        target = _require_node(node, args)
+        if target is None:
+            raise RuntimeError("Node not found")
+        client = _client(node, target)
+        if client is None:
+            raise RuntimeError(f"Wait for service timed out waiting for parameter services for node {target}")
+        yield node, target, client
 
 
 def _call(node, future):
@@ -94,11 +99,7 @@ def _label_and_value(pv) -> tuple[str, object] | str:
 
 
 def cmd_get(args) -> int | str | None:
-    with graph.direct_node(args, discover=False) as node:
-        got = _target_client(node, args)
-        if isinstance(got, str):
-            return got
-        target, client = got
+    with _parameter_client(args) as (node, target, client):
         values = _call(node, client.get_parameters([args.parameter_name])).values
     if not values:
         return "Parameter not set"
@@ -117,11 +118,7 @@ def cmd_set(args) -> int | str | None:
     from rcl_interfaces.msg import Parameter
     from rclpy.parameter import get_parameter_value
 
-    with graph.direct_node(args, discover=False) as node:
-        got = _target_client(node, args)
-        if isinstance(got, str):
-            return got
-        target, client = got
+    with _parameter_client(args) as (node, target, client):
         param = Parameter(name=args.parameter_name, value=get_parameter_value(string_value=args.value))
         result = _call(node, client.set_parameters([param])).results[0]
     if result.successful:
@@ -142,11 +139,7 @@ def _insert(d: dict, dotted: str, value) -> None:
 def cmd_dump(args) -> int | str | None:
     from rclpy.parameter import parameter_value_to_python
 
-    with graph.direct_node(args, discover=False) as node:
-        got = _target_client(node, args)
-        if isinstance(got, str):
-            return got
-        target, client = got
+    with _parameter_client(args) as (node, target, client):
         names = sorted(_call(node, client.list_parameters()).result.names)
         values = _call(node, client.get_parameters(names)).values
     params: dict = {}
@@ -157,11 +150,7 @@ def cmd_dump(args) -> int | str | None:
 
 
 def cmd_describe(args) -> int | str | None:
-    with graph.direct_node(args, discover=False) as node:
-        got = _target_client(node, args)
-        if isinstance(got, str):
-            return got
-        target, client = got
+    with _parameter_client(args) as (node, target, client):
         descriptors = _call(node, client.describe_parameters(args.parameter_names)).descriptors
     for d in descriptors:
         print(f"Parameter name: {d.name}")
