@@ -56,7 +56,8 @@ setup(
     packages=find_packages(include=["protocad_ros*", "sim_bridge*", "trainer*"]),
     python_requires=">=3.11,<3.12",
     install_requires=INSTALL_REQUIRES,
-    extras_require={"test": ["pytest==9.2.0", "pytest-timeout==2.4.0", "hypothesis==6.170.17"],
+    extras_require={"test": ["pytest==9.2.0", "pytest-timeout==2.4.0", "hypothesis==6.170.17",
+                             "grimp==3.20"],   # tests/test_architecture.py: the import graph
                     "bench": ["py-spy==0.4.3"]},   # scripts/bench_ros_loop.py --profile
     data_files=ament_data_files(),
     entry_points={

@@ -301,10 +301,12 @@ def test_training_recorder_series_on_the_update_timeline(tmp_path, pendulum_agen
         normalize_eval([{"split": "test", "return": 1.0}])
 
 
-def test_runs_metrics_callback_uses_the_training_recorder(tmp_path):
-    from trainer.runs import MetricsLogger, rerun_metrics_callback
+def test_metrics_callback_is_the_training_recorder(tmp_path):
+    from trainer.rerun_log import metrics_callback
+    from trainer.runs import MetricsLogger
 
-    cb = rerun_metrics_callback(tmp_path / "run" / "metrics.rrd")
+    assert metrics_callback(None) is None
+    cb = metrics_callback(tmp_path / "run" / "metrics.rrd")
     assert isinstance(cb, TrainingRecorder)
     logger = MetricsLogger(tmp_path / "run" / "metrics.jsonl", callbacks=[cb])
     for u in range(3):

@@ -340,8 +340,9 @@ class Loop:
         t_start = time.monotonic()
         callbacks = []
         if a.rerun is not None:
-            callbacks.append(runs.rerun_metrics_callback(a.rerun or self.run_dir / "metrics.rrd",
-                                                         application="protocad-loop"))
+            from trainer.rerun_log import metrics_callback
+
+            callbacks.append(metrics_callback(a.rerun or self.run_dir / "metrics.rrd", application="protocad-loop"))
         ckpt = runs.checkpoint_path(self.run_dir)
         if a.resume and ckpt.exists():
             self.trainer = Trainer.from_checkpoint(ckpt, self.run_dir, self.ds, device=self.device,

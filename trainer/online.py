@@ -262,8 +262,9 @@ def run(a: argparse.Namespace) -> int:
         ds.add(existing)
     callbacks = []
     if a.rerun is not None:
-        callbacks.append(runs.rerun_metrics_callback(a.rerun or run_dir / "metrics.rrd",
-                                                     application="protocad-online"))
+        from trainer.rerun_log import metrics_callback
+
+        callbacks.append(metrics_callback(a.rerun or run_dir / "metrics.rrd", application="protocad-online"))
     if a.resume:
         trainer = Trainer.from_checkpoint(runs.checkpoint_path(run_dir), run_dir, ds, device=device,
                                           callbacks=callbacks, log_every=a.log_every)

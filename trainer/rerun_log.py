@@ -7,8 +7,8 @@
     rec.log_context_view(update, agent, episodes)            # e.g. at the end of --demo
     rec.close()
 
-``metrics_callback`` is the factory trainer.runs.rerun_metrics_callback looks for: the
-callable it returns takes (update, metrics) like every MetricsLogger callback.
+``metrics_callback(rrd_path)`` is what protocad-train/-online/-loop hand their MetricsLogger
+(`--rerun`): the callable it returns takes (update, metrics) like every MetricsLogger callback.
 
 Entity paths (timeline ``update``; '.' in a metric name becomes '/'):
 
@@ -261,11 +261,13 @@ class TrainingRecorder:
         self.close()
 
 
-def metrics_callback(rrd_path: str | Path, application: str = "protocad-train",
-                     recording_id: str | None = None) -> TrainingRecorder:
-    """Factory used by trainer.runs.rerun_metrics_callback: a TrainingRecorder writing
+def metrics_callback(rrd_path: str | Path | None, application: str = "protocad-train",
+                     recording_id: str | None = None) -> TrainingRecorder | None:
+    """The training scalars' callback of protocad-train/-online/-loop: a TrainingRecorder writing
     ``rrd_path`` (callable as (update, metrics); ``.recording`` is the stream, ``.log_eval``
-    and ``.log_context_view`` are there for the evaluation and the loop)."""
+    and ``.log_context_view`` are there for the evaluation and the loop); None without a path."""
+    if not rrd_path:
+        return None
     return TrainingRecorder(rrd_path, application_id=application, recording_id=recording_id)
 
 

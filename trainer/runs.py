@@ -320,41 +320,6 @@ class RunningMean:
         return out
 
 
-def rerun_metrics_callback(rrd_path: str | Path | None, application: str = "protocad-train",
-                           recording_id: str | None = None) -> MetricsCallback | None:
-    """Scalars to a rerun recording (.rrd file), or None without a path.
-
-    Hook for the visualization module: if `trainer.rerun_log` exists and defines
-    `metrics_callback(rrd_path, application, recording_id) -> callable(update, metrics)`,
-    it is used instead of the minimal built-in logger below.
-    """
-    if not rrd_path:
-        return None
-    try:
-        from trainer import rerun_log  # type: ignore[attr-defined]
-
-        factory = getattr(rerun_log, "metrics_callback", None)
-        if factory is not None:
-            return factory(rrd_path, application=application, recording_id=recording_id)
-    except ImportError:
-        pass
-    import rerun as rr
-
-    rec = rr.RecordingStream(application, recording_id=recording_id)
-    Path(rrd_path).parent.mkdir(parents=True, exist_ok=True)
-    rec.save(str(rrd_path))
-
-    def _cb(update: int, metrics: Mapping[str, float]) -> None:
-        rec.set_time("update", sequence=int(update))
-        for k, v in metrics.items():
-            if k in ("update", "time"):
-                continue
-            rec.log(f"metrics/{k.replace('.', '/')}", rr.Scalars(float(v)))
-
-    _cb.recording = rec  # type: ignore[attr-defined]
-    return _cb
-
-
 # ----------------------------------------------------------------------------- progress
 def progress(total: int | None, initial: int = 0, desc: str = "", disable: bool | None = None, unit: str = "it"):
     """A tqdm bar (to stderr; disabled automatically when stderr is not a terminal unless

@@ -344,7 +344,9 @@ def _main(a: argparse.Namespace) -> int:
     rrd = None
     if a.rerun is not None or run_json.get("rerun"):
         rrd = a.rerun or run_json.get("rerun") or str(run_dir / "metrics.rrd")
-        callbacks.append(runs.rerun_metrics_callback(rrd, application="protocad-train"))
+        from trainer.rerun_log import metrics_callback
+
+        callbacks.append(metrics_callback(rrd, application="protocad-train"))
     if a.resume:
         try:
             trainer = Trainer.from_checkpoint(runs.checkpoint_path(run_dir), run_dir, ds, device=device,
