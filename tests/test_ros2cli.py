@@ -121,6 +121,12 @@ def test_topic_echo_prints_ros2cli_yaml(bridge):
     assert csv[3:5] == ["reward", "discount"]    # sec, nanosec, frame_id, then the names
     bad = ros2("topic", "echo", "/protocad/step_info", "--once", "--field", "nope")
     assert bad.returncode == 1 and "Invalid field 'nope'" in bad.stderr
+    picked = yaml.safe_load(ros2("topic", "echo", "/protocad/step_info", "--once", "--filter",
+                                 "m.header.stamp.sec >= 0").stdout.split("---")[0])
+    assert picked["name"][:2] == ["reward", "discount"]
+    failing = ros2("topic", "echo", "/protocad/step_info", "--once", "--filter", "m.nope > 0")
+    assert failing.returncode == 1 and "--filter 'm.nope > 0' failed on a message: AttributeError" in failing.stderr
+    assert "Traceback" not in failing.stderr
 
 
 def test_topic_hz_prints_the_ros2cli_summary(bridge, tmp_path):
@@ -278,3 +284,20 @@ def test_bag_record_is_the_recorder_and_the_rest_needs_ros():
         res = ros2(*argv)
         assert res.returncode == 2 and "not supported by this front-end" in res.stderr, argv
         assert "ros2 topic list | info | echo | hz" in res.stderr
+
+
+def test_bad_input_is_one_clear_line_and_no_traceback(tmp_path):
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: {version: 9}\n")
+    cases = [
+        (["topic", "hz", "/x", "--window", "0"], 2, "expected a positive integer"),
+        (["topic", "echo", "/x", "--truncate-length", "-1"], 2, "expected an integer >= 0"),
+        (["topic", "echo", "/x", "--filter", "m.("], 1, "is not a Python expression"),
+        (["service", "call", "/x", "std_srvs/srv/Trigger", "{a: [1"], 1, "the values are not YAML"),
+        (["service", "call", "/x", "std_msgs/msg/String"], 1, "The passed type is not a service"),
+        (["bag", "info", str(bag)], 1, "Could not read metadata"),
+    ]
+    for argv, code, needle in cases:
+        res = ros2(*argv)
+        assert res.returncode == code and needle in res.stderr and "Traceback" not in res.stderr, (argv, res.stderr)

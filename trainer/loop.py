@@ -74,7 +74,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="final evaluation: episodes per test context (0: none; default 5, demo 1)")
     g.add_argument("--eval-max-contexts", type=int, default=0, help="final evaluation: at most K test contexts (0: all)")
     g.add_argument("--no-visualize", action="store_true", help="skip the rerun context recording at the end")
-    g.add_argument("--robots", type=int, default=None,
+    g.add_argument("--robots", type=runs.positive_int, default=None,
                    help="N robots collecting at once: a bridge and a policy node each in /protocad/robotI "
                         "(own /clock), one recorder recording all of them, training on every robot's "
                         "episodes; each records --episodes-per-cycle episodes per cycle (default 1)")

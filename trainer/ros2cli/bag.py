@@ -110,10 +110,13 @@ def read_info(bag: str | Path) -> tuple[dict[str, Any], int, list[str]]:
 def cmd_info(args) -> int | str | None:
     if args.storage not in (None, "mcap"):
         return f"storage {args.storage!r} is not supported here (only mcap)"
+    import yaml
+
     try:
         info, size, notes = read_info(args.bag_path)
-    except (OSError, ValueError) as exc:
-        return f"Could not read metadata for {args.bag_path}: {exc}"
+        table = format_bag_metadata(info, size)
+    except (OSError, ValueError, KeyError, TypeError, yaml.YAMLError) as exc:
+        return f"Could not read metadata for {args.bag_path}: {type(exc).__name__}: {exc}"
     for n in notes:
         print(n, file=sys.stderr)
     if args.topic_name and args.verbose:
@@ -124,7 +127,7 @@ def cmd_info(args) -> int | str | None:
             if not _is_service_event(m["name"], m["type"]):
                 print(m["name"])
     else:
-        print(format_bag_metadata(info, size))
+        print(table)
     return None
 
 

@@ -48,7 +48,10 @@ def cmd_call(args) -> int | str | None:
         return "The passed type is not a service"
     if args.rate is not None and args.rate <= 0:
         return "rate must be greater than zero"
-    values = yaml.safe_load(sys.stdin.read() if args.stdin else args.values)
+    try:
+        values = yaml.safe_load(sys.stdin.read() if args.stdin else args.values)
+    except yaml.YAMLError as exc:
+        return f"Failed to populate field: the values are not YAML: {exc}"
     request = srv.Request()
     try:
         set_message_fields(request, values)

@@ -7,6 +7,7 @@ import threading
 from typing import Any
 
 from trainer.ros2cli import graph
+from trainer.runs import non_negative_int, positive_float, positive_int
 from trainer.ros2cli.msgyaml import interface_class, message_to_csv, message_to_yaml
 
 DEFAULT_TRUNCATE_LENGTH = 128
@@ -65,6 +66,32 @@ def cmd_info(args) -> int | str | None:
             for info in node.get_subscriptions_info_by_topic(args.topic_name):
                 print(info, end=end)
     return None
+
+
+def message_filter(expr: str | None):
+    """ros2cli's --filter: a Python expression of `m`, the message; None without one. A syntax
+    error is a clear RuntimeError at once; one raised while filtering names the expression."""
+    if not expr:
+        return None
+    try:
+        fn = eval(f"lambda m: ({expr})")  # noqa: S307  (what --filter is, as in ros2cli)
+    except SyntaxError as exc:
+        raise RuntimeError(f"--filter {expr!r} is not a Python expression: {exc.msg}") from None
+
+    def keep(m) -> bool:
+        try:
+            return bool(fn(m))
+        except Exception as exc:  # noqa: BLE001  the user's expression
+            raise RuntimeError(f"--filter {expr!r} failed on a message: {type(exc).__name__}: {exc}") from None
+
+    return keep
+
+
+def message_class(type_name: str):
+    try:
+        return interface_class(type_name)
+    except ValueError as exc:   # e.g. a foreign message type not installed here
+        raise RuntimeError(f"cannot decode {type_name}: {exc}") from None
 
 
 # ------------------------------------------------------------------ echo
@@ -136,7 +163,7 @@ def _message_class(node, args) -> Any:
     name = topic_type(node, args.topic_name)
     if name is None:
         raise RuntimeError("Could not determine the type for the passed topic")
-    return interface_class(name)
+    return message_class(name)
 
 
 def cmd_echo(args) -> int | str | None:
@@ -150,7 +177,7 @@ def cmd_echo(args) -> int | str | None:
         if not field:
             return f"Invalid field value '{args.field}'"
     truncate = None if args.full_length else args.truncate_length
-    keep = eval(f"lambda m: ({args.filter_expr})") if args.filter_expr else None  # noqa: S307  (ros2cli's --filter)
+    keep = message_filter(args.filter_expr)
     done = Future()  # set by --once, --timeout or a bad --field; else Ctrl-C ends the echo
     failure: list[str] = []
 
@@ -163,7 +190,12 @@ def cmd_echo(args) -> int | str | None:
                 failure.append(f"Invalid field '{'.'.join(field)}': {exc}")
                 done.done() or done.set_result(True)
                 return
-        if keep is not None and not keep(sub):
+        try:
+            if keep is not None and not keep(sub):
+                return
+        except RuntimeError as exc:
+            failure.append(str(exc))
+            done.done() or done.set_result(True)
             return
         if args.once:
             if done.done():
@@ -249,7 +281,8 @@ def cmd_hz(args) -> int | str | None:
     from rclpy.clock import Clock, ClockType
     from rclpy.qos import qos_profile_sensor_data
 
-    keep = eval(f"lambda m: ({args.filter_expr})") if args.filter_expr else None  # noqa: S307  (ros2cli's --filter)
+    keep = message_filter(args.filter_expr)
+    failure: list[str] = []
     with graph.direct_node(args, discover=False) as node:
         name = None
         while rclpy.ok() and name is None:  # ros2cli waits for the topic to appear
@@ -260,16 +293,19 @@ def cmd_hz(args) -> int | str | None:
         meter = RateMeter(args.window_size, clock)
 
         def on_message(msg) -> None:
-            if keep is None or keep(msg):
-                meter.tick(clock.now().nanoseconds)
+            try:
+                if keep is None or keep(msg):
+                    meter.tick(clock.now().nanoseconds)
+            except RuntimeError as exc:
+                failure.append(str(exc))
 
-        node.create_subscription(interface_class(name), args.topic_name, on_message, qos_profile_sensor_data)
-        while rclpy.ok():
+        node.create_subscription(message_class(name), args.topic_name, on_message, qos_profile_sensor_data)
+        while rclpy.ok() and not failure:
             rclpy.spin_once(node, timeout_sec=0.1)
             stats = meter.report()
             if stats is not None:
                 print(format_hz(*stats))
-    return None
+    return failure[0] if failure else None
 
 
 # ------------------------------------------------------------------ parsers
@@ -299,7 +335,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--field", default=None, help="Echo a selected field of a message; '.' selects sub-fields")
     p.add_argument("--full-length", "-f", action="store_true",
                    help="Output all elements for arrays, bytes, and string with a length > '--truncate-length'")
-    p.add_argument("--truncate-length", "-l", type=int, default=DEFAULT_TRUNCATE_LENGTH,
+    p.add_argument("--truncate-length", "-l", type=non_negative_int, default=DEFAULT_TRUNCATE_LENGTH,
                    help=f"The length to truncate arrays, bytes, and string to (default: {DEFAULT_TRUNCATE_LENGTH})")
     p.add_argument("--no-arr", action="store_true", help="Don't print array fields of messages")
     p.add_argument("--no-str", action="store_true", help="Don't print string fields of messages")
@@ -308,13 +344,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--filter", dest="filter_expr", help="Python expression (of m, the message) selecting "
                                                          "the messages that are printed")
     p.add_argument("--once", action="store_true", help="Print the first message received and then exit.")
-    p.add_argument("--timeout", metavar="N", type=float, default=None, help="Set a timeout in seconds for waiting")
+    p.add_argument("--timeout", metavar="N", type=positive_float, default=None,
+                   help="Set a timeout in seconds for waiting")
     p.set_defaults(func=cmd_echo)
 
     p = sub.add_parser("hz", help="Print the average publishing rate to screen")
     graph.add_node_arguments(p)
     p.add_argument("topic_name", help="Name of the ROS topic to listen to (e.g. '/chatter')")
-    p.add_argument("--window", "-w", dest="window_size", type=int, default=DEFAULT_WINDOW_SIZE, metavar="WINDOW",
+    p.add_argument("--window", "-w", dest="window_size", type=positive_int, default=DEFAULT_WINDOW_SIZE,
+                   metavar="WINDOW",
                    help=f"window size, in # of messages, for calculating rate (default: {DEFAULT_WINDOW_SIZE})")
     p.add_argument("--filter", dest="filter_expr", default=None, metavar="EXPR",
                    help="only measure messages matching the specified Python expression")
