@@ -21,15 +21,15 @@ One update (variant 'protocad'; the others switch parts off, see WorldModel):
 """
 from __future__ import annotations
 
-import contextlib
 import copy
-from typing import Any, Iterator, Mapping
+from typing import Any, Mapping
 
 import numpy as np
 import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
+from .agent_base import BATCH_KEYS, AgentBase, frozen
 from .augment import random_shift
 from .behavior import ActorCritic, ImagineFns
 from .config import Config
@@ -38,25 +38,6 @@ from .prototypes import ContextModule, sinkhorn_knopp
 from .rssm import RSSM, State, detach_state, flatten_state
 
 __all__ = ["Agent", "WorldModel", "DreamerProPrototypes", "BATCH_KEYS", "frozen"]
-
-BATCH_KEYS = ("image", "action", "reward", "discount", "is_first")
-
-
-@contextlib.contextmanager
-def frozen(*modules: nn.Module) -> Iterator[None]:
-    """requires_grad=False on every parameter of `modules` inside the block (then restored).
-
-    Gradients still flow *through* the modules to their inputs (dynamics backprop), but no
-    weight gradient is computed or stored, and autograd saves fewer tensors.
-    """
-    params = [p for m in modules for p in m.parameters() if p.requires_grad]
-    for p in params:
-        p.requires_grad_(False)
-    try:
-        yield
-    finally:
-        for p in params:
-            p.requires_grad_(True)
 
 
 def _nll_image(mean: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
@@ -173,9 +154,9 @@ class WorldModel(nn.Module):
             self.context = ContextModule(
                 S, ctx.proto_dim, ctx.num_prototypes, ctx.temperature, ctx.sinkhorn_iters,
                 ctx.sinkhorn_eps, ctx.ema, ctx.freeze_prototypes_updates,
-                temporal_consistency=cfg.variant != "no_temporal_consistency",
+                temporal_consistency=cfg.spec.representation == "tc_swav",
                 drop_first_steps=ctx.drop_first_steps)
-        elif cfg.variant == "dreamerpro":
+        elif cfg.spec.representation == "dreamerpro":
             self.dreamerpro = DreamerProPrototypes(self.encoder, S, cfg)
         parts = cfg.features
         self.state_dim = S
@@ -238,7 +219,7 @@ class WorldModel(nn.Module):
         if self.dreamerpro is not None:
             self.dreamerpro.normalize_prototypes()
 
-        if cfg.variant == "dreamerpro":
+        if self.dreamerpro is not None:
             # DreamerPro: both views are training data (batch doubled), no decoder.
             pad = cfg.context.aug_pad
             image = torch.cat([random_shift(image, pad), random_shift(image, pad)], 0)
@@ -298,7 +279,7 @@ class WorldModel(nn.Module):
 # ------------------------------------------------------------------------------------------------
 # Agent
 # ------------------------------------------------------------------------------------------------
-class Agent(nn.Module):
+class Agent(AgentBase):
     """World model + actor-critic + their optimizers and update counter.
 
     Agent(cfg, action_dim, device=None): device defaults to cfg.train.device ('cpu').
@@ -306,17 +287,15 @@ class Agent(nn.Module):
     """
 
     def __init__(self, cfg: Config, action_dim: int, device: str | torch.device | None = None):
-        super().__init__()
-        cfg.validate()
-        if int(action_dim) < 1:
-            raise ValueError(f"action_dim must be >= 1, got {action_dim}")
-        self.cfg, self.action_dim = cfg, int(action_dim)
+        super().__init__(cfg, action_dim)
+        if cfg.spec.family != "world_model":
+            raise ValueError(f"variant {cfg.variant!r} is not a world-model agent; build it with "
+                             "protocad_ros.agents.make_agent")
         device = torch.device(device if device is not None else cfg.train.device)
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(cfg.train.seed)
             self.wm = WorldModel(cfg, self.action_dim)
             self.ac = ActorCritic(self.wm.feat_dim, self.action_dim, cfg.behavior)
-        self.register_buffer("updates", torch.zeros((), dtype=torch.long))
         self.to(device)
         wm, bh = cfg.world_model, cfg.behavior
         self.wm_opt = self._adam(self.wm.parameters(), wm.lr, wm.eps, wm.weight_decay)
@@ -325,19 +304,9 @@ class Agent(nn.Module):
         self.critic_opt = self._adam(self.ac.critic.parameters(), bh.critic_lr, bh.eps,
                                      bh.weight_decay)
 
-    def _adam(self, params, lr: float, eps: float, wd: float) -> torch.optim.Optimizer:
-        # DreamerV2 applies decoupled decay var *= (1 - wd) per step, independent of lr;
-        # AdamW decays by lr * weight_decay, hence weight_decay = wd / lr.
-        params = [p for p in params if p.requires_grad]
-        kw: dict[str, Any] = {"lr": lr, "eps": eps, "weight_decay": wd / lr if wd else 0.0}
-        if self.device.type in ("cpu", "cuda"):
-            kw["foreach"] = True
-        return torch.optim.AdamW(params, **kw)
-
     @property
-    def device(self) -> torch.device:
-        """Where the agent lives (follows .to(...))."""
-        return self.updates.device
+    def context_dims(self) -> tuple[int, int, int]:
+        return self.wm.context_dims
 
     def optimizers(self) -> dict[str, torch.optim.Optimizer]:
         return {"world_model": self.wm_opt, "actor": self.actor_opt, "critic": self.critic_opt}
@@ -345,41 +314,6 @@ class Agent(nn.Module):
     @property
     def has_decoder(self) -> bool:
         return self.wm.decoder is not None
-
-    def _autocast(self):
-        return torch.autocast(self.device.type, dtype=torch.bfloat16,
-                              enabled=self.cfg.train.precision == "bfloat16")
-
-    # ---- batches ------------------------------------------------------------------------------------
-    def to_batch(self, batch: Mapping[str, Any]) -> dict[str, torch.Tensor]:
-        """Validate a training batch (numpy or torch) and move it to the device."""
-        missing = [k for k in ("image", "action", "reward", "is_first") if k not in batch]
-        if missing:
-            raise ValueError(f"batch is missing {missing}; expected keys {BATCH_KEYS}")
-        t = {k: torch.as_tensor(np.asarray(v) if not torch.is_tensor(v) else v)
-             for k, v in batch.items() if k in BATCH_KEYS}
-        img = t["image"]
-        if img.dim() != 5 or tuple(img.shape[2:]) != (64, 64, 3) or img.dtype != torch.uint8:
-            raise ValueError(f"batch['image'] must be uint8 (B, T, 64, 64, 3), got "
-                             f"{img.dtype} {tuple(img.shape)}")
-        B, T = img.shape[:2]
-        if tuple(t["action"].shape) != (B, T, self.action_dim):
-            raise ValueError(f"batch['action'] must be (B, T, A)=({B}, {T}, {self.action_dim}), "
-                             f"got {tuple(t['action'].shape)}")
-        for k in ("reward", "is_first") + (("discount",) if "discount" in t else ()):
-            if tuple(t[k].shape) != (B, T):
-                raise ValueError(f"batch[{k!r}] must be (B, T)=({B}, {T}), got "
-                                 f"{tuple(t[k].shape)}")
-        if "discount" not in t:
-            t["discount"] = torch.ones(B, T)
-        nb = self.device.type == "cuda"
-        out = {"image": img.to(self.device, non_blocking=nb)}
-        for k in ("action", "reward", "discount"):
-            out[k] = t[k].to(self.device, torch.float32, non_blocking=nb)
-        out["is_first"] = t["is_first"].to(self.device, torch.bool, non_blocking=nb)
-        if not torch.isfinite(out["action"]).all() or not torch.isfinite(out["reward"]).all():
-            raise ValueError("batch['action'] / batch['reward'] contain NaN or inf")
-        return out
 
     # ---- training -----------------------------------------------------------------------------------
     def train_world_model(self, batch: Mapping[str, Any]) -> tuple[State, dict[str, torch.Tensor]]:
@@ -452,10 +386,7 @@ class Agent(nn.Module):
         start, metrics = self.train_world_model(batch)
         metrics.update(self.train_behavior(start))
         self.updates += 1
-        keys = list(metrics)
-        values = torch.stack([torch.as_tensor(metrics[k], dtype=torch.float32,
-                                              device=self.device).reshape(()) for k in keys])
-        out = dict(zip(keys, values.tolist()))  # one device sync for all metrics
+        out = self.metrics_to_floats(metrics, self.device)
         out["updates"] = float(int(self.updates))
         return out
 
@@ -568,7 +499,3 @@ class Agent(nn.Module):
         if self.wm.dreamerpro is not None:
             return self.wm.dreamerpro.unit_prototypes().cpu()
         return None
-
-    # ---- checkpoint support ---------------------------------------------------------------------
-    def counters(self) -> dict[str, int]:
-        return {"updates": int(self.updates)}

@@ -25,7 +25,7 @@ from __future__ import annotations
 import torch
 import torch.nn.functional as F
 
-__all__ = ["random_shift", "shift_images", "sample_shifts"]
+__all__ = ["random_shift", "shift_images", "sample_shifts", "random_crop", "crop_images"]
 
 
 def sample_shifts(batch_size: int, pad: int = 3, generator: torch.Generator | None = None,
@@ -98,3 +98,37 @@ def random_shift(images: torch.Tensor, pad: int = 3,
     """
     shifts = sample_shifts(images.shape[0], pad, generator, images.device)  # (B, 2)
     return shift_images(images, shifts, pad)
+
+
+def random_crop(images: torch.Tensor, pad: int = 4,
+                generator: torch.Generator | None = None) -> torch.Tensor:
+    """DrQ's augmentation: replicate-pad by `pad` px, then crop the original size back at an
+    integer offset drawn per sample, (ox, oy) ~ U{0, ..., 2 pad}^2 (nn.ReplicationPad2d +
+    kornia RandomCrop in denisyarats/drq).  Unlike random_shift, every image of the batch gets
+    its own offset: DrQ's observations are single frame stacks, not sequences.
+
+    images: (N, C, H, W) float.  Deterministic given `generator` (CPU or the images' device).
+    """
+    if images.dim() != 4 or not torch.is_floating_point(images):
+        raise ValueError(f"random_crop expects float (N, C, H, W), got {images.dtype} "
+                         f"{tuple(images.shape)}")
+    if pad < 0:
+        raise ValueError(f"pad must be >= 0, got {pad}")
+    if pad == 0:
+        return images
+    gen_device = generator.device if generator is not None else images.device
+    offsets = torch.randint(0, 2 * pad + 1, (images.shape[0], 2), generator=generator,
+                            device=gen_device).to(images.device)
+    return crop_images(F.pad(images, (pad, pad, pad, pad), mode="replicate"), offsets,
+                       images.shape[-2], images.shape[-1])
+
+
+def crop_images(padded: torch.Tensor, offsets: torch.Tensor, height: int,
+                width: int) -> torch.Tensor:
+    """out[n, :, y, x] = padded[n, :, oy_n + y, ox_n + x] for offsets (N, 2) = (ox, oy)."""
+    N = padded.shape[0]
+    dev = padded.device
+    rows = offsets[:, 1:2] + torch.arange(height, device=dev)   # (N, H)
+    cols = offsets[:, 0:1] + torch.arange(width, device=dev)    # (N, W)
+    n = torch.arange(N, device=dev)[:, None, None]
+    return padded.permute(0, 2, 3, 1)[n, rows[:, :, None], cols[:, None, :]].permute(0, 3, 1, 2)

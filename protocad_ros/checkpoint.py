@@ -27,7 +27,8 @@ from typing import Any, Mapping
 
 import torch
 
-from .agent import Agent
+from .agent_base import AgentBase
+from .agents import make_agent
 from .atomic import atomic_open
 from .config import Config, ConfigError
 
@@ -43,7 +44,7 @@ class CheckpointError(RuntimeError):
     """A checkpoint that cannot be used: corrupt/truncated, foreign, or incompatible."""
 
 
-def save_checkpoint(path: str | os.PathLike, agent: Agent, counters: Mapping[str, Any] | None = None,
+def save_checkpoint(path: str | os.PathLike, agent: AgentBase, counters: Mapping[str, Any] | None = None,
                     rng_state: bool = False) -> Path:
     """Write the agent (config, weights, optimizer states, counters) to `path` atomically,
     and its config to `config.yaml` beside it. Returns the path."""
@@ -113,7 +114,7 @@ def _config(path: Path, payload: Mapping[str, Any]) -> Config:
         raise CheckpointError(f"{path}: incompatible config in checkpoint: {err}") from None
 
 
-def _load_into(path: Path, agent: Agent, payload: Mapping[str, Any]) -> dict[str, Any]:
+def _load_into(path: Path, agent: AgentBase, payload: Mapping[str, Any]) -> dict[str, Any]:
     try:
         agent.load_state_dict(payload["modules"], strict=True)
     except (RuntimeError, KeyError) as err:
@@ -134,7 +135,7 @@ def _load_into(path: Path, agent: Agent, payload: Mapping[str, Any]) -> dict[str
 
 
 def load_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu",
-                    action_dim: int | None = None) -> tuple[Agent, dict[str, Any]]:
+                    action_dim: int | None = None) -> tuple[AgentBase, dict[str, Any]]:
     """Rebuild the agent from a checkpoint. Returns (agent, counters).
 
     action_dim, if given, must match the checkpoint's (e.g. the environment's).
@@ -146,12 +147,12 @@ def load_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu",
     if action_dim is not None and int(action_dim) != ckpt_dim:
         raise CheckpointError(f"{path}: checkpoint was trained with action_dim={ckpt_dim}, "
                               f"but action_dim={action_dim} was requested")
-    agent = Agent(cfg, ckpt_dim, device=device)
+    agent = make_agent(cfg, ckpt_dim, device=device)
     counters = _load_into(path, agent, payload)
     return agent, counters
 
 
-def restore_checkpoint(path: str | os.PathLike, agent: Agent) -> dict[str, Any]:
+def restore_checkpoint(path: str | os.PathLike, agent: AgentBase) -> dict[str, Any]:
     """Load a checkpoint into an existing agent (e.g. a policy node reloading new weights).
 
     The checkpoint's config must describe the same networks (variant, sizes, action_dim);
@@ -169,8 +170,9 @@ def restore_checkpoint(path: str | os.PathLike, agent: Agent) -> dict[str, Any]:
              if mine[sec][k] != theirs[sec][k] and k in _ARCH_KEYS[sec]]
     if mine["variant"] != theirs["variant"]:
         diffs.insert(0, f"variant: {mine['variant']!r} != {theirs['variant']!r}")
-    diffs += [f"behavior.{k}: {mine['behavior'][k]!r} != {theirs['behavior'][k]!r}"
-              for k in _ARCH_KEYS["behavior"] if mine["behavior"][k] != theirs["behavior"][k]]
+    diffs += [f"{sec}.{k}: {mine[sec][k]!r} != {theirs[sec][k]!r}"
+              for sec in ("behavior", "drq") for k in _ARCH_KEYS[sec]
+              if mine[sec][k] != theirs[sec][k]]
     if diffs:
         raise CheckpointError(f"{path}: checkpoint does not fit this agent: " + "; ".join(diffs))
     return _load_into(path, agent, payload)
@@ -183,4 +185,6 @@ _ARCH_KEYS = {
     "context": {"num_prototypes", "proto_dim", "dreamerpro_num_prototypes"},
     "behavior": {"actor_layers", "actor_units", "critic_layers", "critic_units", "act", "norm",
                  "actor_dist"},
+    "drq": {"frame_stack", "num_filters", "num_conv_layers", "feature_dim", "hidden_dim",
+            "hidden_depth"},
 }

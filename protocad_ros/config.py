@@ -27,8 +27,56 @@ import yaml
 
 from .atomic import atomic_write_text
 
-VARIANTS = ("protocad", "dreamer", "dreamerpro", "dreamer_context", "no_projection",
-            "no_temporal_consistency")
+# ------------------------------------------------------------------------------------------------
+# The variants: one row each. Agent code asks the row (what it trains, what x_t holds), never the
+# name. Adding a variant = a row here (+ its own settings below if it was published with others).
+# ------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class VariantSpec:
+    """What one variant is made of.
+
+    family: 'world_model' (Dreamer's world model + actor-critic in imagination, protocad_ros.agent)
+        or 'model_free' (DrQ: SAC on frame stacks, protocad_ros.drq).
+    features: parts of x_t that the decoder / actor / critic read: 's' = RSSM state (h, z),
+        'u' = projection embedding, 'e' = aggregated prototype (the reward head always reads s).
+    representation: the extra representation loss: 'tc_swav' (ProtoCAD's context module),
+        'swav' (the context module with in-place SwAV, no temporal consistency), 'dreamerpro'
+        (DreamerPro's prototypes, reconstruction-free), 'none'.
+    decoder: image reconstruction loss; augmentation: random-shift views of the observations.
+    source: where the method comes from (the README's variant table lists these).
+    """
+
+    name: str
+    family: str
+    features: tuple[str, ...]
+    representation: str
+    decoder: bool
+    augmentation: bool
+    source: str
+
+    @property
+    def uses_context(self) -> bool:
+        return self.representation in ("tc_swav", "swav")
+
+
+VARIANT_TABLE: dict[str, VariantSpec] = {v.name: v for v in (
+    VariantSpec("protocad", "world_model", ("s", "u", "e"), "tc_swav", True, True,
+                "ProtoCAD (Wang & van Hoof, ICLR 2023): x = (s, u, e), eq. 6"),
+    VariantSpec("dreamer", "world_model", ("s",), "none", True, False,
+                "Dreamer (Hafner et al., ICLR 2020), DreamerV2 world model as in DreamerPro's code"),
+    VariantSpec("dreamerpro", "world_model", ("s",), "dreamerpro", False, True,
+                "DreamerPro (Deng et al., ICML 2022): prototypes as a representation loss only"),
+    VariantSpec("dreamer_context", "world_model", ("s", "u"), "tc_swav", True, True,
+                "Dreamer + Context (ProtoCAD's baseline): TC-SwAV projection, no aggregation"),
+    VariantSpec("no_projection", "world_model", ("s", "e"), "tc_swav", True, True,
+                "ProtoCAD ablation 'w/o Projection': x = (s, e)"),
+    VariantSpec("no_temporal_consistency", "world_model", ("s", "u", "e"), "swav", True, True,
+                "ProtoCAD ablation 'w/o Temporal Consistency': in-place SwAV"),
+    VariantSpec("drq", "model_free", (), "none", False, True,
+                "DrQ (Yarats, Kostrikov & Fergus, ICLR 2021): SAC + random-shift augmentation"),
+)}
+VARIANTS = tuple(VARIANT_TABLE)
+WORLD_MODEL_VARIANTS = tuple(n for n, v in VARIANT_TABLE.items() if v.family == "world_model")
 PRESETS = ("paper", "small", "dreamerv3_sizes")
 
 # Paper Table `setting_k` (K per task); used only if sim_bridge.contexts is not importable.
@@ -36,18 +84,6 @@ PAPER_NUM_PROTOTYPES = {
     "cheetah_run": 100, "finger_spin": 100, "hopper_hop": 50, "hopper_stand": 100,
     "pendulum_swingup": 100, "quadruped_run": 100, "walker_run": 50, "walker_walk": 100,
 }
-
-# What each variant feeds the decoder / actor / critic (x_t); the reward head always reads s_t.
-#   's' = RSSM state (h, z), 'u' = projection embedding, 'e' = aggregated prototype.
-VARIANT_FEATURES = {
-    "protocad": ("s", "u", "e"),              # paper eq. 6: x = (s, u, e)
-    "dreamer": ("s",),                        # Dreamer: no context module
-    "dreamerpro": ("s",),                     # DreamerPro: prototypes only as a repr. loss
-    "dreamer_context": ("s", "u"),            # Dreamer + TC-SwAV projection, no aggregation
-    "no_projection": ("s", "e"),              # ablation "w/o Projection": x = (s, e)
-    "no_temporal_consistency": ("s", "u", "e"),  # ablation: in-place SwAV instead of TC-SwAV
-}
-
 
 class ConfigError(ValueError):
     """A configuration key or value that does not fit the tree (message lists valid keys)."""
@@ -151,6 +187,36 @@ class BehaviorConfig:
 
 
 @dataclass
+class DrQConfig:
+    """DrQ (variant 'drq'): the authors' DMC settings, denisyarats/drq config.yaml (commit
+    dd040f1) and the paper's Table of hyperparameters (batch 512, which the config file's
+    comment asks for to reproduce the paper).  Not DrQ's: 64x64 frames (every variant here sees
+    the bridge's 64x64 images; DrQ used 84x84, so the conv output is 25x25 instead of 35x35),
+    the paper's action repeat A = 2 for every task (DrQ used PlaNet's per task), and C updates
+    after each collected episode (train.collect_interval, one per agent step of that episode)
+    instead of one after every agent step; the replay buffer is every logged episode (DrQ kept
+    the last 100k transitions)."""
+
+    frame_stack: int = 3           # frame_stack 3 (the observation is the last 3 frames)
+    num_filters: int = 32          # Encoder: 4 conv 3x3 (stride 2, 1, 1, 1), 32 filters, ReLU
+    num_conv_layers: int = 4
+    feature_dim: int = 50          # encoder.feature_dim 50 (Linear -> LayerNorm -> tanh)
+    hidden_dim: int = 1024         # actor / critic hidden_dim 1024
+    hidden_depth: int = 2          # hidden_depth 2
+    log_std_min: float = -10.0     # actor log_std_bounds [-10, 2]
+    log_std_max: float = 2.0
+    discount: float = 0.99         # agent.discount
+    init_temperature: float = 0.1  # agent.init_temperature
+    lr: float = 1e-3               # lr, for actor, critic and temperature (Adam)
+    actor_update_frequency: int = 2
+    critic_tau: float = 0.01       # soft update of the target critic (encoder included)
+    critic_target_update_frequency: int = 2
+    image_pad: int = 4             # image_pad: ReplicationPad2d(4) + RandomCrop, per sample
+    target_augs: int = 2           # K: augmented next observations averaged in the Q target
+    q_augs: int = 2                # M: augmented observations in the critic loss
+
+
+@dataclass
 class TrainConfig:
     batch_size: int = 16           # paper B (as in Dreamer)
     seq_len: int = 50              # paper M
@@ -181,26 +247,31 @@ class Config:
     context: ContextConfig = field(default_factory=ContextConfig)
     behavior: BehaviorConfig = field(default_factory=BehaviorConfig)
     train: TrainConfig = field(default_factory=TrainConfig)
+    drq: DrQConfig = field(default_factory=DrQConfig)
 
     # ---- derived ------------------------------------------------------------------------------
     @property
+    def spec(self) -> VariantSpec:
+        """This variant's row of VARIANT_TABLE."""
+        return VARIANT_TABLE[self.variant]
+
+    @property
     def features(self) -> tuple[str, ...]:
         """Parts of x_t for this variant, e.g. ('s', 'u', 'e')."""
-        return VARIANT_FEATURES[self.variant]
+        return self.spec.features
 
     @property
     def uses_context(self) -> bool:
         """True for variants with ProtoCAD's ContextModule (projector + prototypes + TC-SwAV)."""
-        return self.variant in ("protocad", "dreamer_context", "no_projection",
-                                "no_temporal_consistency")
+        return self.spec.uses_context
 
     @property
     def uses_augmentation(self) -> bool:
-        return self.variant != "dreamer"
+        return self.spec.augmentation
 
     @property
     def uses_decoder(self) -> bool:
-        return self.variant != "dreamerpro"  # DreamerPro is reconstruction-free
+        return self.spec.decoder
 
     # ---- serialisation -------------------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
@@ -243,6 +314,23 @@ class Config:
         check(self.variant in VARIANTS, f"unknown variant {self.variant!r}; valid: {VARIANTS}")
         check(self.preset in PRESETS, f"unknown preset {self.preset!r}; valid: {PRESETS}")
         wm, ctx, bh, tr = self.world_model, self.context, self.behavior, self.train
+        if self.spec.family == "model_free":
+            d = self.drq
+            check(self.preset != "dreamerv3_sizes", "preset 'dreamerv3_sizes' sizes a world model; "
+                  "drq has 'paper' (its authors' sizes) and 'small'")
+            check(tr.seq_len == d.frame_stack + 1,
+                  f"drq trains on windows of frame_stack + 1 = {d.frame_stack + 1} steps (a frame "
+                  f"stack and the next one), got train.seq_len={tr.seq_len}")
+            check(d.frame_stack >= 1 and d.num_conv_layers >= 1 and d.num_filters >= 1
+                  and d.feature_dim >= 1 and d.hidden_dim >= 1 and d.hidden_depth >= 0,
+                  "drq sizes must be positive (hidden_depth >= 0)")
+            check(d.log_std_min < d.log_std_max, "drq.log_std_min must be < drq.log_std_max")
+            check(d.init_temperature > 0, "drq.init_temperature must be > 0")
+            check(0.0 < d.critic_tau <= 1.0, "drq.critic_tau must be in (0, 1]")
+            check(d.actor_update_frequency >= 1 and d.critic_target_update_frequency >= 1,
+                  "drq update frequencies must be >= 1")
+            check(d.image_pad >= 0 and d.target_augs >= 1 and d.q_augs >= 1,
+                  "drq.image_pad >= 0, drq.target_augs >= 1, drq.q_augs >= 1")
         check(wm.cnn in ("dreamerv2", "dreamerv3"), f"world_model.cnn must be 'dreamerv2' or "
               f"'dreamerv3', got {wm.cnn!r}")
         check(wm.norm in ("none", "layer"), f"world_model.norm must be 'none'|'layer', got {wm.norm!r}")
@@ -259,7 +347,7 @@ class Config:
               f"train.precision must be 'float32'|'bfloat16', got {tr.precision!r}")
         check(tr.image_size == 64, "only 64x64 images are supported (train.image_size=64)")
         check(tr.batch_size >= 1 and tr.seq_len >= 2, "train.batch_size >= 1, seq_len >= 2")
-        if self.variant != "dreamer":
+        if self.spec.representation != "none":
             # SwAV scores drop the first steps and TC-SwAV needs two halves of >= 1 step.
             check(tr.seq_len - ctx.drop_first_steps >= 2,
                   f"train.seq_len={tr.seq_len} too short for the SwAV loss "
@@ -299,6 +387,14 @@ _PRESET_OVERRIDES: dict[str, dict[str, Any]] = {
     },
 }
 
+# The model-free family's presets ('dreamerv3_sizes' sizes a world model: refused for drq).
+# CPU preset: DrQ's config-file batch of 128 (its comment: "with a smaller batch size it still
+# works well"), 16 conv filters and 256 hidden units.
+_MODEL_FREE_PRESET_OVERRIDES: dict[str, dict[str, Any]] = {
+    "paper": {},
+    "small": {"train.batch_size": 128, "drq.num_filters": 16, "drq.hidden_dim": 256},
+}
+
 
 #: Settings a baseline was published with where they differ from ProtoCAD's, applied by
 #: make_config before the preset (which sizes the run) and the overrides. DreamerPro:
@@ -312,6 +408,14 @@ VARIANT_OWN_SETTINGS: dict[str, dict[str, Any]] = {
         # prefill 5000 env steps = 5 episodes (dmc time_limit 1000).
         "train.collect_interval": 200,
         "train.prefill_episodes": 5,
+    },
+    # DrQ: denisyarats/drq config.yaml (dd040f1) and its paper: batch 512 transitions, one
+    # update per agent step (500 per 1000-step episode at A = 2), 1000 seed steps of random
+    # actions (= 2 episodes at A = 2, ProtoCAD's N as well).
+    "drq": {
+        "train.batch_size": 512,
+        "train.collect_interval": 500,
+        "train.prefill_episodes": 2,
     },
 }
 
@@ -344,16 +448,24 @@ def make_config(task: str = "pendulum_swingup", preset: str = "paper",
     own = _coerce(overrides.get("own_settings", True), "bool", "own_settings", True)
     cfg = Config(task=task, variant=variant, preset=preset, own_settings=own)
     cfg.context.num_prototypes = task_num_prototypes(task)
+    model_free = cfg.spec.family == "model_free"
+    presets = _MODEL_FREE_PRESET_OVERRIDES if model_free else _PRESET_OVERRIDES
+    if preset not in presets:
+        raise ConfigError(f"preset {preset!r} does not apply to variant {variant!r}; valid: "
+                          f"{sorted(presets)}")
     if own:
-        apply_overrides(cfg, VARIANT_OWN_SETTINGS.get(variant, {}))
-    apply_overrides(cfg, _PRESET_OVERRIDES[preset])
-    apply_overrides(cfg, overrides)
+        apply_overrides(cfg, VARIANT_OWN_SETTINGS.get(variant, {}), validate=False)
+    apply_overrides(cfg, presets[preset], validate=False)
+    apply_overrides(cfg, overrides, validate=False)
+    if model_free and "train.seq_len" not in overrides:
+        cfg.train.seq_len = cfg.drq.frame_stack + 1  # structural: a stack and the next one
     cfg.validate()
     return cfg
 
 
-def apply_overrides(cfg: Config, overrides: Mapping[str, Any]) -> Config:
-    """Set 'section.field' (or top-level 'field') keys in place, with type checks."""
+def apply_overrides(cfg: Config, overrides: Mapping[str, Any], validate: bool = True) -> Config:
+    """Set 'section.field' (or top-level 'field') keys in place, with type checks (and the whole
+    config's checks after the last one unless validate=False)."""
     for key, value in overrides.items():
         parts = key.split(".")
         obj: Any = cfg
@@ -368,14 +480,14 @@ def apply_overrides(cfg: Config, overrides: Mapping[str, Any]) -> Config:
                 if dataclasses.is_dataclass(getattr(obj, name)):
                     if not isinstance(value, Mapping):
                         raise ConfigError(f"{key!r} is a section; give 'section.field' keys")
-                    apply_overrides(getattr(obj, name), value)
+                    apply_overrides(getattr(obj, name), value, validate=False)
                 else:
                     setattr(obj, name, _coerce(value, f.type, key, getattr(obj, name)))
             else:
                 obj = getattr(obj, name)
                 if not dataclasses.is_dataclass(obj):
                     raise ConfigError(f"unknown config key {key!r}: {name!r} is not a section")
-    if isinstance(cfg, Config):
+    if validate and isinstance(cfg, Config):
         cfg.validate()
     return cfg
 

@@ -234,6 +234,13 @@ class TanhNormal:
     def mode(self) -> torch.Tensor:
         return torch.tanh(self.mean)
 
+    def sample_log_prob(self, generator: torch.Generator | None = None
+                        ) -> tuple[torch.Tensor, torch.Tensor]:
+        """A reparameterised sample and its log-density (summed over actions), computed from
+        the pre-tanh value, so it stays exact where tanh saturates (SAC's squashed Gaussian)."""
+        action = self.sample(generator)
+        return action, self._log_prob_pre(self._last_pre)
+
     def _log_prob_pre(self, pre: torch.Tensor) -> torch.Tensor:
         z = (pre - self.mean) / self.std
         logp = -0.5 * z * z - _LOG_SQRT_2PI - self.std.log()

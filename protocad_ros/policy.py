@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from .agent import Agent
+from .agent_base import AgentBase
 
 __all__ = ["Policy", "ContextFeatures"]
 
@@ -38,7 +38,7 @@ class ContextFeatures:
 class Policy:
     MODES = ("deterministic", "sample")
 
-    def __init__(self, agent: Agent, device: str | torch.device = "cpu",
+    def __init__(self, agent: AgentBase, device: str | torch.device = "cpu",
                  mode: str = "deterministic", exploration_noise: float = 0.0, seed: int = 0):
         if mode not in self.MODES:
             raise ValueError(f"mode must be one of {self.MODES}, got {mode!r}")
@@ -49,7 +49,7 @@ class Policy:
         self.agent = agent.to(self.device).eval()
         self.mode, self.exploration_noise, self.seed = mode, float(exploration_noise), seed
         self.action_dim = agent.action_dim
-        self.context_dims = agent.wm.context_dims  # (D, K, D) or (0, 0, 0)
+        self.context_dims = agent.context_dims  # (D, K, D) or (0, 0, 0)
         self._generator = torch.Generator(device=self.device)
         self._np_rng = np.random.default_rng(seed)
         self._state = None

@@ -242,13 +242,13 @@ class PolicyNode(ManagedNode):
         return Policy(agent, **self._policy_kwargs()), counters
 
     def _random_policy(self):
-        from protocad_ros.agent import Agent
+        from protocad_ros.agents import make_agent
         from protocad_ros.config import make_config
         from protocad_ros.policy import Policy
 
         p = self.params
         cfg = make_config(p["task"], p["preset"], p["variant"], **{"train.seed": p["seed"]})
-        agent = Agent(cfg, len(task_actuators(p["task"])), device=p["device"])
+        agent = make_agent(cfg, len(task_actuators(p["task"])), device=p["device"])
         return Policy(agent, **self._policy_kwargs())
 
     @property

@@ -59,14 +59,14 @@ def direct(args, with_policy: bool) -> tuple[float, list[float]]:
     torch.set_num_threads(args.threads)
     policy = None
     if with_policy:
-        from protocad_ros.agent import Agent
+        from protocad_ros.agents import make_agent
         from protocad_ros.config import make_config
         from protocad_ros.policy import Policy
 
         env0 = ContextDMCEnv(args.task, seed=args.seed)
         adim = env0.action_dim
         env0.close()
-        policy = Policy(Agent(make_config(args.task, args.preset), adim))
+        policy = Policy(make_agent(make_config(args.task, args.preset), adim))
     lat: list[float] = []
     with ContextDMCEnv(args.task, seed=args.seed, render_quality=args.render_quality,
                        time_limit=args.length * 2) as env:

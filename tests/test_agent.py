@@ -13,7 +13,7 @@ import pytest
 import torch
 
 from protocad_ros.agent import Agent
-from protocad_ros.config import (VARIANTS, Config, ConfigError, make_config)
+from protocad_ros.config import WORLD_MODEL_VARIANTS, Config, ConfigError, make_config
 from protocad_ros.policy import ContextFeatures, Policy
 
 B, T = 4, 16  # 4 real sequences of 16 agent steps
@@ -134,7 +134,7 @@ def test_variant_features_and_modules(variant, parts):
 
 
 # ---- learning on real frames -------------------------------------------------------------------
-@pytest.mark.parametrize("variant", VARIANTS)
+@pytest.mark.parametrize("variant", WORLD_MODEL_VARIANTS)
 def test_world_model_loss_decreases_on_real_frames(real_batch, variant):
     torch.manual_seed(0)
     agent = Agent(tiny(variant, **{"world_model.lr": 1e-3}), action_dim=1)

@@ -10,8 +10,8 @@ import pytest
 
 PACKAGES = ("protocad_ros", "sim_bridge", "trainer")
 #: protocad_ros' model files (the node, the live view and the ROS helpers are the ROS side).
-MODEL_FILES = ("agent", "augment", "atomic", "behavior", "checkpoint", "config", "networks",
-               "policy", "precision", "prototypes", "rssm")
+MODEL_FILES = ("agent", "agent_base", "agents", "augment", "atomic", "behavior", "checkpoint",
+               "config", "drq", "networks", "policy", "precision", "prototypes", "rssm")
 #: The wire contract and task knowledge every package builds on.
 CONTRACT = ("sim_bridge.topics", "sim_bridge.contexts", "sim_bridge.qos")
 ROS = ("rclpy", "rcl_interfaces", "sensor_msgs", "std_msgs", "std_srvs", "diagnostic_msgs",

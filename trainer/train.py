@@ -43,7 +43,7 @@ class Trainer:
                  agent=None, counters: Mapping[str, Any] | None = None,
                  callbacks: Iterable[runs.MetricsCallback] = (), log_every: int = DEFAULT_LOG_EVERY,
                  action_dim: int | None = None, resumed: bool = False):
-        from protocad_ros.agent import Agent
+        from protocad_ros.agents import make_agent
 
         self.cfg = cfg
         self.run_dir = Path(run_dir)
@@ -61,7 +61,7 @@ class Trainer:
             if not adim:
                 raise ValueError("the action size is unknown: no dataset with actions and no action_dim")
             runs.seed_everything(cfg.train.seed)
-            agent = Agent(cfg, int(adim), device=device)
+            agent = make_agent(cfg, int(adim), device=device)
         self.agent = agent
         self.counters: dict[str, Any] = dict(counters or {})
         self.counters.pop("dataset_state", None)
