@@ -2,11 +2,14 @@
 """Benchmark of the in-process research path (protocad-online's loop), by part: env steps/s
 of collection (the env alone, and env + Policy.act + the MCAP bag writer), and seconds per
 training update split into sampling the batch from the dataset, the world model and the
-behaviour (imagination + actor-critic), each configuration in its own fresh process, side by
-side in one run on one machine.
+behaviour (imagination + actor-critic; DrQ's update is one piece: critic, actor, temperature),
+each configuration in its own fresh process, side by side in one run on one machine.  The last
+column is what 1000 env steps cost at the variant's own schedule: collection plus its C updates
+per 1000-step episode (Dreamer-family 100, DreamerPro 200, DrQ 500).
 
     python scripts/bench_online.py                              # small preset, float32 vs auto
     python scripts/bench_online.py --precision float32 bfloat16 --preset paper --updates 5
+    python scripts/bench_online.py --variants protocad dreamer drq --precision auto
 
 "float32" is how this path trained before precision was chosen from the hardware; "auto" is
 what `protocad-online` does now (bfloat16 where the CPU has AVX512-BF16/AMX, else float32),
@@ -79,25 +82,35 @@ def worker(spec: dict) -> dict:
     B = cfg.train.batch_size
     for _ in range(spec["warmup"]):
         trainer.update()
+    world_model = cfg.spec.family == "world_model"
     sample_t, wm_t, beh_t, total_t = [], [], [], []
     for _ in range(spec["updates"]):
         t0 = time.perf_counter()
         batch = MCAPDataset.training_batch(ds.gather(ds.sample_index(B)))
         t1 = time.perf_counter()
-        start, _ = trainer.agent.train_world_model(batch)
-        t2 = time.perf_counter()
-        trainer.agent.train_behavior(start)
-        trainer.agent.updates += 1
+        if world_model:
+            start, _ = trainer.agent.train_world_model(batch)
+            t2 = time.perf_counter()
+            trainer.agent.train_behavior(start)
+            trainer.agent.updates += 1
+        else:   # one piece (critic, actor, temperature): reported as 'wm', beh 0
+            trainer.agent.train_step(batch)
+            t2 = time.perf_counter()
         t3 = time.perf_counter()
         sample_t.append(t1 - t0)
         wm_t.append(t2 - t1)
         beh_t.append(t3 - t2)
         total_t.append(t3 - t0)
     trainer.close()
-    return {"precision": prec, "env_steps_per_s_env_only": 2 * env_only,
-            "env_steps_per_s_collect": 2 * collect, "act_ms": 1e3 * act_s / spec["steps"],
-            "sec_update": float(np.mean(total_t)), "sec_sample": float(np.mean(sample_t)),
-            "sec_wm": float(np.mean(wm_t)), "sec_beh": float(np.mean(beh_t))}
+    R = cfg.train.action_repeat
+    sec_update = float(np.mean(total_t))
+    per_1k = 1000 / (R * collect) + cfg.train.collect_interval * 1000 / cfg.train.time_limit * sec_update
+    return {"precision": prec, "env_steps_per_s_env_only": R * env_only,
+            "env_steps_per_s_collect": R * collect, "act_ms": 1e3 * act_s / spec["steps"],
+            "sec_update": sec_update, "updates_per_s": 1.0 / sec_update,
+            "sec_sample": float(np.mean(sample_t)), "sec_wm": float(np.mean(wm_t)),
+            "sec_beh": float(np.mean(beh_t)), "updates_per_episode": cfg.train.collect_interval,
+            "batch": f"{B}x{cfg.train.seq_len}", "sec_per_1k_env_steps": per_1k}
 
 
 def main(argv=None) -> int:
@@ -106,7 +119,8 @@ def main(argv=None) -> int:
                                  epilog=__doc__.split("\n\n", 1)[1])
     ap.add_argument("--task", default="pendulum_swingup")
     ap.add_argument("--preset", default="small")
-    ap.add_argument("--variant", default="protocad")
+    ap.add_argument("--variants", nargs="+", default=["protocad"],
+                    help="variants, each timed in its own process (e.g. protocad dreamer drq)")
     ap.add_argument("--precision", nargs="+", default=["float32", "auto"],
                     choices=["float32", "bfloat16", "auto"])
     ap.add_argument("--steps", type=int, default=300, help="agent steps per collection measurement")
@@ -125,29 +139,32 @@ def main(argv=None) -> int:
     import torch
     print(f"machine: {os.cpu_count()} cores, torch {torch.__version__}, {a.threads} torch thread(s); "
           f"CPU capability {cpu_capability()}; load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
-    print(f"{a.task} / {a.preset} / {a.variant}; collection {a.steps} agent steps (env steps = 2x), "
+    print(f"{a.task} / {a.preset}; collection {a.steps} agent steps (env steps = action repeat x), "
           f"{a.updates} timed updates")
-    head = (f"{'precision':22} {'env only':>9} {'collect':>8} {'act ms':>7} {'s/update':>9} "
-            f"{'sample':>7} {'wm':>6} {'beh':>6}")
+    head = (f"{'variant':10} {'precision':18} {'batch':>7} {'env only':>9} {'collect':>8} {'act ms':>7} "
+            f"{'s/update':>9} {'upd/s':>6} {'sample':>7} {'wm':>6} {'beh':>6} {'C':>4} {'s/1k env':>9}")
     print(head + "\n" + "-" * len(head))
     rows = []
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))}
-    for prec in a.precision:
-        spec = {"task": a.task, "preset": a.preset, "variant": a.variant, "precision": prec,
-                "steps": a.steps, "updates": a.updates, "warmup": a.warmup, "threads": a.threads}
-        p = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--worker", json.dumps(spec)],
-                           capture_output=True, text=True, env=env)
-        if p.returncode != 0:
-            print(f"{prec:22} ERROR: {(p.stderr.strip().splitlines() or ['?'])[-1]}")
-            continue
-        r = json.loads(p.stdout.strip().splitlines()[-1])
-        rows.append({**spec, **r})
-        label = prec if prec == r["precision"] else f"{prec} -> {r['precision']}"
-        print(f"{label:22} {r['env_steps_per_s_env_only']:9.0f} {r['env_steps_per_s_collect']:8.0f} "
-              f"{r['act_ms']:7.2f} {r['sec_update']:9.3f} {r['sec_sample']:7.3f} {r['sec_wm']:6.3f} "
-              f"{r['sec_beh']:6.3f}", flush=True)
+    for variant in a.variants:
+        for prec in a.precision:
+            spec = {"task": a.task, "preset": a.preset, "variant": variant, "precision": prec,
+                    "steps": a.steps, "updates": a.updates, "warmup": a.warmup, "threads": a.threads}
+            p = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--worker", json.dumps(spec)],
+                               capture_output=True, text=True, env=env)
+            if p.returncode != 0:
+                print(f"{variant:10} {prec:18} ERROR: {(p.stderr.strip().splitlines() or ['?'])[-1]}")
+                continue
+            r = json.loads(p.stdout.strip().splitlines()[-1])
+            rows.append({**spec, **r})
+            label = prec if prec == r["precision"] else f"{prec} -> {r['precision']}"
+            print(f"{variant:10} {label:18} {r['batch']:>7} {r['env_steps_per_s_env_only']:9.0f} "
+                  f"{r['env_steps_per_s_collect']:8.0f} {r['act_ms']:7.2f} {r['sec_update']:9.3f} "
+                  f"{r['updates_per_s']:6.2f} {r['sec_sample']:7.3f} {r['sec_wm']:6.3f} {r['sec_beh']:6.3f} "
+                  f"{r['updates_per_episode']:4d} {r['sec_per_1k_env_steps']:9.1f}", flush=True)
     print("env only / collect: env steps per second (collect = env + Policy.act + bag writer); "
-          "s/update = sample + wm (world model) + beh (behaviour)")
+          "s/update = sample + wm (world model; DrQ: its whole update) + beh (behaviour); "
+          "s/1k env = collecting 1000 env steps + the variant's C updates per 1000-step episode")
     if a.json:
         a.json.write_text(json.dumps(rows, indent=1))
     return 0

@@ -915,6 +915,9 @@ def load_agent(source: Any, device: str = "cpu") -> Any:
         from protocad_ros.checkpoint import load_checkpoint
 
         agent, _ = load_checkpoint(str(source), device=device)
+        if not hasattr(agent, "embed_sequences"):
+            raise ValueError(f"{source}: variant {agent.cfg.variant!r} is model-free: it has no "
+                             "latent state or context to show (the world-model variants do)")
         return agent
     if not hasattr(source, "embed_sequences"):
         raise TypeError(f"expected a checkpoint path or an Agent, got {type(source).__name__}")
