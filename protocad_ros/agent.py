@@ -326,6 +326,7 @@ class Agent(AgentBase):
         self.wm_opt.zero_grad(set_to_none=True)
         total.backward()
         del total  # the graph is freed by backward; drop the last reference early
+        self._sync_grads(self.wm_opt)
         if wm.context is not None:
             wm.context.mask_frozen_prototype_grad(step)
         if wm.dreamerpro is not None:
@@ -365,6 +366,7 @@ class Agent(AgentBase):
         # Disjoint parameter sets (critic input detached): one backward serves both.
         (actor_loss + critic_loss).backward()
         del actor_loss, critic_loss
+        self._sync_grads(self.actor_opt, self.critic_opt)
         metrics["actor_grad_norm"] = nn.utils.clip_grad_norm_(
             self.actor_opt.param_groups[0]["params"], bh.grad_clip)
         metrics["critic_grad_norm"] = nn.utils.clip_grad_norm_(

@@ -11,7 +11,7 @@ the Policy only use this surface:
 from __future__ import annotations
 
 import contextlib
-from typing import Any, Iterator, Mapping
+from typing import Any, Callable, Iterator, Mapping
 
 import numpy as np
 import torch
@@ -87,6 +87,9 @@ class AgentBase(nn.Module):
             raise ValueError(f"action_dim must be >= 1, got {action_dim}")
         self.cfg, self.action_dim = cfg, int(action_dim)
         self.register_buffer("updates", torch.zeros((), dtype=torch.long))
+        # Data-parallel training (trainer/distributed.py) averages gradients across processes
+        # here: called after every backward with the parameters about to be stepped.
+        self.grad_sync: Callable[[list[nn.Parameter]], None] | None = None
 
     @property
     def device(self) -> torch.device:
@@ -127,6 +130,10 @@ class AgentBase(nn.Module):
 
     def optimizers(self) -> dict[str, torch.optim.Optimizer]:
         raise NotImplementedError
+
+    def _sync_grads(self, *optimizers: torch.optim.Optimizer) -> None:
+        if self.grad_sync is not None:
+            self.grad_sync([p for opt in optimizers for g in opt.param_groups for p in g["params"]])
 
     def counters(self) -> dict[str, int]:
         return {"updates": int(self.updates)}

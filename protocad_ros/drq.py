@@ -264,6 +264,7 @@ class DrQAgent(AgentBase):
                                                    self._aug_views(nxt, d.target_augs), w)
         self.critic_opt.zero_grad(set_to_none=True)
         critic_loss.backward()
+        self._sync_grads(self.critic_opt)
         self.critic_opt.step()
         metrics: dict[str, Any] = {"critic_loss": critic_loss.detach(), "q_target": target.mean(),
                                    "q1": q1.mean(), "batch_reward": reward.mean(),
@@ -273,9 +274,11 @@ class DrQAgent(AgentBase):
             actor_loss, alpha_loss, entropy = self.actor_alpha_loss(obs_views[0], w)
             self.actor_opt.zero_grad(set_to_none=True)
             actor_loss.backward()
+            self._sync_grads(self.actor_opt)
             self.actor_opt.step()
             self.alpha_opt.zero_grad(set_to_none=True)
             alpha_loss.backward()
+            self._sync_grads(self.alpha_opt)
             self.alpha_opt.step()
             metrics.update(actor_loss=actor_loss.detach(), alpha_loss=alpha_loss.detach(),
                            entropy=entropy.mean())

@@ -224,12 +224,15 @@ def set_threads(n: int | None) -> int:
 class MetricsLogger:
     """Append-only JSON-lines metrics writer; each line carries `update` and `wall_time`
     (seconds since the run started, carried over across resumes) plus the scalars.
-    Callbacks (e.g. the rerun scalar logger) get (update, metrics) for every logged line."""
+    Callbacks (e.g. the rerun scalar logger) get (update, metrics) for every logged line.
+    path None: nothing is written (a data-parallel rank other than 0 keeps only the clock)."""
 
-    def __init__(self, path: Path, callbacks: Iterable[MetricsCallback] = (), wall_offset: float = 0.0):
-        self.path = Path(path)
-        self.path.parent.mkdir(parents=True, exist_ok=True)
-        self._f = open(self.path, "a", buffering=1)
+    def __init__(self, path: Path | None, callbacks: Iterable[MetricsCallback] = (), wall_offset: float = 0.0):
+        self.path = Path(path) if path is not None else None
+        self._f = None
+        if self.path is not None:
+            self.path.parent.mkdir(parents=True, exist_ok=True)
+            self._f = open(self.path, "a", buffering=1)
         self.callbacks = [c for c in callbacks if c is not None]
         self._t0 = time.monotonic() - float(wall_offset)
 
@@ -242,8 +245,9 @@ class MetricsLogger:
         row.update(extra)
         for k, v in metrics.items():
             row[k] = _scalar(v)
-        self._f.write(json.dumps(row, default=_json_default) + "\n")
-        self._f.flush()
+        if self._f is not None:
+            self._f.write(json.dumps(row, default=_json_default) + "\n")
+            self._f.flush()
         for cb in self.callbacks:
             try:
                 cb(int(update), {k: v for k, v in row.items() if isinstance(v, (int, float))})
@@ -257,7 +261,7 @@ class MetricsLogger:
         return [cb for cb in self.callbacks if hasattr(cb, "log_eval")]
 
     def close(self) -> None:
-        if not self._f.closed:
+        if self._f is not None and not self._f.closed:
             self._f.close()
         for cb in self.callbacks:
             close = getattr(cb, "close", None)

@@ -4,6 +4,7 @@
         --preset small --updates 5000 --run-dir runs/offline-1
     protocad-train --logs foreign_bag/ --topic image=/robot/camera --topic action=/robot/cmd ...
     protocad-train --run-dir runs/offline-1 --resume            # continue exactly
+    torchrun --nproc_per_node 2 --no-python protocad-train --bags runs/loop/bags ...  # 2 ranks
 
 The :class:`Trainer` here is shared by the loop (trainer/loop.py) and the in-process path
 (trainer/online.py): it owns the agent, the dataset sampler, the metrics log and the
@@ -11,6 +12,12 @@ checkpoints. A checkpoint (protocad_ros.checkpoint, written atomically) carries 
 optimizer states, the torch RNG state, the agent's update counter and the trainer's counters,
 including the dataset sampler's RNG state, so `--resume` continues from the last checkpoint
 with the same counters and draws the same next batch an uninterrupted run would have drawn.
+
+Under torchrun (trainer/distributed.py) every rank trains on its share of the global batch
+(train.batch_size / N sequences, drawn by its own sampler seeded by its rank) and gradients are
+averaged; rank 0 writes the metrics and the checkpoint, which carries every rank's sampler and
+RNG state, so a resume with the same N continues exactly, and one with another N continues
+with fresh per-rank seeds.
 """
 from __future__ import annotations
 
@@ -25,7 +32,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
-from trainer import runs
+from trainer import distributed, runs
 from trainer.dataset import DatasetError, MCAPDataset, TopicMap
 
 DEFAULT_LOG_EVERY = 10
@@ -42,18 +49,25 @@ class Trainer:
     def __init__(self, cfg, run_dir: str | Path, dataset: MCAPDataset | None, *, device: str = "cpu",
                  agent=None, counters: Mapping[str, Any] | None = None,
                  callbacks: Iterable[runs.MetricsCallback] = (), log_every: int = DEFAULT_LOG_EVERY,
-                 action_dim: int | None = None, resumed: bool = False):
+                 action_dim: int | None = None, resumed: bool = False,
+                 dist_ctx: distributed.DistContext | None = None):
         from protocad_ros.agents import make_agent
 
         self.cfg = cfg
+        self.dist = dist_ctx or distributed.DistContext()
+        if cfg.train.batch_size % self.dist.world_size:
+            raise ValueError(f"train.batch_size={cfg.train.batch_size} (the global batch) does not "
+                             f"split over {self.dist.world_size} ranks")
+        self.local_batch = cfg.train.batch_size // self.dist.world_size
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
         from protocad_ros.atomic import remove_stale_temporaries
 
-        for path in (self.checkpoint_path, self.checkpoint_path.with_name("config.yaml"),
-                     self.run_dir / "config.yaml", self.run_dir / "run.json"):
-            for tmp in remove_stale_temporaries(path):
-                print(f"[train] removed {tmp}, left by an interrupted write", flush=True)
+        if self.dist.is_main:
+            for path in (self.checkpoint_path, self.checkpoint_path.with_name("config.yaml"),
+                         self.run_dir / "config.yaml", self.run_dir / "run.json"):
+                for tmp in remove_stale_temporaries(path):
+                    print(f"[train] removed {tmp}, left by an interrupted write", flush=True)
         self.dataset = dataset
         self.device = device
         if agent is None:
@@ -62,15 +76,23 @@ class Trainer:
                 raise ValueError("the action size is unknown: no dataset with actions and no action_dim")
             runs.seed_everything(cfg.train.seed)
             agent = make_agent(cfg, int(adim), device=device)
+            if self.dist.enabled:   # the same weights (rank 0's), each rank its own draws
+                runs.seed_everything(distributed.rank_seed(cfg.train.seed, self.dist.rank))
+                if dataset is not None:
+                    dataset.rng = np.random.default_rng(distributed.rank_seed(cfg.train.seed, self.dist.rank))
+        distributed.attach(agent, self.dist)
         self.agent = agent
         self.counters: dict[str, Any] = dict(counters or {})
-        self.counters.pop("dataset_state", None)
+        for key in ("dataset_state", "rank_states", "world_size"):   # rewritten at every save
+            self.counters.pop(key, None)
+        self.rank_fingerprints: list[dict[str, str]] = []
         self.counters["updates"] = int(agent.counters()["updates"])
         self._last_saved: int | None = None
         self.log_every = max(1, int(log_every))
-        if resumed:  # lines logged after the checkpoint will be logged again
+        if resumed and self.dist.is_main:  # lines logged after the checkpoint will be logged again
             runs.truncate_metrics(self.run_dir / "metrics.jsonl", self.counters["updates"])
-        self.metrics = runs.MetricsLogger(self.run_dir / "metrics.jsonl", callbacks,
+        self.metrics = runs.MetricsLogger(self.run_dir / "metrics.jsonl" if self.dist.is_main else None,
+                                          callbacks if self.dist.is_main else (),
                                           wall_offset=float(self.counters.get("wall_time", 0.0)))
         self._mean = runs.RunningMean()
         self._last_log_t = time.monotonic()
@@ -84,10 +106,23 @@ class Trainer:
         """Rebuild from a checkpoint: weights, optimizers, torch RNG, counters, sampler state."""
         from protocad_ros.checkpoint import load_checkpoint
 
+        import torch
+
         agent, counters = load_checkpoint(path, device=device)
+        ctx = kw.get("dist_ctx") or distributed.DistContext()
+        ranks = json.loads(counters.get("rank_states") or "[]")
         state = counters.get("dataset_state")
+        if len(ranks) == ctx.world_size and ctx.enabled:     # the same N: exactly where it was
+            state = ranks[ctx.rank]["dataset"]
+            torch.set_rng_state(distributed.unpack_rng(ranks[ctx.rank]["torch_rng"]))
+        elif ctx.enabled:   # another N: fresh per-rank draws (rank 0's weights go everywhere)
+            seed = distributed.rank_seed(agent.cfg.train.seed, ctx.rank, int(agent.updates))
+            torch.manual_seed(seed)
+            state = None
+            if dataset is not None:
+                dataset.rng = np.random.default_rng(seed)
         if dataset is not None and state:
-            dataset.load_state_dict(json.loads(state))
+            dataset.load_state_dict(json.loads(state) if isinstance(state, str) else state)
         return cls(agent.cfg, run_dir, dataset, device=device, agent=agent, counters=counters,
                    resumed=True, **kw)
 
@@ -105,7 +140,7 @@ class Trainer:
         """One update on a freshly sampled batch."""
         if self.dataset is None:
             raise RuntimeError("no dataset to train on")
-        index = self.dataset.sample_index(self.cfg.train.batch_size)
+        index = self.dataset.sample_index(self.local_batch)
         batch = self.dataset.gather(index)
         m = self.agent.train_step(MCAPDataset.training_batch(batch))
         m["batch_crc"] = float(zlib.crc32(np.asarray(index, np.int64).tobytes()))
@@ -139,7 +174,8 @@ class Trainer:
         stopped). Returns False when stopped early by `stop` (a checkpoint is written then)."""
         completed = True
         while self.updates < target_updates:
-            if stop is not None and stop.stop:
+            # Ranks stop together (one would wait forever for the others' gradients).
+            if distributed.any_rank(stop is not None and stop.stop, self.dist):
                 completed = False
                 break
             m = self.update()
@@ -161,12 +197,31 @@ class Trainer:
         """Atomic checkpoint (weights, optimizers, torch RNG, counters, sampler state)."""
         from protocad_ros.checkpoint import save_checkpoint
 
+        import torch
+
         self.log_now()
         self.counters["updates"] = self.updates
         self.counters["wall_time"] = round(self.metrics.wall_time, 3)
         counters = dict(self.counters)
         if self.dataset is not None:
             counters["dataset_state"] = json.dumps(self.dataset.state_dict())
+        if self.dist.enabled:   # collective: every rank's sampler and RNG, and a weight check
+            mine = {"dataset": counters.get("dataset_state"),
+                    "torch_rng": distributed.pack_rng(torch.get_rng_state()),
+                    "fingerprints": distributed.fingerprints(self.agent)}
+            ranks = distributed.gather_objects(mine, self.dist)
+            if not self.dist.is_main:
+                return Path(path or self.checkpoint_path)
+            counters["rank_states"] = json.dumps([{k: r[k] for k in ("dataset", "torch_rng")}
+                                                  for r in ranks])
+            differ = sorted(k for k in ranks[0]["fingerprints"]
+                            if len({r["fingerprints"][k] for r in ranks}) > 1)
+            counters["world_size"] = self.dist.world_size
+            self.rank_fingerprints = [r["fingerprints"] for r in ranks]
+            counters["rank_fingerprints"] = json.dumps(self.rank_fingerprints)
+            if differ:
+                raise RuntimeError(f"data-parallel ranks diverged at update {self.updates}: {differ} "
+                                   "differ between ranks")
         target = Path(path or self.checkpoint_path)
         try:
             out = save_checkpoint(target, self.agent, counters, rng_state=True)
@@ -255,9 +310,10 @@ def build_parser() -> argparse.ArgumentParser:
                     "every --checkpoint-every updates and at the end). Ctrl-C saves a final "
                     "checkpoint and exits 0; --resume continues exactly from the last one.",
         formatter_class=runs.HelpFormatter)
-    ap.add_argument("--logs", nargs="+", default=None, metavar="PATH",
+    ap.add_argument("--logs", "--bags", nargs="+", default=None, metavar="PATH", dest="logs",
                     help="bag directories / .mcap files / folders of bags (with --resume: "
-                         "default = the run's logs)")
+                         "default = the run's logs). Under torchrun write --bags: torchrun takes "
+                         "--logs as its own --logs-specs")
     add_topic_args(ap)
     add_common_model_args(ap)
     g = ap.add_argument_group("run")
@@ -290,16 +346,27 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _main(a: argparse.Namespace) -> int:
+    runs.set_threads(a.threads)
+    ctx, device = distributed.init(runs.resolve_device(a.device))
+    try:
+        return _train(a, ctx, device)
+    finally:
+        distributed.shutdown(ctx)
+
+
+def _train(a: argparse.Namespace, ctx: distributed.DistContext, device: str) -> int:
     from protocad_ros.checkpoint import CheckpointError
 
-    runs.set_threads(a.threads)
-    device = runs.resolve_device(a.device)
+    say = print if ctx.is_main else (lambda *args, **kw: None)
     run_json: dict[str, Any] = {}
     if a.resume:
         run_dir, run_json = runs.resume_run_dir(a.run_dir, need_state=False)
     else:
         cfg = config_from_args(a)
-        run_dir = runs.new_run_dir(a.run_dir, "train", cfg.task, cfg.variant)
+        # One directory for every rank (the default name has a time stamp): rank 0's.
+        run_dir = distributed.gather_objects(
+            str(runs.new_run_dir(a.run_dir, "train", cfg.task, cfg.variant)) if ctx.is_main else None, ctx)[0]
+        run_dir = Path(run_dir)
     a.checkpoint_every = a.checkpoint_every or run_json.get("checkpoint_every") or 500
     a.log_every = a.log_every or run_json.get("log_every") or DEFAULT_LOG_EVERY
     logs = a.logs or run_json.get("logs")
@@ -311,12 +378,12 @@ def _main(a: argparse.Namespace) -> int:
     topics = TopicMap.parse(topic_args, namespaces[0])
     cache_dir = a.cache_dir or run_json.get("cache_dir")
 
-    print(f"[train] reading logs: {', '.join(map(str, logs))}", flush=True)
+    say(f"[train] reading logs: {', '.join(map(str, logs))}", flush=True)
     from trainer.dataset import default_cache_dir
 
     where = "--cache-dir" if a.cache_dir else "the run's" if cache_dir else (
         "$PROTOCAD_CACHE_DIR" if os.environ.get("PROTOCAD_CACHE_DIR") else "default, outside the project")
-    print(f"[train] dataset cache (decoded frames, reused across runs): "
+    say(f"[train] dataset cache (decoded frames, reused across runs): "
           f"{Path(cache_dir) if cache_dir else default_cache_dir()} ({where}; LRU budget: --cache-budget-gb)", flush=True)
     if a.resume:
         try:
@@ -325,11 +392,15 @@ def _main(a: argparse.Namespace) -> int:
             cfg = Config.load(run_dir / "config.yaml")
         except Exception as exc:  # noqa: BLE001
             raise ValueError(f"--resume: cannot read {run_dir / 'config.yaml'}: {exc}") from None
+    if ctx.enabled and not ctx.is_main:
+        distributed.barrier()   # rank 0 fills the dataset cache first; the others then reuse it
     ds = MCAPDataset(logs, topics=topics, seq_len=cfg.train.seq_len, seed=cfg.train.seed,
-                     cache_dir=cache_dir, verbose=True, cache_budget_gb=a.cache_budget_gb)
+                     cache_dir=cache_dir, verbose=ctx.is_main, cache_budget_gb=a.cache_budget_gb)
     for ns in namespaces[1:]:   # the same logs, read once more per robot namespace
         ds.add(logs, topics=TopicMap.parse(topic_args, ns))
-    print(ds.report.summary(), flush=True)
+    if ctx.enabled and ctx.is_main:
+        distributed.barrier()
+    say(ds.report.summary(), flush=True)
     if ds.num_windows == 0:
         raise DatasetError(f"nothing to train on: no window of {cfg.train.seq_len} steps in the logs "
                            "(see the report above)")
@@ -350,17 +421,20 @@ def _main(a: argparse.Namespace) -> int:
     if a.resume:
         try:
             trainer = Trainer.from_checkpoint(runs.checkpoint_path(run_dir), run_dir, ds, device=device,
-                                              callbacks=callbacks, log_every=a.log_every)
+                                              callbacks=callbacks, log_every=a.log_every, dist_ctx=ctx)
         except CheckpointError as exc:
             raise ValueError(str(exc)) from None
         target = a.updates or int(run_json.get("updates", 1000))
-        print(f"[train] resuming {run_dir} at update {trainer.updates} (target {target})", flush=True)
+        say(f"[train] resuming {run_dir} at update {trainer.updates} (target {target})", flush=True)
     else:
         cfg.train.device = device
-        (run_dir / "metrics.jsonl").unlink(missing_ok=True)   # a fresh run (no checkpoint yet)
-        trainer = Trainer(cfg, run_dir, ds, device=device, callbacks=callbacks, log_every=a.log_every)
+        if ctx.is_main:
+            (run_dir / "metrics.jsonl").unlink(missing_ok=True)   # a fresh run (no checkpoint yet)
+        trainer = Trainer(cfg, run_dir, ds, device=device, callbacks=callbacks, log_every=a.log_every,
+                          dist_ctx=ctx)
         target = a.updates or 1000
-        cfg.save(run_dir / "config.yaml")
+        if ctx.is_main:
+            cfg.save(run_dir / "config.yaml")
     if trainer.dataset.action_dim != trainer.agent.action_dim:
         raise ValueError(f"the logs have {trainer.dataset.action_dim}-d actions but the agent "
                          f"{trainer.agent.action_dim}-d")
@@ -369,17 +443,20 @@ def _main(a: argparse.Namespace) -> int:
                     cache_dir=str(Path(cache_dir).resolve()) if cache_dir else None, task=cfg.task,
                     variant=cfg.variant, preset=cfg.preset, seed=cfg.train.seed, device=device, updates=target,
                     checkpoint_every=a.checkpoint_every, log_every=a.log_every,
-                    rerun=str(rrd) if rrd else None, topics=topics.as_dict())
-    runs.atomic_write_json(run_dir / "run.json", run_json)
+                    rerun=str(rrd) if rrd else None, topics=topics.as_dict(), world_size=ctx.world_size)
+    if ctx.is_main:
+        runs.atomic_write_json(run_dir / "run.json", run_json)
 
-    print(f"[train] {cfg.task} / {cfg.variant} / {cfg.preset} on {device}: batch "
-          f"{cfg.train.batch_size} x {cfg.train.seq_len}, {trainer.updates} -> {target} updates; "
+    ranks = (f" ({ctx.world_size} ranks over {ctx.backend}, {trainer.local_batch} sequences each)"
+             if ctx.enabled else "")
+    say(f"[train] {cfg.task} / {cfg.variant} / {cfg.preset} on {device}: batch "
+          f"{cfg.train.batch_size} x {cfg.train.seq_len}{ranks}, {trainer.updates} -> {target} updates; "
           f"run dir {run_dir}", flush=True)
     t0 = time.monotonic()
     start = trainer.updates
     with runs.StopFlag() as stop:
-        bar = runs.progress(target, initial=trainer.updates, desc="train", disable=True if a.no_progress else None,
-                            unit="upd")
+        bar = runs.progress(target, initial=trainer.updates, desc="train",
+                            disable=True if a.no_progress or not ctx.is_main else None, unit="upd")
         try:
             done = trainer.train(target, stop=stop, checkpoint_every=a.checkpoint_every, bar=bar)
         finally:
@@ -388,13 +465,16 @@ def _main(a: argparse.Namespace) -> int:
     dt = time.monotonic() - t0
     n = trainer.updates - start
     status = "finished" if done else "interrupted"
-    print(f"[train] {status} at update {trainer.updates} ({n} updates in {runs.fmt_seconds(dt)}"
+    say(f"[train] {status} at update {trainer.updates} ({n} updates in {runs.fmt_seconds(dt)}"
           f"{f', {n / dt:.2f}/s' if dt > 0 and n else ''})", flush=True)
-    print(f"[train] checkpoint: {trainer.checkpoint_path}", flush=True)
-    print(f"[train] metrics:    {run_dir / 'metrics.jsonl'}", flush=True)
-    print(f"[train] config:     {run_dir / 'config.yaml'}", flush=True)
+    say(f"[train] checkpoint: {trainer.checkpoint_path}", flush=True)
+    say(f"[train] metrics:    {run_dir / 'metrics.jsonl'}", flush=True)
+    say(f"[train] config:     {run_dir / 'config.yaml'}", flush=True)
+    if trainer.rank_fingerprints:
+        say(f"[train] {ctx.world_size} ranks hold identical weights at update {trainer.updates}: "
+            + " ".join(f"{k}={v}" for k, v in trainer.rank_fingerprints[0].items()), flush=True)
     if not done:
-        print(f"[train] resume with: protocad-train --run-dir {run_dir} --resume", flush=True)
+        say(f"[train] resume with: protocad-train --run-dir {run_dir} --resume", flush=True)
     return 0
 
 

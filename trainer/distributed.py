@@ -1,0 +1,183 @@
+"""Data-parallel training over torch.distributed (no ROS): `torchrun --nproc_per_node N ...`.
+
+    ctx = distributed.init(device)          # from torchrun's env; a no-op context without it
+    distributed.attach(agent, ctx)          # same weights everywhere, gradients averaged
+
+Every rank holds the whole agent, samples its own sequences (its sampler and torch RNG seeded by
+its rank) and computes the gradients of its share of the global batch (train.batch_size / N
+sequences); after each backward the gradients of the parameters about to be stepped are averaged
+over the ranks with one all-reduce (SUM / N, one flat buffer per optimizer), so every rank takes
+the same optimizer step and the weights stay identical; so do everything derived from them (the
+EMA target projector, DreamerPro's EMA encoder, the slow critic, DrQ's target critic). Rank 0
+writes checkpoints, metrics and rerun logs.
+
+This is what DistributedDataParallel does for one module, done by hand: an update here steps three
+optimisers over parts of one module and backpropagates the actor loss through a frozen world
+model, which DDP's wrapper (every forward through the wrapper, every parameter used once per
+backward) does not fit. Backend: gloo on CPU, NCCL on CUDA (torchrun sets RANK, WORLD_SIZE,
+LOCAL_RANK, MASTER_ADDR/PORT).
+"""
+from __future__ import annotations
+
+import base64
+import hashlib
+import os
+import signal
+from dataclasses import dataclass
+from typing import Any, Sequence
+
+import torch
+import torch.distributed as dist
+import torch.nn as nn
+
+__all__ = ["DistContext", "init", "attach", "average_gradients", "fingerprints", "any_rank",
+           "gather_objects", "rank_seed", "pack_rng", "unpack_rng"]
+
+
+@dataclass(frozen=True)
+class DistContext:
+    """Where this process stands: rank / world_size (1 and 0 without torchrun)."""
+
+    rank: int = 0
+    world_size: int = 1
+    local_rank: int = 0
+    backend: str | None = None
+
+    @property
+    def enabled(self) -> bool:
+        return self.world_size > 1
+
+    @property
+    def is_main(self) -> bool:
+        return self.rank == 0
+
+
+def init(device: str) -> tuple[DistContext, str]:
+    """Join the process group torchrun describes in the environment, if it does.
+
+    Returns (context, device): on CUDA each rank takes the GPU of its LOCAL_RANK. Without
+    WORLD_SIZE > 1 nothing is initialised and the device is returned unchanged.
+    """
+    world = int(os.environ.get("WORLD_SIZE", "1"))
+    if world <= 1:
+        return DistContext(), device
+    rank, local = int(os.environ["RANK"]), int(os.environ.get("LOCAL_RANK", "0"))
+    _die_with_launcher()
+    cuda = device.startswith("cuda")
+    if cuda:
+        device = f"cuda:{local}"
+        torch.cuda.set_device(local)
+    backend = "nccl" if cuda else "gloo"
+    if not dist.is_initialized():
+        dist.init_process_group(backend)
+    return DistContext(rank, world, local, backend), device
+
+
+def _die_with_launcher() -> None:
+    """SIGTERM (a clean, coordinated stop with a checkpoint) when torchrun's agent dies, instead
+    of ranks training on as orphans (Linux prctl PR_SET_PDEATHSIG; elsewhere nothing)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)
+    except (OSError, AttributeError):
+        pass
+
+
+def barrier() -> None:
+    dist.barrier()
+
+
+def shutdown(ctx: DistContext) -> None:
+    if ctx.enabled and dist.is_initialized():
+        dist.destroy_process_group()
+
+
+@torch.no_grad()
+def average_gradients(params: Sequence[nn.Parameter], world_size: int) -> None:
+    """grad <- (sum over ranks of grad) / N for every parameter that has one.
+
+    A parameter without a gradient counts as zeros in the buffer and keeps grad None: every rank
+    runs the same code path, so the same parameters lack one everywhere.
+    """
+    have = [p for p in params if p.grad is not None]
+    if not have:
+        return
+    flat = torch.cat([p.grad.reshape(-1) for p in have])
+    dist.all_reduce(flat, op=dist.ReduceOp.SUM)
+    flat.div_(world_size)
+    offset = 0
+    for p in have:
+        n = p.grad.numel()
+        p.grad.copy_(flat[offset:offset + n].view_as(p.grad))
+        offset += n
+
+
+@torch.no_grad()
+def broadcast_state(module: nn.Module, src: int = 0) -> None:
+    """Every parameter and buffer of `module` takes rank `src`'s values."""
+    for t in list(module.state_dict(keep_vars=True).values()):
+        data = t.data if isinstance(t, nn.Parameter) else t
+        dist.broadcast(data, src)
+
+
+def attach(agent: Any, ctx: DistContext) -> None:
+    """Rank 0's weights everywhere, and gradient averaging after every backward."""
+    if not ctx.enabled:
+        return
+    broadcast_state(agent)
+    agent.grad_sync = lambda params: average_gradients(params, ctx.world_size)
+
+
+def any_rank(flag: bool, ctx: DistContext, device: str | torch.device = "cpu") -> bool:
+    """True on every rank if it is True on any (a stop request must stop them all together)."""
+    if not ctx.enabled:
+        return flag
+    t = torch.tensor([1.0 if flag else 0.0], device=device)
+    dist.all_reduce(t, op=dist.ReduceOp.MAX)
+    return bool(t.item() > 0)
+
+
+def gather_objects(obj: Any, ctx: DistContext) -> list[Any]:
+    """[obj of rank 0, obj of rank 1, ...] on every rank ([obj] without torch.distributed)."""
+    if not ctx.enabled:
+        return [obj]
+    out: list[Any] = [None] * ctx.world_size
+    dist.all_gather_object(out, obj)
+    return out
+
+
+def rank_seed(seed: int, rank: int, updates: int = 0) -> int:
+    """A seed for this rank's sampler and torch RNG (rank 0 of a fresh run: `seed` itself)."""
+    return int(seed) + 1_000_003 * int(rank) + 7_919 * int(updates)
+
+
+def pack_rng(state: torch.Tensor) -> str:
+    return base64.b64encode(state.numpy().tobytes()).decode("ascii")
+
+
+def unpack_rng(text: str) -> torch.Tensor:
+    return torch.frombuffer(bytearray(base64.b64decode(text)), dtype=torch.uint8).clone()
+
+
+def _digest(tensors: dict[str, torch.Tensor]) -> str:
+    h = hashlib.sha256()
+    for key, t in tensors.items():
+        h.update(key.encode())
+        h.update(t.detach().cpu().contiguous().reshape(-1).view(torch.uint8).numpy().tobytes())
+    return h.hexdigest()[:16]
+
+
+def fingerprints(agent: nn.Module) -> dict[str, str]:
+    """sha256 (16 hex digits) of the weights and buffers of every part two levels down (e.g.
+    wm.context, ac.actor, ac.slow_critic, critic_target) and of the agent's own (DrQ's
+    log_alpha, the update counter): equal on two ranks exactly when those are bit for bit."""
+    out = {"agent": _digest({**dict(agent.named_parameters(recurse=False)),
+                             **dict(agent.named_buffers(recurse=False))})}
+    for name, child in agent.named_children():
+        grandchildren = list(child.named_children())
+        if not grandchildren:
+            out[name] = _digest(child.state_dict())
+        for sub, mod in grandchildren:
+            out[f"{name}.{sub}"] = _digest(mod.state_dict())
+    return out
