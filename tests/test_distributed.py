@@ -187,3 +187,31 @@ def test_torchrun_takes_logs_as_its_own_option_so_the_docs_say_bags():
     --logs can be documented again."""
     out = torchrun("--no-python", "true", "--logs", "x", timeout=60)
     assert out.returncode != 0 and "ambiguous option: --logs" in out.stderr
+
+
+def test_protocad_online_on_two_ranks_collects_on_each_and_resumes_on_one(tmp_path):
+    run = tmp_path / "online"
+    tiny = ["--set", "world_model.deter=32", "--set", "world_model.hidden=32", "--set",
+            "world_model.cnn_depth=8", "--set", "context.num_prototypes=8", "--set",
+            "train.batch_size=4", "--set", "train.seq_len=16", "--threads", "1"]
+    args = ["--task", "pendulum_swingup", "--preset", "small", "--time-limit", "200",
+            "--prefill-episodes", "2", "--updates-per-episode", "3", "--eval-every", "0",
+            "--eval-episodes", "1", "--final-max-contexts", "1", "--run-dir", str(run),
+            "--no-progress", *tiny]
+    out = torchrun("--no-python", sys.executable, "-m", "trainer.online", "--env-steps", "1200", *args)
+    assert out.returncode == 0, out.stdout + out.stderr
+    bags = sorted(p.name for p in (run / "bags").iterdir())
+    assert len(bags) == 6 and sum(b.endswith("_rank1") for b in bags) == 3   # 3 episodes each
+    result = json.loads((run / "run.json").read_text())["result"]
+    assert result["status"] == "finished" and result["env_steps"] == 1200
+    assert result["updates"] == 3 + 3 * 4        # C after the 2 prefill episodes, C per episode
+    prints = json.loads(read_checkpoint(run / "checkpoints" / "latest.pt")["counters"]["rank_fingerprints"])
+    assert prints[0] == prints[1]
+    assert (run / "eval" / "final.json").exists()
+    one = subprocess.run([sys.executable, "-m", "trainer.online", "--run-dir", str(run), "--resume",
+                          "--env-steps", "1600", "--no-progress", "--threads", "1"],
+                         capture_output=True, text=True, timeout=240, cwd=ROOT, env=ENV)
+    assert one.returncode == 0, one.stdout + one.stderr
+    result = json.loads((run / "run.json").read_text())["result"]
+    assert result["status"] == "finished" and result["env_steps"] == 1600
+    assert "6 bags" in one.stdout                 # one process replays every rank's bags

@@ -24,6 +24,7 @@ import hashlib
 import os
 import signal
 from dataclasses import dataclass
+from datetime import timedelta
 from typing import Any, Sequence
 
 import torch
@@ -69,7 +70,10 @@ def init(device: str) -> tuple[DistContext, str]:
         torch.cuda.set_device(local)
     backend = "nccl" if cuda else "gloo"
     if not dist.is_initialized():
-        dist.init_process_group(backend)
+        # Ranks wait at a barrier while rank 0 evaluates (minutes to hours on a CPU for the
+        # paper's 64 contexts): far longer than the 10-30 min default.
+        hours = float(os.environ.get("PROTOCAD_DIST_TIMEOUT_H", "6"))
+        dist.init_process_group(backend, timeout=timedelta(hours=hours))
     return DistContext(rank, world, local, backend), device
 
 
@@ -86,6 +90,12 @@ def _die_with_launcher() -> None:
 
 def barrier() -> None:
     dist.barrier()
+
+
+def barrier_if(ctx: DistContext) -> None:
+    """Wait for every rank (nothing without torch.distributed)."""
+    if ctx.enabled:
+        dist.barrier()
 
 
 def shutdown(ctx: DistContext) -> None:

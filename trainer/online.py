@@ -22,6 +22,13 @@ from them. The replay buffer IS that dataset (disk-backed uint8 store, see train
 Resume (`--resume`): weights, optimizers, RNG, sampler state and counters come from the last
 checkpoint; bags on disk are re-indexed (from the cache). Environments restart with fresh
 episodes (a simulator mid-episode is not checkpointed), seeded differently from the first run.
+
+Under torchrun (`torchrun --nproc_per_node N --no-python protocad-online ...`, see
+trainer/distributed.py) every rank collects with its own envs (seeded by rank) into its own bags
+(`..._rankR`) and replays them, the ranks step in lock-step (same time limit, so their episodes
+end together) and average gradients; counters are global (env steps and episodes of all ranks,
+so --env-steps is the budget of the whole run and C updates follow each collected episode of
+any rank); rank 0 evaluates (the others wait), writes the metrics, run.json and checkpoints.
 """
 from __future__ import annotations
 
@@ -36,7 +43,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from sim_bridge import topics as T
-from trainer import runs
+from trainer import distributed, runs
 from trainer.dataset import MCAPDataset, TopicMap
 from trainer.train import Trainer, add_common_model_args, config_from_args
 
@@ -198,12 +205,21 @@ def mcap_io_errors() -> type:
 
 
 def run(a: argparse.Namespace) -> int:
+    runs.set_threads(a.threads)
+    ctx, device = distributed.init(runs.resolve_device(a.device))
+    try:
+        return _run(a, ctx, device)
+    finally:
+        distributed.shutdown(ctx)
+
+
+def _run(a: argparse.Namespace, ctx: distributed.DistContext, device: str) -> int:
     from protocad_ros.policy import Policy
     from sim_bridge.vector import VectorEnv
     from trainer.evaluate import (RandomPolicy, evaluate_checkpoint, format_table, select_contexts)
 
-    runs.set_threads(a.threads)
-    device = runs.resolve_device(a.device)
+    main_rank, world = ctx.is_main, ctx.world_size
+    say = print if main_rank else (lambda *args, **kw: None)
     run_json: dict[str, Any] = {}
     if a.resume:
         run_dir, run_json = runs.resume_run_dir(a.run_dir)
@@ -226,15 +242,19 @@ def run(a: argparse.Namespace) -> int:
         a.set = list(a.set) + [f"{k}={v}" for k, v in overrides.items()]
         cfg = config_from_args(a)
         cfg.train.device = device
-        run_dir = runs.new_run_dir(a.run_dir, "online", cfg.task, cfg.variant)
-        run_dir.mkdir(parents=True, exist_ok=True)
-        cfg.save(run_dir / "config.yaml")
+        run_dir = Path(distributed.gather_objects(   # rank 0's (the default name has a stamp)
+            str(runs.new_run_dir(a.run_dir, "online", cfg.task, cfg.variant)) if main_rank else None, ctx)[0])
+        if main_rank:
+            run_dir.mkdir(parents=True, exist_ok=True)
+            cfg.save(run_dir / "config.yaml")
+        distributed.barrier_if(ctx)
     if a.eval_max_contexts is None:   # the paper averages over every test context
         a.eval_max_contexts = 0 if cfg.preset == "paper" else 16
     tr = cfg.train
     N, C, R = tr.prefill_episodes, tr.collect_interval, tr.action_repeat
     bags_dir = run_dir / "bags"
     bags_dir.mkdir(parents=True, exist_ok=True)
+    rank_tag = f"_rank{ctx.rank}" if ctx.enabled else ""
     cache_dir = Path(a.cache_dir) if a.cache_dir else run_dir / "cache"
     eval_dir = run_dir / "eval"
     eval_dir.mkdir(exist_ok=True)
@@ -251,13 +271,16 @@ def run(a: argparse.Namespace) -> int:
                         "eval_max_contexts": a.eval_max_contexts, "final_max_contexts": a.final_max_contexts,
                         "final_episodes": a.final_episodes,
                         "wall_budget": a.wall_budget, "train_context": a.train_context,
-                        "eval_split": a.eval_split, "eval_contexts": a.eval_contexts})
-    runs.atomic_write_json(run_dir / "run.json", run_json)
+                        "eval_split": a.eval_split, "eval_contexts": a.eval_contexts, "world_size": world})
+    if main_rank:
+        runs.atomic_write_json(run_dir / "run.json", run_json)
 
     # The run's own cache is its replay buffer: every entry is in use, no budget applies.
     ds = MCAPDataset([], topics=TopicMap(), seq_len=tr.seq_len, seed=tr.seed, cache_dir=cache_dir,
                      cache_budget_gb=None if a.cache_dir else 0)
-    existing = sorted(p for p in bags_dir.iterdir() if p.is_dir())
+    # On resume each rank replays a share of the bags on disk (all of them on one process),
+    # whatever the number of ranks that wrote them.
+    existing = sorted(p for p in bags_dir.iterdir() if p.is_dir())[ctx.rank::world]
     if existing:
         ds.add(existing)
     callbacks = []
@@ -267,14 +290,14 @@ def run(a: argparse.Namespace) -> int:
         callbacks.append(metrics_callback(a.rerun or run_dir / "metrics.rrd", application="protocad-online"))
     if a.resume:
         trainer = Trainer.from_checkpoint(runs.checkpoint_path(run_dir), run_dir, ds, device=device,
-                                          callbacks=callbacks, log_every=a.log_every)
-        print(f"[online] resuming {run_dir}: {trainer.counters.get('env_steps', 0)} env steps, "
+                                          callbacks=callbacks, log_every=a.log_every, dist_ctx=ctx)
+        say(f"[online] resuming {run_dir}: {trainer.counters.get('env_steps', 0)} env steps, "
               f"{trainer.updates} updates, {len(existing)} bags", flush=True)
     else:
         from sim_bridge.contexts import task_actuators
 
         trainer = Trainer(cfg, run_dir, ds, device=device, callbacks=callbacks, log_every=a.log_every,
-                          action_dim=len(task_actuators(cfg.task)))
+                          action_dim=len(task_actuators(cfg.task)), dist_ctx=ctx)
         trainer.counters.update(env_steps=0, agent_steps=0, episodes=0, prefill_done=0,
                                 next_eval=a.eval_every, evals=0, resumes=0, last_return=0.0, bags=0)
     c = trainer.counters
@@ -290,6 +313,8 @@ def run(a: argparse.Namespace) -> int:
         a.train_context = get_task(cfg.task).validate(a.train_context, "train")
 
     def log_eval(result, tag: str) -> None:
+        if not main_rank:
+            return
         d = result.to_dict()
         d.update(env_steps=int(c["env_steps"]), updates=trainer.updates, tag=tag)
         runs.atomic_write_json(eval_dir / f"{tag}.json", d)
@@ -309,10 +334,14 @@ def run(a: argparse.Namespace) -> int:
     final_episodes = a.final_episodes or a.eval_episodes
 
     def evaluate(tag: str, contexts, stop, episodes: int) -> Any:
+        if not main_rank:   # rank 0 evaluates; the others wait for it
+            distributed.barrier_if(ctx)
+            return None
         res = evaluate_checkpoint(None, agent=trainer.agent, task=cfg.task, episodes=episodes,
                                   contexts=contexts, split=a.eval_split, seed=tr.seed + 7, device=device, workers=eval_workers,
                                   counters=c, progress=False if a.no_progress else None, stop=stop)
         res.policy = f"{cfg.variant}@{int(c['env_steps'])}"
+        distributed.barrier_if(ctx)
         if stop.stop:
             return res
         log_eval(res, tag)
@@ -325,7 +354,7 @@ def run(a: argparse.Namespace) -> int:
     status = "failed"   # until the loop below ends normally or is stopped
     with runs.StopFlag() as stop:
         try:
-            if a.random_baseline and not (eval_dir / "random.json").exists():
+            if a.random_baseline and main_rank and not (eval_dir / "random.json").exists():
                 from sim_bridge.contexts import task_actuators
 
                 rnd = evaluate_checkpoint(None, task=cfg.task, episodes=final_episodes, contexts=final_contexts,
@@ -336,7 +365,7 @@ def run(a: argparse.Namespace) -> int:
                 if not stop.stop:
                     runs.atomic_write_json(eval_dir / "random.json", rnd.to_dict())
                     print(format_table(rnd), flush=True)
-            seed = tr.seed * 1000 + int(c.get("resumes", 0))
+            seed = distributed.rank_seed(tr.seed * 1000 + int(c.get("resumes", 0)), ctx.rank)
             venv = VectorEnv(cfg.task, a.num_envs, split="train", seed=seed, action_repeat=R,
                              time_limit=tr.time_limit, image_size=tr.image_size, context=a.train_context)
             names = list(venv.action_names)
@@ -353,11 +382,12 @@ def run(a: argparse.Namespace) -> int:
             ep_return = np.zeros(n)
             writers = [None] * n
             bar = runs.progress(a.env_steps, initial=int(c["env_steps"]), desc="env steps",
-                                disable=True if a.no_progress else None, unit="step")
+                                disable=True if a.no_progress or not main_rank else None, unit="step")
             from protocad_ros.precision import cpu_capability
 
             wall = f", wall budget {runs.fmt_seconds(a.wall_budget)}" if a.wall_budget else ""
-            print(f"[online] {cfg.task} / {cfg.variant} / {cfg.preset} on {device}: {n} env(s), "
+            say(f"[online] {cfg.task} / {cfg.variant} / {cfg.preset} on {device}: {n} env(s)"
+                  + (f" on each of {world} ranks ({ctx.backend})" if ctx.enabled else "") + ", "
                   f"budget {a.env_steps} env steps{wall}, prefill {N} episodes, C={C}, eval every "
                   f"{a.eval_every} env steps on {len(periodic_contexts)} {a.eval_split} contexts; "
                   f"precision {tr.precision}, CPU capability {cpu_capability()}, "
@@ -366,7 +396,14 @@ def run(a: argparse.Namespace) -> int:
             def out_of_wall_time() -> bool:
                 return bool(a.wall_budget) and trainer.metrics.wall_time >= a.wall_budget
 
-            while int(c["env_steps"]) < a.env_steps and not stop.stop and not out_of_wall_time():
+            def stopped() -> bool:   # collective under torchrun: every rank decides the same
+                return distributed.any_rank(stop.stop, ctx)
+
+            def keep_going() -> bool:
+                halt = stop.stop or out_of_wall_time()
+                return int(c["env_steps"]) < a.env_steps and not distributed.any_rank(halt, ctx)
+
+            while keep_going():
                 prefill = int(c["episodes"]) < N and not int(c["prefill_done"])
                 images = np.stack([o.image for o in obs])
                 first = np.array([o.is_first for o in obs])
@@ -381,7 +418,7 @@ def run(a: argparse.Namespace) -> int:
                     if o.is_first or writers[i] is None:
                         if writers[i] is not None:
                             writers[i].close()
-                        name = f"ep{int(c['bags']):06d}_env{i}_r{int(c['resumes'])}"
+                        name = f"ep{int(c['bags']):06d}_env{i}_r{int(c['resumes'])}{rank_tag}"
                         c["bags"] = int(c["bags"]) + 1
                         writers[i] = EpisodeBagWriter(bags_dir / name, names)
                         ep_return[i] = 0.0
@@ -390,14 +427,14 @@ def run(a: argparse.Namespace) -> int:
                     ticks[i] += 1
                     if not o.is_first:
                         ep_return[i] += o.reward
-                        c["agent_steps"] = int(c["agent_steps"]) + 1
-                        c["env_steps"] = int(c["env_steps"]) + R
-                        bar.update(R)
+                        c["agent_steps"] = int(c["agent_steps"]) + world   # counters are global
+                        c["env_steps"] = int(c["env_steps"]) + R * world
+                        bar.update(R * world)
                     if o.is_last:
                         writers[i].close()
                         finished.append(writers[i].bag_dir)
                         writers[i] = None
-                        c["episodes"] = int(c["episodes"]) + 1
+                        c["episodes"] = int(c["episodes"]) + world
                         c["last_return"] = float(ep_return[i])
                         trainer.metrics.log(trainer.updates, {"train_return": float(ep_return[i])}, kind="episode",
                                             env_steps=int(c["env_steps"]), episodes=int(c["episodes"]),
@@ -416,23 +453,23 @@ def run(a: argparse.Namespace) -> int:
                         bar.set_description(f"train (ep {c['episodes']}, return {c['last_return']:.0f})")
                         trainer.train(target, stop=stop, checkpoint_every=a.checkpoint_every, save=False)
                         bar.set_description("env steps")
-                    if (a.eval_every and int(c["env_steps"]) >= int(c["next_eval"]) and not stop.stop
+                    if (a.eval_every and int(c["env_steps"]) >= int(c["next_eval"]) and not stopped()
                             and int(c["env_steps"]) < a.env_steps):   # at the budget: the final one
                         while int(c["next_eval"]) <= int(c["env_steps"]):
                             c["next_eval"] = int(c["next_eval"]) + a.eval_every
                         evaluate(f"eval_{int(c['env_steps']):08d}", periodic_contexts, stop, a.eval_episodes)
                         c["evals"] = int(c["evals"]) + 1
                         trainer.save()
-                if stop.stop:
+                if stopped():
                     break
                 obs = venv.step(np.asarray(actions, np.float64))
             bar.close()
-            if stop.stop:
+            if stopped():
                 status = "interrupted"
             else:
                 status = "finished" if int(c["env_steps"]) >= a.env_steps else "wall_budget"
                 final = evaluate("final", final_contexts, stop, final_episodes)
-                if not stop.stop:
+                if main_rank and not stop.stop:
                     print(f"[online] final mean return on {len(final.per_context)} test contexts: "
                           f"{final.mean:.1f}", flush=True)
         finally:
@@ -441,22 +478,23 @@ def run(a: argparse.Namespace) -> int:
                     w.close()
             if venv is not None:
                 venv.close()
-            if trainer.updates or stop.stop:
+            if trainer.updates or status == "interrupted":
                 trainer.save()
             trainer.close()
             run_json["result"] = {"status": status, "env_steps": int(c["env_steps"]), "updates": trainer.updates,
                                   "episodes": int(c["episodes"]), "wall_time": round(trainer.metrics.wall_time, 1),
                                   "precision": tr.precision, "resumes": int(c.get("resumes", 0))}
-            runs.atomic_write_json(run_dir / "run.json", run_json)
+            if main_rank:
+                runs.atomic_write_json(run_dir / "run.json", run_json)
     dt = time.monotonic() - t_start
-    print(f"[online] {status}: {c['env_steps']} env steps, {c['episodes']} episodes, {trainer.updates} "
+    say(f"[online] {status}: {c['env_steps']} env steps, {c['episodes']} episodes, {trainer.updates} "
           f"updates in {runs.fmt_seconds(dt)}", flush=True)
-    print(f"[online] run dir:    {run_dir}\n[online] checkpoint: {trainer.checkpoint_path}\n"
+    say(f"[online] run dir:    {run_dir}\n[online] checkpoint: {trainer.checkpoint_path}\n"
           f"[online] bags:       {bags_dir} ({len(ds.stores)} episodes)\n"
           f"[online] metrics:    {run_dir / 'metrics.jsonl'}\n[online] eval:       {run_dir / 'eval.jsonl'}, {eval_dir}",
           flush=True)
     if status == "interrupted":
-        print(f"[online] resume with: protocad-online --run-dir {run_dir} --resume", flush=True)
+        say(f"[online] resume with: protocad-online --run-dir {run_dir} --resume", flush=True)
     return 0
 
 
