@@ -173,17 +173,21 @@ def test_checkpoint_round_trip_and_policy(tmp_path):
         prev = a1
 
 
-def test_online_run_writes_logs_and_protocad_train_learns_from_them(tmp_path):
-    """protocad-online collects with DrQ into MCAP bags and trains from them; protocad-train
-    then continues from the same logs offline (DrQ is off-policy)."""
-    run = tmp_path / "online"
-    cmd = [sys.executable, "-m", "trainer.online", "--task", TASK, "--variant", "drq",
-           "--preset", "small", "--env-steps", "800", "--time-limit", "200",
-           "--prefill-episodes", "2", "--updates-per-episode", "20", "--eval-every", "0",
-           "--eval-episodes", "1", "--final-max-contexts", "1", "--run-dir", str(run),
-           "--no-progress", "--log-every", "10", "--set", "train.batch_size=32"]
+def test_compare_runs_drq_online_and_protocad_train_learns_from_its_logs(tmp_path):
+    """protocad-compare runs DrQ as an ordinary protocad-online run, which collects into MCAP bags
+    and trains from them; protocad-train then continues from the same logs offline (DrQ is
+    off-policy)."""
+    out_dir = tmp_path / "grid"
+    cmd = [sys.executable, "-m", "trainer.compare", "--tasks", TASK, "--variants", "drq",
+           "--seeds", "0", "--env-steps", "800", "--jobs", "1", "--out", str(out_dir), "--",
+           "--preset", "small", "--time-limit", "200", "--prefill-episodes", "2",
+           "--updates-per-episode", "20", "--eval-every", "0", "--eval-episodes", "1",
+           "--final-max-contexts", "1", "--log-every", "10", "--set", "train.batch_size=32"]
     out = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stdout + out.stderr
+    results = json.loads((out_dir / "results.json").read_text())
+    assert [r["variant"] for r in results["runs"]] == ["drq"]
+    run = out_dir / TASK / "drq" / "seed0"
     rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
     train = [r for r in rows if r.get("kind") == "train"]
     assert train and all("critic_loss" in r and "actor_loss" in r for r in train)
