@@ -33,7 +33,6 @@ from typing import Any, Mapping
 
 import torch
 import torch.nn as nn
-import torch.nn.functional as F
 
 from .agent_base import AgentBase, frozen
 from .augment import random_crop
