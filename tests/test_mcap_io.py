@@ -14,6 +14,7 @@ import yaml
 
 from conftest import wait_for
 from sim_bridge import topics as T
+from trainer import bag_writer, rosmsg
 from trainer import mcap_io as M
 
 RERUN = shutil.which("rerun", path=str(Path(sys.executable).parent)) or shutil.which("rerun")
@@ -57,7 +58,7 @@ def write_demo_bag(bag: Path, n: int = 60, **kw) -> M.BagWriter:
 
 def test_message_definition_is_rosbag2s_concatenation():
     text = M.message_definition(IMAGE)
-    share = Path(M._share_dir("sensor_msgs")).parent
+    share = Path(rosmsg._share_dir("sensor_msgs")).parent
     image_msg = (share / "sensor_msgs/msg/Image.msg").read_text()
     header_msg = (share / "std_msgs/msg/Header.msg").read_text()
     time_msg = (share / "builtin_interfaces/msg/Time.msg").read_text()
@@ -508,7 +509,7 @@ def test_a_split_whose_next_file_cannot_start_ends_the_bag_with_the_files_before
     import pytest
     from mcap.reader import make_reader
 
-    monkeypatch.setattr(M, "_CheckedFile", _FailingFile(M._CheckedFile, "bag_1.mcap"))
+    monkeypatch.setattr(bag_writer, "_CheckedFile", _FailingFile(bag_writer._CheckedFile, "bag_1.mcap"))
     bag = tmp_path / "bag"
     w = M.BagWriter(bag, chunk_size=2048, max_bagfile_size=4096)
     w.add_topic("/x", "std_msgs/msg/String", [])
@@ -527,7 +528,7 @@ def test_a_split_whose_next_file_cannot_start_ends_the_bag_with_the_files_before
 def test_a_bag_that_cannot_even_start_is_a_clear_error_leaving_nothing(tmp_path, monkeypatch):
     import pytest
 
-    monkeypatch.setattr(M, "_CheckedFile", _FailingFile(M._CheckedFile, "bag_0.mcap"))
+    monkeypatch.setattr(bag_writer, "_CheckedFile", _FailingFile(bag_writer._CheckedFile, "bag_0.mcap"))
     with pytest.raises(M.BagWriteError, match="cannot start a bag"):
         M.BagWriter(tmp_path / "bag")
     assert list((tmp_path / "bag").iterdir()) == []
