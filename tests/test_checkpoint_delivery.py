@@ -1,0 +1,143 @@
+"""Checkpoints delivered over ROS (msgs_docs/policy.md#checkpoints-over-ros): the learner's file
+on one side, a policy node that only knows the topic on the other, real processes over DDS
+(this machine only, the run's own domain).
+
+The checkpoint publisher watches a learner directory written by save_checkpoint, as the trainer
+writes it. The policy runs in a directory of its own, with its own checkpoint path, and is given
+only the topic. Observations come from this test process (Feeder), so the test decides where
+episodes start and can tell which version served each one.
+"""
+from __future__ import annotations
+
+import hashlib
+
+import pytest
+from std_msgs.msg import String, UInt8MultiArray
+
+from ros_helpers import Probe, wait_until
+from sim_bridge import qos, topics
+from test_policy_node import START, TASK, Feeder, _save, policy_args
+
+TIMEOUT_S = 5.0   # the policy's checkpoint_transfer_timeout_s: how long a version may be partial
+
+
+@pytest.fixture
+def probe():
+    p = Probe("checkpoint_delivery_probe")
+    yield p
+    p.close()
+
+
+class FakeCheckpointPublisher:
+    """A FAKE sender, named as such: a healthy DDS link neither corrupts nor drops a reliable
+    chunk, so the faults a receiver must survive (a flipped byte, a short chunk, bytes that are
+    no checkpoint, a sender that stops half-way) are made here. It speaks the publisher's
+    protocol (sim_bridge.topics helpers, the same QoS) but announces whatever it is told."""
+
+    def __init__(self, probe: Probe):
+        self.probe = probe
+        self.announce = probe.publisher(topics.CHECKPOINT, String, qos.announcement_qos())
+        self.chunk_pub = None
+
+    def send(self, ann: topics.CheckpointAnnouncement, chunks: list[bytes]) -> None:
+        node = self.probe.node
+        if self.chunk_pub is not None:
+            node.destroy_publisher(self.chunk_pub)
+        self.chunk_pub = node.create_publisher(
+            UInt8MultiArray, self.probe.topic(topics.chunks_topic(topics.CHECKPOINT)),
+            qos.checkpoint_chunks_qos(len(chunks)))
+        for i, piece in enumerate(chunks):
+            self.chunk_pub.publish(topics.fill_checkpoint_chunk(UInt8MultiArray(), ann.sha256, i,
+                                                                ann.n_chunks, piece))
+        self.announce.publish(String(data=topics.checkpoint_announcement_json(ann)))
+
+
+def _chunks(data: bytes, size: int) -> list[bytes]:
+    return [data[i:i + size] for i in range(0, len(data), size)]
+
+
+def test_new_versions_reach_a_policy_that_sees_only_the_topic_and_bad_ones_are_refused(
+        spawn, probe, tmp_path):
+    learner = tmp_path / "learner" / "agent.pt"
+    _save(learner, 5, seed=1)
+    publisher = spawn("publisher", "-m", "trainer.checkpoint_publisher", "--ros-args",
+                      "-p", f"checkpoint:={learner}", "-p", "poll_s:=0.1",
+                      "-p", "diagnostics_period_s:=0.1")
+    wait_until(lambda: probe.node_diag("checkpoint_publisher").get("versions_announced") == "1",
+               START, "the publisher's first announcement")
+
+    # Started after the announcement: the latched topics must still bring it the version.
+    robot = tmp_path / "robot"
+    robot.mkdir()
+    served = robot / "served.pt"
+    f = Feeder(probe)
+    policy = spawn("policy", *policy_args(f"checkpoint:={served}", "checkpoint_topic:=checkpoint",
+                                          f"checkpoint_transfer_timeout_s:={TIMEOUT_S}"), cwd=robot)
+    assert not any(str(learner.parent) in a for a in policy.args)
+    wait_until(f.ready, START, "the policy's subscriptions and publishers to match")
+    node = "policy"
+    wait_until(lambda: probe.node_diag(node).get("pending_checkpoint_updates") == "5", 30,
+               "version 1 (updates=5) to be received and loaded")
+    v1 = learner.read_bytes()
+    assert served.read_bytes() == v1
+    f.obs(10, 0, is_first=True)
+    f.obs(20, 1)
+    f.wait_answers(2, "episode 0")
+    wait_until(lambda: probe.node_diag(node).get("checkpoint_updates") == "5", 10, "updates=5")
+    d = probe.node_diag(node)
+    assert d["checkpoint/env_steps"] == "500"
+    assert d["checkpoint_sha256"] == hashlib.sha256(v1).hexdigest()
+    assert probe.node_diag("checkpoint_publisher")["sha256"] == d["checkpoint_sha256"]
+
+    # The learner writes a new version: it reaches the policy, which serves it from the next
+    # episode on (not in the middle of this one).
+    _save(learner, 7, seed=2)
+    wait_until(lambda: probe.node_diag(node).get("pending_checkpoint_updates") == "7", 30,
+               "version 2 (updates=7) to be received and loaded")
+    f.obs(30, 2)
+    f.wait_answers(3, "episode 0, step 2")
+    assert probe.node_diag(node)["checkpoint_updates"] == "5"
+    f.obs(40, 0, episode=1, is_first=True)
+    f.wait_answers(4, "episode 1")
+    wait_until(lambda: probe.node_diag(node).get("checkpoint_updates") == "7", 10, "updates=7")
+    v2 = learner.read_bytes()
+    d = probe.node_diag(node)
+    assert d["checkpoint_sha256"] == hashlib.sha256(v2).hexdigest() and served.read_bytes() == v2
+    assert (d["checkpoint_transfers"], d["checkpoint_reloads"]) == ("2", "2")
+
+    # Faulty transfers of another version: each is refused with its reason, counted, and the
+    # policy goes on serving version 2 (file on disk included, for a restart).
+    other = tmp_path / "other.pt"
+    _save(other, 9, seed=3)
+    data = other.read_bytes()
+    size = topics.DEFAULT_CHUNK_SIZE
+    ann = topics.describe_checkpoint(data, size, updates=9, task=TASK, variant="protocad")
+    flipped = bytearray(data[size:2 * size])
+    flipped[123] ^= 0xFF
+    junk = bytes(range(256)) * 4000
+    fake = FakeCheckpointPublisher(probe)
+    cases = [
+        (ann, [data[:size], bytes(flipped), *_chunks(data[2 * size:], size)], "checksum mismatch"),
+        (ann, [*_chunks(data, size)[:-1], _chunks(data, size)[-1][:-10]], "size mismatch"),
+        (topics.describe_checkpoint(junk, size), _chunks(junk, size), "not a usable checkpoint"),
+        (ann, _chunks(data, size)[:-1], "incomplete"),     # the sender stops half-way
+    ]
+    for n, (announcement, chunks, reason) in enumerate(cases, start=1):
+        fake.send(announcement, chunks)
+        wait_until(lambda: probe.counter(node, "checkpoint_transfers_rejected") == n,
+                   TIMEOUT_S + 30, f"the {reason} transfer to be rejected")
+        assert reason in policy.output()
+    f.obs(50, 1, episode=1)
+    f.obs(60, 0, episode=2, is_first=True)
+    f.wait_answers(6, "answers after the refused transfers")
+    wait_until(lambda: probe.counter(node, "episodes") == 3, 10, "diagnostics after episode 2 began")
+    d = probe.node_diag(node)
+    assert d["checkpoint_updates"] == "7" and d["checkpoint_sha256"] == hashlib.sha256(v2).hexdigest()
+    assert served.read_bytes() == v2 and d["_level"] == 1   # WARN: something was refused
+    assert [topics.stamp_to_ns(m.header.stamp) for m in list(f.actions)] == [10, 20, 30, 40, 50, 60]
+
+    assert policy.stop() == 0 and publisher.stop() == 0
+    out = policy.output()
+    assert out.count(f"checkpoint version {ann.short_id} (updates=9) from /protocad/checkpoint rejected") == 3
+    assert "still serving checkpoint" in out and "Traceback" not in out
+    assert "Traceback" not in publisher.output()
