@@ -152,7 +152,10 @@ class CheckpointReceiver:
         self._complete_if_whole()
 
     def _on_chunk(self, msg) -> None:
-        sha, index, n, data = topics.read_checkpoint_chunk(msg)
+        try:
+            sha, index, n, data = topics.read_checkpoint_chunk(msg)
+        except ValueError as e:
+            return self._on_reject(None, f"malformed chunk: {e}")
         self.chunks_received += 1
         a = self.announced
         if a is None or sha != a.sha256:

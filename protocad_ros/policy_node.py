@@ -341,12 +341,13 @@ class PolicyNode(ManagedNode):
         return pending[3] if pending is not None else self.ckpt_sha
 
     def _reject_transfer(self, a, reason: str) -> None:
+        topic = getattr(self.receiver, "topic", self.params["checkpoint_topic"])
+        if a is None:   # a malformed message, not a version: a flood of them is throttled
+            return self._count("checkpoint_transfers_rejected", f"{topic}: {reason}")
         with self._lock:
             self.counters["checkpoint_transfers_rejected"] += 1
-        which = f"checkpoint version {a.short_id} (updates={a.updates})" if a else "an announcement"
-        topic = getattr(self.receiver, "topic", self.params["checkpoint_topic"])
-        self.get_logger().error(f"{which} from {topic} rejected: {reason}; "
-                                f"still serving {self._describe_agent()}")
+        self.get_logger().error(f"checkpoint version {a.short_id} (updates={a.updates}) from {topic} "
+                                f"rejected: {reason}; still serving {self._describe_agent()}")
 
     def _swap_if_pending(self) -> None:
         with self._lock:

@@ -332,10 +332,11 @@ def read_checkpoint_announcement(text: str) -> CheckpointAnnouncement:
     counters = d.get("counters") or {}
     if not isinstance(counters, dict):
         raise ValueError("counters must be an object")
-    updates = d.get("updates", -1)
-    return CheckpointAnnouncement(sha, size, chunk, n, updates if isinstance(updates, int) else -1,
+    updates, seq = d.get("updates", -1), d.get("seq", 0)
+    # Informative fields: a sender may leave them out, never make a version unusable.
+    return CheckpointAnnouncement(sha, size, chunk, n, updates if type(updates) is int else -1,
                                   str(d.get("task", "")), str(d.get("variant", "")),
-                                  str(d.get("preset", "")), int(d.get("seq", 0) or 0), counters)
+                                  str(d.get("preset", "")), seq if type(seq) is int else 0, counters)
 
 
 def describe_checkpoint(data: bytes, chunk_size: int, **fields: Any) -> CheckpointAnnouncement:
