@@ -10,8 +10,11 @@ episodes start and can tell which version served each one.
 from __future__ import annotations
 
 import hashlib
+import json
 
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 from std_msgs.msg import String, UInt8MultiArray
 
 from ros_helpers import Probe, wait_until
@@ -141,3 +144,88 @@ def test_new_versions_reach_a_policy_that_sees_only_the_topic_and_bad_ones_are_r
     assert out.count(f"checkpoint version {ann.short_id} (updates=9) from /protocad/checkpoint rejected") == 3
     assert "still serving checkpoint" in out and "Traceback" not in out
     assert "Traceback" not in publisher.output()
+
+
+def test_start_without_a_file_to_work_with_is_a_configuration_error(spawn):
+    publisher = spawn("publisher", "-m", "trainer.checkpoint_publisher")
+    policy = spawn("policy", *policy_args("checkpoint_topic:=checkpoint"))
+    for proc, says in ((publisher, "checkpoint is required"), (policy, "needs checkpoint:=FILE")):
+        wait_until(lambda: not proc.alive(), START, f"{proc.args} to exit")
+        assert proc.p.returncode == 2 and says in proc.output()
+
+
+@pytest.mark.parametrize("text, why", [
+    ("{not json", "not JSON"),
+    ('{"format": "other"}', "format"),
+    ('{"format": "protocad-ros/checkpoint-announcement", "sha256": "abc"}', "sha256"),
+    ('{"format": "protocad-ros/checkpoint-announcement", "sha256": "' + "a" * 64 + '", "size": 10, '
+     '"chunk_size": 4, "n_chunks": 2}', "n_chunks=2 does not match"),
+    ('{"format": "protocad-ros/checkpoint-announcement", "sha256": "' + "a" * 64 + '", "size": -1, '
+     '"chunk_size": 4, "n_chunks": 1}', "size must be"),
+])
+def test_a_malformed_announcement_says_what_is_wrong(text, why):
+    with pytest.raises(ValueError, match=why):
+        topics.read_checkpoint_announcement(text)
+
+
+def test_announcement_round_trip_keeps_every_field():
+    a = topics.describe_checkpoint(b"x" * 10, 4, updates=3, task=TASK, variant="dreamer", preset="small",
+                                   seq=2, counters={"env_steps": 600})
+    assert topics.read_checkpoint_announcement(topics.checkpoint_announcement_json(a)) == a
+    assert (a.n_chunks, a.sha256) == (3, hashlib.sha256(b"x" * 10).hexdigest())
+
+
+def test_docs_cover_every_publisher_parameter_and_counter():
+    from conftest import ROOT
+    from trainer.checkpoint_publisher import COUNTERS, PARAMS
+
+    doc = (ROOT / "msgs_docs" / "checkpoint_publisher.md").read_text()
+    missing = [n for n in [p.name for p in PARAMS] + list(COUNTERS) if f"`{n}`" not in doc]
+    assert not missing, f"msgs_docs/checkpoint_publisher.md does not document {missing}"
+
+
+@pytest.fixture(scope="module")
+def receiving_policy(tmp_path_factory):
+    """An in-process policy node with checkpoint_topic, for driving its receiver's callbacks."""
+    import rclpy
+    from rclpy.parameter import Parameter
+
+    from protocad_ros.policy_node import PolicyNode
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    path = tmp_path_factory.mktemp("robot") / "agent.pt"
+    node = PolicyNode(namespace="/fuzz_ckpt", context=ctx, parameter_overrides=[
+        Parameter("task", value=TASK), Parameter("num_threads", value=1),
+        Parameter("checkpoint", value=str(path)), Parameter("checkpoint_topic", value="checkpoint")])
+    yield node
+    node.close()
+    node.destroy_node()
+    rclpy.shutdown(context=ctx)
+
+
+json_values = st.recursive(st.none() | st.booleans() | st.integers() | st.floats() | st.text(max_size=8),
+                           lambda inner: st.lists(inner, max_size=3) | st.dictionaries(st.text(max_size=6), inner,
+                                                                                       max_size=3), max_leaves=8)
+announcements = st.one_of(st.text(max_size=40), json_values.map(json.dumps), st.fixed_dictionaries(
+    {"format": st.just(topics.ANNOUNCEMENT_FORMAT), "sha256": st.text("0123456789abcdef", min_size=63, max_size=65),
+     "size": json_values, "chunk_size": json_values, "n_chunks": json_values, "updates": json_values,
+     "seq": json_values, "counters": json_values}).map(json.dumps))
+
+
+@settings(max_examples=150, deadline=None, suppress_health_check=list(HealthCheck), derandomize=True)
+@given(text=announcements, label=st.text(max_size=80), data=st.binary(max_size=64))
+def test_no_announcement_or_chunk_breaks_the_receiver(receiving_policy, text, label, data):
+    from std_msgs.msg import MultiArrayDimension
+
+    receiver = receiving_policy.receiver
+    before = receiving_policy.counters["checkpoint_transfers_rejected"]
+    receiver._on_announcement(String(data=text))      # must not raise
+    try:
+        topics.read_checkpoint_announcement(text)
+    except ValueError:
+        assert receiving_policy.counters["checkpoint_transfers_rejected"] == before + 1
+    chunk = UInt8MultiArray(data=data)
+    chunk.layout.dim = [MultiArrayDimension(label=label, size=len(data), stride=len(data))]
+    receiver._on_chunk(chunk)
+    assert receiving_policy.callback_errors == 0
