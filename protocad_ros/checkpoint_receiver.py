@@ -20,7 +20,7 @@ from typing import Any, Callable
 
 from std_msgs.msg import String, UInt8MultiArray
 
-from protocad_ros.atomic import atomic_open, fsync_dir
+from protocad_ros.atomic import atomic_open, file_signature, fsync_dir
 from sim_bridge import qos, topics
 
 class TransferRejected(Exception):
@@ -44,15 +44,6 @@ class Transfer:
             raise TransferRejected(f"checksum mismatch: the {len(data)} bytes received have sha256 "
                                    f"{digest[:12]}..., {a.short_id}... announced")
         return data
-
-
-def file_sha256(path: str | os.PathLike) -> str:
-    """The version id a checkpoint publisher announces for this file."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def install(data: bytes, path: str | os.PathLike, load: Callable[[str], Any]) -> Any:
@@ -125,8 +116,7 @@ class CheckpointReceiver:
         except (TransferRejected, OSError) as e:
             self._on_reject(a, str(e))
             return None
-        st = os.stat(path)
-        return (policy, counters, (st.st_mtime_ns, st.st_ino, st.st_size), a.sha256,
+        return (policy, counters, file_signature(path), a.sha256,
                 f"version {a.short_id} from {self.topic} into {path}")
 
     def progress(self) -> str:

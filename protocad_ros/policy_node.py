@@ -17,7 +17,6 @@ counted, never propagated.
 from __future__ import annotations
 
 import collections
-import os
 import threading
 import time
 from dataclasses import dataclass
@@ -27,7 +26,8 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from sensor_msgs.msg import Image, JointState
 
-from protocad_ros.checkpoint_receiver import CheckpointReceiver, file_sha256
+from protocad_ros.atomic import file_sha256, file_signature
+from protocad_ros.checkpoint_receiver import CheckpointReceiver
 from protocad_ros.live_view import LiveView
 from protocad_ros.policy_params import COUNTERS, PARAMS
 from sim_bridge import qos, topics
@@ -53,14 +53,6 @@ class ActEvent:
     features: Any              # protocad_ros.policy.ContextFeatures (u, w, e)
     latency_s: float           # completing message received -> action published
     checkpoint_updates: int    # -1 for a random agent
-
-
-def _file_signature(path: str) -> tuple[int, int, int] | None:
-    try:
-        st = os.stat(path)
-    except OSError:
-        return None
-    return (st.st_mtime_ns, st.st_ino, st.st_size)
 
 
 class PolicyNode(ManagedNode):
@@ -164,7 +156,7 @@ class PolicyNode(ManagedNode):
         if topic and not path:
             raise ConfigError(f"checkpoint_topic:={topic} needs checkpoint:=FILE: where received "
                               "versions are written (and served from after a restart)")
-        sig = _file_signature(path) if path else None
+        sig = file_signature(path) if path else None
         if sig is not None:
             try:
                 self.ckpt_sha = file_sha256(path)
@@ -305,7 +297,7 @@ class PolicyNode(ManagedNode):
         return policy, counters
 
     def _check_file(self, path: str) -> None:
-        sig = _file_signature(path)
+        sig = file_signature(path)
         if sig is None or sig == self._loaded_sig or sig == self._failed_sig:
             return
         with self._lock:
@@ -314,7 +306,7 @@ class PolicyNode(ManagedNode):
         try:
             sha = file_sha256(path)
             policy, counters = self._load_checked(path)
-            if _file_signature(path) != sig:
+            if file_signature(path) != sig:
                 return   # replaced while we read it: take the newer one next poll
         except Exception as e:  # noqa: BLE001 (corrupt, foreign, incompatible)
             self._failed_sig = sig

@@ -18,6 +18,7 @@ from typing import Any
 from diagnostic_msgs.msg import DiagnosticArray
 from std_msgs.msg import String, UInt8MultiArray
 
+from protocad_ros.atomic import file_signature
 from sim_bridge import qos, topics
 from sim_bridge.rosbase import ProtocadNode
 from sim_bridge.rosnode import (ConfigError, Param, declare_all, executor_param, install_parameter_guards,
@@ -41,14 +42,6 @@ PARAMS: tuple[Param, ...] = (
 )
 COUNTERS = ("versions_announced", "unchanged_rewrites", "read_errors", "bytes_published",
             "unknown_parameters", "parameters_rejected")
-
-
-def _signature(path: str) -> tuple[int, int, int] | None:
-    try:
-        st = os.stat(path)
-    except OSError:
-        return None
-    return (st.st_mtime_ns, st.st_ino, st.st_size)
 
 
 class CheckpointPublisherNode(ProtocadNode):
@@ -90,10 +83,10 @@ class CheckpointPublisherNode(ProtocadNode):
         replaced while we read it (the next poll takes the newer one)."""
         from protocad_ros.checkpoint import read_checkpoint
 
-        sig = _signature(path)
+        sig = file_signature(path)
         data = Path(path).read_bytes()
         payload = read_checkpoint(path)   # format and version checks: never announce junk
-        if _signature(path) != sig or len(data) != sig[2]:
+        if file_signature(path) != sig or len(data) != sig[2]:
             return None
         cfg = payload.get("config", {})
         counters = {k: v for k, v in dict(payload.get("counters", {})).items()
@@ -105,7 +98,7 @@ class CheckpointPublisherNode(ProtocadNode):
 
     def _poll(self) -> None:
         path = self.params["checkpoint"]
-        sig = _signature(path)
+        sig = file_signature(path)
         if sig is None or sig == self._seen_sig or sig == self._failed_sig:
             return
         try:
