@@ -2,11 +2,12 @@
 
 `CheckpointReceiver` subscribes to a checkpoint publisher's announcement (`<topic>`) and chunks
 (`<topic>/chunks`) and collects the chunks of the newest announced version in the executor
-thread (cheap: bytes into a dict). A version whose chunks are all there is handed over whole
-(`on_complete(Transfer)`); the node's checkpoint thread then verifies it (`Transfer.verify`:
-size, sha256) and installs it (`install`: written beside the node's own checkpoint file, loaded
+thread (cheap: bytes into a dict). When a version's chunks are all there it wakes the node's
+checkpoint thread, which calls `install_received`: the version is verified (`Transfer.verify`:
+size, sha256) and installed (`install`: written beside the node's own checkpoint file, loaded
 from there with the node's file-reload code, and only then moved over that file), so the file
 the node serves from is always a whole, loadable checkpoint and a restart serves it again.
+A version that fails is rejected with one error line (which version, why) and counted.
 """
 from __future__ import annotations
 
@@ -68,22 +69,24 @@ class CheckpointReceiver:
     """Subscriptions of one node to one checkpoint topic; see the module docstring.
 
     wake(): a version arrived whole (executor thread); the node's checkpoint thread then calls
-    install_received. on_reject(announcement or None, reason): a version or an announcement
-    that cannot serve (any thread). next_sha(): the version the node serves from its next
-    episode on (not fetched again).
+    install_received. next_sha(): the version the node serves from its next episode on (not
+    fetched again). serving(): what the node serves, for the rejection line. count(key, why):
+    the node's counters (ACCEPTED, REJECTED), `why` a throttled warning.
     """
 
+    ACCEPTED, REJECTED = "checkpoint_transfers", "checkpoint_transfers_rejected"
+
     def __init__(self, node, topic: str, *, timeout_s: float, wake: Callable[[], None],
-                 on_reject: Callable[[topics.CheckpointAnnouncement | None, str], None],
-                 next_sha: Callable[[], str | None]):
+                 next_sha: Callable[[], str | None], serving: Callable[[], str],
+                 count: Callable[..., None]):
         self.node, self.timeout_s = node, timeout_s
-        self._wake, self._on_reject, self._next_sha = wake, on_reject, next_sha
+        self._wake, self._next_sha, self._serving, self._count = wake, next_sha, serving, count
         self._lock = threading.Lock()
         self._received: Transfer | None = None   # whole, for install_received
         self.announced: topics.CheckpointAnnouncement | None = None
-        self._announced_at = 0.0
+        self.last_announced = ""   # sha256 of the newest announcement heard (for diagnostics)
+        self._progress_at = 0.0   # announcement or last new chunk of the announced version
         self._parts: dict[str, dict[int, bytes]] = {}
-        self.chunks_received = 0
         self.sub_announce = node.create_subscription(String, topic, self._on_announcement,
                                                      qos.announcement_qos())
         self.topic = self.sub_announce.topic_name
@@ -105,7 +108,7 @@ class CheckpointReceiver:
     def install_received(self, path: str, load: Callable[[str], Any]):
         """Checkpoint thread: verify and install the version that arrived whole, if any.
         Returns (*load(file), signature, sha256, what) for the node's hand-over, or None (none
-        arrived, or it was rejected: on_reject said why)."""
+        arrived, or it was rejected and said why)."""
         with self._lock:
             transfer, self._received = self._received, None
         if transfer is None:
@@ -116,8 +119,16 @@ class CheckpointReceiver:
         except (TransferRejected, OSError) as e:
             self._on_reject(a, str(e))
             return None
+        self._count(self.ACCEPTED)
         return (policy, counters, file_signature(path), a.sha256,
                 f"version {a.short_id} from {self.topic} into {path}")
+
+    def _on_reject(self, a: topics.CheckpointAnnouncement | None, reason: str) -> None:
+        if a is None:   # a malformed message, not a version: a flood of them is throttled
+            return self._count(self.REJECTED, f"{self.topic}: {reason}")
+        self._count(self.REJECTED)
+        self.node.get_logger().error(f"checkpoint version {a.short_id} (updates={a.updates}) from "
+                                     f"{self.topic} rejected: {reason}; still serving {self._serving()}")
 
     def progress(self) -> str:
         """'' when idle, else e.g. '3fa9c2d1e4b0 12/50' (for diagnostics)."""
@@ -129,12 +140,14 @@ class CheckpointReceiver:
             ann = topics.read_checkpoint_announcement(msg.data)
         except ValueError as e:
             return self._on_reject(None, f"malformed announcement: {e}")
+        self.last_announced = ann.sha256
         if self._is_current(ann.sha256):
-            return
+            return self.node.get_logger().info(f"checkpoint version {ann.short_id} announced on "
+                                               f"{self.topic}: already serving it")
         if self.announced is not None and self.announced.sha256 != ann.sha256:
             self.node.get_logger().info(f"checkpoint version {self.announced.short_id} superseded by "
                                         f"{ann.short_id} before it arrived whole")
-        self.announced, self._announced_at = ann, time.monotonic()
+        self.announced, self._progress_at = ann, time.monotonic()
         for sha in [s for s in self._parts if s != ann.sha256]:
             del self._parts[sha]
         self.node.get_logger().info(f"checkpoint version {ann.short_id} announced on {self.topic} "
@@ -146,7 +159,6 @@ class CheckpointReceiver:
             sha, index, n, data = topics.read_checkpoint_chunk(msg)
         except ValueError as e:
             return self._on_reject(None, f"malformed chunk: {e}")
-        self.chunks_received += 1
         a = self.announced
         if a is None or sha != a.sha256:
             if self._is_current(sha):
@@ -158,7 +170,10 @@ class CheckpointReceiver:
         elif n != a.n_chunks:
             return self._reject(f"incomplete: chunk {index} says the version has {n} chunk(s), "
                                 f"{a.n_chunks} announced")
-        self._parts.setdefault(sha, {})[index] = data
+        parts = self._parts.setdefault(sha, {})
+        if a is not None and sha == a.sha256 and index not in parts:
+            self._progress_at = time.monotonic()
+        parts[index] = data
         self._complete_if_whole()
 
     def _complete_if_whole(self) -> None:
@@ -179,7 +194,8 @@ class CheckpointReceiver:
 
     def _check_timeout(self) -> None:
         a = self.announced
-        if a is not None and time.monotonic() - self._announced_at > self.timeout_s:
+        # Silence, not total time: a slow link that keeps delivering is waited for.
+        if a is not None and time.monotonic() - self._progress_at > self.timeout_s:
             got = len(self._parts.get(a.sha256, {}))
-            self._reject(f"incomplete: {got} of {a.n_chunks} chunk(s) arrived within "
-                         f"{self.timeout_s:g} s of the announcement")
+            self._reject(f"incomplete: {got} of {a.n_chunks} chunk(s) arrived, none for "
+                         f"{self.timeout_s:g} s")

@@ -7,6 +7,7 @@ Subscribes to image and step_info only (never the true context), pairs them by h
 (they may arrive in any order), filters the RSSM state over the episode (reset on is_first),
 and answers EVERY observation with exactly one action stamped like it, plus the inferred
 context features u, w, e on context_features (same stamp). A newer checkpoint at the same path
+(or, with checkpoint_topic, a version received over ROS: protocad_ros/checkpoint_receiver.py)
 is loaded in a background thread and swapped in at the next is_first observation, so no step
 waits for a load and an episode is never served by two models.
 
@@ -201,7 +202,7 @@ class PolicyNode(ManagedNode):
         if topic:
             self.receiver = CheckpointReceiver(
                 self, topic, timeout_s=p["checkpoint_transfer_timeout_s"], wake=self._wake.set,
-                on_reject=self._reject_transfer, next_sha=self._next_sha)
+                next_sha=self._next_sha, serving=self._describe_agent, count=self._count)
         if path and (p["reload_poll_s"] > 0 or topic):
             self._watcher = threading.Thread(target=self._watch, name="checkpoint_watcher",
                                              daemon=True)
@@ -281,7 +282,6 @@ class PolicyNode(ManagedNode):
             if self.receiver is not None:
                 got = self.receiver.install_received(path, self._load_checked)
                 if got is not None:
-                    self._count("checkpoint_transfers")
                     self._hand_over(*got)
             if poll > 0:
                 self._check_file(path)
@@ -331,15 +331,6 @@ class PolicyNode(ManagedNode):
         with self._lock:
             pending = self._pending_policy
         return pending[3] if pending is not None else self.ckpt_sha
-
-    def _reject_transfer(self, a, reason: str) -> None:
-        topic = getattr(self.receiver, "topic", self.params["checkpoint_topic"])
-        if a is None:   # a malformed message, not a version: a flood of them is throttled
-            return self._count("checkpoint_transfers_rejected", f"{topic}: {reason}")
-        with self._lock:
-            self.counters["checkpoint_transfers_rejected"] += 1
-        self.get_logger().error(f"checkpoint version {a.short_id} (updates={a.updates}) from {topic} "
-                                f"rejected: {reason}; still serving {self._describe_agent()}")
 
     def _swap_if_pending(self) -> None:
         with self._lock:
@@ -556,6 +547,7 @@ class PolicyNode(ManagedNode):
             "checkpoint_updates": self.checkpoint_updates,
             "pending_checkpoint_updates": (pending[1].get("updates", -1) if pending else -1),
             "checkpoint_sha256": self.ckpt_sha or "",
+            "checkpoint_announced": self.receiver.last_announced if self.receiver is not None else "",
             "checkpoint_transfer": self.receiver.progress() if self.receiver is not None else "",
             # The trainer's scalar counters only (env steps, episodes, ...): its sampler state
             # and bag list would be kilobytes on every diagnostics message.

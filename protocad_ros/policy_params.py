@@ -18,9 +18,9 @@ PARAMS: tuple[Param, ...] = (
           "(trainer/checkpoint_publisher.py) announcing on this topic, e.g. checkpoint; each "
           "verified version is written to `checkpoint` (required then) and served from the next "
           "is_first observation. Empty: off (the file alone)."),
-    Param("checkpoint_transfer_timeout_s", 60.0, "A version whose chunks have not all arrived "
-          "this long after its announcement is rejected as incomplete.", range=(0.1, 3600.0),
-          units="s"),
+    Param("checkpoint_transfer_timeout_s", 60.0, "A version announced on checkpoint_topic from "
+          "which no new chunk arrived for this long (and not all of them arrived) is rejected as "
+          "incomplete.", range=(0.1, 3600.0), units="s"),
     Param("task", "pendulum_swingup", "Task of the random agent (action size, K prototypes); "
           "with a checkpoint its config's task is used.", choices=tuple(sorted(TASKS))),
     Param("preset", "small", "Model size preset of the random agent.",

@@ -54,6 +54,11 @@ class FakeCheckpointPublisher:
                                                                 ann.n_chunks, piece))
         self.announce.publish(String(data=topics.checkpoint_announcement_json(ann)))
 
+    def close(self) -> None:
+        for pub in (self.announce, self.chunk_pub):
+            if pub is not None:
+                self.probe.node.destroy_publisher(pub)
+
 
 def _chunks(data: bytes, size: int) -> list[bytes]:
     return [data[i:i + size] for i in range(0, len(data), size)]
@@ -139,11 +144,28 @@ def test_new_versions_reach_a_policy_that_sees_only_the_topic_and_bad_ones_are_r
     assert served.read_bytes() == v2 and d["_level"] == 1   # WARN: something was refused
     assert [topics.stamp_to_ns(m.header.stamp) for m in list(f.actions)] == [10, 20, 30, 40, 50, 60]
 
-    assert policy.stop() == 0 and publisher.stop() == 0
+    assert policy.stop() == 0
     out = policy.output()
     assert out.count(f"checkpoint version {ann.short_id} (updates=9) from /protocad/checkpoint rejected") == 3
     assert "still serving checkpoint" in out and "Traceback" not in out
-    assert "Traceback" not in publisher.output()
+
+    # A restarted policy serves the version it received last at once, from its own file, and
+    # does not fetch the same version again when the publisher's announcement reaches it.
+    fake.close()
+    wait_until(lambda: probe.node_diag("checkpoint_publisher").get("subscribers") == "0", 30,
+               "the first policy to leave the graph")
+    again = spawn("policy_again", *policy_args(f"checkpoint:={served}", "checkpoint_topic:=checkpoint"),
+                  cwd=robot)
+    wait_until(lambda: probe.node_diag(node).get("checkpoint_announced") == hashlib.sha256(v2).hexdigest(),
+               START, "the publisher's announcement to reach the restarted policy")
+    f.obs(70, 0, episode=0, is_first=True)
+    f.wait_answers(7, "the restarted policy's first answer")
+    wait_until(lambda: probe.counter(node, "episodes") == 1, 10, "the restarted policy's diagnostics")
+    d = probe.node_diag(node)
+    assert d["checkpoint_updates"] == "7" and d["checkpoint_sha256"] == hashlib.sha256(v2).hexdigest()
+    assert (d["checkpoint_transfers"], d["checkpoint_transfers_rejected"]) == ("0", "0")
+    assert again.stop() == 0 and publisher.stop() == 0
+    assert "Traceback" not in again.output() + publisher.output()
 
 
 def test_start_without_a_file_to_work_with_is_a_configuration_error(spawn):
