@@ -52,7 +52,9 @@ def install(data: bytes, path: str | os.PathLike, load: Callable[[str], Any]) ->
     it over `path` (so the file keeps the (mtime, inode, size) signature the load saw).
     Returns what `load` returned; a load that fails is TransferRejected('not a checkpoint')."""
     path = Path(path)
-    staging = path.with_name(f".{path.name}.received")
+    # Named like atomic_open's temporaries (.NAME.PID.*.tmp): remove_stale_temporaries(path)
+    # clears what a killed install left, and two processes never share one.
+    staging = path.with_name(f".{path.name}.{os.getpid()}.received.tmp")
     with atomic_open(staging, "wb") as f:
         f.write(data)
     try:

@@ -27,7 +27,7 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from sensor_msgs.msg import Image, JointState
 
-from protocad_ros.atomic import file_sha256, file_signature
+from protocad_ros.atomic import file_sha256, file_signature, remove_stale_temporaries
 from protocad_ros.checkpoint_receiver import CheckpointReceiver
 from protocad_ros.live_view import LiveView
 from protocad_ros.policy_params import COUNTERS, PARAMS
@@ -200,6 +200,7 @@ class PolicyNode(ManagedNode):
             self._check_bridge()
         self._stop.clear()
         if topic:
+            remove_stale_temporaries(path)   # what an install interrupted by a kill left
             self.receiver = CheckpointReceiver(
                 self, topic, timeout_s=p["checkpoint_transfer_timeout_s"], wake=self._wake.set,
                 next_sha=self._next_sha, serving=self._describe_agent, count=self._count)
@@ -279,8 +280,9 @@ class PolicyNode(ManagedNode):
             self._wake.clear()
             if self._stop.is_set():
                 return
-            if self.receiver is not None:
-                got = self.receiver.install_received(path, self._load_checked)
+            receiver = self.receiver   # None once cleanup began
+            if receiver is not None:
+                got = receiver.install_received(path, self._load_checked)
                 if got is not None:
                     self._hand_over(*got)
             if poll > 0:

@@ -7,7 +7,8 @@ from sim_bridge.rosnode import Param, autostart_param, executor_param, strict_pa
 
 PARAMS: tuple[Param, ...] = (
     Param("checkpoint", "", "Checkpoint file (protocad_ros.checkpoint). Empty: a randomly "
-          "initialised agent (task, preset, variant below) with a WARNING."),
+          "initialised agent (task, preset, variant below) with a WARNING. With "
+          "checkpoint_topic: this node's own copy, where received versions are written."),
     Param("wait_for_checkpoint", False, "If the checkpoint file does not exist yet: serve a "
           "random agent and load the file once it appears (collect-train-reload loop) "
           "instead of exiting with an error."),

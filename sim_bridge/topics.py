@@ -30,6 +30,7 @@ ACTION = "action"                  # sensor_msgs/msg/JointState, effort = action
 CONTEXT_FEATURES = "context_features"  # sensor_msgs/msg/JointState, u/w/e from the policy
 BRIDGE_INFO = "bridge_info"        # sensor_msgs/msg/JointState, transient local: what the bridge runs
 RESET_SERVICE = "reset"            # std_srvs/srv/Trigger on the sim bridge
+# Not in TYPES (the loop's topics, which every bag of a run holds): checkpoints over ROS.
 CHECKPOINT = "checkpoint"          # std_msgs/msg/String, JSON announcement, transient local
 CHUNKS_SUFFIX = "/chunks"          # <announcement topic>/chunks: std_msgs/msg/UInt8MultiArray
 CLOCK = "/clock"                   # rosgraph_msgs/msg/Clock (sim time)
@@ -42,8 +43,6 @@ TYPES = {
     ACTION: "sensor_msgs/msg/JointState",
     CONTEXT_FEATURES: "sensor_msgs/msg/JointState",
     BRIDGE_INFO: "sensor_msgs/msg/JointState",
-    CHECKPOINT: "std_msgs/msg/String",
-    CHECKPOINT + CHUNKS_SUFFIX: "std_msgs/msg/UInt8MultiArray",
     CLOCK: "rosgraph_msgs/msg/Clock",
     DIAGNOSTICS: "diagnostic_msgs/msg/DiagnosticArray",
 }
