@@ -24,6 +24,7 @@ from std_msgs.msg import String, UInt8MultiArray
 from protocad_ros.atomic import atomic_open, file_signature, fsync_dir
 from sim_bridge import qos, topics
 
+
 class TransferRejected(Exception):
     """A received version that must not serve; the message says why (one log line)."""
 
@@ -36,6 +37,9 @@ class Transfer:
     def verify(self) -> bytes:
         """The checkpoint's bytes, after the checks a faulty link or sender can fail."""
         a = self.announcement
+        missing = [i for i in range(a.n_chunks) if i not in self.chunks]
+        if missing:
+            raise TransferRejected(f"incomplete: chunk(s) {missing[:5]} of {a.n_chunks} missing")
         data = b"".join(self.chunks[i] for i in range(a.n_chunks))
         if len(data) != a.size:
             raise TransferRejected(f"size mismatch: {len(data)} bytes received in {a.n_chunks} "
@@ -118,8 +122,11 @@ class CheckpointReceiver:
         a = transfer.announcement
         try:
             policy, counters = install(transfer.verify(), path, load)
-        except (TransferRejected, OSError) as e:
+        except TransferRejected as e:
             self._on_reject(a, str(e))
+            return None
+        except Exception as e:  # noqa: BLE001 (a full disk, a bug): still one line, never the thread
+            self._on_reject(a, f"could not install it: {type(e).__name__}: {e}")
             return None
         self._count(self.ACCEPTED)
         return (policy, counters, file_signature(path), a.sha256,
@@ -134,8 +141,8 @@ class CheckpointReceiver:
 
     def progress(self) -> str:
         """'' when idle, else e.g. '3fa9c2d1e4b0 12/50' (for diagnostics)."""
-        a = self.announced
-        return f"{a.short_id} {len(self._parts.get(a.sha256, {}))}/{a.n_chunks}" if a else ""
+        a = self.announced   # read from any thread: len() of the dict, no iteration over it
+        return f"{a.short_id} {min(len(self._parts.get(a.sha256, {})), a.n_chunks)}/{a.n_chunks}" if a else ""
 
     def _on_announcement(self, msg) -> None:
         try:
@@ -143,15 +150,18 @@ class CheckpointReceiver:
         except ValueError as e:
             return self._on_reject(None, f"malformed announcement: {e}")
         self.last_announced = ann.sha256
-        if self._is_current(ann.sha256):
-            return self.node.get_logger().info(f"checkpoint version {ann.short_id} announced on "
-                                               f"{self.topic}: already serving it")
+        # The newest announcement wins, also over a version still coming in.
         if self.announced is not None and self.announced.sha256 != ann.sha256:
             self.node.get_logger().info(f"checkpoint version {self.announced.short_id} superseded by "
                                         f"{ann.short_id} before it arrived whole")
-        self.announced, self._progress_at = ann, time.monotonic()
         for sha in [s for s in self._parts if s != ann.sha256]:
             del self._parts[sha]
+        if self._is_current(ann.sha256):
+            self.announced = None
+            self._parts.pop(ann.sha256, None)
+            return self.node.get_logger().info(f"checkpoint version {ann.short_id} announced on "
+                                               f"{self.topic}: already serving it")
+        self.announced, self._progress_at = ann, time.monotonic()
         self.node.get_logger().info(f"checkpoint version {ann.short_id} announced on {self.topic} "
                                     f"(updates={ann.updates}, {ann.size} bytes in {ann.n_chunks} chunk(s))")
         self._complete_if_whole()
@@ -181,7 +191,8 @@ class CheckpointReceiver:
     def _complete_if_whole(self) -> None:
         a = self.announced
         parts = self._parts.get(a.sha256) if a else None
-        if parts is None or len(parts) < a.n_chunks:
+        # Indices beyond n_chunks (a chunk that disagreed with the announcement) do not count.
+        if parts is None or len(parts) < a.n_chunks or any(i not in parts for i in range(a.n_chunks)):
             return
         self.announced = None
         del self._parts[a.sha256]

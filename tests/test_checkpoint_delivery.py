@@ -251,3 +251,66 @@ def test_no_announcement_or_chunk_breaks_the_receiver(receiving_policy, text, la
     chunk.layout.dim = [MultiArrayDimension(label=label, size=len(data), stride=len(data))]
     receiver._on_chunk(chunk)
     assert receiving_policy.callback_errors == 0
+
+
+def test_receiver_order_supersession_and_disagreeing_chunks():
+    """In process, callbacks driven directly: chunks may beat their announcement (two topics);
+    the newest announcement wins over a version still coming in; chunks numbered for another
+    chunk count never complete a version, and one of them after the announcement rejects it."""
+    import rclpy
+    from rclpy.node import Node
+
+    from protocad_ros.checkpoint_receiver import CheckpointReceiver
+
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    node = Node("receiver_probe", namespace="/receiver_test", context=ctx)
+    woken, counted = [], []
+    r = CheckpointReceiver(node, "checkpoint", timeout_s=60.0, wake=lambda: woken.append(1),
+                           next_sha=lambda: None, serving=lambda: "nothing",
+                           count=lambda key, why=None: counted.append((key, why)))
+
+    def chunk(a, i, data, n=None):
+        return topics.fill_checkpoint_chunk(UInt8MultiArray(), a.sha256, i, n or a.n_chunks, data)
+
+    def announce(a):
+        r._on_announcement(String(data=topics.checkpoint_announcement_json(a)))
+
+    try:
+        one, two = b"1" * 10, b"2" * 10
+        a1, a2 = topics.describe_checkpoint(one, 4), topics.describe_checkpoint(two, 4)
+        for i, piece in enumerate(_chunks(one, 4)):
+            r._on_chunk(chunk(a1, i, piece))
+        assert woken == []                                   # nothing announced yet
+        announce(a1)
+        assert woken == [1] and r._received.verify() == one  # whole as soon as announced
+        r._received = None
+
+        announce(a2)
+        r._on_chunk(chunk(a2, 0, two[:4]))
+        announce(a1)                                         # the newest: a2 is dropped
+        r._on_chunk(chunk(a2, 1, two[4:8]))
+        r._on_chunk(chunk(a2, 2, two[8:]))
+        assert woken == [1]                                  # a2 whole, but not announced now
+        for i, piece in enumerate(_chunks(one, 4)):          # a1's new writer sends it again
+            r._on_chunk(chunk(a1, i, piece))
+        assert woken == [1, 1] and r._received.verify() == one
+        r._received = None
+
+        # Chunks of a2 numbered as if it had 5 chunks: they never complete it, and one that
+        # arrives after the announcement rejects it at once (a sender that contradicts itself).
+        three = b"3" * 10
+        a3 = topics.describe_checkpoint(three, 4)
+        for i in (3, 4):
+            r._on_chunk(chunk(a3, i, b"x", n=5))
+        announce(a3)
+        r._on_chunk(chunk(a3, 0, three[:4]))
+        r._on_chunk(chunk(a3, 1, three[4:8]))
+        assert woken == [1, 1] and r.announced == a3        # still waiting for chunk 2
+        r._on_chunk(chunk(a3, 2, three[8:], n=5))
+        assert woken == [1, 1] and counted == [(CheckpointReceiver.REJECTED, None)]
+        assert r.announced is None                           # rejected, nothing coming in
+    finally:
+        r.destroy()
+        node.destroy_node()
+        rclpy.shutdown(context=ctx)
