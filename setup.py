@@ -71,6 +71,7 @@ setup(
             "protocad-visualize = trainer.visualize:main",
             "protocad-compare = trainer.compare:main",
             "protocad-stack = trainer.stack:main",
+            "protocad-checkpoint-publisher = trainer.checkpoint_publisher:main",
         ]
     },
 )

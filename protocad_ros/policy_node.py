@@ -7,6 +7,7 @@ Subscribes to image and step_info only (never the true context), pairs them by h
 (they may arrive in any order), filters the RSSM state over the episode (reset on is_first),
 and answers EVERY observation with exactly one action stamped like it, plus the inferred
 context features u, w, e on context_features (same stamp). A newer checkpoint at the same path
+(or, with checkpoint_topic, a version received over ROS: protocad_ros/checkpoint_receiver.py)
 is loaded in a background thread and swapped in at the next is_first observation, so no step
 waits for a load and an episode is never served by two models.
 
@@ -17,7 +18,6 @@ counted, never propagated.
 from __future__ import annotations
 
 import collections
-import os
 import threading
 import time
 from dataclasses import dataclass
@@ -27,6 +27,8 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from sensor_msgs.msg import Image, JointState
 
+from protocad_ros.atomic import file_sha256, file_signature, remove_stale_temporaries
+from protocad_ros.checkpoint_receiver import CheckpointReceiver
 from protocad_ros.live_view import LiveView
 from protocad_ros.policy_params import COUNTERS, PARAMS
 from sim_bridge import qos, topics
@@ -54,14 +56,6 @@ class ActEvent:
     checkpoint_updates: int    # -1 for a random agent
 
 
-def _file_signature(path: str) -> tuple[int, int, int] | None:
-    try:
-        st = os.stat(path)
-    except OSError:
-        return None
-    return (st.st_mtime_ns, st.st_ino, st.st_size)
-
-
 class PolicyNode(ManagedNode):
     """See the module docstring; parameters in PARAMS, counters in COUNTERS. A managed node
     (sim_bridge/lifecycle.py): configure loads the checkpoint (or builds the random agent) and
@@ -87,6 +81,8 @@ class PolicyNode(ManagedNode):
                               "(torch.cuda.is_available() is False); use device:=cpu")
         self._lock = threading.Lock()            # guards _pending_policy and counters
         self._stop = threading.Event()           # set: the checkpoint watcher ends (cleanup)
+        self._wake = threading.Event()           # set: the watcher looks now (a received version)
+        self.receiver: CheckpointReceiver | None = None
         self.counters = dict.fromkeys(COUNTERS, 0)
         self.counters["unknown_parameters"] = len(self.unknown_parameters)
         self._throttle = KeyThrottle(self.get_logger())
@@ -137,8 +133,9 @@ class PolicyNode(ManagedNode):
         self._watcher: threading.Thread | None = None
         self._loaded_sig: tuple | None = None
         self._failed_sig: tuple | None = None
+        self.ckpt_sha: str | None = None          # sha256 of the served checkpoint file
         with self._lock:
-            self._pending_policy: tuple | None = None   # (policy, counters, sig) to swap in
+            self._pending_policy: tuple | None = None   # (policy, counters, sig, sha) to swap in
         self.mismatch: str | None = None
         self._reset_filter()
 
@@ -156,19 +153,23 @@ class PolicyNode(ManagedNode):
         """Load the checkpoint (or build the random agent), start the file watcher; a missing
         or unloadable checkpoint is a ConfigError."""
         p = self.params
-        path = p["checkpoint"]
-        sig = _file_signature(path) if path else None
+        path, topic = p["checkpoint"], p["checkpoint_topic"]
+        if topic and not path:
+            raise ConfigError(f"checkpoint_topic:={topic} needs checkpoint:=FILE: where received "
+                              "versions are written (and served from after a restart)")
+        sig = file_signature(path) if path else None
         if sig is not None:
             try:
+                self.ckpt_sha = file_sha256(path)
                 self.policy, self.ckpt_counters = self._load(path)
             except Exception as e:  # CheckpointError and friends: a clear message, exit 2
                 raise ConfigError(f"cannot load checkpoint {path}: {e}") from None
             self._loaded_sig = sig
             self.agent_kind = "checkpoint"
-        elif path and not p["wait_for_checkpoint"]:
+        elif path and not (p["wait_for_checkpoint"] or topic):
             raise ConfigError(f"checkpoint {path} does not exist (set wait_for_checkpoint:=true "
                               "to serve a random agent until it appears)")
-        elif path and p["reload_poll_s"] <= 0:
+        elif path and p["reload_poll_s"] <= 0 and not topic:
             raise ConfigError(f"checkpoint {path} does not exist and reload_poll_s is 0: it "
                               "would never be loaded")
         else:
@@ -198,7 +199,12 @@ class PolicyNode(ManagedNode):
         if self.bridge is not None:   # announced before we could check it
             self._check_bridge()
         self._stop.clear()
-        if path and p["reload_poll_s"] > 0:
+        if topic:
+            remove_stale_temporaries(path)   # what an install interrupted by a kill left
+            self.receiver = CheckpointReceiver(
+                self, topic, timeout_s=p["checkpoint_transfer_timeout_s"], wake=self._wake.set,
+                next_sha=self._next_sha, serving=self._describe_agent, count=self._count)
+        if path and (p["reload_poll_s"] > 0 or topic):
             self._watcher = threading.Thread(target=self._watch, name="checkpoint_watcher",
                                              daemon=True)
             self._watcher.start()
@@ -217,6 +223,10 @@ class PolicyNode(ManagedNode):
 
     def cleanup_node(self) -> None:
         self._stop.set()
+        self._wake.set()
+        if self.receiver is not None:
+            self.receiver.destroy()
+            self.receiver = None
         if self._watcher is not None:
             self._watcher.join(timeout=10.0)
             if self._watcher.is_alive():
@@ -261,47 +271,75 @@ class PolicyNode(ManagedNode):
         return f"checkpoint {self.params['checkpoint']} (updates={self.checkpoint_updates})"
 
     def _watch(self) -> None:
-        """Background: poll the checkpoint file; load a changed one; hand it to the executor
-        thread, which swaps it in at the next is_first observation."""
-        path = self.params["checkpoint"]
-        while not self._stop.wait(self.params["reload_poll_s"]):
-            sig = _file_signature(path)
-            if sig is None or sig == self._loaded_sig or sig == self._failed_sig:
-                continue
+        """Background: the one place checkpoints are loaded after configure: the file when it
+        changed (polled every reload_poll_s) and versions received over ROS (woken at once).
+        A loaded one goes to the executor thread, which swaps it in at the next is_first."""
+        path, poll = self.params["checkpoint"], self.params["reload_poll_s"]
+        while not self._stop.is_set():
+            self._wake.wait(poll if poll > 0 else None)
+            self._wake.clear()
+            if self._stop.is_set():
+                return
+            receiver = self.receiver   # None once cleanup began
+            if receiver is not None:
+                got = receiver.install_received(path, self._load_checked)
+                if got is not None:
+                    self._hand_over(*got)
+            if poll > 0:
+                self._check_file(path)
+
+    def _load_checked(self, path: str):
+        policy, counters = self._load(path)
+        cfg = policy.agent.cfg
+        if int(policy.agent.action_dim) != self.action_dim or (
+                (int(cfg.train.image_size),) * 2 != self.image_hw):
+            raise ValueError(
+                f"{policy.agent.action_dim}-d actions / {cfg.train.image_size}px images, "
+                f"but this node serves {self.action_dim}-d / {self.image_hw[0]}px")
+        return policy, counters
+
+    def _check_file(self, path: str) -> None:
+        sig = file_signature(path)
+        if sig is None or sig == self._loaded_sig or sig == self._failed_sig:
+            return
+        with self._lock:
+            if self._pending_policy is not None and self._pending_policy[2] == sig:
+                return
+        try:
+            sha = file_sha256(path)
+            policy, counters = self._load_checked(path)
+            if file_signature(path) != sig:
+                return   # replaced while we read it: take the newer one next poll
+        except Exception as e:  # noqa: BLE001 (corrupt, foreign, incompatible)
+            self._failed_sig = sig
             with self._lock:
-                if self._pending_policy is not None and self._pending_policy[2] == sig:
-                    continue
-            try:
-                policy, counters = self._load(path)
-                if _file_signature(path) != sig:
-                    continue   # replaced while we read it: take the newer one next poll
-                cfg = policy.agent.cfg
-                if int(policy.agent.action_dim) != self.action_dim or (
-                        (int(cfg.train.image_size),) * 2 != self.image_hw):
-                    raise ValueError(
-                        f"{policy.agent.action_dim}-d actions / {cfg.train.image_size}px images, "
-                        f"but this node serves {self.action_dim}-d / {self.image_hw[0]}px")
-            except Exception as e:  # noqa: BLE001 (corrupt, foreign, incompatible)
-                self._failed_sig = sig
-                with self._lock:
-                    self.counters["checkpoint_load_errors"] += 1
-                self.get_logger().error(f"cannot load checkpoint {path}: {e}; still serving "
-                                        f"{self._describe_agent()}")
-                continue
-            with self._lock:
-                self._pending_policy = (policy, counters, sig)
-            self.get_logger().info(f"loaded checkpoint {path} (updates="
-                                   f"{counters.get('updates', '?')}); serving it from the "
-                                   "next episode")
-            # At once, not at the next period: launchers wait for pending_checkpoint_updates.
-            self._publish_diagnostics()
+                self.counters["checkpoint_load_errors"] += 1
+            self.get_logger().error(f"cannot load checkpoint {path}: {e}; still serving "
+                                    f"{self._describe_agent()}")
+            return
+        self._hand_over(policy, counters, sig, sha, path)
+
+    def _hand_over(self, policy, counters: dict, sig: tuple | None, sha: str, what: str) -> None:
+        with self._lock:
+            self._pending_policy = (policy, counters, sig, sha)
+        self.get_logger().info(f"loaded checkpoint {what} (updates={counters.get('updates', '?')}); "
+                               "serving it from the next episode")
+        # At once, not at the next period: launchers wait for pending_checkpoint_updates.
+        self._publish_diagnostics()
+
+    # ------------------------------------------------------------------ checkpoints over ROS
+    def _next_sha(self) -> str | None:
+        """The version that serves from the next episode on (the receiver skips it)."""
+        with self._lock:
+            pending = self._pending_policy
+        return pending[3] if pending is not None else self.ckpt_sha
 
     def _swap_if_pending(self) -> None:
         with self._lock:
             pending, self._pending_policy = self._pending_policy, None
         if pending is None:
             return
-        self.policy, self.ckpt_counters, self._loaded_sig = pending
+        self.policy, self.ckpt_counters, self._loaded_sig, self.ckpt_sha = pending
         self.agent_kind = "checkpoint"
         self.policy.reset()
         with self._lock:
@@ -510,6 +548,9 @@ class PolicyNode(ManagedNode):
             "agent": self.agent_kind, "checkpoint": self.params["checkpoint"],
             "checkpoint_updates": self.checkpoint_updates,
             "pending_checkpoint_updates": (pending[1].get("updates", -1) if pending else -1),
+            "checkpoint_sha256": self.ckpt_sha or "",
+            "checkpoint_announced": self.receiver.last_announced if self.receiver is not None else "",
+            "checkpoint_transfer": self.receiver.progress() if self.receiver is not None else "",
             # The trainer's scalar counters only (env steps, episodes, ...): its sampler state
             # and bag list would be kilobytes on every diagnostics message.
             **{f"checkpoint/{k}": v for k, v in self.ckpt_counters.items()
@@ -524,6 +565,7 @@ class PolicyNode(ManagedNode):
             **c,
         }
         bad = (c["images_rejected"] or c["step_info_rejected"] or c["checkpoint_load_errors"]
+               or c["checkpoint_transfers_rejected"]
                or c["stale_observations"] or c["unpaired_dropped"] or c["observations_lost"]
                or self.callback_errors)
         unknown = self.unknown_parameters

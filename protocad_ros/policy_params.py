@@ -8,13 +8,21 @@ from sim_bridge.rosnode import Param, autostart_param, executor_param, strict_pa
 
 PARAMS: tuple[Param, ...] = (
     Param("checkpoint", "", "Checkpoint file (protocad_ros.checkpoint). Empty: a randomly "
-          "initialised agent (task, preset, variant below) with a WARNING."),
+          "initialised agent (task, preset, variant below) with a WARNING. With "
+          "checkpoint_topic: this node's own copy, where received versions are written."),
     Param("wait_for_checkpoint", False, "If the checkpoint file does not exist yet: serve a "
           "random agent and load the file once it appears (collect-train-reload loop) "
           "instead of exiting with an error."),
     Param("reload_poll_s", 2.0, "How often the checkpoint file is checked for a newer version "
           "(mtime/inode/size); a newer one is loaded in the background and served from the "
           "next is_first observation. 0 = never reload.", range=(0.0, 3600.0), units="s"),
+    Param("checkpoint_topic", "", "Receive checkpoints over ROS from a checkpoint publisher "
+          "(trainer/checkpoint_publisher.py) announcing on this topic, e.g. checkpoint; each "
+          "verified version is written to `checkpoint` (required then) and served from the next "
+          "is_first observation. Empty: off (the file alone)."),
+    Param("checkpoint_transfer_timeout_s", 60.0, "A version announced on checkpoint_topic from "
+          "which no new chunk arrived for this long (and not all of them arrived) is rejected as "
+          "incomplete.", range=(0.1, 3600.0), units="s"),
     Param("task", "pendulum_swingup", "Task of the random agent (action size, K prototypes); "
           "with a checkpoint its config's task is used.", choices=tuple(sorted(TASKS))),
     Param("preset", "small", "Model size preset of the random agent.", choices=PRESETS),
@@ -51,4 +59,4 @@ COUNTERS = ("observations_answered", "episodes", "images_received", "images_reje
             "act_callback_errors", "unknown_parameters", "parameters_rejected",
             "observations_lost", "observations_skipped", "fragments_discarded", "step_info_received",
             "mismatched_observations", "awaiting_bridge_info", "bridge_info_rejected",
-            "observations_while_inactive")
+            "observations_while_inactive", "checkpoint_transfers", "checkpoint_transfers_rejected")

@@ -51,6 +51,18 @@ def announcement_qos() -> QoSProfile:
                       durability=DurabilityPolicy.TRANSIENT_LOCAL)
 
 
+def checkpoint_chunks_qos(depth: int | None = None) -> QoSProfile:
+    """<checkpoint topic>/chunks: reliable + transient local, so a receiver that joins late (or
+    reconnects) still gets every chunk of the newest version. Writer (depth = the version's
+    chunk count, one writer per version): its history is exactly one checkpoint. Reader
+    (depth None): KEEP_ALL, so no chunk is overwritten before the callback took it."""
+    if depth is None:
+        return QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=1, reliability=ReliabilityPolicy.RELIABLE,
+                          durability=DurabilityPolicy.TRANSIENT_LOCAL)
+    return QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=depth, reliability=ReliabilityPolicy.RELIABLE,
+                      durability=DurabilityPolicy.TRANSIENT_LOCAL)
+
+
 def action_qos() -> QoSProfile:
     """action and context_features (policy -> sim bridge, recorder): KEEP_ALL. A few hundred
     bytes a step, so keeping every sample a stalled reader (a frozen recorder) has not

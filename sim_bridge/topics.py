@@ -11,9 +11,11 @@ No rclpy import at module level.
 from __future__ import annotations
 
 import functools
+import hashlib
+import json
 import math
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
 
 import numpy as np
@@ -28,6 +30,9 @@ ACTION = "action"                  # sensor_msgs/msg/JointState, effort = action
 CONTEXT_FEATURES = "context_features"  # sensor_msgs/msg/JointState, u/w/e from the policy
 BRIDGE_INFO = "bridge_info"        # sensor_msgs/msg/JointState, transient local: what the bridge runs
 RESET_SERVICE = "reset"            # std_srvs/srv/Trigger on the sim bridge
+# Not in TYPES (the loop's topics, which every bag of a run holds): checkpoints over ROS.
+CHECKPOINT = "checkpoint"          # std_msgs/msg/String, JSON announcement, transient local
+CHUNKS_SUFFIX = "/chunks"          # <announcement topic>/chunks: std_msgs/msg/UInt8MultiArray
 CLOCK = "/clock"                   # rosgraph_msgs/msg/Clock (sim time)
 DIAGNOSTICS = "/diagnostics"       # diagnostic_msgs/msg/DiagnosticArray
 
@@ -260,3 +265,103 @@ def read_context_features(msg: Any) -> dict[str, np.ndarray]:
         if key in out:
             out[key].append(v)
     return {k: np.asarray(v, np.float32) for k, v in out.items()}
+
+
+# ---------------------------------------------------------------------- checkpoint delivery
+ANNOUNCEMENT_FORMAT = "protocad-ros/checkpoint-announcement"
+DEFAULT_CHUNK_SIZE = 1 << 20
+
+
+def chunks_topic(announcement_topic: str) -> str:
+    """Where the bytes of the versions announced on `announcement_topic` travel."""
+    return announcement_topic.rstrip("/") + CHUNKS_SUFFIX
+
+
+@dataclass
+class CheckpointAnnouncement:
+    """One checkpoint version, announced (latched) before anyone fetches it. A version is
+    its content: `sha256` of the file's bytes is its identity (logs show `short_id`)."""
+
+    sha256: str
+    size: int
+    chunk_size: int
+    n_chunks: int
+    updates: int = -1
+    task: str = ""
+    variant: str = ""
+    preset: str = ""
+    seq: int = 0                      # the publisher's announcement number (for people)
+    counters: dict = field(default_factory=dict)   # the trainer's (env steps, ...)
+
+    @property
+    def short_id(self) -> str:
+        return self.sha256[:12]
+
+
+def checkpoint_announcement_json(a: CheckpointAnnouncement) -> str:
+    return json.dumps({"format": ANNOUNCEMENT_FORMAT, "sha256": a.sha256, "size": a.size,
+                       "chunk_size": a.chunk_size, "n_chunks": a.n_chunks, "updates": a.updates,
+                       "task": a.task, "variant": a.variant, "preset": a.preset, "seq": a.seq,
+                       "counters": dict(a.counters)}, sort_keys=True)
+
+
+def _whole(d: Mapping[str, Any], key: str, lo: int) -> int:
+    v = d.get(key)
+    if isinstance(v, bool) or not isinstance(v, int) or v < lo:
+        raise ValueError(f"{key} must be a whole number >= {lo}, got {v!r}")
+    return v
+
+
+def read_checkpoint_announcement(text: str) -> CheckpointAnnouncement:
+    """Parse an announcement; ValueError saying what is wrong (not JSON, another format, a
+    field missing or impossible: n_chunks must be exactly what size and chunk_size give)."""
+    try:
+        d = json.loads(text)
+    except ValueError as e:
+        raise ValueError(f"not JSON ({e})") from None
+    if not isinstance(d, dict) or d.get("format") != ANNOUNCEMENT_FORMAT:
+        raise ValueError(f"format is not {ANNOUNCEMENT_FORMAT!r}")
+    sha = d.get("sha256")
+    if not (isinstance(sha, str) and len(sha) == 64 and all(c in "0123456789abcdef" for c in sha)):
+        raise ValueError(f"sha256 must be 64 lower-case hex digits, got {sha!r}")
+    size, chunk = _whole(d, "size", 1), _whole(d, "chunk_size", 1)
+    n = _whole(d, "n_chunks", 1)
+    if n != -(-size // chunk):
+        raise ValueError(f"n_chunks={n} does not match size={size} in chunks of {chunk}")
+    counters = d.get("counters") or {}
+    if not isinstance(counters, dict):
+        raise ValueError("counters must be an object")
+    updates, seq = d.get("updates", -1), d.get("seq", 0)
+    # Informative fields: a sender may leave them out, never make a version unusable.
+    return CheckpointAnnouncement(sha, size, chunk, n, updates if type(updates) is int else -1,
+                                  str(d.get("task", "")), str(d.get("variant", "")),
+                                  str(d.get("preset", "")), seq if type(seq) is int else 0, counters)
+
+
+def describe_checkpoint(data: bytes, chunk_size: int, **fields: Any) -> CheckpointAnnouncement:
+    """The announcement of a file's bytes (sha256, size, chunking) plus `fields`."""
+    return CheckpointAnnouncement(hashlib.sha256(data).hexdigest(), len(data), int(chunk_size),
+                                  -(-len(data) // int(chunk_size)), **fields)
+
+
+def fill_checkpoint_chunk(msg: Any, sha256: str, index: int, n_chunks: int, data: bytes) -> Any:
+    """layout.dim[0]: label '<sha256>:<index>/<n_chunks>' (which version, which piece), size =
+    stride = len(data) (a plain 1-D byte array, as MultiArrayLayout means it)."""
+    from std_msgs.msg import MultiArrayDimension
+
+    msg.layout.dim = [MultiArrayDimension(label=f"{sha256}:{index}/{n_chunks}", size=len(data),
+                                          stride=len(data))]
+    msg.layout.data_offset = 0
+    msg.data = data
+    return msg
+
+
+def read_checkpoint_chunk(msg: Any) -> tuple[str, int, int, bytes]:
+    """(sha256, index, n_chunks, bytes) of a chunk; ValueError if its label is not ours."""
+    if len(msg.layout.dim) != 1:
+        raise ValueError(f"chunk layout has {len(msg.layout.dim)} dimensions, expected 1")
+    sha, _, where = str(msg.layout.dim[0].label).partition(":")
+    index, _, n = where.partition("/")
+    if len(sha) != 64 or not index.isdigit() or not n.isdigit() or int(index) >= int(n):
+        raise ValueError(f"chunk label {msg.layout.dim[0].label!r} is not '<sha256>:<index>/<n>'")
+    return sha, int(index), int(n), bytes(msg.data)

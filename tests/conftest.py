@@ -31,10 +31,10 @@ os.environ["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), os.environ.g
 class Proc:
     """A node or CLI in its own process, output captured to a log file."""
 
-    def __init__(self, args: list[str], log: Path, env: dict | None = None):
+    def __init__(self, args: list[str], log: Path, env: dict | None = None, cwd: Path = ROOT):
         self.args, self.log_path = args, log
         self._log = open(log, "wb")
-        self.p = subprocess.Popen(args, stdout=self._log, stderr=subprocess.STDOUT, cwd=ROOT,
+        self.p = subprocess.Popen(args, stdout=self._log, stderr=subprocess.STDOUT, cwd=cwd,
                                   env={**os.environ, **(env or {})}, start_new_session=True)
 
     def output(self) -> str:
@@ -59,11 +59,12 @@ class Proc:
 
 @pytest.fixture
 def spawn(tmp_path):
-    """spawn(name, *args) starts `python args...`; every process is stopped at teardown."""
+    """spawn(name, *args) starts `python args...` (in the repository, or `cwd`); every process
+    is stopped at teardown."""
     procs: list[Proc] = []
 
-    def _spawn(name: str, *args: str, env: dict | None = None) -> Proc:
-        proc = Proc([sys.executable, *args], tmp_path / f"{name}.log", env)
+    def _spawn(name: str, *args: str, env: dict | None = None, cwd: Path = ROOT) -> Proc:
+        proc = Proc([sys.executable, *args], tmp_path / f"{name}.log", env, cwd)
         procs.append(proc)
         return proc
 

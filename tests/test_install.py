@@ -17,7 +17,7 @@ ROS2 = PREFIX / "bin" / "ros2"
 EXECUTABLES = {
     "sim_bridge": {"node"},
     "protocad_ros": {"policy"},
-    "trainer": {"record", "train", "evaluate", "loop", "online", "visualize"},
+    "trainer": {"record", "train", "evaluate", "loop", "online", "visualize", "checkpoint_publisher"},
 }
 
 pytestmark = pytest.mark.skipif(not ROS2.exists(), reason="protocad-ros is not installed in this Python (run scripts/protocad setup)")

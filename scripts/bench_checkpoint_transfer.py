@@ -1,0 +1,142 @@
+#!/usr/bin/env python3
+"""How long a new checkpoint version takes to cross ROS: learner file -> policy side.
+
+The checkpoint publisher node runs in its own process on a learner file; this process holds an
+rclpy node with the policy's receiver (protocad_ros.checkpoint_receiver). For each preset and
+chunk size, the learner file is rewritten (save_checkpoint, a new version each time) and timed:
+
+  announce   file in place -> announcement received here (the publisher's poll, read, format
+             check and publish included; poll_s 0.02)
+  complete   file in place -> every chunk received here
+  verify     size + sha256 of the received bytes
+  install    written beside the local file, loaded (load_checkpoint), moved into place
+
+    python scripts/bench_checkpoint_transfer.py                 # shared memory (one machine)
+    python scripts/bench_checkpoint_transfer.py --udp           # UDP over loopback (no SHM)
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+
+def parse() -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--presets", nargs="+", default=["small", "paper"])
+    ap.add_argument("--task", default="pendulum_swingup")
+    ap.add_argument("--chunk-sizes", nargs="+", type=int, default=[256 << 10, 1 << 20, 4 << 20])
+    ap.add_argument("--repeats", type=int, default=3)
+    ap.add_argument("--udp", action="store_true",
+                    help="Fast DDS with UDPv4 only (FASTDDS_BUILTIN_TRANSPORTS), as between machines")
+    return ap.parse_args()
+
+
+ARGS = parse()
+# DDS on this machine only, in a domain of our own (before rclpy is imported).
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+os.environ.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
+os.environ.setdefault("AMENT_PREFIX_PATH", sys.prefix)
+os.environ["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
+if ARGS.udp:
+    os.environ["FASTDDS_BUILTIN_TRANSPORTS"] = "UDPv4"
+
+import numpy as np  # noqa: E402
+
+
+def main() -> None:
+    import rclpy
+    import torch
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+
+    from protocad_ros.agent import Agent
+    from protocad_ros.atomic import atomic_open
+    from protocad_ros.checkpoint import load_checkpoint, save_checkpoint
+    from protocad_ros.checkpoint_receiver import CheckpointReceiver, install
+    from protocad_ros.config import make_config
+    from sim_bridge.contexts import task_actuators
+
+    torch.set_num_threads(1)
+    rclpy.init()
+    node = Node("bench_checkpoint_receiver", namespace="/protocad")
+    executor = SingleThreadedExecutor()
+    executor.add_node(node)
+    threading.Thread(target=executor.spin, daemon=True).start()
+    times: dict[str, float] = {}
+    done = threading.Event()
+
+    class Timed(CheckpointReceiver):
+        def _on_announcement(self, msg):
+            times.setdefault("announce", time.monotonic())
+            super()._on_announcement(msg)
+
+    def wake():
+        times["complete"] = time.monotonic()
+        done.set()
+
+    rejects: list[str] = []
+    receiver = Timed(node, "checkpoint", timeout_s=120.0, wake=wake,
+                     on_reject=lambda a, why: rejects.append(why), next_sha=lambda: None)
+    cpu = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
+                if line.startswith("model name")), platform.machine())
+    print(f"machine: {cpu}, {os.cpu_count()} cores; "
+          f"transport: {'UDPv4 over loopback' if ARGS.udp else 'Fast DDS default (shared memory)'}")
+    print(f"{'preset':7} {'MB':>6} {'chunk':>7} {'n':>4} {'announce ms':>12} {'complete ms':>12} "
+          f"{'MB/s':>7} {'verify ms':>10} {'install ms':>11}")
+    with tempfile.TemporaryDirectory() as tmp:
+        for preset in ARGS.presets:
+            agent = Agent(make_config(ARGS.task, preset), len(task_actuators(ARGS.task)))
+            learner = Path(tmp) / preset / "agent.pt"
+            save_checkpoint(learner, agent)
+            for chunk in ARGS.chunk_sizes:
+                pub = subprocess.Popen([sys.executable, "-m", "trainer.checkpoint_publisher", "--ros-args",
+                                        "-p", f"checkpoint:={learner}", "-p", f"chunk_size:={chunk}",
+                                        "-p", "poll_s:=0.02"], stdout=subprocess.DEVNULL,
+                                       stderr=subprocess.STDOUT, cwd=ROOT)
+                try:
+                    done.wait(120)   # its first version: start-up, not measured
+                    rows = []
+                    for i in range(ARGS.repeats):
+                        done.clear()
+                        times.clear()
+                        agent.updates.fill_(i + 1)   # new bytes: a new version
+                        scratch = save_checkpoint(Path(tmp) / "scratch" / "agent.pt", agent).read_bytes()
+                        t0 = time.monotonic()         # the trainer's write, as save_checkpoint's
+                        with atomic_open(learner, "wb") as f:
+                            f.write(scratch)
+                        if not done.wait(120):
+                            raise SystemExit(f"no transfer within 120 s (rejected: {rejects})")
+                        with receiver._lock:
+                            transfer, receiver._received = receiver._received, None
+                        t1 = time.monotonic()
+                        data = transfer.verify()
+                        t2 = time.monotonic()
+                        install(data, Path(tmp) / "robot" / "agent.pt", load_checkpoint)
+                        t3 = time.monotonic()
+                        rows.append((times["announce"] - t0, times["complete"] - t0, t2 - t1, t3 - t2))
+                finally:
+                    pub.terminate()
+                    pub.wait(30)
+                a, c, v, ins = (float(np.median([r[k] for r in rows])) for k in range(4))
+                size = len(data) / 1e6
+                print(f"{preset:7} {size:6.1f} {chunk >> 10:6d}K {transfer.announcement.n_chunks:4d} "
+                      f"{a * 1e3:12.0f} {c * 1e3:12.0f} {size / c:7.0f} {v * 1e3:10.0f} "
+                      f"{ins * 1e3:11.0f}")
+    print(f"medians of {ARGS.repeats} versions each; rejected transfers: {len(rejects)}")
+    receiver.destroy()
+    executor.shutdown()
+    rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()
