@@ -138,3 +138,10 @@ def get_task(name: str) -> TaskSpec:
         return TASKS[name]
     except (KeyError, TypeError):
         raise ValueError(f"unknown task {name!r}; valid tasks: {sorted(TASKS)}") from None
+
+
+def context_label(context: Mapping[str, float], split: str | None = None) -> str:
+    """'m=0.75 d=1' (or 'train m=0.75 d=1' with the split): how a context is named in tables,
+    logs and plots."""
+    body = " ".join(f"{k}={float(v):g}" for k, v in context.items())
+    return f"{split} {body}" if split else body

@@ -39,6 +39,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from sim_bridge.contexts import context_label
 from trainer import runs
 
 DEFAULT_EPISODES = 5
@@ -94,10 +95,6 @@ class EvalResult:
                 "median_over_contexts": self.median,
                 "episodes": sum(len(c.returns) for c in self.per_context),
                 "per_context": [c.to_dict() for c in self.per_context]}
-
-
-def context_label(context: Mapping[str, float]) -> str:
-    return " ".join(f"{k}={v:g}" for k, v in context.items())
 
 
 def format_table(result: EvalResult, baseline: EvalResult | None = None) -> str:
