@@ -79,12 +79,6 @@ VARIANTS = tuple(VARIANT_TABLE)
 WORLD_MODEL_VARIANTS = tuple(n for n, v in VARIANT_TABLE.items() if v.family == "world_model")
 PRESETS = ("paper", "small", "dreamerv3_sizes")
 
-# Paper Table `setting_k` (K per task); used only if sim_bridge.contexts is not importable.
-PAPER_NUM_PROTOTYPES = {
-    "cheetah_run": 100, "finger_spin": 100, "hopper_hop": 50, "hopper_stand": 100,
-    "pendulum_swingup": 100, "quadruped_run": 100, "walker_run": 50, "walker_walk": 100,
-}
-
 class ConfigError(ValueError):
     """A configuration key or value that does not fit the tree (message lists valid keys)."""
 
@@ -421,17 +415,12 @@ VARIANT_OWN_SETTINGS: dict[str, dict[str, Any]] = {
 
 
 def task_num_prototypes(task: str) -> int:
-    """K for a task: sim_bridge.contexts.TASKS[task].num_prototypes, else the paper table."""
-    try:
-        from sim_bridge.contexts import TASKS  # pure data module, no ROS import
-    except ImportError:
-        TASKS = None
-    if TASKS is not None and task in TASKS:
-        return int(TASKS[task].num_prototypes)
-    if task in PAPER_NUM_PROTOTYPES:
-        return PAPER_NUM_PROTOTYPES[task]
-    valid = sorted(TASKS) if TASKS is not None else sorted(PAPER_NUM_PROTOTYPES)
-    raise ConfigError(f"unknown task {task!r}; valid tasks: {valid}")
+    """K for a task (paper Table `setting_k`), from the task table sim_bridge.contexts.TASKS."""
+    from sim_bridge.contexts import TASKS  # pure data: the contract's task knowledge
+
+    if task not in TASKS:
+        raise ConfigError(f"unknown task {task!r}; valid tasks: {sorted(TASKS)}")
+    return int(TASKS[task].num_prototypes)
 
 
 def make_config(task: str = "pendulum_swingup", preset: str = "paper",
@@ -463,10 +452,27 @@ def make_config(task: str = "pendulum_swingup", preset: str = "paper",
     return cfg
 
 
+def resolve_key(cfg: Config, key: str) -> str:
+    """'lr' -> 'world_model.lr' when exactly one section has the field (a top-level field or a
+    dotted key is returned as it is); an ambiguous bare key is a ConfigError naming the choices."""
+    if "." in key or key in {f.name for f in dataclasses.fields(cfg)}:
+        return key
+    hits = [f.name for f in dataclasses.fields(cfg) if dataclasses.is_dataclass(getattr(cfg, f.name))
+            and key in {g.name for g in dataclasses.fields(getattr(cfg, f.name))}]
+    if len(hits) > 1:
+        raise ConfigError(f"config key {key!r} is ambiguous: use one of "
+                          + ", ".join(f"{h}.{key}" for h in hits))
+    return f"{hits[0]}.{key}" if hits else key
+
+
 def apply_overrides(cfg: Config, overrides: Mapping[str, Any], validate: bool = True) -> Config:
-    """Set 'section.field' (or top-level 'field') keys in place, with type checks (and the whole
-    config's checks after the last one unless validate=False)."""
+    """Set 'section.field' (or top-level 'field', or a bare field name that only one section
+    has) keys in place, with type checks (and the whole config's checks after the last one
+    unless validate=False). The one way every entry point (make_config, --set, a config file)
+    changes a config."""
     for key, value in overrides.items():
+        if isinstance(cfg, Config):
+            key = resolve_key(cfg, key)
         parts = key.split(".")
         obj: Any = cfg
         for i, name in enumerate(parts):

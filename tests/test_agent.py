@@ -372,3 +372,21 @@ def test_agent_cuda_when_available(real_batch):
 def test_config_dataclasses_are_typed():
     for section in dataclasses.fields(Config):
         assert section.type  # every field annotated (YAML load coerces by annotation)
+
+
+def test_one_override_path_for_make_config_files_and_set(tmp_path):
+    """make_config, a config file and --set all go through config.apply_overrides: bare keys
+    resolve to the one section that has them, ambiguous ones are refused with the choices."""
+    from protocad_ros.config import apply_overrides
+    from trainer.runs import build_config
+
+    cfg = make_config("pendulum_swingup", "small")
+    assert apply_overrides(cfg, {"horizon": 3}).behavior.horizon == 3
+    with pytest.raises(ConfigError, match="ambiguous: use one of world_model.lr, drq.lr"):
+        apply_overrides(cfg, {"lr": 1e-3})
+    (tmp_path / "c.yaml").write_text("behavior:\n  horizon: 7\ntrain:\n  batch_size: 8\n")
+    built = build_config("pendulum_swingup", "dreamer", "small", tmp_path / "c.yaml",
+                         {"train.batch_size": 4, "kl_scale": 0.5})
+    assert (built.behavior.horizon, built.train.batch_size, built.world_model.kl_scale) == (7, 4, 0.5)
+    with pytest.raises(ValueError, match="unknown config key"):
+        build_config("pendulum_swingup", None, "small", None, {"train.bogus": 1})

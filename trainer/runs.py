@@ -107,27 +107,6 @@ def parse_set(items: Iterable[str] | None) -> dict[str, Any]:
     return out
 
 
-def _set_nested(d: dict, dotted: str, value: Any) -> None:
-    """Set d[a][b]... for 'a.b'; a bare key is searched for in every section (must be unique)."""
-    parts = dotted.split(".")
-    if len(parts) == 1 and parts[0] not in d:
-        hits = [sec for sec, sub in d.items() if isinstance(sub, dict) and parts[0] in sub]
-        if len(hits) == 1:
-            parts = [hits[0], parts[0]]
-        elif len(hits) > 1:
-            raise ValueError(f"config key {dotted!r} is ambiguous: use one of "
-                             + ", ".join(f"{h}.{dotted}" for h in hits))
-    cur = d
-    for i, p in enumerate(parts[:-1]):
-        if p not in cur or not isinstance(cur[p], dict):
-            raise ValueError(f"unknown config section {'.'.join(parts[:i + 1])!r} in {dotted!r}; "
-                             f"sections: {sorted(k for k, v in cur.items() if isinstance(v, dict))}")
-        cur = cur[p]
-    if parts[-1] not in cur:
-        raise ValueError(f"unknown config key {dotted!r}; keys here: {sorted(cur)}")
-    cur[parts[-1]] = value
-
-
 def flatten(d: Mapping[str, Any], prefix: str = "") -> dict[str, Any]:
     out: dict[str, Any] = {}
     for k, v in d.items():
@@ -146,7 +125,7 @@ def build_config(task: str | None = None, variant: str | None = None, preset: st
 
     Returns a protocad_ros.config.Config.
     """
-    from protocad_ros.config import Config, make_config
+    from protocad_ros.config import apply_overrides, make_config
 
     file_dict: dict[str, Any] = {}
     if config_file:
@@ -160,14 +139,9 @@ def build_config(task: str | None = None, variant: str | None = None, preset: st
     variant = variant or file_dict.get("variant") or "protocad"
     preset = preset or file_dict.get("preset") or "small"
     cfg = make_config(task=task, preset=preset, variant=variant)
-    d = cfg.to_dict()
-    for k, v in flatten(file_dict).items():
-        if k in ("task", "variant", "preset"):
-            continue
-        _set_nested(d, k, v)
-    for k, v in (overrides or {}).items():
-        _set_nested(d, k, v)
-    return Config.from_dict(d)
+    settings = {k: v for k, v in flatten(file_dict).items() if k not in ("task", "variant", "preset")}
+    settings.update(overrides or {})
+    return apply_overrides(cfg, settings)   # ConfigError is a ValueError: one line in the CLIs
 
 
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
