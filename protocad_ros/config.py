@@ -221,6 +221,10 @@ class TrainConfig:
     eval_noise: float = 0.0
     time_limit: int = 1000         # env steps per episode (DreamerPro dmc time_limit)
     image_size: int = 64
+    # How the envs this agent trains and is evaluated in render (sim_bridge.envs): 'fast' = no
+    # shadows, reflections or MSAA (4x cheaper on a CPU; what every run here used), 'default' =
+    # dm_control's own settings (the look the paper's frames had).
+    render_quality: str = "fast"
     # 'float32', or 'bfloat16' autocast (mixed precision; DreamerPro trains with precision 16,
     # DreamerV3 with bf16).  Losses, KL and distributions are always computed in float32.
     precision: str = "float32"
@@ -340,6 +344,8 @@ class Config:
         check(tr.precision in ("float32", "bfloat16"),
               f"train.precision must be 'float32'|'bfloat16', got {tr.precision!r}")
         check(tr.image_size == 64, "only 64x64 images are supported (train.image_size=64)")
+        check(tr.render_quality in ("fast", "default"),
+              f"train.render_quality must be 'fast'|'default', got {tr.render_quality!r}")
         check(tr.batch_size >= 1 and tr.seq_len >= 2, "train.batch_size >= 1, seq_len >= 2")
         if self.spec.representation != "none":
             # SwAV scores drop the first steps and TC-SwAV needs two halves of >= 1 step.

@@ -386,7 +386,7 @@ def evaluate_checkpoint(checkpoint: str | Path | None, *, task: str | None = Non
         if task != cfg.task:
             raise ValueError(f"checkpoint is for {cfg.task}, not {task}")
         policy = Policy(agent, device=device, mode="deterministic", seed=seed)
-        repeat = cfg.train.action_repeat
+        repeat, quality = cfg.train.action_repeat, cfg.train.render_quality
         limit = time_limit or cfg.train.time_limit
     else:
         if not task:
@@ -395,15 +395,15 @@ def evaluate_checkpoint(checkpoint: str | Path | None, *, task: str | None = Non
 
         get_task(task)
         policy = None
-        repeat, limit = 2, time_limit or 1000
+        repeat, limit, quality = 2, time_limit or 1000, "fast"
     ctxs = select_contexts(task, split, contexts, max_contexts)
     if policy is None:
         from sim_bridge.contexts import task_actuators
 
         policy = RandomPolicy(len(task_actuators(task)), seed)
     per = run_episodes(task, policy, ctxs, episodes, split=split, seed=seed, workers=workers, batch=batch,
-                       action_repeat=repeat, time_limit=limit, progress=progress, stop=stop,
-                       desc=f"eval {task}")
+                       action_repeat=repeat, time_limit=limit, render_quality=quality,
+                       progress=progress, stop=stop, desc=f"eval {task}")
     counters = dict(counters or {})
     updates = int(agent.counters()["updates"]) if agent is not None else None
     env_steps = counters.get("env_steps")

@@ -367,6 +367,7 @@ def _run(a: argparse.Namespace, ctx: distributed.DistContext, device: str) -> in
                     print(format_table(rnd), flush=True)
             seed = distributed.rank_seed(tr.seed * 1000 + int(c.get("resumes", 0)), ctx.rank)
             venv = VectorEnv(cfg.task, a.num_envs, split="train", seed=seed, action_repeat=R,
+                             render_quality=tr.render_quality,
                              time_limit=tr.time_limit, image_size=tr.image_size, context=a.train_context)
             names = list(venv.action_names)
             dt_ns = int(round(venv.control_dt * 1e9))
