@@ -25,7 +25,7 @@ import os
 import signal
 from dataclasses import dataclass
 from datetime import timedelta
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import torch
 import torch.distributed as dist
@@ -96,6 +96,19 @@ def barrier_if(ctx: DistContext) -> None:
     """Wait for every rank (nothing without torch.distributed)."""
     if ctx.enabled:
         dist.barrier()
+
+
+def run_entry_point(args: Any, body: Callable[[Any, DistContext, str], int]) -> int:
+    """A CLI's main under torchrun or not: threads, join the ranks (device per rank), run
+    body(args, ctx, device), leave the process group whatever happens."""
+    from trainer import runs
+
+    runs.set_threads(args.threads)
+    ctx, device = init(runs.resolve_device(args.device))
+    try:
+        return body(args, ctx, device)
+    finally:
+        shutdown(ctx)
 
 
 def shutdown(ctx: DistContext) -> None:

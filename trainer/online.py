@@ -205,12 +205,7 @@ def mcap_io_errors() -> type:
 
 
 def run(a: argparse.Namespace) -> int:
-    runs.set_threads(a.threads)
-    ctx, device = distributed.init(runs.resolve_device(a.device))
-    try:
-        return _run(a, ctx, device)
-    finally:
-        distributed.shutdown(ctx)
+    return distributed.run_entry_point(a, _run)
 
 
 def _run(a: argparse.Namespace, ctx: distributed.DistContext, device: str) -> int:

@@ -346,12 +346,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _main(a: argparse.Namespace) -> int:
-    runs.set_threads(a.threads)
-    ctx, device = distributed.init(runs.resolve_device(a.device))
-    try:
-        return _train(a, ctx, device)
-    finally:
-        distributed.shutdown(ctx)
+    return distributed.run_entry_point(a, _train)
 
 
 def _train(a: argparse.Namespace, ctx: distributed.DistContext, device: str) -> int:
