@@ -27,11 +27,17 @@ GET_STATE_TIMEOUT_S = 2.0
 
 
 class RosGraph:
-    def __init__(self, domain_id: int, *, name: str = "protocad_launcher"):
+    def __init__(self, domain_id: int, *, name: str = "protocad_launcher", discovery_server: str | None = None):
+        from trainer import discovery
+
         # Before rclpy.init: this process's own participant stays on this machine, like the
-        # nodes it starts (rosprocs.ros_env), whatever the caller's environment says.
+        # nodes it starts (rosprocs.ros_env), whatever the caller's environment says. With a
+        # Discovery Server it is a super client: a plain client would never hear of endpoints
+        # on topics it does not use itself (the recorder's subscriptions it waits for).
         os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
         os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
+        discovery.apply_env(os.environ, discovery_server or os.environ.get(discovery.SERVER_ENV),
+                            super_client=True)
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from rclpy.executors import SingleThreadedExecutor
