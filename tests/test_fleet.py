@@ -9,7 +9,7 @@ import os
 import pytest
 
 from conftest import wait_for
-from trainer_bags import TINY, check_robots_recorded_and_trained, loop_failure, run_cli
+from trainer_bags import TINY, check_robot_episodes, check_robots_recorded_and_trained, loop_failure, run_cli
 
 from trainer.discovery import free_port
 
@@ -71,3 +71,29 @@ def test_bad_discovery_server_addresses_are_one_clear_line(capsys):
     assert a.start_discovery_server == ("127.0.0.1", 11811) and a.discovery_server is None
     assert build_parser().parse_args(["--start-discovery-server", "0.0.0.0:7000"]).start_discovery_server == ("0.0.0.0", 7000)
     assert build_parser().parse_args(["--discovery-server", ";10.0.0.2:11811"]).discovery_server == ";10.0.0.2:11811"
+
+
+def test_actor_groups_placed_like_on_other_machines(tmp_path, spawn):
+    """`python -m trainer.fleet` as on three machines (here all on 127.0.0.1): A runs the
+    server and one recorder for robot0 and robot1, B and C one actor group each; the bag holds
+    both robots' episodes and protocad-train learns from both."""
+    port = free_port()
+    dom = ["--domain-id", os.environ["ROS_DOMAIN_ID"]]
+    bag = tmp_path / "bags" / "session1"
+    a = spawn("machine_a", "-m", "trainer.fleet", "--start-discovery-server", str(port), "--robots", "2",
+              "--no-actors", "--record", str(bag), "--log-dir", str(tmp_path / "logs_a"), *dom)
+    wait_for(lambda: "recording 2 robot(s)" in a.output() or not a.alive(), 90, "machine A's recorder")
+    assert a.alive(), a.output()
+    groups = [spawn(f"machine_{m}", "-m", "trainer.fleet", "--discovery-server", f"127.0.0.1:{port}",
+                    "--robots", "1", "--first-robot", str(i), "--episodes", "1", "--episode-length", "12",
+                    "--log-dir", str(tmp_path / f"logs_{m}"), *dom) for i, m in enumerate("bc")]
+    for g in groups:
+        wait_for(lambda g=g: not g.alive(), 120, f"{g.args} to finish")
+        assert g.p.returncode == 0 and "every bridge finished" in g.output(), g.output()
+    assert a.stop() == 0, a.output()
+    assert "exit codes: recorder 0, discovery_server 0" in a.output(), a.output()
+    check_robot_episodes(bag, ROBOTS, episode_length=12)
+    t = run_cli("trainer.train", "--logs", bag.parent, "--namespace", *ROBOTS, "--task", "pendulum_swingup",
+                *TINY, "--updates", "1", "--run-dir", tmp_path / "learner", "--cache-dir", tmp_path / "cache",
+                timeout=300)
+    assert t.returncode == 0, t.stdout + t.stderr
