@@ -85,6 +85,11 @@ def one(args) -> dict:
         finally:
             stack.stop_all()
             bag_bytes = sum(f.stat().st_size for f in bag.glob("*")) if args.record else None
+            if args.record:   # did the recorder keep up: every step of every group in the bag?
+                from trainer import mcap_io
+
+                counts = mcap_io.BagReader(bag).report.counts
+                recorded = sum(counts.get(T.topic_name(ns, T.STEP_INFO), 0) for ns in namespaces)
     if any(len(t) <= WARMUP + 1 for t in seen.values()):
         raise SystemExit(f"too few observations to time: {[len(t) for t in seen.values()]}")
     # The span in which every group steps: from the last group's WARMUP-th observation (groups
@@ -100,7 +105,8 @@ def one(args) -> dict:
             "fleet_agent_steps_per_s": steps / (end - start) if end > start else float("nan"),
             "fleet_env_steps_per_s": steps * args.action_repeat / (end - start) if end > start else float("nan"),
             "per_group_agent_steps_per_s": per_group,
-            "bag_bytes_per_step": bag_bytes / sum(len(t) for t in seen.values()) if bag_bytes else None}
+            "bag_bytes_per_step": bag_bytes / sum(len(t) for t in seen.values()) if bag_bytes else None,
+            "recorded_steps": recorded if args.record else None}
 
 
 def machine_line() -> str:
@@ -149,13 +155,13 @@ def main() -> None:
                 sys.exit(f"configuration M={m} server={server} failed:\n{r.stdout[-3000:]}{r.stderr[-3000:]}")
             rows.append(json.loads(lines[-1]))
     print(f"{'groups':>6s} {'discovery':>18s} {'env steps/s':>12s} {'agent steps/s':>14s} "
-          f"{'per group (agent)':>20s} {'obs seen/expected':>18s}" + (f" {'bag B/step':>10s}" if args.record else ""))
+          f"{'per group (agent)':>20s} {'obs seen/expected':>18s}" + (f" {'bag B/step':>10s} {'recorded':>9s}" if args.record else ""))
     for r in rows:
         per = ", ".join(f"{v:.0f}" for v in r["per_group_agent_steps_per_s"])
         print(f"{r['groups']:6d} {'server 127.0.0.1' if r['server'] else 'no server':>18s} "
               f"{r['fleet_env_steps_per_s']:12.1f} {r['fleet_agent_steps_per_s']:14.1f} {per:>20s} "
               f"{r['observations_seen']:>8d}/{r['observations_expected']}"
-              + (f" {r['bag_bytes_per_step']:10.0f}" if args.record else ""))
+              + (f" {r['bag_bytes_per_step']:10.0f} {r['recorded_steps']:9d}" if args.record else ""))
     print(machine_line().replace("machine:", "after:"), flush=True)
 
 
