@@ -80,8 +80,13 @@ def one(args) -> dict:
             deadline = time.monotonic() + args.timeout
             while any(b.alive() for b in bridges) and time.monotonic() < deadline:
                 graph.spin(0.01)
-            for _ in range(20):   # what is still in flight
+            # what is still queued for this reader (it lags behind on busy cores): until 0.5 s
+            # pass without a new observation
+            quiet_since, n = time.monotonic(), -1
+            while time.monotonic() - quiet_since < 0.5 and time.monotonic() < deadline + 10:
                 graph.spin(0.01)
+                if sum(map(len, seen.values())) != n:
+                    quiet_since, n = time.monotonic(), sum(map(len, seen.values()))
         finally:
             stack.stop_all()
             bag_bytes = sum(f.stat().st_size for f in bag.glob("*")) if args.record else None
