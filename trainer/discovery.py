@@ -25,7 +25,6 @@ import ipaddress
 import os
 import socket
 import sys
-import time
 from pathlib import Path
 from typing import Callable
 
@@ -174,14 +173,10 @@ def udp_listening(pid: int, port: int) -> bool:
 def wait_listening(pid: int, port: int, alive: Callable[[], str | None], timeout: float = 20.0) -> None:
     """Block until the server process listens on its port; RuntimeError if it exits first,
     TimeoutError if it does not within `timeout`."""
-    deadline = time.monotonic() + timeout
-    while not udp_listening(pid, port):
-        gone = alive()
-        if gone:
-            raise RuntimeError(gone)
-        if time.monotonic() > deadline:
-            raise TimeoutError(f"the discovery server does not listen on UDP port {port} after {timeout:.0f}s")
-        time.sleep(0.05)
+    from trainer.rosgraph import wait_until
+
+    wait_until(lambda: udp_listening(pid, port), what=f"discovery server listening on UDP port {port}",
+               timeout=timeout, alive=alive)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -131,15 +131,25 @@ class RosGraph:
              alive: Callable[[], str | None] = lambda: None, stop=None) -> bool:
         """Spin until `ready()`; TimeoutError naming `what`; `alive()` returns why the node is
         gone (its exit and log tail) to raise at once; False when `stop.stop` is raised."""
-        deadline = time.monotonic() + timeout
-        while True:
-            if ready():
-                return True
-            if stop is not None and stop.stop:
-                return False
-            gone = alive()
-            if gone:
-                raise RuntimeError(gone)
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"no {what} within {timeout:.0f}s")
-            self.spin(0.05)
+        return wait_until(ready, what=what, timeout=timeout, alive=alive, stop=stop,
+                          pause=lambda: self.spin(0.05))
+
+
+def wait_until(ready: Callable[[], bool], *, what: str, timeout: float,
+               alive: Callable[[], str | None] = lambda: None, stop=None,
+               pause: Callable[[], None] = lambda: time.sleep(0.05)) -> bool:
+    """Poll `ready()` (calling `pause()` in between) until it is true; TimeoutError naming
+    `what`; RuntimeError at once with what `alive()` says when the process watched is gone;
+    False when `stop.stop` (a runs.StopFlag) is raised."""
+    deadline = time.monotonic() + timeout
+    while True:
+        if ready():
+            return True
+        if stop is not None and stop.stop:
+            return False
+        gone = alive()
+        if gone:
+            raise RuntimeError(gone)
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"no {what} within {timeout:.0f}s")
+        pause()

@@ -188,8 +188,9 @@ class RosStack:
         try:
             discovery.wait_listening(proc.pid, port, proc.gone, timeout)
         except (RuntimeError, TimeoutError) as exc:
+            why = f"{DISCOVERY_SERVER} on {host}:{port}: {exc}; log {proc.log_path}:\n{proc.tail()}"
             proc.stop()
-            raise NodeFailed(f"{DISCOVERY_SERVER} on {host}:{port}: {exc}; log {proc.log_path}:\n{proc.tail()}") from None
+            raise NodeFailed(why) from None
         return discovery.connect_address(host, port)
 
     def describe_discovery(self) -> str:
