@@ -59,7 +59,10 @@ def parse_listen(text: str) -> tuple[str, int]:
     text = str(text).strip()
     if text.isdigit():
         text = f"{LOCALHOST}:{text}"
-    host, port = _host_port(text)
+    try:
+        host, port = _host_port(text)
+    except ValueError:
+        raise ValueError(f"expected PORT or HOST:PORT with a port in 1..65535, got {text!r}") from None
     try:
         ipaddress.ip_address(host)
     except ValueError:
