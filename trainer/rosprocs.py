@@ -182,8 +182,8 @@ class RosStack:
     def _start_discovery_server(self, host: str, port: int, timeout: float) -> str:
         from trainer import discovery
 
-        # No ROS_DOMAIN_ID of its own matters: the server takes no domain and serves every
-        # client that reaches its address (the clients' domain keeps fleets apart).
+        # Its own ROS_DOMAIN_ID does not matter: the server takes no domain option and serves
+        # the clients that reach its address, whatever their domain.
         proc = NodeProc(DISCOVERY_SERVER, discovery.server_command(host, port),
                         self.log_dir / f"{DISCOVERY_SERVER}.log", ros_env(0))
         self.procs[DISCOVERY_SERVER] = proc
