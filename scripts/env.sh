@@ -10,6 +10,11 @@ export RMW_IMPLEMENTATION="${RMW_IMPLEMENTATION:-rmw_fastrtps_cpp}"
 # interface). A per-user domain id keeps concurrent users apart; tests pick their own.
 export ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST
 export ROS_DOMAIN_ID="${ROS_DOMAIN_ID:-$(( $(id -u) % 100 + 1 ))}"
+# A fleet discovers through a Fast DDS Discovery Server instead (export ROS_DISCOVERY_SERVER=
+# HOST:PORT before sourcing this; the launchers take --discovery-server). A shell's tools
+# (ros2 topic/node list, by hand) must then be super clients, or they see only their own topics;
+# the launchers start their nodes as plain clients whatever this says.
+if [ -n "${ROS_DISCOVERY_SERVER:-}" ]; then export ROS_SUPER_CLIENT="${ROS_SUPER_CLIENT:-TRUE}"; fi
 # Headless rendering: EGL with Mesa (osmesa also works: MUJOCO_GL=osmesa).
 export MUJOCO_GL="${MUJOCO_GL:-egl}"
 export PYOPENGL_PLATFORM="${PYOPENGL_PLATFORM:-$MUJOCO_GL}"

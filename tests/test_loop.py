@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 import os
 
-from trainer_bags import TINY, run_cli
+from trainer_bags import TINY, check_robots_recorded_and_trained, loop_failure, run_cli
 
 
 def test_two_collect_train_reload_cycles_through_ros(tmp_path):
@@ -15,8 +15,7 @@ def test_two_collect_train_reload_cycles_through_ros(tmp_path):
                 "--prefill-episodes", "2", "--cycles", "2", "--updates-per-episode", str(C),
                 "--eval-episodes", "1", "--eval-max-contexts", "2", "--no-visualize", "--run-dir", run,
                 "--domain-id", os.environ["ROS_DOMAIN_ID"], "--log-every", "1", "--no-progress", timeout=400)
-    assert r.returncode == 0, r.stdout + r.stderr + "".join(
-        f"\n--- {p.name}\n" + p.read_text()[-3000:] for p in sorted((run / "logs").glob("*.log")))
+    assert r.returncode == 0, loop_failure(r, run)
     phases = json.loads((run / "phases.json").read_text())
     assert [p["bag"] for p in phases] == ["00_prefill", "01_collect", "02_collect"]
     assert [p["episodes"] for p in phases] == [2, 1, 1]
@@ -54,38 +53,17 @@ def test_two_robots_in_one_loop(tmp_path):
     """--robots 2: two bridges and two policy nodes in /protocad/robot0 and /protocad/robot1
     (own /clock each), one recorder for both; the episodes of both are in the bags under their
     namespaces and are what training counts and samples."""
-    from trainer import mcap_io
-    from trainer.dataset import MCAPDataset, TopicMap
-
     run = tmp_path / "run"
     r = run_cli("trainer.loop", "--task", "pendulum_swingup", *TINY, "--episode-length", "12", "--robots", "2",
                 "--prefill-episodes", "2", "--cycles", "1", "--updates-per-episode", "2",
                 "--eval-episodes", "0", "--no-visualize", "--run-dir", run,
                 "--domain-id", os.environ["ROS_DOMAIN_ID"], "--no-progress", timeout=400)
-    assert r.returncode == 0, r.stdout + r.stderr + "".join(
-        f"\n--- {p.name}\n" + p.read_text()[-3000:] for p in sorted((run / "logs").glob("*.log")))
-    phases = json.loads((run / "phases.json").read_text())
-    assert [(p["bag"], p["episodes"]) for p in phases] == [("00_prefill", 2), ("01_collect", 2)]
-    for p in phases:
-        reader = mcap_io.BagReader(run / "bags" / p["bag"])
-        topics = reader.report.counts
-        for i in (0, 1):
-            ns = f"/protocad/robot{i}"
-            # one episode of 12 steps = 13 observations (a lock-step timeout may republish one)
-            stamps = {reader.decode(m).header.stamp.nanosec + 10**9 * reader.decode(m).header.stamp.sec
-                      for m in reader.messages([f"{ns}/step_info"])}
-            assert len(stamps) == 13 and topics.get(f"{ns}/action", 0) >= 13, topics
-            assert topics.get(f"{ns}/clock", 0) >= 13, topics        # each robot's own sim clock
-        assert "/protocad/step_info" not in topics
+    assert r.returncode == 0, loop_failure(r, run)
+    check_robots_recorded_and_trained(run, ["/protocad/robot0", "/protocad/robot1"], episode_length=12,
+                                      phases=[("00_prefill", 2), ("01_collect", 2)], episodes=4,
+                                      updates=2 + 2 * 2, cache_dir=tmp_path / "cache")
     for i in (0, 1):
         assert (run / "logs" / f"policy_robot{i}.log").exists()
-        ds = MCAPDataset([run / "bags"], topics=TopicMap.for_namespace(f"/protocad/robot{i}"), seq_len=4,
-                         cache_dir=tmp_path / "cache")
-        assert len(ds.report.sources) == 2 and ds.num_windows > 0    # this robot's episodes train
-    from protocad_ros.checkpoint import read_checkpoint
-
-    ck = read_checkpoint(run / "checkpoints" / "latest.pt")
-    assert ck["counters"]["episodes"] == 4 and int(ck["modules"]["updates"]) == 2 + 2 * 2
     # offline: protocad-train reads both robots of the same bags
     t = run_cli("trainer.train", "--logs", run / "bags", "--namespace", "/protocad/robot0", "/protocad/robot1",
                 "--task", "pendulum_swingup", *TINY, "--updates", "1", "--run-dir", tmp_path / "offline",

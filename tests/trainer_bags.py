@@ -126,3 +126,49 @@ def run_cli(module: str, *args: str, timeout: float = 240, env: dict | None = No
     return subprocess.run([sys.executable, "-m", module, *map(str, args)], capture_output=True, text=True,
                           timeout=timeout, cwd=Path(__file__).resolve().parents[1],
                           env={**os.environ, **(env or {})})
+
+
+def loop_failure(r, run: Path) -> str:
+    """What to show when a protocad-loop run failed: its output and every node log's tail."""
+    return r.stdout + r.stderr + "".join(
+        f"\n--- {p.name}\n" + p.read_text()[-3000:] for p in sorted((run / "logs").glob("*.log")))
+
+
+def check_robot_episodes(bag: Path, namespaces: list[str], episode_length: int) -> None:
+    """One episode of each robot in `bag`, under the robot's namespace with its own clock, and
+    nothing under the shared namespace."""
+    from trainer import mcap_io
+
+    reader = mcap_io.BagReader(bag)
+    topics = reader.report.counts
+    for ns in namespaces:
+        # one episode of L steps = L+1 observations; count distinct stamps, as a lock-step
+        # timeout may republish one
+        stamps = {reader.decode(m).header.stamp.nanosec + 10**9 * reader.decode(m).header.stamp.sec
+                  for m in reader.messages([f"{ns}/step_info"])}
+        assert len(stamps) == episode_length + 1 and topics.get(f"{ns}/action", 0) >= episode_length + 1, topics
+        assert topics.get(f"{ns}/clock", 0) >= episode_length + 1, topics    # each robot's own sim clock
+    assert "/protocad/step_info" not in topics
+
+
+def check_robots_recorded_and_trained(run: Path, namespaces: list[str], *, episode_length: int,
+                                      phases: list[tuple[str, int]], episodes: int, updates: int,
+                                      cache_dir: Path) -> None:
+    """A multi-robot protocad-loop run: every robot's episodes are in every bag under its own
+    namespace (with its own clock), nothing under the shared one, each robot's episodes give
+    training windows, and the checkpoint counted them all."""
+    import json
+
+    from trainer.dataset import MCAPDataset, TopicMap
+
+    got = json.loads((run / "phases.json").read_text())
+    assert [(p["bag"], p["episodes"]) for p in got] == phases
+    for p in got:
+        check_robot_episodes(run / "bags" / p["bag"], namespaces, episode_length)
+    for ns in namespaces:
+        ds = MCAPDataset([run / "bags"], topics=TopicMap.for_namespace(ns), seq_len=4, cache_dir=cache_dir)
+        assert len(ds.report.sources) == len(phases) and ds.num_windows > 0, ns    # this robot's episodes train
+    from protocad_ros.checkpoint import read_checkpoint
+
+    ck = read_checkpoint(run / "checkpoints" / "latest.pt")
+    assert ck["counters"]["episodes"] == episodes and int(ck["modules"]["updates"]) == updates

@@ -3,6 +3,7 @@
     protocad-loop --demo                         # README main command (Pendulum Swingup, small)
     protocad-loop --task walker_walk --preset paper --cycles 100 --run-dir runs/ww
     protocad-loop --run-dir runs/ww --resume     # continue after Ctrl-C / a crash
+    protocad-loop --robots 2 --start-discovery-server   # a Fast DDS Discovery Server, no multicast
 
 Processes (trainer/rosprocs.py; logs in RUN_DIR/logs/, one ROS_DOMAIN_ID per run, a fresh
 one unless --domain-id):
@@ -36,7 +37,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from sim_bridge import topics as T
-from trainer import runs
+from trainer import discovery, runs
 from trainer.dataset import MCAPDataset, TopicMap
 from trainer.train import Trainer, add_common_model_args, config_from_args
 
@@ -82,6 +83,7 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--run-dir", default=None, help="output directory (default runs/loop-TASK-VARIANT-TIME)")
     g.add_argument("--resume", action="store_true", help="continue RUN_DIR (bags + checkpoint + counters)")
     g.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID of the nodes (default: a fresh one)")
+    discovery.add_args(g)
     g.add_argument("--checkpoint-every", type=int, default=500, help="updates between checkpoints within a training phase")
     g.add_argument("--log-every", type=int, default=10, help="updates per metrics line")
     g.add_argument("--cache-dir", default=None, help="dataset cache (default RUN_DIR/cache)")
@@ -352,9 +354,12 @@ class Loop:
 
             self.trainer = Trainer(cfg, self.run_dir, self.ds, device=self.device, callbacks=callbacks,
                                    log_every=a.log_every, action_dim=len(task_actuators(cfg.task)))
-        self.stack = RosStack(self.run_dir / "logs", domain_id=a.domain_id)
+        server, start_server = discovery.from_args(a)
+        self.stack = RosStack(self.run_dir / "logs", domain_id=a.domain_id, discovery_server=server,
+                              start_discovery_server=start_server)
         print(f"[loop] {cfg.task} / {cfg.variant} / {cfg.preset} on {self.device}; run dir {self.run_dir}; "
-              f"ROS_DOMAIN_ID={self.stack.domain_id}; node logs in {self.stack.log_dir}", flush=True)
+              f"ROS_DOMAIN_ID={self.stack.domain_id}; {self.stack.describe_discovery()}; "
+              f"node logs in {self.stack.log_dir}", flush=True)
         print(f"[loop] plan: prefill {a.prefill_episodes} random episode(s), then {a.cycles} cycle(s) of "
               f"{a.episodes_per_cycle} episode(s) with C={a.updates_per_episode} updates per episode"
               + (f" (resuming: {self.collect_phases} cycle(s), {self.trainer.updates} updates done)" if a.resume else ""),

@@ -27,11 +27,17 @@ GET_STATE_TIMEOUT_S = 2.0
 
 
 class RosGraph:
-    def __init__(self, domain_id: int, *, name: str = "protocad_launcher"):
+    def __init__(self, domain_id: int, *, name: str = "protocad_launcher", discovery_server: str | None = None):
+        from trainer import discovery
+
         # Before rclpy.init: this process's own participant stays on this machine, like the
-        # nodes it starts (rosprocs.ros_env), whatever the caller's environment says.
+        # nodes it starts (rosprocs.ros_env), whatever the caller's environment says. With a
+        # Discovery Server it is a super client: a plain client would never hear of endpoints
+        # on topics it does not use itself (the recorder's subscriptions it waits for).
         os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
         os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
+        discovery.apply_env(os.environ, discovery_server or os.environ.get(discovery.SERVER_ENV),
+                            super_client=True)
         import rclpy
         from diagnostic_msgs.msg import DiagnosticArray
         from rclpy.executors import SingleThreadedExecutor
@@ -125,15 +131,25 @@ class RosGraph:
              alive: Callable[[], str | None] = lambda: None, stop=None) -> bool:
         """Spin until `ready()`; TimeoutError naming `what`; `alive()` returns why the node is
         gone (its exit and log tail) to raise at once; False when `stop.stop` is raised."""
-        deadline = time.monotonic() + timeout
-        while True:
-            if ready():
-                return True
-            if stop is not None and stop.stop:
-                return False
-            gone = alive()
-            if gone:
-                raise RuntimeError(gone)
-            if time.monotonic() > deadline:
-                raise TimeoutError(f"no {what} within {timeout:.0f}s")
-            self.spin(0.05)
+        return wait_until(ready, what=what, timeout=timeout, alive=alive, stop=stop,
+                          pause=lambda: self.spin(0.05))
+
+
+def wait_until(ready: Callable[[], bool], *, what: str, timeout: float,
+               alive: Callable[[], str | None] = lambda: None, stop=None,
+               pause: Callable[[], None] = lambda: time.sleep(0.05)) -> bool:
+    """Poll `ready()` (calling `pause()` in between) until it is true; TimeoutError naming
+    `what`; RuntimeError at once with what `alive()` says when the process watched is gone;
+    False when `stop.stop` (a runs.StopFlag) is raised."""
+    deadline = time.monotonic() + timeout
+    while True:
+        if ready():
+            return True
+        if stop is not None and stop.stop:
+            return False
+        gone = alive()
+        if gone:
+            raise RuntimeError(gone)
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"no {what} within {timeout:.0f}s")
+        pause()

@@ -13,6 +13,12 @@ Readiness comes from ROS, not from the logs (trainer/rosgraph.py): the managed n
 policy) are ready when their lifecycle state is `active`, the recorder and the random actor
 when the graph shows their endpoints (the recorder's subscription to `action`, the actor's
 action publisher and observation subscriptions). The logs stay for people.
+
+Discovery: by default the usual way (no multicast: LOCALHOST). With a Fast DDS Discovery Server
+(`discovery_server=HOST:PORT`, default $ROS_DISCOVERY_SERVER, or `start_discovery_server=(host,
+port)` to run one as the stack's first process and stop it after the nodes) every node is a
+discovery client of it; the recorder and the launcher's own graph view are super clients
+(trainer/discovery.py says why).
 """
 from __future__ import annotations
 
@@ -51,7 +57,12 @@ def fresh_domain_id() -> int:
     return random.SystemRandom().randint(1, 101)
 
 
-def ros_env(domain_id: int | None = None) -> dict[str, str]:
+def ros_env(domain_id: int | None = None, discovery_server: str | None = None,
+            super_client: bool = False) -> dict[str, str]:
+    """The environment of a node process: this machine only, the given domain, and discovery
+    through `discovery_server` (a client; a super client if asked) or without one."""
+    from trainer import discovery
+
     env = dict(os.environ)
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"    # DDS never leaves this machine
     env.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
@@ -65,7 +76,7 @@ def ros_env(domain_id: int | None = None) -> dict[str, str]:
     if (ROOT / "trainer").is_dir() and (ROOT / "sim_bridge").is_dir():
         env["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), env.get("PYTHONPATH")]))
     env["ROS_DOMAIN_ID"] = str(domain_id if domain_id is not None else fresh_domain_id())
-    return env
+    return discovery.apply_env(env, discovery_server, super_client=super_client)
 
 
 def recorder_endpoints(wait_topics: Iterable[str]) -> list[tuple[str, str]]:
@@ -127,12 +138,15 @@ class NodeProc:
         return self.p.returncode
 
 
-def robot_namespaces(base: str, robots: int) -> list[str]:
+def robot_namespaces(base: str, robots: int, first: int | None = None) -> list[str]:
     """One robot: the base namespace; several: BASE/robot0, BASE/robot1, ... (each its own
-    bridge, policy and /clock)."""
+    bridge, policy and /clock). With `first` (groups of a fleet on several machines, whose
+    names must not collide): BASE/robotFIRST ... always, even for one."""
     if robots < 1:
         raise ValueError(f"robots must be >= 1, got {robots}")
-    return [base] if robots == 1 else [T.topic_name(base, f"robot{i}") for i in range(robots)]
+    if first is None and robots == 1:
+        return [base]
+    return [T.topic_name(base, f"robot{i}") for i in range(first or 0, (first or 0) + robots)]
 
 
 def clock_topic(ns: str, base: str) -> str:
@@ -140,19 +154,54 @@ def clock_topic(ns: str, base: str) -> str:
     return T.CLOCK if ns == base else T.topic_name(ns, "clock")
 
 
+DISCOVERY_SERVER = "discovery_server"   # its process name in a RosStack
+
+
 class RosStack:
     """The node processes of one run, sharing a ROS domain: one robot in `namespace`, or
     several (`ns` of each start_* call; process names then carry '@NS')."""
 
     def __init__(self, log_dir: str | Path, *, domain_id: int | None = None,
-                 namespace: str = T.DEFAULT_NAMESPACE):
+                 namespace: str = T.DEFAULT_NAMESPACE, discovery_server: str | None = None,
+                 start_discovery_server: tuple[str, int] | None = None, ready_timeout: float = 20.0):
+        from trainer import discovery
+
         self.log_dir = Path(log_dir)
         self.log_dir.mkdir(parents=True, exist_ok=True)
-        self.env = ros_env(domain_id)
-        self.domain_id = int(self.env["ROS_DOMAIN_ID"])
-        self.namespace = namespace
         self.procs: dict[str, NodeProc] = {}
         self._graph = None
+        if start_discovery_server is not None:
+            discovery_server = self._start_discovery_server(*start_discovery_server, timeout=ready_timeout)
+        #: the Discovery Server every node uses (None: the usual discovery, no server)
+        self.discovery_server = discovery_server or os.environ.get(discovery.SERVER_ENV) or None
+        self.env = ros_env(domain_id, self.discovery_server)
+        self.domain_id = int(self.env["ROS_DOMAIN_ID"])
+        self.super_env = ros_env(self.domain_id, self.discovery_server, super_client=True)
+        self.namespace = namespace
+
+    def _start_discovery_server(self, host: str, port: int, timeout: float) -> str:
+        from trainer import discovery
+
+        # Its own ROS_DOMAIN_ID does not matter: the server takes no domain option and serves
+        # the clients that reach its address, whatever their domain.
+        proc = NodeProc(DISCOVERY_SERVER, discovery.server_command(host, port),
+                        self.log_dir / f"{DISCOVERY_SERVER}.log", ros_env(0))
+        self.procs[DISCOVERY_SERVER] = proc
+        try:
+            discovery.wait_listening(proc.pid, port, proc.gone, timeout)
+        except (RuntimeError, TimeoutError) as exc:
+            why = f"{DISCOVERY_SERVER} on {host}:{port}: {exc}; log {proc.log_path}:\n{proc.tail()}"
+            proc.stop()
+            raise NodeFailed(why) from None
+        return discovery.connect_address(host, port)
+
+    def describe_discovery(self) -> str:
+        """One line for the launchers' banners."""
+        if not self.discovery_server:
+            return "discovery without a server (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST)"
+        own = self.procs.get(DISCOVERY_SERVER)
+        return (f"discovery through the Fast DDS Discovery Server {self.discovery_server}"
+                + (f" (started here, pid {own.pid})" if own is not None else ""))
 
     @property
     def graph(self):
@@ -160,7 +209,7 @@ class RosStack:
         if self._graph is None:
             from trainer.rosgraph import RosGraph
 
-            self._graph = RosGraph(self.domain_id)
+            self._graph = RosGraph(self.domain_id, discovery_server=self.discovery_server)
         return self._graph
 
     def close_graph(self) -> None:
@@ -206,7 +255,8 @@ class RosStack:
         return self.wait_until(proc, lambda: self.graph.has_endpoints(node_name, node_ns, wants, old),
                           f"{node_name} in the ROS graph with {what}", timeout, stop)
 
-    def _spawn(self, name: str, module: str, args: Sequence[str], log_name: str | None = None) -> NodeProc:
+    def _spawn(self, name: str, module: str, args: Sequence[str], log_name: str | None = None,
+               super_client: bool = False) -> NodeProc:
         old = self.procs.get(name)
         if old is not None and old.alive():
             raise RuntimeError(f"{name} is already running (pid {old.pid})")
@@ -214,7 +264,7 @@ class RosStack:
             kind, _, ns = name.partition("@")
             log_name = kind + (f"_{ns.rstrip('/').rsplit('/', 1)[-1]}" if ns else "")
         proc = NodeProc(name, [sys.executable, "-m", module, *args], self.log_dir / f"{log_name}.log",
-                        self.env)
+                        self.super_env if super_client else self.env)
         self.procs[name] = proc
         return proc
 
@@ -278,7 +328,8 @@ class RosStack:
                 "--topics", *topics]
         wants = recorder_endpoints(wait_topics)
         old = self.graph.snapshot("recorder", "/", wants)
-        proc = self._spawn("recorder", "trainer.recorder", args, log_name)
+        # A super client: it reads topic types from the graph before it subscribes to them.
+        proc = self._spawn("recorder", "trainer.recorder", args, log_name, super_client=True)
         self.wait_endpoints(proc, "recorder", "/", wants, ready_timeout, old=old)
         return proc
 
@@ -291,7 +342,7 @@ class RosStack:
             if stop is not None and stop.stop:
                 return -1
             for name, other in list(self.procs.items()):
-                if name.split("@")[0] not in watch:
+                if name.split("@")[0] not in watch and name != DISCOVERY_SERVER:
                     continue
                 if other is not proc and not other.alive() and other.p.returncode not in (0, None):
                     raise NodeFailed(f"{name} died with code {other.p.returncode}; log "
@@ -308,13 +359,15 @@ class RosStack:
         return proc.stop(sig, timeout) if proc is not None else None
 
     def stop_all(self) -> dict[str, int | None]:
-        """Bridges first (no new observations), then actors, the recorder last (drains)."""
+        """Bridges first (no new observations), then actors, the recorder (drains), the
+        discovery server after every node."""
         self.close_graph()
         codes = {}
         for kind in ("bridge", "actor", "policy", "recorder"):
             for name in [n for n in self.procs if n.split("@")[0] == kind]:
                 codes[name] = self.stop(name)
-        for name in list(self.procs):
-            if name not in codes:
-                codes[name] = self.stop(name)
+        for name in [n for n in self.procs if n not in codes and n != DISCOVERY_SERVER]:
+            codes[name] = self.stop(name)
+        if DISCOVERY_SERVER in self.procs:
+            codes[DISCOVERY_SERVER] = self.stop(DISCOVERY_SERVER)
         return codes

@@ -35,7 +35,7 @@ from typing import Any, Sequence
 import yaml
 
 from sim_bridge import topics as T
-from trainer import runs
+from trainer import discovery, runs
 
 SECTIONS = ("bridge", "policy", "recorder")
 MODULES = {"bridge": "sim_bridge.node", "policy": "protocad_ros.policy_node", "recorder": "trainer.recorder"}
@@ -105,15 +105,22 @@ class LogFollower(threading.Thread):
                     print(f"[{name}] {line}", file=self.out, flush=True)
 
 
-def run(doc: dict[str, Any], *, log_dir: Path, domain_id: int | None, ready_timeout: float) -> int:
+def run(doc: dict[str, Any], *, log_dir: Path, domain_id: int | None, ready_timeout: float,
+        discovery_server: str | None = None, start_discovery_server: tuple[str, int] | None = None) -> int:
     from trainer.rosprocs import NodeFailed, RosStack, recorder_endpoints
 
     ns = doc.get("namespace") or T.DEFAULT_NAMESPACE
-    stack = RosStack(log_dir, domain_id=domain_id, namespace=ns)
+    try:
+        stack = RosStack(log_dir, domain_id=domain_id, namespace=ns, discovery_server=discovery_server,
+                         start_discovery_server=start_discovery_server)
+    except NodeFailed as exc:
+        print(f"[stack] {exc}", file=sys.stderr, flush=True)
+        return 1
     follower = LogFollower(stack.procs)
     follower.start()
     record = doc.get("recorder", {}) is not False
-    print(f"[stack] ROS_DOMAIN_ID={stack.domain_id}, namespace {ns}, logs in {log_dir}", flush=True)
+    print(f"[stack] ROS_DOMAIN_ID={stack.domain_id}, namespace {ns}, {stack.describe_discovery()}, logs in {log_dir}",
+          flush=True)
     codes: dict[str, int | None] = {}
     with runs.StopFlag() as stop:
         try:
@@ -124,7 +131,8 @@ def run(doc: dict[str, Any], *, log_dir: Path, domain_id: int | None, ready_time
                 # Endpoints of another recorder on this domain (e.g. a previous stack's, going).
                 old = stack.graph.snapshot("recorder", "/", up + reading)
                 proc = stack._spawn("recorder", MODULES["recorder"], ["-o", str(output), "--namespace", ns,
-                                                                       "--ros-args", *ros_params(rec)])
+                                                                       "--ros-args", *ros_params(rec)],
+                                    super_client=True)   # it reads topic types from the graph
                 stack.wait_endpoints(proc, "recorder", "/", up, ready_timeout, stop=stop, old=old)
             policy = dict(doc.get("policy") or {})
             policy.setdefault("task", (doc.get("bridge") or {}).get("task", "pendulum_swingup"))
@@ -167,6 +175,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--log-dir", default=None, help="node logs (default: beside the bag, or runs/stack-STAMP/logs)")
     ap.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: the environment's)")
     ap.add_argument("--ready-timeout", type=float, default=120.0, help="seconds each node may take to start")
+    discovery.add_args(ap)
     return ap
 
 
@@ -182,7 +191,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                                                  Path(time.strftime("runs/stack-%Y%m%d-%H%M%S")) / "logs")
     domain = a.domain_id if a.domain_id is not None else (int(os.environ["ROS_DOMAIN_ID"])
                                                           if os.environ.get("ROS_DOMAIN_ID", "").isdigit() else None)
-    return run(doc, log_dir=log_dir, domain_id=domain, ready_timeout=a.ready_timeout)
+    server, start_server = discovery.from_args(a)
+    return run(doc, log_dir=log_dir, domain_id=domain, ready_timeout=a.ready_timeout,
+               discovery_server=server, start_discovery_server=start_server)
 
 
 if __name__ == "__main__":

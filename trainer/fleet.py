@@ -1,0 +1,136 @@
+"""`python -m trainer.fleet`: one machine's share of a fleet, discovering through a Fast DDS
+Discovery Server: M actor groups (a sim bridge and an actor each, in /protocad/robotK), and/or
+one recorder for the fleet's namespaces, and/or the server itself.
+
+    # machine A (server, recorder; the learner reads the bags): robots 0-3 are recorded
+    python -m trainer.fleet --start-discovery-server 0.0.0.0:11811 --robots 4 --no-actors \\
+        --record runs/fleet/bags/session1
+    # machines B and C: two actor groups each, robot0-1 and robot2-3
+    python -m trainer.fleet --discovery-server A:11811 --robots 2 --first-robot 0 --task walker_walk \\
+        --checkpoint /shared/runs/fleet/checkpoints/latest.pt
+    python -m trainer.fleet --discovery-server A:11811 --robots 2 --first-robot 2 --task walker_walk \\
+        --checkpoint /shared/runs/fleet/checkpoints/latest.pt
+    # A again: train on every robot's episodes
+    protocad-train --logs runs/fleet/bags --namespace /protocad/robot0 /protocad/robot1 ...
+
+Every machine uses the same ROS_DOMAIN_ID (--domain-id, default $ROS_DOMAIN_ID) and the same
+server; robot names must not repeat across machines (--first-robot). The actor is a policy node
+on --checkpoint (it waits for the file, and reloads it whenever it changes: a shared file system
+today, msgs_docs/scaling.md) or, without one, uniform random actions. Each bridge runs lock-step
+and waits for --min-subscribers readers (default 2: its actor and a recorder, on whichever
+machine) before its first step, so the bag misses nothing: start the recorder first. Ctrl-C
+stops every process (the recorder last, the server after it); with --episodes N the actor groups
+end by themselves after N episodes per robot. Node logs in --log-dir.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Sequence
+
+from sim_bridge import topics as T
+from trainer import discovery, runs
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="python -m trainer.fleet", description=__doc__.split("\n\n")[0],
+                                 epilog=__doc__.split("\n\n", 1)[1], formatter_class=argparse.RawDescriptionHelpFormatter)
+    discovery.add_args(ap)
+    ap.add_argument("--robots", type=runs.positive_int, default=1, help="robots (actor groups / recorded namespaces) on this machine")
+    ap.add_argument("--first-robot", type=runs.non_negative_int, default=0,
+                    help="number of the first robot: /protocad/robotFIRST ... (distinct per machine)")
+    ap.add_argument("--no-actors", action="store_true", help="start no actor group (e.g. only the recorder)")
+    ap.add_argument("--record", default=None, metavar="BAG", help="also record the robots' topics into this bag")
+    ap.add_argument("--task", default="pendulum_swingup")
+    ap.add_argument("--checkpoint", default=None, help="the policy nodes' checkpoint (default: random actions)")
+    ap.add_argument("--exploration-noise", type=float, default=0.0, help="policy nodes' exploration noise")
+    ap.add_argument("--episodes", type=runs.non_negative_int, default=0,
+                    help="episodes per robot, then the groups end (0: until Ctrl-C)")
+    ap.add_argument("--episode-length", type=runs.positive_int, default=500, help="agent steps per episode")
+    ap.add_argument("--action-repeat", type=runs.positive_int, default=2)
+    ap.add_argument("--min-subscribers", type=runs.positive_int, default=2,
+                    help="readers each bridge waits for before stepping (its actor + a recorder)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID, the same on every machine "
+                                                                "(default $ROS_DOMAIN_ID)")
+    ap.add_argument("--log-dir", default=None, help="node logs (default runs/fleet-STAMP/logs)")
+    ap.add_argument("--ready-timeout", type=float, default=120.0, help="seconds each node may take to start")
+    return ap
+
+
+def run(a: argparse.Namespace) -> int:
+    from trainer.rosprocs import NodeFailed, RosStack, robot_namespaces
+
+    namespaces = robot_namespaces(T.DEFAULT_NAMESPACE, a.robots, first=a.first_robot)
+    log_dir = Path(a.log_dir or time.strftime("runs/fleet-%Y%m%d-%H%M%S/logs"))
+    server, start_server = discovery.from_args(a)
+    stack = RosStack(log_dir, domain_id=a.domain_id, discovery_server=server, start_discovery_server=start_server,
+                     ready_timeout=a.ready_timeout)
+    print(f"[fleet] ROS_DOMAIN_ID={stack.domain_id}; {stack.describe_discovery()}; robots "
+          f"{', '.join(namespaces)}; logs in {log_dir}", flush=True)
+    bridges = []
+    with runs.StopFlag() as stop:
+        try:
+            if a.record:
+                stack.start_recorder(a.record, namespaces=namespaces, ready_timeout=a.ready_timeout)
+                print(f"[fleet] recording {len(namespaces)} robot(s) into {a.record}", flush=True)
+            for i, ns in enumerate([] if a.no_actors else namespaces):
+                seed = a.seed + a.first_robot + i
+                if a.checkpoint:
+                    stack.start_policy(checkpoint=a.checkpoint, task=a.task, wait_for_checkpoint=True,
+                                       reload_poll_s=1.0, mode="sample", exploration_noise=a.exploration_noise,
+                                       seed=seed, ready_timeout=a.ready_timeout, ns=ns)
+                else:
+                    stack.start_random_actor(task=a.task, seed=seed, ready_timeout=a.ready_timeout, ns=ns)
+                bridges.append(stack.start_bridge(task=a.task, seed=1000 * a.seed + a.first_robot + i,
+                                                  max_episodes=a.episodes, episode_length=a.episode_length,
+                                                  action_repeat=a.action_repeat, min_subscribers=a.min_subscribers,
+                                                  ns=ns))
+            print(f"[fleet] running {len(bridges)} actor group(s)" + (f", {a.episodes} episode(s) each" if
+                  a.episodes and bridges else "") + ": Ctrl-C stops every node", flush=True)
+            while not stop.stop:
+                if bridges and all(b.p.poll() == 0 for b in bridges):
+                    print("[fleet] every bridge finished", flush=True)
+                    break
+                dead = [n for n, p in stack.procs.items() if not p.alive() and p.p.returncode != 0]
+                if dead:
+                    raise NodeFailed(", ".join(f"{n} exited with code {stack.procs[n].p.returncode}; log "
+                                               f"{stack.procs[n].log_path}" for n in dead))
+                time.sleep(0.2)
+        except NodeFailed as exc:
+            print(f"[fleet] {exc}", file=sys.stderr, flush=True)
+            failed = True
+        else:
+            failed = False
+        finally:
+            codes = stack.stop_all()
+    print("[fleet] exit codes: " + ", ".join(f"{n} {c}" for n, c in codes.items()), flush=True)
+    return 1 if failed else 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    a = build_parser().parse_args(argv)
+    if a.no_actors and not a.record and not a.start_discovery_server:
+        print("python -m trainer.fleet: error: --no-actors without --record or --start-discovery-server "
+              "starts nothing", file=sys.stderr)
+        return 2
+    if a.domain_id is None:
+        if not os.environ.get("ROS_DOMAIN_ID", "").isdigit():
+            print("python -m trainer.fleet: error: give --domain-id (the same on every machine of the fleet) "
+                  "or set ROS_DOMAIN_ID", file=sys.stderr)
+            return 2
+        a.domain_id = int(os.environ["ROS_DOMAIN_ID"])
+    from trainer.rosprocs import NodeFailed
+
+    try:
+        return run(a)
+    except (NodeFailed, FileNotFoundError) as exc:   # e.g. the discovery server did not start
+        print(f"python -m trainer.fleet: error: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
