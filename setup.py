@@ -72,6 +72,8 @@ setup(
             "protocad-compare = trainer.compare:main",
             "protocad-stack = trainer.stack:main",
             "protocad-checkpoint-publisher = trainer.checkpoint_publisher:main",
+            "protocad-fleet = trainer.fleet:main",
+            "protocad-discovery-server = trainer.discovery:main",
         ]
     },
 )

@@ -350,9 +350,16 @@ class SimBridgeNode(BridgeDiagnostics, ManagedNode):
 
     def _graph_readers_matched(self) -> bool:
         """Every reader of image/step_info/context already visible in the ROS graph (e.g. a
-        recorder) is matched, so it gets the first observation too."""
-        return all(pub.get_subscription_count() >= self.count_subscribers(pub.topic_name)
-                   for pub in self._obs_pubs)
+        recorder) is matched, so it gets the first observation too; and the image readers that
+        answer nothing (recorders, unlike policies) are matched on context and clock as well:
+        through a Discovery Server each topic is matched on its own, and a recorder's image
+        reader can be matched before its context and clock readers are."""
+        if not all(pub.get_subscription_count() >= self.count_subscribers(pub.topic_name)
+                   for pub in self._obs_pubs):
+            return False
+        silent = self.pub_image.get_subscription_count() - self.sub_action.get_publisher_count()
+        return min(self.pub_context.get_subscription_count(),
+                   self.pub_clock.get_subscription_count()) >= silent
 
     def _wait_ready(self) -> bool:
         """Block until min_subscribers readers of image and step_info (and, in lock-step, an

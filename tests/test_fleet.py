@@ -74,24 +74,43 @@ def test_bad_discovery_server_addresses_are_one_clear_line(capsys):
 
 
 def test_actor_groups_placed_like_on_other_machines(tmp_path, spawn):
-    """`python -m trainer.fleet` as on three machines (here all on 127.0.0.1): A runs the
-    server and one recorder for robot0 and robot1, B and C one actor group each; the bag holds
+    """`protocad-fleet` as on three machines (here all on 127.0.0.1): A runs the server, one
+    recorder for robot0 and robot1 and the checkpoint publisher on the learner's file; B and C
+    one actor group each, whose policy receives that checkpoint over ROS into its own file
+    (no access to the learner's directory) and serves it before its bridge steps; the bag holds
     both robots' episodes and protocad-train learns from both."""
+    from protocad_ros.agents import make_agent
+    from protocad_ros.checkpoint import save_checkpoint
+    from protocad_ros.config import make_config
+
+    learner = tmp_path / "learner_ckpt" / "latest.pt"
+    agent = make_agent(make_config("pendulum_swingup", "small"), 1)
+    agent.updates.fill_(3)
+    save_checkpoint(learner, agent)
+    topic = "/protocad/checkpoint"
     port = free_port()
     dom = ["--domain-id", os.environ["ROS_DOMAIN_ID"]]
     bag = tmp_path / "bags" / "session1"
     a = spawn("machine_a", "-m", "trainer.fleet", "--start-discovery-server", str(port), "--robots", "2",
-              "--no-actors", "--record", str(bag), "--log-dir", str(tmp_path / "logs_a"), *dom)
-    wait_for(lambda: "recording 2 robot(s)" in a.output() or not a.alive(), 90, "machine A's recorder")
+              "--no-actors", "--record", str(bag), "--log-dir", str(tmp_path / "logs_a"),
+              "--publish-checkpoint", str(learner), "--checkpoint-topic", topic, *dom)
+    wait_for(lambda: f"publishing {learner} on {topic}" in a.output() or not a.alive(), 90,
+             "machine A's recorder and checkpoint publisher")
     assert a.alive(), a.output()
+    own = {m: tmp_path / f"machine_{m}" / "policy.pt" for m in "bc"}
     groups = [spawn(f"machine_{m}", "-m", "trainer.fleet", "--discovery-server", f"127.0.0.1:{port}",
                     "--robots", "1", "--first-robot", str(i), "--episodes", "1", "--episode-length", "12",
+                    "--checkpoint", str(own[m]), "--checkpoint-topic", topic, "--wait-for-checkpoint",
                     "--log-dir", str(tmp_path / f"logs_{m}"), *dom) for i, m in enumerate("bc")]
     for g in groups:
-        wait_for(lambda g=g: not g.alive(), 120, f"{g.args} to finish")
+        wait_for(lambda g=g: not g.alive(), 180, f"{g.args} to finish")
         assert g.p.returncode == 0 and "every bridge finished" in g.output(), g.output()
+    for m in "bc":   # each policy's own copy is the learner's checkpoint, byte for byte, served
+        assert own[m].read_bytes() == learner.read_bytes()   # from the first episode on
+        log = (tmp_path / f"logs_{m}" / f"policy_robot{'bc'.index(m)}.log").read_text()
+        assert f"now serving checkpoint {own[m]} (updates=3)" in log, log
     assert a.stop() == 0, a.output()
-    assert "exit codes: recorder 0, discovery_server 0" in a.output(), a.output()
+    assert "exit codes: recorder 0, checkpoint_publisher 0, discovery_server 0" in a.output(), a.output()
     check_robot_episodes(bag, ROBOTS, episode_length=12)
     t = run_cli("trainer.train", "--logs", bag.parent, "--namespace", *ROBOTS, "--task", "pendulum_swingup",
                 *TINY, "--updates", "1", "--run-dir", tmp_path / "learner", "--cache-dir", tmp_path / "cache",

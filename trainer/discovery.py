@@ -10,8 +10,8 @@ that must see the whole graph without sharing its topics are *super clients*
 and random actors stay plain clients: they only hear about the topics they use, which is what
 keeps discovery traffic small as the fleet grows (msgs_docs/scaling.md).
 
-    python -m trainer.discovery                      # a server on 127.0.0.1:11811, foreground
-    python -m trainer.discovery --listen 0.0.0.0:11811   # reachable from other machines
+    protocad-discovery-server                      # a server on 127.0.0.1:11811, foreground
+    protocad-discovery-server --listen 0.0.0.0:11811   # reachable from other machines
 
 The server is the `fast-discovery-server` executable the ROS wheels install into the
 environment's `bin/`; it needs the wheels' libraries on LD_LIBRARY_PATH, which every Python
@@ -183,7 +183,7 @@ def wait_listening(pid: int, port: int, alive: Callable[[], str | None], timeout
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="python -m trainer.discovery", description=__doc__.split("\n\n")[0],
+    ap = argparse.ArgumentParser(prog="protocad-discovery-server", description=__doc__.split("\n\n")[0],
                                  epilog="Then, in every shell of the fleet: export "
                                         f"{SERVER_ENV}=HOST:PORT (and {SUPER_ENV}=TRUE for ros2 topic/node "
                                         "introspection), or give the launchers --discovery-server HOST:PORT.")
@@ -201,7 +201,7 @@ def main(argv=None) -> int:
     try:
         cmd = server_command(host, port, a.server_id)
     except FileNotFoundError as exc:
-        print(f"python -m trainer.discovery: error: {exc}", file=sys.stderr)
+        print(f"protocad-discovery-server: error: {exc}", file=sys.stderr)
         return 2
     print(f"[discovery] {' '.join(cmd)}\n[discovery] clients: export {SERVER_ENV}={connect_address(host, port)}",
           flush=True)

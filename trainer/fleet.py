@@ -1,23 +1,24 @@
-"""`python -m trainer.fleet`: one machine's share of a fleet, discovering through a Fast DDS
+"""`protocad-fleet`: one machine's share of a fleet, discovering through a Fast DDS
 Discovery Server: M actor groups (a sim bridge and an actor each, in /protocad/robotK), and/or
 one recorder for the fleet's namespaces, and/or the server itself.
 
-    # machine A (server, recorder; the learner reads the bags): robots 0-3 are recorded
-    python -m trainer.fleet --start-discovery-server 0.0.0.0:11811 --robots 4 --no-actors \\
-        --record runs/fleet/bags/session1
-    # machines B and C: two actor groups each, robot0-1 and robot2-3
-    python -m trainer.fleet --discovery-server A:11811 --robots 2 --first-robot 0 --task walker_walk \\
-        --checkpoint /shared/runs/fleet/checkpoints/latest.pt
-    python -m trainer.fleet --discovery-server A:11811 --robots 2 --first-robot 2 --task walker_walk \\
-        --checkpoint /shared/runs/fleet/checkpoints/latest.pt
+    # machine A (server, recorder, the learner's checkpoints on /protocad/checkpoint)
+    protocad-fleet --start-discovery-server 0.0.0.0:11811 --robots 4 --no-actors \\
+        --record runs/fleet/bags/session1 --publish-checkpoint runs/fleet/checkpoints/latest.pt
+    # machines B and C: two actor groups each, robot0-1 and robot2-3, fed over ROS
+    protocad-fleet --discovery-server A:11811 --robots 2 --first-robot 0 --task walker_walk \\
+        --checkpoint policy/latest.pt --checkpoint-topic /protocad/checkpoint
+    protocad-fleet --discovery-server A:11811 --robots 2 --first-robot 2 --task walker_walk \\
+        --checkpoint policy/latest.pt --checkpoint-topic /protocad/checkpoint
     # A again: train on every robot's episodes
     protocad-train --logs runs/fleet/bags --namespace /protocad/robot0 /protocad/robot1 ...
 
 Every machine uses the same ROS_DOMAIN_ID (--domain-id, default $ROS_DOMAIN_ID) and the same
 server; robot names must not repeat across machines (--first-robot). The actor is a policy node
-on --checkpoint (it waits for the file, and reloads it whenever it changes: a shared file system
-today, msgs_docs/scaling.md) or, without one, uniform random actions. Each bridge runs lock-step
-and waits for --min-subscribers readers (default 2: its actor and a recorder, on whichever
+on --checkpoint (it waits for the file and reloads it whenever it changes: a shared file system;
+or, with --checkpoint-topic, it receives every new version a checkpoint publisher announces,
+which the learner's machine runs with --publish-checkpoint) or, without one, uniform random
+actions. Each bridge runs lock-step and waits for --min-subscribers readers (default 2: its actor and a recorder, on whichever
 machine) before its first step, so the bag misses nothing: start the recorder first. Ctrl-C
 stops every process (the recorder last, the server after it); with --episodes N the actor groups
 end by themselves after N episodes per robot. Node logs in --log-dir.
@@ -36,7 +37,7 @@ from trainer import discovery, runs
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="python -m trainer.fleet", description=__doc__.split("\n\n")[0],
+    ap = argparse.ArgumentParser(prog="protocad-fleet", description=__doc__.split("\n\n")[0],
                                  epilog=__doc__.split("\n\n", 1)[1], formatter_class=argparse.RawDescriptionHelpFormatter)
     discovery.add_args(ap)
     ap.add_argument("--robots", type=runs.positive_int, default=1, help="robots (actor groups / recorded namespaces) on this machine")
@@ -45,7 +46,18 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--no-actors", action="store_true", help="start no actor group (e.g. only the recorder)")
     ap.add_argument("--record", default=None, metavar="BAG", help="also record the robots' topics into this bag")
     ap.add_argument("--task", default="pendulum_swingup")
-    ap.add_argument("--checkpoint", default=None, help="the policy nodes' checkpoint (default: random actions)")
+    ap.add_argument("--checkpoint", default=None, help="the policy nodes' checkpoint (default: random actions); "
+                                                       "with --checkpoint-topic their own copy of what they receive")
+    ap.add_argument("--checkpoint-topic", default=None, metavar="TOPIC",
+                    help="the policy nodes receive checkpoints over ROS from a checkpoint publisher announcing "
+                         "on TOPIC (e.g. /protocad/checkpoint, absolute so that every robot hears the one "
+                         "publisher), written to --checkpoint and served from the next episode")
+    ap.add_argument("--wait-for-checkpoint", action="store_true",
+                    help="with --checkpoint-topic: each bridge starts only once its policy serves a received "
+                         "checkpoint (no episode of the random agent it starts with)")
+    ap.add_argument("--publish-checkpoint", default=None, metavar="FILE",
+                    help="also run the checkpoint publisher on the learner's FILE, announcing on "
+                         "--checkpoint-topic (default /protocad/checkpoint)")
     ap.add_argument("--exploration-noise", type=float, default=0.0, help="policy nodes' exploration noise")
     ap.add_argument("--episodes", type=runs.non_negative_int, default=0,
                     help="episodes per robot, then the groups end (0: until Ctrl-C)")
@@ -77,12 +89,19 @@ def run(a: argparse.Namespace) -> int:
             if a.record:
                 stack.start_recorder(a.record, namespaces=namespaces, ready_timeout=a.ready_timeout)
                 print(f"[fleet] recording {len(namespaces)} robot(s) into {a.record}", flush=True)
+            if a.publish_checkpoint:
+                topic = a.checkpoint_topic or "/" + T.DEFAULT_NAMESPACE.strip("/") + "/" + T.CHECKPOINT
+                stack.start_checkpoint_publisher(a.publish_checkpoint, topic=topic, ready_timeout=a.ready_timeout)
+                print(f"[fleet] publishing {a.publish_checkpoint} on {topic}", flush=True)
             for i, ns in enumerate([] if a.no_actors else namespaces):
                 seed = a.seed + a.first_robot + i
                 if a.checkpoint:
-                    stack.start_policy(checkpoint=a.checkpoint, task=a.task, wait_for_checkpoint=True,
-                                       reload_poll_s=1.0, mode="sample", exploration_noise=a.exploration_noise,
-                                       seed=seed, ready_timeout=a.ready_timeout, ns=ns)
+                    policy = stack.start_policy(
+                        checkpoint=a.checkpoint, task=a.task, wait_for_checkpoint=True, reload_poll_s=1.0,
+                        mode="sample", exploration_noise=a.exploration_noise, seed=seed,
+                        ready_timeout=a.ready_timeout, ns=ns, checkpoint_topic=a.checkpoint_topic)
+                    if a.wait_for_checkpoint:
+                        stack.wait_checkpoint_loaded(policy, a.ready_timeout, ns=ns)
                 else:
                     stack.start_random_actor(task=a.task, seed=seed, ready_timeout=a.ready_timeout, ns=ns)
                 bridges.append(stack.start_bridge(task=a.task, seed=1000 * a.seed + a.first_robot + i,
@@ -113,13 +132,17 @@ def run(a: argparse.Namespace) -> int:
 
 def main(argv: Sequence[str] | None = None) -> int:
     a = build_parser().parse_args(argv)
-    if a.no_actors and not a.record and not a.start_discovery_server:
-        print("python -m trainer.fleet: error: --no-actors without --record or --start-discovery-server "
+    if (a.checkpoint_topic or a.wait_for_checkpoint) and not a.checkpoint and not a.no_actors:
+        print("protocad-fleet: error: --checkpoint-topic / --wait-for-checkpoint need --checkpoint (the policy "
+              "nodes' own copy of what they receive)", file=sys.stderr)
+        return 2
+    if a.no_actors and not a.record and not a.start_discovery_server and not a.publish_checkpoint:
+        print("protocad-fleet: error: --no-actors without --record or --start-discovery-server "
               "starts nothing", file=sys.stderr)
         return 2
     if a.domain_id is None:
         if not os.environ.get("ROS_DOMAIN_ID", "").isdigit():
-            print("python -m trainer.fleet: error: give --domain-id (the same on every machine of the fleet) "
+            print("protocad-fleet: error: give --domain-id (the same on every machine of the fleet) "
                   "or set ROS_DOMAIN_ID", file=sys.stderr)
             return 2
         a.domain_id = int(os.environ["ROS_DOMAIN_ID"])
@@ -128,7 +151,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     try:
         return run(a)
     except (NodeFailed, FileNotFoundError) as exc:   # e.g. the discovery server did not start
-        print(f"python -m trainer.fleet: error: {exc}", file=sys.stderr)
+        print(f"protocad-fleet: error: {exc}", file=sys.stderr)
         return 1
 
 

@@ -294,14 +294,41 @@ class RosStack:
     def start_policy(self, *, checkpoint: str | Path | None, task: str, wait_for_checkpoint: bool = False,
                      reload_poll_s: float = 0.5, mode: str = "deterministic", exploration_noise: float = 0.0,
                      seed: int = 0, device: str = "cpu", preset: str | None = None, variant: str | None = None,
-                     num_threads: int = 0, ready_timeout: float = 120.0, ns: str | None = None) -> NodeProc:
+                     num_threads: int = 0, ready_timeout: float = 120.0, ns: str | None = None,
+                     checkpoint_topic: str | None = None) -> NodeProc:
         args = ["--ros-args", *self._params(
             checkpoint=str(checkpoint) if checkpoint else None, wait_for_checkpoint=wait_for_checkpoint,
             reload_poll_s=float(reload_poll_s), task=task, mode=mode, exploration_noise=float(exploration_noise),
-            seed=seed, device=device, preset=preset, variant=variant, num_threads=num_threads),
+            seed=seed, device=device, preset=preset, variant=variant, num_threads=num_threads,
+            checkpoint_topic=checkpoint_topic),
             *self._ns_args(ns)]
         proc = self._spawn(self.key("policy", ns), "protocad_ros.policy_node", args)
         self.wait_active(proc, "policy", ready_timeout, ns=ns)
+        return proc
+
+    def wait_checkpoint_loaded(self, proc: NodeProc, timeout: float, ns: str | None = None) -> bool:
+        """Until the policy node holds a checkpoint: serving it (diagnostics' checkpoint_updates
+        >= 0) or loaded and served from the next is_first (pending_checkpoint_updates >= 0), so
+        that the first episode is not the random agent's it starts with while none has come."""
+        fqn = self.node_fqn("policy", ns)
+
+        def loaded() -> bool:
+            d = self.graph.diagnostics(fqn) or {}
+            return any(v.lstrip("-").isdigit() and int(v) >= 0
+                       for v in (d.get("checkpoint_updates", "-1"), d.get("pending_checkpoint_updates", "-1")))
+
+        return self.wait_until(proc, loaded, f"{fqn} to hold a checkpoint", timeout)
+
+    def start_checkpoint_publisher(self, checkpoint: str | Path, *, topic: str = T.CHECKPOINT,
+                                   ready_timeout: float = 60.0) -> NodeProc:
+        """The learner side of checkpoints over ROS (trainer/checkpoint_publisher.py) on `checkpoint`."""
+        node_ns = "/" + self.namespace.strip("/")
+        announce = topic if topic.startswith("/") else f"{node_ns}/{topic}"
+        wants = [(announce, "pub")]
+        old = self.graph.snapshot("checkpoint_publisher", node_ns, wants)
+        args = ["--ros-args", *self._params(checkpoint=str(checkpoint), topic=topic), *self._ns_args(None)]
+        proc = self._spawn("checkpoint_publisher", "trainer.checkpoint_publisher", args)
+        self.wait_endpoints(proc, "checkpoint_publisher", node_ns, wants, ready_timeout, old=old)
         return proc
 
     def start_random_actor(self, *, task: str, seed: int = 0, ready_timeout: float = 60.0,
