@@ -85,8 +85,8 @@ def main() -> None:
         done.set()
 
     rejects: list[str] = []
-    receiver = Timed(node, "checkpoint", timeout_s=120.0, wake=wake,
-                     on_reject=lambda a, why: rejects.append(why), next_sha=lambda: None)
+    receiver = Timed(node, "checkpoint", timeout_s=120.0, wake=wake, next_sha=lambda: None,
+                     serving=lambda: "", count=lambda *args, **kw: rejects.append(args))
     cpu = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
                 if line.startswith("model name")), platform.machine())
     print(f"machine: {cpu}, {os.cpu_count()} cores; "
@@ -95,7 +95,14 @@ def main() -> None:
           f"{'MB/s':>7} {'verify ms':>10} {'install ms':>11}")
     with tempfile.TemporaryDirectory() as tmp:
         for preset in ARGS.presets:
-            agent = Agent(make_config(ARGS.task, preset), len(task_actuators(ARGS.task)))
+            adim = len(task_actuators(ARGS.task))
+            agent = Agent(make_config(ARGS.task, preset, **{"train.batch_size": 2, "train.seq_len": 8}), adim)
+            # One update first, so the file carries the Adam states a trainer's checkpoint has
+            # (a fresh agent's file is a third of that size).
+            rng = np.random.default_rng(0)
+            agent.train_step({"image": rng.integers(0, 256, (2, 8, 64, 64, 3), dtype=np.uint8),
+                              "action": np.zeros((2, 8, adim), np.float32),
+                              "reward": np.zeros((2, 8), np.float32), "is_first": np.zeros((2, 8), bool)})
             learner = Path(tmp) / preset / "agent.pt"
             save_checkpoint(learner, agent)
             for chunk in ARGS.chunk_sizes:
