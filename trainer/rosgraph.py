@@ -17,10 +17,10 @@ between calls runs no ROS thread.
 from __future__ import annotations
 
 import os
-import time
 from typing import Callable, Iterable
 
 from sim_bridge import topics as T
+from trainer.runs import wait_until
 
 #: How long one get_state call may take before it is asked again.
 GET_STATE_TIMEOUT_S = 2.0
@@ -133,23 +133,3 @@ class RosGraph:
         gone (its exit and log tail) to raise at once; False when `stop.stop` is raised."""
         return wait_until(ready, what=what, timeout=timeout, alive=alive, stop=stop,
                           pause=lambda: self.spin(0.05))
-
-
-def wait_until(ready: Callable[[], bool], *, what: str, timeout: float,
-               alive: Callable[[], str | None] = lambda: None, stop=None,
-               pause: Callable[[], None] = lambda: time.sleep(0.05)) -> bool:
-    """Poll `ready()` (calling `pause()` in between) until it is true; TimeoutError naming
-    `what`; RuntimeError at once with what `alive()` says when the process watched is gone;
-    False when `stop.stop` (a runs.StopFlag) is raised."""
-    deadline = time.monotonic() + timeout
-    while True:
-        if ready():
-            return True
-        if stop is not None and stop.stop:
-            return False
-        gone = alive()
-        if gone:
-            raise RuntimeError(gone)
-        if time.monotonic() > deadline:
-            raise TimeoutError(f"no {what} within {timeout:.0f}s")
-        pause()

@@ -392,3 +392,23 @@ def fmt_seconds(s: float) -> str:
     h, rem = divmod(s, 3600)
     m, sec = divmod(rem, 60)
     return f"{h}h{m:02d}m{sec:02d}s" if h else (f"{m}m{sec:02d}s" if m else f"{sec}s")
+
+
+def wait_until(ready: Callable[[], bool], *, what: str, timeout: float,
+               alive: Callable[[], str | None] = lambda: None, stop=None,
+               pause: Callable[[], None] = lambda: time.sleep(0.05)) -> bool:
+    """Poll `ready()` (calling `pause()` in between) until it is true; TimeoutError naming
+    `what`; RuntimeError at once with what `alive()` says when the process watched is gone;
+    False when `stop.stop` (a runs.StopFlag) is raised."""
+    deadline = time.monotonic() + timeout
+    while True:
+        if ready():
+            return True
+        if stop is not None and stop.stop:
+            return False
+        gone = alive()
+        if gone:
+            raise RuntimeError(gone)
+        if time.monotonic() > deadline:
+            raise TimeoutError(f"no {what} within {timeout:.0f}s")
+        pause()
