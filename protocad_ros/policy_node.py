@@ -35,9 +35,11 @@ from sim_bridge import qos, topics
 from sim_bridge.contexts import task_actuators
 from sim_bridge.lifecycle import ManagedNode
 from sim_bridge.rosnode import (ConfigError, KeyThrottle, Percentiles, declare_all,
-                                install_parameter_guards, make_status, run_node)
+                                flush_publishers, install_parameter_guards, make_status, run_node)
 
 NODE_NAME = "policy"
+#: Seconds a closing policy gives its readers to acknowledge the last actions (see close()).
+ACTION_FLUSH_TIMEOUT_S = 30.0
 #: Observations whose image and step_info have not both arrived yet (oldest dropped beyond).
 MAX_UNPAIRED = 64
 __all__ = ["ActEvent", "COUNTERS", "PARAMS", "PolicyNode", "main"]
@@ -587,12 +589,20 @@ class PolicyNode(ManagedNode):
 
     def close(self) -> None:
         """Last diagnostics (what was served), then the shutdown transition (the watcher
-        ends, the live view's recording is completed)."""
+        ends, the live view's recording is completed), then up to ACTION_FLUSH_TIMEOUT_S for
+        reliable readers to acknowledge every action and context_features sample: a recorder
+        that was stalled still has a backlog, which exiting at once would lose."""
         try:
             self._publish_diagnostics()
         except Exception:
             pass
         self.shutdown_lifecycle()
+        try:
+            for topic in flush_publishers((self.pub_action, self.pub_features), ACTION_FLUSH_TIMEOUT_S):
+                self.get_logger().warning(f"{topic}: exiting with samples a reader has not acknowledged "
+                                          f"after {ACTION_FLUSH_TIMEOUT_S:g} s (a reader stalled or gone)")
+        except Exception:
+            pass
         c = self.counters
         self.get_logger().info("stopped: " + ", ".join(f"{k}={c[k]}" for k in COUNTERS if c[k])
                                + f"; latency p50 {self.latency.percentile(50) * 1e3:.2f} ms, "

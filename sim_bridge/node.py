@@ -28,7 +28,6 @@ from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.duration import Duration
 from rclpy.event_handler import SubscriptionEventCallbacks
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Image, JointState
@@ -40,7 +39,7 @@ from sim_bridge.bridge_params import (ACTION_HIGH, ACTION_LOW, COUNTERS, FLUSH_T
                                       PARAMS, READY_GRACE_S, episode_contexts)
 from sim_bridge.lifecycle import ManagedNode
 from sim_bridge.rosnode import (ConfigError, KeyThrottle, Percentiles, declare_all,
-                                install_parameter_guards)
+                                flush_publishers, install_parameter_guards)
 
 NODE_NAME = "sim_bridge"
 __all__ = ["COUNTERS", "PARAMS", "SimBridgeNode", "episode_contexts", "main"]
@@ -573,13 +572,12 @@ class SimBridgeNode(BridgeDiagnostics, ManagedNode):
             # last samples a bounded chance to be acknowledged (or repaired) before exiting;
             # lossless, the backlog of a reader that was stalled too (what exiting would lose).
             lossless = self.lockstep and self.params["lossless"]
-            deadline = time.monotonic() + (LOSSLESS_FLUSH_TIMEOUT_S if lossless else FLUSH_TIMEOUT_S)
-            for pub in (*self._obs_pubs, self.pub_clock):
-                left = max(0.0, deadline - time.monotonic())
-                if not pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))) and lossless:
-                    self.get_logger().warning(
-                        f"{pub.topic_name}: exiting with samples a reader has not acknowledged "
-                        f"after {LOSSLESS_FLUSH_TIMEOUT_S:g} s (a reader stalled or gone)")
+            left_over = flush_publishers((*self._obs_pubs, self.pub_clock),
+                                         LOSSLESS_FLUSH_TIMEOUT_S if lossless else FLUSH_TIMEOUT_S)
+            for topic in left_over if lossless else ():
+                self.get_logger().warning(
+                    f"{topic}: exiting with samples a reader has not acknowledged after "
+                    f"{LOSSLESS_FLUSH_TIMEOUT_S:g} s (a reader stalled or gone)")
         except Exception:
             pass
         c = self.counters

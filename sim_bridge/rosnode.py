@@ -273,6 +273,24 @@ def diagnostics_dict(status) -> dict[str, str]:
 EXECUTORS = ("events", "single")
 
 
+def flush_publishers(publishers: Iterable[Any], timeout_s: float) -> list[str]:
+    """Give reliable readers up to `timeout_s` (in all) to acknowledge, or have repaired, every
+    sample of `publishers` before the node exits: readers acknowledge lazily (at the writer's
+    next heartbeat) and a reader that was stalled (a frozen recorder) still has a backlog that
+    exiting would lose. Returns the topics with samples left unacknowledged."""
+    import time
+
+    from rclpy.duration import Duration
+
+    deadline = time.monotonic() + float(timeout_s)
+    left_over = []
+    for pub in publishers:
+        left = max(0.0, deadline - time.monotonic())
+        if not pub.wait_for_all_acked(Duration(nanoseconds=int(left * 1e9))):
+            left_over.append(pub.topic_name)
+    return left_over
+
+
 def strict_param() -> Param:
     return Param("strict", False, "Refuse to start (exit 2) on an unknown -p parameter, e.g. a "
                  "typo like tsk:=walker_walk; without it the node starts, warns and reports "

@@ -18,6 +18,7 @@ import yaml
 from conftest import wait_for
 from ros_helpers import Probe, Responder
 from sim_bridge import topics as T
+from sim_bridge.rosnode import flush_publishers
 from trainer import mcap_io as M
 
 TASK, NS = "pendulum_swingup", T.DEFAULT_NAMESPACE
@@ -52,6 +53,9 @@ def test_lockstep_loses_nothing_while_the_recorder_is_frozen(spawn, tmp_path):
         resumed_at = len(resp.steps)
         wait_for(lambda: len(resp.steps) >= resumed_at + 100, 60, "100 more steps")
         assert bridge.stop() == 0, bridge.output()[-2000:]     # SIGINT: flushes to every reader
+        # The stand-in policy flushes its actions too, as the policy node does when it closes:
+        # the frozen recorder's backlog of actions may still be under repair.
+        assert flush_publishers([resp.pub], 30.0) == []
         assert rec.stop() == 0, rec.output()[-2000:]
     finally:
         probe.close()
