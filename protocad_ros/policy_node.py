@@ -601,8 +601,8 @@ class PolicyNode(ManagedNode):
             for topic in flush_publishers((self.pub_action, self.pub_features), ACTION_FLUSH_TIMEOUT_S):
                 self.get_logger().warning(f"{topic}: exiting with samples a reader has not acknowledged "
                                           f"after {ACTION_FLUSH_TIMEOUT_S:g} s (a reader stalled or gone)")
-        except Exception:
-            pass
+        except Exception as exc:  # noqa: BLE001  closing must go on; say why nothing was flushed
+            self.get_logger().warning(f"could not wait for the last actions to be acknowledged: {exc}")
         c = self.counters
         self.get_logger().info("stopped: " + ", ".join(f"{k}={c[k]}" for k in COUNTERS if c[k])
                                + f"; latency p50 {self.latency.percentile(50) * 1e3:.2f} ms, "

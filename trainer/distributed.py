@@ -88,10 +88,6 @@ def _die_with_launcher() -> None:
         pass
 
 
-def barrier() -> None:
-    dist.barrier()
-
-
 def barrier_if(ctx: DistContext) -> None:
     """Wait for every rank (nothing without torch.distributed)."""
     if ctx.enabled:
@@ -120,8 +116,8 @@ def shutdown(ctx: DistContext) -> None:
 def average_gradients(params: Sequence[nn.Parameter], world_size: int) -> None:
     """grad <- (sum over ranks of grad) / N for every parameter that has one.
 
-    A parameter without a gradient counts as zeros in the buffer and keeps grad None: every rank
-    runs the same code path, so the same parameters lack one everywhere.
+    Parameters without a gradient are left out: every rank runs the same code path, so the same
+    parameters lack one everywhere and the flat buffers line up.
     """
     have = [p for p in params if p.grad is not None]
     if not have:
@@ -152,10 +148,12 @@ def attach(agent: Any, ctx: DistContext) -> None:
     agent.grad_sync = lambda params: average_gradients(params, ctx.world_size)
 
 
-def any_rank(flag: bool, ctx: DistContext, device: str | torch.device = "cpu") -> bool:
+def any_rank(flag: bool, ctx: DistContext) -> bool:
     """True on every rank if it is True on any (a stop request must stop them all together)."""
     if not ctx.enabled:
         return flag
+    # NCCL reduces CUDA tensors only; gloo CPU ones.
+    device = f"cuda:{ctx.local_rank}" if ctx.backend == "nccl" else "cpu"
     t = torch.tensor([1.0 if flag else 0.0], device=device)
     dist.all_reduce(t, op=dist.ReduceOp.MAX)
     return bool(t.item() > 0)

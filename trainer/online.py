@@ -186,14 +186,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     a = build_parser().parse_args(argv)
-    from trainer.train import CheckpointWriteError
+    from trainer.train import CheckpointWriteError, RanksDiverged
 
     try:
         return run(a)
     except ValueError as exc:
         print(f"protocad-online: error: {exc}", file=sys.stderr)
         return 2
-    except (CheckpointWriteError, mcap_io_errors()) as exc:
+    except (CheckpointWriteError, RanksDiverged, mcap_io_errors()) as exc:
         print(f"protocad-online: error: {exc}", file=sys.stderr)
         return 1
 

@@ -220,7 +220,7 @@ class Trainer:
             self.rank_fingerprints = [r["fingerprints"] for r in ranks]
             counters["rank_fingerprints"] = json.dumps(self.rank_fingerprints)
             if differ:
-                raise RuntimeError(f"data-parallel ranks diverged at update {self.updates}: {differ} "
+                raise RanksDiverged(f"data-parallel ranks diverged at update {self.updates}: {differ} "
                                    "differ between ranks")
         target = Path(path or self.checkpoint_path)
         try:
@@ -239,6 +239,10 @@ class Trainer:
 
 class CheckpointWriteError(RuntimeError):
     """A checkpoint could not be written (the message says why and what is still on disk)."""
+
+
+class RanksDiverged(RuntimeError):
+    """Data-parallel ranks hold different weights (nothing is written: the last checkpoint stays)."""
 
 
 # ---------------------------------------------------------------------- CLI
@@ -340,7 +344,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (DatasetError, ValueError) as exc:
         print(f"protocad-train: error: {exc}", file=sys.stderr)
         return 2
-    except CheckpointWriteError as exc:
+    except (CheckpointWriteError, RanksDiverged) as exc:
         print(f"protocad-train: error: {exc}", file=sys.stderr)
         return 1
 
@@ -387,14 +391,14 @@ def _train(a: argparse.Namespace, ctx: distributed.DistContext, device: str) -> 
             cfg = Config.load(run_dir / "config.yaml")
         except Exception as exc:  # noqa: BLE001
             raise ValueError(f"--resume: cannot read {run_dir / 'config.yaml'}: {exc}") from None
-    if ctx.enabled and not ctx.is_main:
-        distributed.barrier()   # rank 0 fills the dataset cache first; the others then reuse it
+    if not ctx.is_main:
+        distributed.barrier_if(ctx)   # rank 0 fills the dataset cache first; the others then reuse it
     ds = MCAPDataset(logs, topics=topics, seq_len=cfg.train.seq_len, seed=cfg.train.seed,
                      cache_dir=cache_dir, verbose=ctx.is_main, cache_budget_gb=a.cache_budget_gb)
     for ns in namespaces[1:]:   # the same logs, read once more per robot namespace
         ds.add(logs, topics=TopicMap.parse(topic_args, ns))
-    if ctx.enabled and ctx.is_main:
-        distributed.barrier()
+    if ctx.is_main:
+        distributed.barrier_if(ctx)
     say(ds.report.summary(), flush=True)
     if ds.num_windows == 0:
         raise DatasetError(f"nothing to train on: no window of {cfg.train.seq_len} steps in the logs "
