@@ -162,11 +162,12 @@ def soft_q_target(reward: torch.Tensor, discount: torch.Tensor, q1: torch.Tensor
     return reward + gamma * discount * (torch.minimum(q1, q2) - alpha * log_prob)
 
 
-def temperature_loss(log_alpha: torch.Tensor, log_prob: torch.Tensor,
-                     target_entropy: float) -> torch.Tensor:
-    """J_alpha = mean(alpha (-log pi(a|o) - H_target)): alpha grows while the policy's entropy
-    -log pi is below the target, and shrinks while above."""
-    return (log_alpha.exp() * (-log_prob - target_entropy).detach()).mean()
+def temperature_loss(log_alpha: torch.Tensor, log_prob: torch.Tensor, target_entropy: float,
+                     weights: torch.Tensor | None = None) -> torch.Tensor:
+    """J_alpha = mean(alpha (-log pi(a|o) - H_target)) (weighted by `weights` if given): alpha
+    grows while the policy's entropy -log pi is below the target, and shrinks while above."""
+    per_sample = log_alpha.exp() * (-log_prob - target_entropy).detach()
+    return per_sample.mean() if weights is None else _masked_mean(per_sample, weights)
 
 
 def _masked_mean(x: torch.Tensor, w: torch.Tensor) -> torch.Tensor:
@@ -218,7 +219,8 @@ class DrQAgent(AgentBase):
 
     # ---- training --------------------------------------------------------------------------------
     def critic_loss(self, obs_views, action, reward, discount, next_views, valid):
-        """J_Q (sum over the M views and both Q heads of batch means) and the target y."""
+        """J_Q (sum over the M views and both Q heads of batch means), the target y and Q_1 of
+        the first view (a metric)."""
         d = self.drq
         alpha = self.alpha.detach()
         with torch.no_grad(), self._autocast():
@@ -228,15 +230,13 @@ class DrQAgent(AgentBase):
                 q1, q2 = self.critic_target(self.conv_target(nxt), next_action)
                 ys.append(soft_q_target(reward, discount, q1, q2, log_prob, alpha, d.discount))
             target = torch.stack(ys).mean(0)
-        loss = torch.zeros((), device=self.device)
-        q_mean = None
+        terms, q1s = [], []
         with self._autocast():
             for obs in obs_views:
                 q1, q2 = self.critic(self.conv(obs), action)
-                loss = loss + _masked_mean((q1 - target) ** 2, valid) \
-                    + _masked_mean((q2 - target) ** 2, valid)
-                q_mean = q1.detach() if q_mean is None else q_mean
-        return loss, target, q_mean
+                terms += [_masked_mean((q1 - target) ** 2, valid), _masked_mean((q2 - target) ** 2, valid)]
+                q1s.append(q1.detach())
+        return torch.stack(terms).sum(), target, q1s[0]
 
     def actor_alpha_loss(self, obs: torch.Tensor, valid: torch.Tensor):
         """J_pi, J_alpha and the entropy estimate -log pi on one view (convs detached)."""
@@ -246,8 +246,7 @@ class DrQAgent(AgentBase):
             action, log_prob = self.actor(h).sample_log_prob()
             q1, q2 = self.critic(h, action)
         actor_loss = _masked_mean(self.alpha.detach() * log_prob - torch.min(q1, q2), valid)
-        keep = valid > 0
-        alpha_loss = temperature_loss(self.log_alpha, log_prob[keep], self.target_entropy)
+        alpha_loss = temperature_loss(self.log_alpha, log_prob, self.target_entropy, valid)
         return actor_loss, alpha_loss, -log_prob.detach()
 
     def train_step(self, batch: Mapping[str, Any]) -> dict[str, float]:

@@ -134,6 +134,18 @@ def test_frame_stacks_from_windows_repeat_the_first_frame():
     assert transitions({**batch, "is_first": first}, 3)[-1].tolist() == [False]  # no transition
 
 
+def test_a_batch_without_transitions_changes_nothing_and_stays_finite():
+    """Windows that end where an episode starts are no transitions: masked out, not NaN."""
+    agent = DrQAgent(tiny_drq(), 1)
+    batch = render_batch(TASK, batch=4, length=4)
+    batch["is_first"][:, -1] = True
+    before = {k: v.detach().clone() for k, v in agent.state_dict().items() if "target" not in k}
+    m = agent.train_step(batch)
+    assert all(np.isfinite(v) for v in m.values()) and m["valid_transitions"] == 0
+    after = agent.state_dict()
+    assert all(torch.equal(before[k], after[k]) for k in before if k != "updates")
+
+
 # ---- learning ------------------------------------------------------------------------------------
 def test_critic_loss_falls_on_real_frames():
     torch.manual_seed(0)
