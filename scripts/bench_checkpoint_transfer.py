@@ -89,7 +89,9 @@ def main() -> None:
                      serving=lambda: "", count=lambda *args, **kw: rejects.append(args))
     cpu = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
                 if line.startswith("model name")), platform.machine())
-    print(f"machine: {cpu}, {os.cpu_count()} cores; "
+    from protocad_ros.precision import cpu_capability
+
+    print(f"machine: {cpu}, {os.cpu_count()} cores, CPU capability {cpu_capability()}; "
           f"transport: {'UDPv4 over loopback' if ARGS.udp else 'Fast DDS default (shared memory)'}")
     print(f"{'preset':7} {'MB':>6} {'chunk':>7} {'n':>4} {'announce ms':>12} {'complete ms':>12} "
           f"{'MB/s':>7} {'verify ms':>10} {'install ms':>11}")
