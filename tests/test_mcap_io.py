@@ -389,6 +389,23 @@ def test_truncated_copy_recovers_every_complete_chunk(tmp_path):
             assert "no MCAP footer" in r.report.truncated[str(cut_file)]
             assert sorted(got, key=lambda m: m.log_time_ns) == got
             assert set(got) <= set(all_msgs)  # the same messages, not garbage
+            assert [(m.log_time_ns, m.data) for m in got] == _streamed_until_it_fails(cut_file)
+
+
+def _streamed_until_it_fails(path: Path) -> list[tuple[int, bytes]]:
+    """(log time, data) of every message mcap's own StreamReader yields from a cut file before
+    it stops (at the cut chunk: its CRC or its decompression fails), in log-time order."""
+    from mcap.records import Message
+    from mcap.stream_reader import StreamReader
+    out = []
+    with open(path, "rb") as fh:
+        try:
+            for record in StreamReader(fh, validate_crcs=True).records:
+                if isinstance(record, Message):
+                    out.append((record.log_time, record.data))
+        except Exception:  # noqa: BLE001  what the cut chunk raises (CRC, zstd, EndOfFile) ends it
+            pass
+    return sorted(out)
 
 
 def test_corrupt_chunk_is_reported_and_skipped(tmp_path):

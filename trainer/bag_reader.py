@@ -1,17 +1,29 @@
 """Reading bags back: BagReader over rosbag2 bag directories and bare .mcap files, intact or cut
 short (a file whose writer was killed has no footer/summary: every complete chunk and message is
 recovered by scanning its records), with a BagReport of what was found.
+
+Records are parsed by the mcap library's public readers: `SeekingReader` for an intact file's
+header, summary and metadata, `StreamReader` for each record of a file read front to back and
+for each chunk or message read later, `breakup_chunk` for a chunk's contents (CRC checked).
+What the library lacks is here: a record's length is checked against the file before it is
+parsed (the library reads a cut record short, without complaint); a corrupt chunk is skipped and
+reported while the chunks after it are still read; chunks that overlap in time are merged into
+log-time order holding only those in memory; rosbag2's directory layout (metadata.yaml, splits).
 """
 from __future__ import annotations
 
 import heapq
-import io
 import os
 import re
 import struct
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Iterator, NamedTuple
+
+from mcap.opcode import Opcode
+from mcap.reader import SeekingReader
+from mcap.records import Channel, Chunk, DataEnd, Footer, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader, breakup_chunk
 
 from trainer.bag_writer import MCAP_MAGIC
 from trainer.rosmsg import decode
@@ -65,28 +77,23 @@ class BagReport:
         return "\n".join(lines)
 
 
-_OP_HEADER, _OP_FOOTER, _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK = 1, 2, 3, 4, 5, 6
-_OP_METADATA, _OP_DATA_END, _OP_CHUNK_INDEX, _OP_STATISTICS = 0x0C, 0x0F, 0x08, 0x0B
-_OP_NAMES = {1: "Header", 2: "Footer", 3: "Schema", 4: "Channel", 5: "Message", 6: "Chunk",
-             7: "MessageIndex", 8: "ChunkIndex", 9: "Attachment", 0x0A: "AttachmentIndex",
-             0x0B: "Statistics", 0x0C: "Metadata", 0x0D: "MetadataIndex", 0x0E: "SummaryOffset",
-             0x0F: "DataEnd"}
 _KNOWN_SCHEMA_ENCODINGS = {"ros2msg", "ros2idl", "omgidl"}
-_MSG_HEAD = struct.Struct("<HIQQ")
+_RECORD_HEAD = struct.Struct("<BQ")     # opcode, length: every MCAP record starts so
+_FOOTER_RECORD = b"\x02\x14\x00\x00\x00\x00\x00\x00\x00"   # Footer opcode + its fixed length
+_FOOTER_AT_END = len(_FOOTER_RECORD) + 20 + len(MCAP_MAGIC)      # footer record + magic
 
 
 class _Entry(NamedTuple):
-    start: int      # message_start_time
+    start: int      # earliest log time inside
     offset: int     # record offset in the file
-    length: int     # record length including opcode and length prefix
-    kind: int       # _OP_CHUNK or _OP_MESSAGE
+    kind: Opcode    # CHUNK or MESSAGE
 
 
 @dataclass
 class _FileIndex:
     path: Path
-    schemas: dict[int, Any] = field(default_factory=dict)
-    channels: dict[int, Any] = field(default_factory=dict)
+    schemas: dict[int, Schema] = field(default_factory=dict)
+    channels: dict[int, Channel] = field(default_factory=dict)
     entries: list[_Entry] = field(default_factory=list)
     counts: dict[int, int] = field(default_factory=dict)
     rosbag2_metadata: str | None = None
@@ -95,100 +102,76 @@ class _FileIndex:
     library: str = ""
 
 
-def _stream(data: bytes):
-    from mcap.data_stream import ReadDataStream
-    return ReadDataStream(io.BytesIO(data))
+def _record_at(fh, pos: int, size: int) -> tuple[int, int, Any]:
+    """(opcode, length, record) of the record at byte `pos`, parsed by mcap's StreamReader
+    (record None for an opcode the library does not know). ValueError when the record is cut
+    off: the library reads a short record without complaint, so its length is checked first."""
+    fh.seek(pos)
+    head = fh.read(_RECORD_HEAD.size)
+    if len(head) < _RECORD_HEAD.size:
+        raise ValueError(f"record header at byte {pos} is cut off")
+    opcode, length = _RECORD_HEAD.unpack(head)
+    name = Opcode(opcode).name if opcode in _OPCODES else hex(opcode)
+    if pos + _RECORD_HEAD.size + length > size:
+        raise ValueError(f"{name} record at byte {pos} needs {length} bytes, only "
+                         f"{size - pos - _RECORD_HEAD.size} present")
+    if opcode not in _OPCODES:
+        return opcode, length, None
+    fh.seek(pos)
+    return opcode, length, next(StreamReader(fh, skip_magic=True, emit_chunks=True).records)
 
 
-def _chunk_records(body: bytes) -> list[Any]:
-    """Parse and validate (CRC, size) a Chunk record body -> inner records."""
-    from mcap.records import Chunk
-    from mcap.stream_reader import breakup_chunk
-    chunk = Chunk.read(_stream(body))
+_OPCODES = frozenset(int(o) for o in Opcode)
+
+
+def _chunk_records(chunk: Chunk) -> list[Any]:
+    """A chunk's inner records, its CRC checked (mcap's breakup_chunk)."""
     if chunk.compression not in ("", "zstd", "lz4"):
         raise ValueError(f"unsupported chunk compression {chunk.compression!r}")
-    records = breakup_chunk(chunk, validate_crc=True)
-    return records
+    return breakup_chunk(chunk, validate_crc=True)
 
 
-def _footer(fh, size: int) -> tuple[int, int] | None:
-    """(summary_start, footer offset) if the file ends with a valid Footer + magic."""
-    if size < 8 + 9 + 20 + 8:
-        return None
-    fh.seek(size - 37)
-    tail = fh.read(37)
-    if tail[-8:] != MCAP_MAGIC or tail[:9] != b"\x02\x14\x00\x00\x00\x00\x00\x00\x00":
-        return None
-    summary_start, _summary_offset_start, _crc = struct.unpack("<QQI", tail[9:29])
-    if summary_start > size - 37:
-        return None
-    return summary_start, size - 37
+def _ends_with_footer(fh, size: int) -> bool:
+    """The file ends with a Footer record and the magic (the library would parse any 37
+    bytes as a footer; a file cut anywhere else does not end so)."""
+    if size < len(MCAP_MAGIC) + _FOOTER_AT_END:
+        return False
+    fh.seek(size - _FOOTER_AT_END)
+    tail = fh.read(_FOOTER_AT_END)
+    return tail.startswith(_FOOTER_RECORD) and tail.endswith(MCAP_MAGIC)
 
 
-def _read_record(fh, offset: int, size: int) -> tuple[int, bytes]:
-    fh.seek(offset)
-    head = fh.read(9)
-    if len(head) < 9:
-        raise ValueError(f"record header at byte {offset} is cut off")
-    opcode, length = struct.unpack("<BQ", head)
-    if offset + 9 + length > size:
-        raise ValueError(f"{_OP_NAMES.get(opcode, hex(opcode))} record at byte {offset} needs "
-                         f"{length} bytes, only {size - offset - 9} present")
-    return opcode, fh.read(length)
-
-
-def _index_from_summary(fh, idx: _FileIndex, summary_start: int, footer_at: int) -> bool:
-    """Fill idx from the summary section; False if it is unusable (then scan the file)."""
-    from mcap.records import Channel, ChunkIndex, Schema, Statistics, MetadataIndex, Metadata
-    fh.seek(summary_start)
-    data = fh.read(footer_at - summary_start)
-    pos, stats, meta_offsets = 0, None, []
-    while pos < len(data):
-        opcode, length = struct.unpack_from("<BQ", data, pos)
-        body = data[pos + 9: pos + 9 + length]
-        if len(body) != length:
-            return False
-        if opcode == _OP_SCHEMA:
-            s = Schema.read(_stream(body))
-            idx.schemas[s.id] = s
-        elif opcode == _OP_CHANNEL:
-            c = Channel.read(_stream(body))
-            idx.channels[c.id] = c
-        elif opcode == _OP_CHUNK_INDEX:
-            ci = ChunkIndex.read(_stream(body))
-            idx.entries.append(_Entry(ci.message_start_time, ci.chunk_start_offset,
-                                      ci.chunk_length, _OP_CHUNK))
-        elif opcode == _OP_STATISTICS:
-            stats = Statistics.read(_stream(body))
-        elif opcode == 0x0D:
-            mi = MetadataIndex.read(_stream(body))
-            if mi.name == "rosbag2":
-                meta_offsets.append(mi.offset)
-        pos += 9 + length
-    if stats is None or (stats.message_count and not idx.entries):
-        return False  # unchunked file or no statistics: scan for loose messages
-    if len(idx.channels) < stats.channel_count or len(idx.schemas) < stats.schema_count:
-        return False  # channels/schemas not repeated in the summary: scan for them
+def _index_from_summary(reader: SeekingReader, idx: _FileIndex) -> bool:
+    """Fill idx from the summary section (mcap's SeekingReader); False if it is unusable
+    (then the file is scanned)."""
+    summary = reader.get_summary()
+    if summary is None or summary.statistics is None:
+        return False          # no summary, or no statistics to count with: scan
+    stats = summary.statistics
+    if stats.message_count and not summary.chunk_indexes:
+        return False          # unchunked file: scan for its loose messages
+    if len(summary.channels) < stats.channel_count or len(summary.schemas) < stats.schema_count:
+        return False          # channels/schemas not repeated in the summary: scan for them
+    idx.schemas, idx.channels = dict(summary.schemas), dict(summary.channels)
+    idx.entries = [_Entry(ci.message_start_time, ci.chunk_start_offset, Opcode.CHUNK)
+                   for ci in summary.chunk_indexes]
     idx.counts = {int(k): int(v) for k, v in stats.channel_message_counts.items()}
-    for off in meta_offsets[-1:]:
-        try:
-            op, body = _read_record(fh, off, footer_at)
-            if op == _OP_METADATA:
-                meta = Metadata.read(_stream(body)).metadata
-                idx.rosbag2_metadata = meta.get("serialized_metadata")
-        except Exception:
-            pass
+    try:
+        idx.rosbag2_metadata = next((m.metadata.get("serialized_metadata") for m in reader.iter_metadata()
+                                     if m.name == "rosbag2"), None)
+    except Exception:         # a damaged metadata record costs the metadata, not the messages
+        pass
     return True
 
 
 def _scan(fh, idx: _FileIndex, size: int) -> None:
-    """Linear scan of the data section (file without usable summary)."""
-    from mcap.records import Channel, Metadata, Schema
-    pos, n_chunks, n_msgs, problem = 8, 0, 0, None
+    """Every complete record of the data section, one after the other (a file without a
+    usable summary: a killed writer's, a cut copy, a writer that writes none)."""
+    pos, n_chunks, n_msgs, problem = len(MCAP_MAGIC), 0, 0, None
     complete = False
     while pos < size:
         try:
-            opcode, body = _read_record(fh, pos, size)
+            opcode, length, record = _record_at(fh, pos, size)
         except ValueError as exc:
             problem = str(exc)
             break
@@ -196,45 +179,37 @@ def _scan(fh, idx: _FileIndex, size: int) -> None:
             problem = f"invalid record opcode 0x{opcode:02x} at byte {pos}"
             break
         try:
-            if opcode == _OP_CHUNK:
-                records = _chunk_records(body)
+            if isinstance(record, Chunk):
                 start = None
-                for r in records:
-                    name = type(r).__name__
-                    if name == "Schema":
+                for r in _chunk_records(record):
+                    if isinstance(r, Schema):
                         idx.schemas.setdefault(r.id, r)
-                    elif name == "Channel":
+                    elif isinstance(r, Channel):
                         idx.channels.setdefault(r.id, r)
-                    elif name == "Message":
+                    elif isinstance(r, Message):
                         idx.counts[r.channel_id] = idx.counts.get(r.channel_id, 0) + 1
                         start = r.log_time if start is None else min(start, r.log_time)
                         n_msgs += 1
                 if start is not None:
-                    idx.entries.append(_Entry(start, pos, 9 + len(body), _OP_CHUNK))
+                    idx.entries.append(_Entry(start, pos, Opcode.CHUNK))
                     n_chunks += 1
-            elif opcode == _OP_SCHEMA:
-                s = Schema.read(_stream(body))
-                idx.schemas.setdefault(s.id, s)
-            elif opcode == _OP_CHANNEL:
-                c = Channel.read(_stream(body))
-                idx.channels.setdefault(c.id, c)
-            elif opcode == _OP_MESSAGE:
-                cid, _seq, log_time, _pub = _MSG_HEAD.unpack_from(body)
-                idx.counts[cid] = idx.counts.get(cid, 0) + 1
-                idx.entries.append(_Entry(log_time, pos, 9 + len(body), _OP_MESSAGE))
+            elif isinstance(record, (Schema, Channel)):
+                (idx.schemas if isinstance(record, Schema) else idx.channels).setdefault(record.id, record)
+            elif isinstance(record, Message):
+                idx.counts[record.channel_id] = idx.counts.get(record.channel_id, 0) + 1
+                idx.entries.append(_Entry(record.log_time, pos, Opcode.MESSAGE))
                 n_msgs += 1
-            elif opcode == _OP_METADATA:
-                m = Metadata.read(_stream(body))
-                if m.name == "rosbag2":
-                    idx.rosbag2_metadata = m.metadata.get("serialized_metadata")
-            elif opcode in (_OP_DATA_END, _OP_FOOTER):
+            elif isinstance(record, Metadata):
+                if record.name == "rosbag2":
+                    idx.rosbag2_metadata = record.metadata.get("serialized_metadata")
+            elif isinstance(record, (DataEnd, Footer)):
                 complete = True
                 break
         except Exception as exc:  # corrupt record: stop, keep what came before
-            problem = (f"corrupt {_OP_NAMES.get(opcode, hex(opcode))} record at byte {pos} "
-                       f"({type(exc).__name__}: {exc})")
+            name = Opcode(opcode).name if opcode in _OPCODES else hex(opcode)
+            problem = f"corrupt {name} record at byte {pos} ({type(exc).__name__}: {exc})"
             break
-        pos += 9 + len(body)
+        pos += _RECORD_HEAD.size + length
     if complete:
         idx.truncated = ("summary/footer missing or damaged; data section complete "
                          f"({n_chunks} chunks, {n_msgs} messages recovered by a linear scan)")
@@ -246,36 +221,32 @@ def _scan(fh, idx: _FileIndex, size: int) -> None:
 
 
 def _index_file(path: Path) -> _FileIndex:
-    from mcap.records import Header
     idx = _FileIndex(path)
     size = path.stat().st_size
     with open(path, "rb") as fh:
-        head = fh.read(8)
+        head = fh.read(len(MCAP_MAGIC))
         if not head:
             raise BagReadError("empty file (0 bytes)")
         if head != MCAP_MAGIC:
-            raise BagReadError(f"not an MCAP file: starts with {head[:8]!r}, expected MCAP magic "
+            raise BagReadError(f"not an MCAP file: starts with {head!r}, expected MCAP magic "
                                f"{MCAP_MAGIC!r}")
+        fh.seek(0)
+        reader = SeekingReader(fh, validate_crcs=True)
         try:
-            opcode, body = _read_record(fh, 8, size)
-            if opcode != _OP_HEADER:
-                name = _OP_NAMES.get(opcode, hex(opcode))
-                raise ValueError(f"first record is {name}, not Header")
-            header = Header.read(_stream(body))
+            _record_at(fh, len(MCAP_MAGIC), size)          # complete, or ValueError
+            header = reader.get_header()
         except Exception as exc:
             raise BagReadError(f"MCAP magic present but no valid Header record: {exc}") from None
         idx.profile, idx.library = header.profile, header.library
-        footer = _footer(fh, size)
-        ok = False
-        if footer is not None and footer[0] != 0:
-            try:
-                ok = _index_from_summary(fh, idx, *footer)
-            except Exception:
-                ok = False
+        intact = _ends_with_footer(fh, size)
+        try:
+            ok = intact and _index_from_summary(reader, idx)
+        except Exception:
+            ok = False
         if not ok:
-            idx.schemas.clear(); idx.channels.clear(); idx.entries.clear(); idx.counts.clear()
+            idx.schemas, idx.channels, idx.entries, idx.counts = {}, {}, [], {}
             _scan(fh, idx, size)
-            if footer is not None and idx.truncated and idx.truncated.startswith("summary"):
+            if intact and idx.truncated and idx.truncated.startswith("summary"):
                 idx.truncated = None  # a valid file without summary (e.g. noSummary writers)
     idx.entries.sort()
     return idx
@@ -457,14 +428,14 @@ class BagReader:
                     i += 1
                     try:
                         for m in self._entry_messages(fh, e, size):
-                            c = chans.get(m[0])
+                            c = chans.get(m.channel_id)
                             if c is None:
                                 continue
                             seq += 1
-                            heapq.heappush(heap, (m[1], e.offset, seq,
-                                                  RawMessage(c[0], c[1], m[3], m[1], m[2])))
+                            heapq.heappush(heap, (m.log_time, e.offset, seq,
+                                                  RawMessage(c[0], c[1], m.data, m.log_time, m.publish_time)))
                     except Exception as exc:
-                        msg = (f"corrupt {'chunk' if e.kind == _OP_CHUNK else 'message'} at byte "
+                        msg = (f"corrupt {'chunk' if e.kind == Opcode.CHUNK else 'message'} at byte "
                                f"{e.offset} skipped ({type(exc).__name__}: {exc})")
                         if self.strict:
                             raise BagReadError(f"{idx.path}: {msg}") from exc
@@ -474,14 +445,13 @@ class BagReader:
                 yield heapq.heappop(heap)[3]
 
     @staticmethod
-    def _entry_messages(fh, e: _Entry, size: int) -> Iterator[tuple[int, int, int, bytes]]:
-        opcode, body = _read_record(fh, e.offset, size)
+    def _entry_messages(fh, e: _Entry, size: int) -> Iterator[Message]:
+        opcode, _, record = _record_at(fh, e.offset, size)
         if opcode != e.kind:
-            raise ValueError(f"expected {_OP_NAMES[e.kind]} record, found opcode 0x{opcode:02x}")
-        if opcode == _OP_MESSAGE:
-            cid, _s, log_time, pub = _MSG_HEAD.unpack_from(body)
-            yield cid, log_time, pub, body[_MSG_HEAD.size:]
+            raise ValueError(f"expected a {e.kind.name} record, found opcode 0x{opcode:02x}")
+        if isinstance(record, Message):
+            yield record
             return
-        for r in _chunk_records(body):
-            if type(r).__name__ == "Message":
-                yield r.channel_id, r.log_time, r.publish_time, r.data
+        for r in _chunk_records(record):
+            if isinstance(r, Message):
+                yield r

@@ -4,7 +4,11 @@ and ``.json``).
 
 What a library does not give here: rosbag2's message definition text (the .msg followed by every
 dependency after a line of 80 ``=``, LocalMessageDefinitionSource byte for byte) and the type
-hashes rosbag2 stores per channel; the CDR itself is mcap-ros2-support's.
+hashes rosbag2 stores per channel; the CDR itself is mcap-ros2-support's. Decoding goes through
+its public `mcap_ros2.decoder.DecoderFactory`. Encoding and the .msg parser are two private
+pieces of it (`mcap_ros2._dynamic.serialize_dynamic`, the vendored rosidl parser): no public
+library encodes CDR without a ROS installation, which protocad-online on a GPU box has not; the
+version is pinned in setup.py for that reason.
 """
 from __future__ import annotations
 
@@ -301,15 +305,23 @@ def encoder_for(msgtype: str, definition: str | None = None) -> Callable[[Any], 
 
 @lru_cache(maxsize=256)
 def decoder_for(msgtype: str, definition: str | None = None) -> Callable[[bytes], Any]:
-    """Cached lenient CDR decoder (mcap_ros2.generate_dynamic: tolerates the trailing padding
-    rclpy/FastCDR writes) for a type; definition defaults to the local ament index."""
-    from mcap_ros2._dynamic import generate_dynamic
+    """Cached lenient CDR decoder for a type (mcap_ros2's public DecoderFactory: it tolerates
+    the trailing padding rclpy/FastCDR writes); definition defaults to the local ament index.
+    The same decoder serves our own types and foreign ones, and needs no ROS installation
+    (rclpy.serialization would, and only for types built here)."""
+    from mcap.records import Schema
+    from mcap_ros2.decoder import DecoderFactory
+
     msgtype = normalize_type(msgtype)
     text = definition if definition is not None else message_definition(msgtype)
     try:
-        return generate_dynamic(msgtype, text)[msgtype]
+        decoder = DecoderFactory().decoder_for("cdr", Schema(id=1, name=msgtype, encoding="ros2msg",
+                                                             data=text.encode()))
     except Exception as exc:
         raise TypeSupportError(f"cannot build a CDR decoder for {msgtype}: {exc}") from exc
+    if decoder is None:
+        raise TypeSupportError(f"cannot build a CDR decoder for {msgtype}")
+    return decoder
 
 
 def encode(msgtype: str, msg: Any) -> bytes:
