@@ -147,9 +147,13 @@ def _verb(command: str, rest: list[str], argv: list[str]) -> int:
     if args.verb is None:
         parser.print_help()
         return 0
+    from rclpy.executors import ExternalShutdownException
+
     try:
         rc = args.func(args)
-    except KeyboardInterrupt:
+    except (KeyboardInterrupt, ExternalShutdownException):
+        # Ctrl-C: rclpy's handler shuts the context down; a verb caught inside a wait sees it
+        # as ExternalShutdownException rather than as rclpy.ok() turning false. Both end cleanly.
         return 0
     except RuntimeError as exc:  # ros2cli's convention: the message on stderr, exit 1
         rc = str(exc)
