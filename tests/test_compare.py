@@ -25,7 +25,7 @@ TINY = ["--preset", "small", "--time-limit", "200", "--prefill-episodes", "1", "
 
 def grid_args(out: Path) -> list[str]:
     return ["-m", "trainer.compare", "--tasks", "pendulum_swingup", "--variants", "protocad", "dreamer",
-            "--seeds", "0", "1", "--env-steps", "1200", "--jobs", "4", "--out", str(out),
+            "--seeds", "0", "1", "--env-steps", "800", "--jobs", "4", "--out", str(out),
             "--status-every", "5", "--", *TINY]
 
 
@@ -63,13 +63,13 @@ def test_grid_runs_in_parallel_resumes_after_ctrl_c_and_reports(tmp_path, spawn)
         assert (f"resuming {d}: {c['env_steps']} env steps, {c['updates']} updates"
                 in run_log.replace(str(d.resolve()), str(d))), run_log[-2000:]
         res = json.loads((d / "run.json").read_text())["result"]
-        assert res["status"] == "finished" and res["env_steps"] == 1200 and res["resumes"] == 1
+        assert res["status"] == "finished" and res["env_steps"] == 800 and res["resumes"] == 1
 
     doc = R.load_results(out / "results.json")         # validates against RESULTS_SCHEMA
     assert len(doc["runs"]) == 4 and {r["status"] for r in doc["runs"]} == {"finished"}
     for r in doc["runs"]:
         assert r["final"] is not None and set(r["final"]["per_context"]) == {"m=0.2", "m=1.8"}
-        assert r["curve"][-1]["tag"] == "final" and r["curve"][-1]["env_steps"] == 1200
+        assert r["curve"][-1]["tag"] == "final" and r["curve"][-1]["env_steps"] == 800
         assert [c["env_steps"] for c in r["curve"]] == sorted(c["env_steps"] for c in r["curve"])
     # A third run of the same command has nothing left to do.
     third = spawn("compare3", *grid_args(out))
