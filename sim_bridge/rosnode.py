@@ -319,13 +319,16 @@ def make_executor(kind: str):
     return SingleThreadedExecutor()
 
 
-def run_node(make_node: Callable[[], Any], *, prog: str, description: str,
-             params: Iterable[Param], example: str, argv: Sequence[str] | None = None) -> int:
+def run_node(make_node: Callable[..., Any], *, prog: str, description: str = "",
+             params: Iterable[Param] = (), example: str = "", argv: Sequence[str] | None = None,
+             parser: argparse.ArgumentParser | None = None) -> int:
     """main() of a protocad node; returns the exit code.
 
-    `make_node()` builds the node after rclpy.init (raise ConfigError for bad configuration).
-    The node may define `close()` (stop threads, flush) and `done` (threading.Event set when it
-    finished on its own, e.g. after max_episodes) and `exit_code`.
+    `make_node()` builds the node after rclpy.init (raise ConfigError for bad configuration);
+    its settings are ROS parameters (`params`, listed by --help). A node with a command line of
+    its own (the recorder, which speaks `ros2 bag record`'s) passes its `parser` instead and
+    gets `make_node(args)`. The node may define `close()` (stop threads, flush) and `done`
+    (threading.Event set when it finished on its own, e.g. after max_episodes) and `exit_code`.
     """
     argv = list(sys.argv if argv is None else argv)
     try:
@@ -335,10 +338,12 @@ def run_node(make_node: Callable[[], Any], *, prog: str, description: str,
         from rclpy.signals import SignalHandlerOptions
         from rclpy.utilities import remove_ros_args
 
-        parser = argparse.ArgumentParser(
-            prog=prog, description=description, epilog=help_epilog(list(params), example),
-            formatter_class=argparse.RawDescriptionHelpFormatter)
-        parser.parse_args(remove_ros_args(argv)[1:])   # --help / unknown plain args exit here
+        own_args = parser is not None
+        if parser is None:
+            parser = argparse.ArgumentParser(
+                prog=prog, description=description, epilog=help_epilog(list(params), example),
+                formatter_class=argparse.RawDescriptionHelpFormatter)
+        args = parser.parse_args(remove_ros_args(argv)[1:])   # --help / bad plain args exit here
 
         # Our own SIGINT/SIGTERM handlers (not rclpy's, which would shut the context down at
         # once): the node then closes with a live context, so its last diagnostics and log
@@ -360,7 +365,7 @@ def run_node(make_node: Callable[[], Any], *, prog: str, description: str,
     code = 0
     try:
         try:
-            node = make_node()
+            node = make_node(args) if own_args else make_node()
         except ConfigError as e:
             log.error(f"configuration error: {e}")
             return 2

@@ -1,96 +1,92 @@
 """A ROS 2 node answering every observation with a uniform random action (the paper's prefill,
 and the random baseline of `protocad-evaluate --through-ros --random`).
 
-    python -m trainer.random_actor --task pendulum_swingup --seed 0 --ros-args -r __ns:=/protocad
+    python -m trainer.random_actor --ros-args -p task:=pendulum_swingup -p seed:=0 -r __ns:=/protocad
 
 Same contract as the policy node (msgs_docs/policy.md): subscribes to image and step_info,
 pairs them by header stamp, publishes exactly one action per observation stamped like it
 (an observation the bridge publishes again after a lock-step timeout gets the same action
-again). Actions are U[-1, 1]^A from a generator seeded by --seed. No model, no torch.
+again). Actions are U[-1, 1]^A from a generator seeded by `seed`, named after the task's
+actuators. No model, no torch.
 """
 from __future__ import annotations
 
-import argparse
 import collections
-import signal
-import sys
-import threading
-from typing import Sequence
+from typing import Any
 
 import numpy as np
+from sensor_msgs.msg import Image, JointState
+
+from sim_bridge import qos, topics
+from sim_bridge.contexts import TASKS, task_actuators
+from sim_bridge.rosbase import ProtocadNode
+from sim_bridge.rosnode import Param, declare_all, run_node
+
+NODE_NAME = "random_actor"
+#: Stamps remembered (half-paired observations, answers to repeat): a bounded memory.
+MEMORY = 64
+
+PARAMS: tuple[Param, ...] = (
+    Param("task", "pendulum_swingup", "Task: the action size and names.", choices=tuple(TASKS)),
+    Param("seed", 0, "Seed of the action generator.", read_only=True),
+)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="python -m trainer.random_actor",
-                                 description="Answer every observation with a uniform random action.")
-    ap.add_argument("--task", default="pendulum_swingup", help="task (for the action size and names)")
-    ap.add_argument("--seed", type=int, default=0)
-    return ap
+class RandomActorNode(ProtocadNode):
+    """See the module docstring; parameters in PARAMS."""
 
+    def __init__(self, *, namespace: str = topics.DEFAULT_NAMESPACE, **kw: Any):
+        super().__init__(NODE_NAME, namespace=namespace, **kw)
+        p = declare_all(self, PARAMS)
+        self.names = task_actuators(p["task"])
+        self.rng = np.random.default_rng(p["seed"])
+        self.answered_count = 0
+        self._pending: collections.OrderedDict[int, set[str]] = collections.OrderedDict()
+        self._answered: collections.OrderedDict[int, JointState] = collections.OrderedDict()
+        self.pub = self.create_publisher(JointState, topics.ACTION, qos.action_qos())
+        self.create_subscription(Image, topics.IMAGE, self._on_image, qos.observation_qos())
+        self.create_subscription(JointState, topics.STEP_INFO, self._on_step_info, qos.observation_qos())
+        self.get_logger().info(f"random actor ready: {len(self.names)}-d uniform actions {self.names} on "
+                               f"{self.resolve_topic_name(topics.ACTION)} (seed {p['seed']})")
 
-def main(argv: Sequence[str] | None = None) -> int:
-    argv = list(sys.argv if argv is None else [sys.argv[0], *argv])
-    from rclpy.utilities import remove_ros_args
+    def _on_image(self, msg: Image) -> None:
+        self._arrive(topics.stamp_to_ns(msg.header.stamp), "image")
 
-    a = build_parser().parse_args(remove_ros_args(argv)[1:])
-    import rclpy
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.node import Node
-    from rclpy.signals import SignalHandlerOptions
-    from sensor_msgs.msg import Image, JointState
+    def _on_step_info(self, msg: JointState) -> None:
+        self._arrive(topics.stamp_to_ns(msg.header.stamp), "info")
 
-    from sim_bridge.contexts import task_actuators
-    from sim_bridge import qos, topics
-
-    names = task_actuators(a.task)
-    rng = np.random.default_rng(a.seed)
-    stop = threading.Event()
-    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
-    signal.signal(signal.SIGINT, lambda *_: stop.set())
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
-    node = Node("random_actor")
-    pub = node.create_publisher(JointState, topics.ACTION, qos.action_qos())
-    pending: collections.OrderedDict[int, set] = collections.OrderedDict()
-    answered: collections.OrderedDict[int, JointState] = collections.OrderedDict()
-    count = [0]
-
-    def arrive(stamp: int, kind: str) -> None:
-        if stamp in answered:
-            if kind == "info":  # published again by the bridge: same answer again
-                pub.publish(answered[stamp])
+    def _arrive(self, stamp: int, kind: str) -> None:
+        if stamp in self._answered:
+            if kind == "info":  # published again by the bridge: the same answer again
+                self.pub.publish(self._answered[stamp])
             return
-        got = pending.setdefault(stamp, set())
+        got = self._pending.setdefault(stamp, set())
         got.add(kind)
         if len(got) < 2:
-            while len(pending) > 64:
-                pending.popitem(last=False)
+            while len(self._pending) > MEMORY:
+                self._pending.popitem(last=False)
             return
-        del pending[stamp]
-        msg = topics.fill_action(JointState(), rng.uniform(-1.0, 1.0, len(names)), names, stamp)
-        pub.publish(msg)
-        answered[stamp] = msg
-        while len(answered) > 64:
-            answered.popitem(last=False)
-        count[0] += 1
+        del self._pending[stamp]
+        msg = topics.fill_action(JointState(), self.rng.uniform(-1.0, 1.0, len(self.names)), self.names, stamp)
+        self.pub.publish(msg)
+        self._answered[stamp] = msg
+        while len(self._answered) > MEMORY:
+            self._answered.popitem(last=False)
+        self.answered_count += 1
 
-    node.create_subscription(Image, topics.IMAGE,
-                             lambda m: arrive(topics.stamp_to_ns(m.header.stamp), "image"), qos.observation_qos())
-    node.create_subscription(JointState, topics.STEP_INFO,
-                             lambda m: arrive(topics.stamp_to_ns(m.header.stamp), "info"), qos.observation_qos())
-    ex = SingleThreadedExecutor()
-    ex.add_node(node)
-    node.get_logger().info(f"random actor ready: {len(names)}-d uniform actions {names} on "
-                           f"{node.resolve_topic_name(topics.ACTION)} (seed {a.seed})")
-    try:
-        while not stop.is_set():
-            ex.spin_once(timeout_sec=0.1)
-    finally:
-        node.get_logger().info(f"stopped after answering {count[0]} observations")
-        ex.remove_node(node)
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return 0
+    def close(self) -> None:
+        self.get_logger().info(f"stopped after answering {self.answered_count} observations")
+
+
+def main(argv: list[str] | None = None) -> int:
+    return run_node(
+        RandomActorNode, prog="random_actor", params=PARAMS, argv=argv,
+        description="Answers every observation (image + step_info, paired by stamp) with a "
+                    "uniform random action in [-1, 1], named after the task's actuators. "
+                    "Contract: msgs_docs/policy.md.",
+        example="python -m trainer.random_actor --ros-args -p task:=walker_walk -p seed:=3 "
+                "-r __ns:=/protocad")
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    raise SystemExit(main())

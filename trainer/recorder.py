@@ -17,7 +17,6 @@ import argparse
 import functools
 import importlib
 import re
-import signal
 import sys
 import threading
 import time
@@ -25,7 +24,7 @@ from datetime import datetime
 from typing import Any, Mapping, Sequence
 
 from sim_bridge.rosbase import ProtocadNode
-from sim_bridge.rosnode import KeyThrottle
+from sim_bridge.rosnode import ConfigError, KeyThrottle, run_node
 
 from sim_bridge import topics as T
 from trainer import mcap_io
@@ -337,13 +336,42 @@ class RecorderNode(ProtocadNode):
                 break
 
     def close(self) -> dict[str, int]:
-        """Close the bag (footer, summary, metadata.yaml with the loss); returns the per-topic counts."""
+        """Take what the middleware still holds (when stopped by a signal, not by a write
+        failure), close the bag (footer, summary, metadata.yaml with the loss), print the
+        summary; returns the per-topic counts."""
+        executor = self.executor
+        if executor is not None and not self.done.is_set() and self.context.ok():
+            self.drain(executor)
         with self._lock:
             loss = self.loss_summary()
             if loss:
                 self.writer.custom_data = {**(self.writer.custom_data or {}), **loss}
             self.writer.close()
+        print(self.summary(), flush=True)
         return self.writer.topic_counts
+
+    def summary(self) -> str:
+        """What was recorded and what was lost, for the exit message."""
+        w, counts = self.writer, self.writer.topic_counts
+        lines = [f"recorder: recorded {sum(counts.values())} messages to {w.bag_dir} ({len(w.files)} file(s))"]
+        lines += [f"  {t}: {n}" for t, n in counts.items()]
+        if self.errors:
+            lines.append(f"  write errors: {self.errors}")
+        if self.lost:
+            lines.append(f"  LOST before the recorder took them (sequence gaps): {sum(self.lost.values())} "
+                         f"({', '.join(f'{t}: {n}' for t, n in sorted(self.lost.items()))})")
+        if self.missed_before_subscribing:
+            lines.append("  published before the recorder subscribed: " + ", ".join(
+                f"{t}: {n}" for t, n in sorted(self.missed_before_subscribing.items())))
+        if self.untracked:
+            lines.append(f"  loss not tracked (several publishers): {', '.join(sorted(self.untracked))}")
+        if w.failure is not None:
+            lines.append(f"  RECORDING STOPPED EARLY: {w.failure}")
+            lines.append(f"  messages lost (received, not in the bag: the open chunk and everything after): "
+                         f"{w.lost_after_failure}")
+            lines += [f"  {note}" for note in w.salvage_notes]
+            lines.append(f"  metadata.yaml: {'written' if (w.bag_dir / 'metadata.yaml').exists() else 'NOT written'}")
+        return "\n".join(lines)
 
 
 #: Exit status when a write error (disk full, ...) ended the recording; the bag holds what was
@@ -493,24 +521,11 @@ def load_qos_overrides(stream: Any) -> dict[str, dict[str, Any]]:
     return {str(k): dict(v) for k, v in data.items()}
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    argv = list(sys.argv if argv is None else [sys.argv[0], *argv])
-    from rclpy.utilities import remove_ros_args
-    args = build_parser().parse_args(remove_ros_args(argv)[1:])
-    import rclpy
+def start_recorder(args: argparse.Namespace) -> RecorderNode:
+    """The RecorderNode the parsed command line asks for (ConfigError: bad options, exit 2)."""
     import rclpy.logging
-    from rclpy.executors import SingleThreadedExecutor
-    from rclpy.signals import SignalHandlerOptions
 
-    stop = threading.Event()
-
-    def on_signal(signum: int, _frame: Any) -> None:
-        stop.set()
-
-    rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     rclpy.logging.set_logger_level(args.node_name, getattr(rclpy.logging.LoggingSeverity, args.log_level.upper()))
-    signal.signal(signal.SIGINT, on_signal)
-    signal.signal(signal.SIGTERM, on_signal)
     try:
         compression = args.compression or STORAGE_PRESETS.get(args.storage_preset_profile or "none", "zstd")
         qos_overrides = load_qos_overrides(args.qos_profile_overrides_path) \
@@ -527,44 +542,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             queue_depth=args.queue_depth, discovery_interval=args.polling_interval / 1000.0,
             status_interval=args.status_interval, node_name=args.node_name)
     except (mcap_io.BagWriteError, ValueError) as exc:
-        print(f"recorder: {exc}", file=sys.stderr)
-        rclpy.try_shutdown()
-        return 2
-    executor = SingleThreadedExecutor()
-    executor.add_node(node)
+        raise ConfigError(str(exc)) from None
     print(f"recorder: recording to {node.writer.bag_dir}", flush=True)
-    try:
-        while not stop.is_set() and not node.done.is_set():
-            executor.spin_once(timeout_sec=0.1)
-        if not node.done.is_set():
-            node.drain(executor)
-    finally:
-        counts = node.close()
-        w = node.writer
-        total = sum(counts.values())
-        lines = [f"recorder: recorded {total} messages to {w.bag_dir} ({len(w.files)} file(s))"]
-        lines += [f"  {t}: {n}" for t, n in counts.items()]
-        if node.errors:
-            lines.append(f"  write errors: {node.errors}")
-        if node.lost:
-            lines.append(f"  LOST before the recorder took them (sequence gaps): {sum(node.lost.values())} "
-                         f"({', '.join(f'{t}: {n}' for t, n in sorted(node.lost.items()))})")
-        if node.missed_before_subscribing:
-            lines.append("  published before the recorder subscribed: " + ", ".join(
-                f"{t}: {n}" for t, n in sorted(node.missed_before_subscribing.items())))
-        if node.untracked:
-            lines.append(f"  loss not tracked (several publishers): {', '.join(sorted(node.untracked))}")
-        if w.failure is not None:
-            lines.append(f"  RECORDING STOPPED EARLY: {w.failure}")
-            lines.append(f"  messages lost (received, not in the bag: the open chunk and everything after): "
-                         f"{w.lost_after_failure}")
-            lines += [f"  {note}" for note in w.salvage_notes]
-            lines.append(f"  metadata.yaml: {'written' if (w.bag_dir / 'metadata.yaml').exists() else 'NOT written'}")
-        print("\n".join(lines), flush=True)
-        executor.remove_node(node)
-        node.destroy_node()
-        rclpy.try_shutdown()
-    return node.exit_code
+    return node
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """`ros2 bag record`'s command line (argv without the program name)."""
+    return run_node(start_recorder, prog="recorder", parser=build_parser(),
+                    argv=[sys.argv[0], *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":

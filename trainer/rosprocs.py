@@ -333,7 +333,7 @@ class RosStack:
 
     def start_random_actor(self, *, task: str, seed: int = 0, ready_timeout: float = 60.0,
                            ns: str | None = None) -> NodeProc:
-        args = ["--task", task, "--seed", str(seed), "--ros-args", *self._ns_args(ns)]
+        args = ["--ros-args", *self._params(task=task, seed=seed), *self._ns_args(ns)]
         node_ns = "/" + (ns or self.namespace).strip("/")
         wants = [(self.node_fqn(T.ACTION, ns), "pub"), (self.node_fqn(T.IMAGE, ns), "sub"),
                  (self.node_fqn(T.STEP_INFO, ns), "sub")]
