@@ -85,3 +85,25 @@ def test_worker_exception_reaches_the_parent_with_its_traceback(monkeypatch):
     message = str(info.value)
     assert "worker 0" in message and "worker 1" in message and "during start" in message
     assert "Traceback" in message and "no-such-backend" in message
+
+
+def test_given_contexts_subsets_and_in_process_match_workers():
+    """Evaluation's use: the first k envs reset with given contexts, only the live ones
+    stepped; the same seeds give the same frames in worker processes and in this process."""
+    contexts = [dict(c) for c in get_task("pendulum_swingup").contexts("test")[:2]]
+    frames = []
+    for in_process in (True, False):
+        with VectorEnv("pendulum_swingup", 3, "test", seed=5, in_process=in_process, time_limit=6) as venv:
+            first = venv.reset(contexts)
+            assert [o.context for o in first] == contexts and all(o.is_first for o in first)
+            both = venv.step(np.full((2, 1), 0.5), which=[0, 1])
+            assert [o.step for o in both] == [1, 1]
+            one = venv.step(np.full((1, 1), -0.5), which=[1])
+            assert [o.step for o in one] == [2]
+            with pytest.raises(ValueError, match=r"shape \(2, 1\), expected \(1, 1\)"):
+                venv.step(np.zeros((2, 1)), which=[0])
+            with pytest.raises(ValueError, match="4 contexts for 3 envs"):
+                venv.reset(contexts * 2)
+            frames.append([o.image for o in first + both + one])
+    for in_parent, in_worker in zip(*frames):
+        np.testing.assert_array_equal(in_parent, in_worker)

@@ -110,63 +110,41 @@ def collect_context_episodes(task: str, agent: Any = None, *, steps: int = DEFAU
     protocad_ros.policy.Policy in deterministic mode) or uniform random when no agent is given
     or ``random_policy``.
     """
-    from sim_bridge.contexts import get_task
-    from sim_bridge.envs import ContextDMCEnv
+    from sim_bridge.contexts import get_task, task_actuators
+    from sim_bridge.vector import VectorEnv
+    from trainer.rollout import RandomPolicy, rollout
     from trainer.runs import progress as progress_bar
 
     if steps < 2:
         raise ValueError(f"steps per context must be >= 2, got {steps}")
     spec = get_task(task)
-    todo = [(split, dict(c)) for split in splits
-            for c in (contexts[split] if contexts and split in contexts else spec.contexts(split))]
     if action_repeat is None:
         cfg = getattr(agent, "cfg", None)
         action_repeat = int(getattr(getattr(cfg, "train", None), "action_repeat", 2) or 2)
-    policy = None
     if agent is not None and not random_policy:
         from protocad_ros.policy import Policy
 
         policy = Policy(agent, mode="deterministic", seed=seed)
-    rng = np.random.default_rng(seed)
+    else:
+        policy = RandomPolicy(len(task_actuators(task)), seed)
+    todo = [(split, [dict(c) for c in (contexts[split] if contexts and split in contexts
+                                       else spec.contexts(split))]) for split in splits]
     episodes: list[Episode] = []
-    bar = progress_bar(len(todo), desc=f"collect {task}", disable=None if progress is None
-                       else not progress, unit="ctx")
-    envs: dict[str, Any] = {}
+    bar = progress_bar(sum(len(c) for _, c in todo), desc=f"collect {task}",
+                       disable=None if progress is None else not progress, unit="ctx")
     try:
-        for split, context in todo:
-            env = envs.get(split)
-            if env is None:
-                env = envs[split] = ContextDMCEnv(task, split=split, seed=seed,
-                                                  action_repeat=action_repeat,
-                                                  render_quality=render_quality)
-            obs = env.reset(context)
-            if policy is not None:
-                policy.reset(1)
-            images, actions, rewards, discounts, firsts = [], [], [], [], []
-            prev = np.zeros(env.action_dim, np.float32)
-            for t in range(steps):
-                images.append(obs.image)
-                actions.append(prev)
-                rewards.append(obs.reward)
-                discounts.append(obs.discount)
-                firsts.append(obs.is_first)
-                if t == steps - 1 or obs.is_last:
-                    break
-                if policy is not None:
-                    act, _ = policy.act(obs.image, prev, obs.is_first)
-                else:
-                    act = rng.uniform(-1.0, 1.0, env.action_dim)
-                prev = np.asarray(act, np.float32).reshape(env.action_dim)
-                obs = env.step(prev)
-            episodes.append(Episode(image=np.stack(images), action=np.stack(actions),
-                                    reward=np.asarray(rewards), discount=np.asarray(discounts),
-                                    is_first=np.asarray(firsts), context=obs.context,
-                                    split=split, source="collected"))
-            bar.update(1)
+        for split, split_contexts in todo:
+            if not split_contexts:
+                continue
+            # One env per split, its contexts one after the other: the seed fixes every frame.
+            with VectorEnv(task, 1, split, in_process=True, env_seeds=[seed], action_repeat=action_repeat,
+                           render_quality=render_quality) as pool:
+                for context in split_contexts:
+                    t = rollout(pool, policy, [context], max_steps=steps, record=True)[0]
+                    episodes.append(Episode(**t.arrays(), context=t.context, split=split, source="collected"))
+                    bar.update(1)
     finally:
         bar.close()
-        for env in envs.values():
-            env.close()
     return episodes
 
 

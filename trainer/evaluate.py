@@ -26,21 +26,19 @@ from __future__ import annotations
 
 import argparse
 import math
-import multiprocessing as mp
 import os
-import signal
 import sys
 import time
-import traceback
 from dataclasses import dataclass, field
-from multiprocessing.connection import Connection, wait
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import numpy as np
 
 from sim_bridge.contexts import context_label
+from sim_bridge.vector import VectorEnv
 from trainer import runs
+from trainer.rollout import RandomPolicy, rollout
 
 DEFAULT_EPISODES = 5
 
@@ -184,141 +182,6 @@ def select_contexts(task: str, split: str = "test", contexts: Sequence[Mapping[s
     return allc
 
 
-# ----------------------------------------------------------------------------- env pool
-def _env_worker(conn: Connection, task: str, split: str, seed: int, env_kwargs: dict) -> None:
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    env = None
-    try:
-        from sim_bridge.envs import ContextDMCEnv
-
-        env = ContextDMCEnv(task, split, seed, **env_kwargs)
-        conn.send(("ok", env.action_dim))
-        while True:
-            try:
-                cmd, arg = conn.recv()
-            except EOFError:
-                break
-            if cmd == "close":
-                break
-            try:
-                conn.send(("ok", env.reset(context=arg) if cmd == "reset" else env.step(arg)))
-            except Exception:  # noqa: BLE001
-                conn.send(("error", traceback.format_exc()))
-    except Exception:  # noqa: BLE001
-        try:
-            conn.send(("error", traceback.format_exc()))
-        except OSError:
-            pass
-    finally:
-        if env is not None:
-            env.close()
-        conn.close()
-
-
-class EnvPool:
-    """n ContextDMCEnv copies whose contexts are chosen at each reset: in this process
-    (workers=False) or one worker process each (spawned; dm_control never in the parent)."""
-
-    def __init__(self, task: str, n: int, split: str = "test", seed: int = 0, workers: bool = False,
-                 **env_kwargs: Any):
-        self.n, self.workers = int(n), bool(workers)
-        self._envs: list[Any] = []
-        self._conns: list[Connection] = []
-        self._procs: list[Any] = []
-        seeds = [int(s.generate_state(1)[0]) for s in np.random.SeedSequence(seed).spawn(self.n)]
-        if not self.workers:
-            from sim_bridge.envs import ContextDMCEnv
-
-            self._envs = [ContextDMCEnv(task, split, s, **env_kwargs) for s in seeds]
-            self.action_dim = self._envs[0].action_dim
-            return
-        ctx = mp.get_context("spawn")
-        try:
-            for s in seeds:
-                parent, child = ctx.Pipe()
-                p = ctx.Process(target=_env_worker, args=(child, task, split, s, env_kwargs), daemon=True)
-                p.start()
-                child.close()
-                self._conns.append(parent)
-                self._procs.append(p)
-            self.action_dim = self._gather("start")[0]
-        except BaseException:
-            self.close()
-            raise
-
-    def _gather(self, what: str, which: Sequence[int] | None = None) -> list[Any]:
-        out, errors = [], []
-        for i in (range(self.n) if which is None else which):
-            conn, proc = self._conns[i], self._procs[i]
-            wait([conn, proc.sentinel])
-            try:
-                status, payload = conn.recv() if conn.poll() else (None, None)
-            except (EOFError, OSError):
-                status, payload = None, None
-            if status != "ok":
-                errors.append(f"env worker {i} failed during {what}: {payload or f'exit code {proc.exitcode}'}")
-            out.append(payload)
-        if errors:
-            self.close()
-            raise RuntimeError("\n".join(errors))
-        return out
-
-    def reset(self, contexts: Sequence[Mapping[str, float]]) -> list[Any]:
-        if not self.workers:
-            return [env.reset(context=c) for env, c in zip(self._envs, contexts)]
-        for conn, c in zip(self._conns, contexts):
-            conn.send(("reset", dict(c)))
-        return self._gather("reset", range(len(contexts)))
-
-    def step(self, actions: np.ndarray, which: Sequence[int]) -> list[Any]:
-        if not self.workers:
-            return [self._envs[i].step(actions[i]) for i in which]
-        for i in which:
-            self._conns[i].send(("step", np.asarray(actions[i], np.float64)))
-        return self._gather("step", which)
-
-    def close(self) -> None:
-        for env in self._envs:
-            env.close()
-        self._envs = []
-        for conn in self._conns:
-            try:
-                conn.send(("close", None))
-            except OSError:
-                pass
-        for p in self._procs:
-            p.join(timeout=10)
-            if p.is_alive():
-                p.kill()
-                p.join()
-        for conn in self._conns:
-            conn.close()
-        self._conns, self._procs = [], []
-
-    def __enter__(self) -> "EnvPool":
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self.close()
-
-
-class RandomPolicy:
-    """Uniform actions in [-1, 1]^A (the paper's prefill / a baseline), seeded."""
-
-    def __init__(self, action_dim: int, seed: int = 0):
-        self.action_dim = int(action_dim)
-        self.rng = np.random.default_rng(seed)
-        self._b = 1
-
-    def reset(self, batch_size: int = 1) -> None:
-        self._b = int(batch_size)
-
-    def act(self, image, prev_action, is_first):
-        b = np.asarray(image).shape[0] if np.asarray(image).ndim == 4 else None
-        a = self.rng.uniform(-1.0, 1.0, size=(b, self.action_dim) if b else (self.action_dim,))
-        return a.astype(np.float32), None
-
-
 def run_episodes(task: str, policy: Any, contexts: Sequence[Mapping[str, float]], episodes: int = 1, *,
                  split: str = "test", seed: int = 0, workers: int = 0, batch: int = 0,
                  action_repeat: int = 2, time_limit: int = 1000, render_quality: str = "fast",
@@ -333,34 +196,18 @@ def run_episodes(task: str, policy: Any, contexts: Sequence[Mapping[str, float]]
     n = min(len(jobs), batch or (workers if workers > 0 else 8))   # one env per worker process
     steps_per_ep = math.ceil(time_limit / action_repeat)
     bar = runs.progress(len(jobs) * steps_per_ep, desc=desc, disable=True if progress is False else None, unit="step")
-    with EnvPool(task, n, split, seed, workers=workers > 0, action_repeat=action_repeat,
-                 time_limit=time_limit, render_quality=render_quality) as pool:
-        A = pool.action_dim
+    # Seeds as evaluation always drew them (an int from each child of SeedSequence(seed)), so
+    # earlier results reproduce.
+    env_seeds = [int(s.generate_state(1)[0]) for s in np.random.SeedSequence(seed).spawn(n)]
+    with VectorEnv(task, n, split, seed, in_process=workers <= 0, env_seeds=env_seeds,
+                   action_repeat=action_repeat, time_limit=time_limit, render_quality=render_quality) as pool:
         for w0 in range(0, len(jobs), n):
             if stop is not None and stop.stop:
                 break
             wave = jobs[w0:w0 + n]
-            obs = pool.reset([contexts[ci] for ci, _ in wave])
-            policy.reset(len(wave))
-            prev = np.zeros((len(wave), A), np.float32)
-            ret = np.zeros(len(wave))
-            done = np.zeros(len(wave), bool)
-            images = np.stack([o.image for o in obs])
-            first = np.array([o.is_first for o in obs])
-            while not done.all():
-                action, _ = policy.act(images, prev, first)
-                action = np.asarray(action, np.float32)
-                live = np.flatnonzero(~done)
-                new = pool.step(action, live)
-                for i, o in zip(live, new):
-                    images[i] = o.image
-                    ret[i] += o.reward
-                    done[i] = o.is_last
-                prev = action
-                first = np.zeros(len(wave), bool)
-                bar.update(len(live))
-            for (ci, _), r in zip(wave, ret):
-                results[ci].returns.append(float(r))
+            done = rollout(pool, policy, [contexts[ci] for ci, _ in wave], on_step=bar.update)
+            for (ci, _), t in zip(wave, done):
+                results[ci].returns.append(t.ret)
     bar.close()
     return results
 

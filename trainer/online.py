@@ -211,7 +211,8 @@ def run(a: argparse.Namespace) -> int:
 def _run(a: argparse.Namespace, ctx: distributed.DistContext, device: str) -> int:
     from protocad_ros.policy import Policy
     from sim_bridge.vector import VectorEnv
-    from trainer.evaluate import (RandomPolicy, evaluate_checkpoint, format_table, select_contexts)
+    from trainer.evaluate import evaluate_checkpoint, format_table, select_contexts
+    from trainer.rollout import RandomPolicy
 
     main_rank, world = ctx.is_main, ctx.world_size
     say = print if main_rank else (lambda *args, **kw: None)
