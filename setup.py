@@ -47,6 +47,7 @@ INSTALL_REQUIRES = [
     "pillow>=10.1",
     "matplotlib>=3.8",    # protocad-compare's learning-curve PNG
     "jsonschema>=4.20",   # results.json is checked against its schema on save and load
+    "tyro==1.0.17",       # the config options of the CLIs, generated from the config tree (flag names pinned)
 ]
 
 setup(

@@ -2,7 +2,7 @@
 # Prepare what a lent GPU machine lacks for scripts/gpu_campaign.py, under .gpu/ (git-ignored;
 # pass `.gpu` in the device tool's carry list):
 #   .gpu/site.tar.xz   mujoco 3.17.0, dm-control 1.0.50 (trimmed: no locomotion assets, no dog
-#                      meshes, no MuJoCo studio), mcap, mcap-ros2-support and dm_control's pure
+#                      meshes, no MuJoCo studio), mcap, mcap-ros2-support, tyro and dm_control's pure
 #                      dependencies, as CPython wheels for the GPU machine's Python (default 3.12)
 #   .gpu/prefix/share/<pkg>/msg/*.msg|*.json   the message definitions the MCAP writer reads
 #                      (the GPU path has no ROS install; see trainer/mcap_io.py)
@@ -22,7 +22,7 @@ python -m pip install -q --target "$SITE" --python-version "$PYVER" --implementa
   --only-binary=:all: --no-deps \
   --platform manylinux2014_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux_2_28_x86_64 \
   mujoco==3.17.0 dm-control==1.0.50 mcap==1.6.0 mcap-ros2-support==0.6.0 \
-  dm-env dm-tree absl-py pyopengl lxml glfw etils zstandard
+  dm-env dm-tree absl-py pyopengl lxml glfw etils zstandard tyro==1.0.17 docstring-parser typeguard typing-extensions
 # What the eight suite tasks never load (85 MB of locomotion/manipulation assets and more).
 rm -rf "$SITE"/dm_control/locomotion "$SITE"/dm_control/suite/dog_assets \
        "$SITE"/dm_control/suite/all_domains.png "$SITE"/mujoco/experimental

@@ -10,6 +10,7 @@ import sys
 from pathlib import Path
 
 import pytest
+import yaml
 
 from conftest import ROOT, wait_for
 from trainer_bags import TINY, make_steps, run_cli, write_bag, write_rosbags_bag
@@ -43,7 +44,8 @@ def test_log_from_another_tool_trains_and_evaluates(tmp_path):
     ck = run_dir / "checkpoints" / "latest.pt"
     assert ckpt_counters(ck)["agent_updates"] == 3
     assert [m["update"] for m in metrics(run_dir)] == [1, 2, 3]
-    assert (run_dir / "config.yaml").exists()
+    saved = yaml.safe_load((run_dir / "config.yaml").read_text())   # TINY's generated options and --set
+    assert (saved["world_model"]["deter"], saved["behavior"]["critic_units"], saved["context"]["proto_dim"]) == (32, 32, 8)
     # evaluate that checkpoint: one short episode of one test context
     out = tmp_path / "eval.json"
     r = run_cli("trainer.evaluate", ck, "--episodes", "1", "--context", "m=0.4", "--time-limit", "20",
@@ -140,3 +142,55 @@ def test_resume_and_new_run_dirs_are_checked_by_every_command(tmp_path):
     # A fresh run never overwrites one that is there.
     r = run_cli("trainer.online", "--run-dir", tmp_path / "ckpt_only", *TINY)
     assert r.returncode == 2 and "already holds a run" in r.stderr, r.stderr
+
+
+def _help_entry(text: str, option: str) -> str:
+    """The help text of one option in tyro's boxed listing (its lines up to the next option)."""
+    lines = [ln.strip("│ ").strip() for ln in text.splitlines()]
+    start = next(i for i, ln in enumerate(lines) if ln.startswith(option + " ") or ln == option
+                 or ln.startswith(option + ","))
+    end = next((i for i in range(start + 1, len(lines)) if lines[i].startswith("--")), len(lines))
+    return " ".join(lines[start:end])
+
+
+def test_every_config_field_is_an_option_with_the_configs_help_and_the_presets_default():
+    import dataclasses
+
+    from protocad_ros.config import make_config
+    from trainer import runs
+
+    small, paper = run_cli("trainer.train", "--help"), run_cli("trainer.train", "--preset", "paper", "--help")
+    assert small.returncode == paper.returncode == 0, small.stderr + paper.stderr
+    cfg = make_config(preset="small")
+    for section in (f for f in dataclasses.fields(cfg) if f.name not in runs.OWN_FLAG_FIELDS):
+        value = getattr(cfg, section.name)
+        keys = [f"{section.name}.{f.name}" for f in dataclasses.fields(value)] if dataclasses.is_dataclass(value) \
+            else [section.name]
+        for key in keys:
+            assert f"--{key}" in small.stdout, key
+    # The default shown is the chosen preset's; the help is the field's comment in config.py.
+    assert "(default: 128)" in _help_entry(small.stdout, "--world_model.deter")
+    assert "(default: 200)" in _help_entry(paper.stdout, "--world_model.deter")
+    assert "paper B" in _help_entry(paper.stdout, "--train.batch_size")
+    assert "(default: 16)" in _help_entry(paper.stdout, "--train.batch_size")
+
+
+def test_config_options_set_what_set_and_the_file_set(tmp_path):
+    from trainer import runs
+    from trainer.train import build_parser, config_from_args
+
+    def config(*argv):
+        return config_from_args(runs.parse_cli(build_parser(), [str(x) for x in argv]))
+
+    (tmp_path / "c.yaml").write_text("world_model: {deter: 40, hidden: 48}\n")
+    cfg = config("--config", tmp_path / "c.yaml", "--set", "world_model.hidden=56", "--world_model.deter", "24",
+                 "--world_model.no_gru_norm", "--behavior.horizon", "7", "--logs", "somewhere")
+    assert (cfg.world_model.deter, cfg.world_model.hidden, cfg.world_model.gru_norm, cfg.behavior.horizon) == \
+        (24, 56, False, 7)
+    assert cfg.preset == "small" and config("--preset", "paper").world_model.deter == 200
+    for bad in (["--world_model.nope", "1"], ["--world_model.deter", "many"]):
+        with pytest.raises(SystemExit) as exit_:
+            config(*bad)
+        assert exit_.value.code == 2
+    with pytest.raises(ValueError, match="train.precision"):
+        config("--train.precision", "float8")

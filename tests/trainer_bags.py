@@ -16,10 +16,11 @@ from sim_bridge import topics as T
 
 DT_NS = 40_000_000  # pendulum: control_dt 0.02 s x action repeat 2
 
-# A model small enough for CPU tests (seconds per run, not minutes).
-TINY = ["--set", "world_model.deter=32", "--set", "world_model.hidden=32", "--set", "world_model.stoch=8",
-        "--set", "world_model.cnn_depth=8", "--set", "world_model.mlp_units=32",
-        "--set", "behavior.actor_units=32", "--set", "behavior.critic_units=32",
+# A model small enough for CPU tests (seconds per run, not minutes): config fields set both ways,
+# as generated options and as --set overrides.
+TINY = ["--world_model.deter", "32", "--world_model.hidden", "32", "--world_model.stoch", "8",
+        "--world_model.cnn_depth", "8", "--world_model.mlp_units", "32",
+        "--behavior.actor_units", "32", "--behavior.critic_units", "32",
         "--set", "context.num_prototypes=8", "--set", "context.proto_dim=8",
         "--set", "behavior.horizon=5", "--batch-size", "4", "--seq-len", "8", "--threads", "1"]
 

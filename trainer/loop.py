@@ -95,7 +95,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    a = build_parser().parse_args(argv)
+    a = runs.parse_cli(build_parser(), argv)
     from trainer.rosprocs import NodeFailed
 
     try:

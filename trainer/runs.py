@@ -25,7 +25,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Callable, Iterable, Mapping
+from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 import yaml
@@ -142,6 +142,62 @@ def build_config(task: str | None = None, variant: str | None = None, preset: st
     settings = {k: v for k, v in flatten(file_dict).items() if k not in ("task", "variant", "preset")}
     settings.update(overrides or {})
     return apply_overrides(cfg, settings)   # ConfigError is a ValueError: one line in the CLIs
+
+
+#: Config fields with flags of their own (--task, --variant, --preset: they pick the defaults
+#: of every other field), so not among the generated options.
+OWN_FLAG_FIELDS = ("task", "variant", "preset")
+OWN_SETTINGS_HELP = ("a baseline with the settings it was published with (the README's variant table); "
+                     "false: ProtoCAD's settings for every variant")
+
+
+def _config_options_class(cfg: Any) -> type:
+    """A dataclass of cfg's sections and settings (not OWN_FLAG_FIELDS), defaults = cfg's values."""
+    import copy
+    import dataclasses
+    import typing
+
+    import tyro
+
+    hints = typing.get_type_hints(type(cfg))
+    # A field of the class made here has no comment for tyro to read: the one setting gets its help.
+    hints["own_settings"] = typing.Annotated[hints["own_settings"], tyro.conf.arg(help=OWN_SETTINGS_HELP)]
+    return dataclasses.make_dataclass("config", [
+        (f.name, hints[f.name], dataclasses.field(default_factory=lambda v=getattr(cfg, f.name): copy.deepcopy(v)))
+        for f in dataclasses.fields(cfg) if f.name not in OWN_FLAG_FIELDS])
+
+
+def apply_config_flags(cfg: Any, args: Sequence[str], prog: str) -> Any:
+    """cfg with the config options in `args` applied: one option per field of the config tree
+    (`--train.batch_size 8`, `--world_model.gru_norm` / `--world_model.no_gru_norm`), generated
+    from protocad_ros.config by tyro, with the field's comment as help and cfg's value as the
+    default shown. `--help` among them prints them and exits; an unknown one exits 2."""
+    import dataclasses
+
+    import tyro
+
+    options = _config_options_class(cfg)
+    parsed = tyro.cli(options, args=list(args), prog=prog, use_underscores=True,
+                      description="Config options (protocad_ros.config; defaults: the chosen "
+                                  "--task / --variant / --preset, --config file and --set overrides).")
+    cfg = dataclasses.replace(cfg, **{f.name: getattr(parsed, f.name) for f in dataclasses.fields(parsed)})
+    cfg.validate()
+    return cfg
+
+
+def parse_cli(ap: argparse.ArgumentParser, argv: Sequence[str] | None) -> argparse.Namespace:
+    """The command's own options (argparse); the rest must be config options, kept in
+    `a.config_args` for apply_config_flags. `-h` prints both: the command's options, then the
+    config options with the defaults of the --task / --variant / --preset / --config given."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    helps = [x for x in argv if x in ("-h", "--help")]
+    a, rest = ap.parse_known_args([x for x in argv if x not in helps])
+    if helps:
+        ap.print_help()
+        print(flush=True)
+        apply_config_flags(build_config(a.task, a.variant, a.preset, a.config), ["--help"], ap.prog)
+    a.config_args, a.prog = rest, ap.prog
+    return a
 
 
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):

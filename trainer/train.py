@@ -260,7 +260,8 @@ def add_common_model_args(ap: argparse.ArgumentParser, *, defaults_from_config: 
     g.add_argument("--config", default=None, metavar="FILE",
                    help="YAML config (a saved config.yaml or a partial nested mapping)")
     g.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="config override, e.g. --set world_model.deter=64 --set train.batch_size=8 (repeatable)")
+                   help="config override, e.g. --set world_model.deter=64 --set train.batch_size=8 (repeatable); "
+                        "every field is also an option of its own, listed under 'Config options' below")
     g.add_argument("--batch-size", type=int, default=None, help="B (train.batch_size)")
     g.add_argument("--seq-len", type=int, default=None, help="M (train.seq_len)")
     g.add_argument("--seed", type=int, default=0, help="seeds model init, sampling and augmentation")
@@ -285,7 +286,9 @@ def config_from_args(a: argparse.Namespace):
         choice = resolve_precision(a.precision, runs.resolve_device(a.device))
         overrides["train.precision"] = choice.precision
         print(f"[config] {choice.describe()}", flush=True)
-    return runs.build_config(a.task, a.variant, a.preset, a.config, overrides)
+    cfg = runs.build_config(a.task, a.variant, a.preset, a.config, overrides)
+    flags = getattr(a, "config_args", [])
+    return runs.apply_config_flags(cfg, flags, getattr(a, "prog", "protocad")) if flags else cfg
 
 
 def add_topic_args(ap: argparse.ArgumentParser) -> None:
@@ -338,7 +341,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    a = build_parser().parse_args(argv)
+    a = runs.parse_cli(build_parser(), argv)
     try:
         return _main(a)
     except (DatasetError, ValueError) as exc:
