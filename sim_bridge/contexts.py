@@ -1,4 +1,6 @@
-"""The paper's context-randomized DMC tasks: parameter lists and number of prototypes.
+"""The paper's context-randomized DMC tasks: parameter lists, number of prototypes, and what
+every node needs to know of a task without simulating it (actuator names, camera, which bodies a
+context scales).
 
 Values are copied verbatim from ProtoCAD (ICLR 2023), appendix Table ``env_para``
 ("The environmental settings") and Table ``setting_k`` (K per task). A context is a dict
@@ -124,6 +126,31 @@ ACTUATORS: dict[str, tuple[str, ...]] = {
     "quadruped": tuple(f"{j}_{leg}" for leg in ("front_left", "front_right", "back_right", "back_left")
                        for j in ("yaw", "lift", "extend")),
     "walker": tuple(f"{side}_{j}" for side in ("right", "left") for j in ("hip", "knee", "ankle")),
+}
+
+
+#: The camera each domain is rendered from: Dreamer/DreamerPro DMC (quadruped 2, the rest 0).
+CAMERA_IDS = {"quadruped": 2}
+
+
+@dataclass(frozen=True)
+class BodyScaling:
+    """Which part of a domain's model a context scales: the bodies in the subtree of ``root``
+    (without ``root`` itself when ``include_root`` is False), and their joints' damping."""
+
+    root: str
+    include_root: bool = True
+    damping: bool = False
+
+
+#: What a context scales in each domain's model (sim_bridge.envs applies it; its docstring says why).
+SCALING = {
+    "cheetah": BodyScaling("torso", damping=True),
+    "walker": BodyScaling("torso", damping=True),
+    "hopper": BodyScaling("torso"),
+    "finger": BodyScaling("proximal"),  # the finger, not the spinner (see module docstring)
+    "pendulum": BodyScaling("pole"),
+    "quadruped": BodyScaling("torso", include_root=False),  # legs only
 }
 
 

@@ -41,36 +41,13 @@ from typing import TYPE_CHECKING, Any, Literal, Mapping, Sequence
 
 import numpy as np
 
-from sim_bridge.contexts import TaskSpec, check_split, get_task
+from sim_bridge.contexts import CAMERA_IDS, SCALING, TaskSpec, check_split, get_task
 
 if TYPE_CHECKING:
     from dm_control.mujoco import Physics
 
 RenderQuality = Literal["default", "fast"]
 RENDER_QUALITIES = ("default", "fast")
-CAMERA_IDS = {"quadruped": 2}  # Dreamer/DreamerPro DMC camera; 0 for every other domain
-
-
-@dataclass(frozen=True)
-class _Scaling:
-    """Which part of a domain's model a context scales: the bodies in the subtree of ``root``
-    (without ``root`` itself when ``include_root`` is False), and their joints' damping."""
-
-    root: str
-    include_root: bool = True
-    damping: bool = False
-
-
-SCALING = {
-    "cheetah": _Scaling("torso", damping=True),
-    "walker": _Scaling("torso", damping=True),
-    "hopper": _Scaling("torso"),
-    "finger": _Scaling("proximal"),  # the finger, not the spinner (see module docstring)
-    "pendulum": _Scaling("pole"),
-    "quadruped": _Scaling("torso", include_root=False),  # legs only
-}
-
-
 @dataclass
 class Observation:
     """One agent step. reward is summed over the action repeats that led here (0 on is_first);
