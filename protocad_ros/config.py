@@ -78,6 +78,9 @@ VARIANT_TABLE: dict[str, VariantSpec] = {v.name: v for v in (
 VARIANTS = tuple(VARIANT_TABLE)
 WORLD_MODEL_VARIANTS = tuple(n for n, v in VARIANT_TABLE.items() if v.family == "world_model")
 PRESETS = ("paper", "small", "dreamerv3_sizes")
+#: The preset of a command line or a node that is given none: the CPU-sized one (a config built
+#: in code, or read from a file without a preset, has the paper's).
+DEFAULT_CLI_PRESET = "small"
 
 class ConfigError(ValueError):
     """A configuration key or value that does not fit the tree (message lists valid keys)."""

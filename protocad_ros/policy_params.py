@@ -2,7 +2,7 @@
 so that --help, docs and tests read them without importing rclpy or torch."""
 from __future__ import annotations
 
-from protocad_ros.config import PRESETS, VARIANTS
+from protocad_ros.config import DEFAULT_CLI_PRESET, PRESETS, VARIANTS
 from sim_bridge.contexts import TASKS
 from sim_bridge.rosnode import Param, autostart_param, executor_param, strict_param
 
@@ -25,7 +25,7 @@ PARAMS: tuple[Param, ...] = (
           "incomplete.", range=(0.1, 3600.0), units="s"),
     Param("task", "pendulum_swingup", "Task of the random agent (action size, K prototypes); "
           "with a checkpoint its config's task is used.", choices=tuple(sorted(TASKS))),
-    Param("preset", "small", "Model size preset of the random agent.", choices=PRESETS),
+    Param("preset", DEFAULT_CLI_PRESET, "Model size preset of the random agent.", choices=PRESETS),
     Param("variant", "protocad", "Model variant of the random agent.", choices=VARIANTS),
     Param("device", "cpu", "Torch device of the model, e.g. cpu, cuda, cuda:0."),
     Param("mode", "deterministic", "deterministic: the actor's mode; sample: a sample of the "

@@ -125,7 +125,7 @@ def build_config(task: str | None = None, variant: str | None = None, preset: st
 
     Returns a protocad_ros.config.Config.
     """
-    from protocad_ros.config import apply_overrides, make_config
+    from protocad_ros.config import DEFAULT_CLI_PRESET, apply_overrides, make_config
 
     file_dict: dict[str, Any] = {}
     if config_file:
@@ -137,7 +137,7 @@ def build_config(task: str | None = None, variant: str | None = None, preset: st
     # task / variant / preset: flag > file > default
     task = task or file_dict.get("task") or "pendulum_swingup"
     variant = variant or file_dict.get("variant") or "protocad"
-    preset = preset or file_dict.get("preset") or "small"
+    preset = preset or file_dict.get("preset") or DEFAULT_CLI_PRESET
     cfg = make_config(task=task, preset=preset, variant=variant)
     settings = {k: v for k, v in flatten(file_dict).items() if k not in ("task", "variant", "preset")}
     settings.update(overrides or {})

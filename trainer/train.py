@@ -247,7 +247,7 @@ class RanksDiverged(RuntimeError):
 
 # ---------------------------------------------------------------------- CLI
 def add_common_model_args(ap: argparse.ArgumentParser, *, defaults_from_config: bool = True) -> None:
-    from protocad_ros.config import PRESETS, VARIANTS
+    from protocad_ros.config import DEFAULT_CLI_PRESET, PRESETS, VARIANTS
     from sim_bridge.contexts import TASKS
 
     g = ap.add_argument_group("model / config")
@@ -256,7 +256,7 @@ def add_common_model_args(ap: argparse.ArgumentParser, *, defaults_from_config: 
     g.add_argument("--variant", choices=VARIANTS, default=None,
                    help="agent variant (default: from --config, else protocad)")
     g.add_argument("--preset", choices=PRESETS, default=None,
-                   help="model size preset (default: from --config, else small)")
+                   help=f"model size preset (default: from --config, else {DEFAULT_CLI_PRESET})")
     g.add_argument("--config", default=None, metavar="FILE",
                    help="YAML config (a saved config.yaml or a partial nested mapping)")
     g.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
