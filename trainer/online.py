@@ -212,7 +212,7 @@ def _run(a: argparse.Namespace, ctx: distributed.DistContext, device: str) -> in
     from protocad_ros.policy import Policy
     from sim_bridge.vector import VectorEnv
     from trainer.evaluate import evaluate_checkpoint, format_table, select_contexts
-    from trainer.rollout import RandomPolicy
+    from trainer.rollout import RandomPolicy, continuing_rollout
 
     main_rank, world = ctx.is_main, ctx.world_size
     say = print if main_rank else (lambda *args, **kw: None)
@@ -371,11 +371,15 @@ def _run(a: argparse.Namespace, ctx: distributed.DistContext, device: str) -> in
             rng_policy = RandomPolicy(A, seed=tr.seed + 1000 * int(c.get("resumes", 0)))
             agent_policy = Policy(trainer.agent, device=device, mode="sample",
                                   exploration_noise=tr.expl_noise, seed=tr.seed + int(c["episodes"]))
-            obs = venv.reset()
             n = a.num_envs
             agent_policy.reset(n)
+
+            def prefilling() -> bool:
+                return int(c["episodes"]) < N and not int(c["prefill_done"])
+
+            # Asked before every step: the prefill's random policy, then the agent.
+            stream = continuing_rollout(venv, lambda: rng_policy if prefilling() else agent_policy)
             ticks = [0] * n
-            prev = np.zeros((n, A), np.float32)
             ep_return = np.zeros(n)
             writers = [None] * n
             bar = runs.progress(a.env_steps, initial=int(c["env_steps"]), desc="env steps",
@@ -401,14 +405,8 @@ def _run(a: argparse.Namespace, ctx: distributed.DistContext, device: str) -> in
                 return int(c["env_steps"]) < a.env_steps and not distributed.any_rank(halt, ctx)
 
             while keep_going():
-                prefill = int(c["episodes"]) < N and not int(c["prefill_done"])
-                images = np.stack([o.image for o in obs])
-                first = np.array([o.is_first for o in obs])
-                prev[first] = 0.0
-                if prefill:
-                    actions, feats = rng_policy.act(images, prev, first)
-                else:
-                    actions, feats = agent_policy.act(images, prev, first)
+                obs, actions, feats = next(stream)
+                prefill = prefilling()
                 finished = []
                 for i, o in enumerate(obs):
                     stamp = ticks[i] * dt_ns
@@ -436,7 +434,6 @@ def _run(a: argparse.Namespace, ctx: distributed.DistContext, device: str) -> in
                         trainer.metrics.log(trainer.updates, {"train_return": float(ep_return[i])}, kind="episode",
                                             env_steps=int(c["env_steps"]), episodes=int(c["episodes"]),
                                             prefill=bool(prefill))
-                prev = np.asarray(actions, np.float32)
                 if finished:
                     ds.add(finished)
                     if int(c["episodes"]) >= N and not int(c["prefill_done"]):
@@ -459,7 +456,6 @@ def _run(a: argparse.Namespace, ctx: distributed.DistContext, device: str) -> in
                         trainer.save()
                 if stopped():
                     break
-                obs = venv.step(np.asarray(actions, np.float64))
             bar.close()
             if stopped():
                 status = "interrupted"

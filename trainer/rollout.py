@@ -1,13 +1,13 @@
-"""One rollout function: a policy acting in a `VectorEnv` on given contexts, one episode per
-env, until every episode has ended. Evaluation (returns per context, also online's periodic and
-final ones) and the context views (the frames of one short episode per context) both run it.
-Online collection is a continuing stream over the same `VectorEnv` (auto-reset, bags written
-and updates made between episodes), so it steps the pool itself.
+"""Policies acting in a `VectorEnv`, the two ways the project runs them: `rollout` (given
+contexts, one episode per env, until every episode has ended: evaluation, online's periodic and
+final evaluations, the context views) and `continuing_rollout` (every env on and on, a new
+episode whenever one ends: online collection, which writes bags and trains between steps).
+Both give a policy the same inputs (images, the previous actions, zero at is_first, is_first).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Callable, Iterator, Mapping, Sequence
 
 import numpy as np
 
@@ -90,3 +90,21 @@ def rollout(pool: Any, policy: Any, contexts: Sequence[Mapping[str, float]], *,
         if on_step is not None:
             on_step(len(live))
     return trajectories
+
+
+def continuing_rollout(pool: Any, choose: Callable[[], Any]) -> Iterator[tuple[list, np.ndarray, Any]]:
+    """Every env of `pool` stepped on and on (auto-reset at episode ends). Each item: the
+    observations, the actions for them and the features of `choose()`, the policy asked before
+    every step (a random one during the prefill, then the agent); the pool steps with those
+    actions when the next item is asked for, so a consumer that stops leaves no step half done."""
+    obs = pool.reset()
+    n, A = len(obs), pool.action_dim
+    prev = np.zeros((n, A), np.float32)
+    while True:
+        images = np.stack([o.image for o in obs])
+        first = np.array([o.is_first for o in obs])
+        prev[first] = 0.0
+        actions, features = choose().act(images, prev, first)
+        yield obs, actions, features
+        prev = np.asarray(actions, np.float32)
+        obs = pool.step(np.asarray(actions, np.float64))
