@@ -12,8 +12,9 @@ PACKAGES = ("protocad_ros", "sim_bridge", "trainer")
 #: protocad_ros' model files (the node, the live view and the ROS helpers are the ROS side).
 MODEL_FILES = ("agent", "agent_base", "agents", "augment", "atomic", "behavior", "checkpoint",
                "config", "drq", "networks", "policy", "precision", "prototypes", "rssm")
-#: The wire contract and task knowledge every package builds on.
-CONTRACT = ("sim_bridge.topics", "sim_bridge.contexts", "sim_bridge.qos")
+#: The wire contract, task knowledge and the node plumbing every package builds on.
+CONTRACT = ("sim_bridge.topics", "sim_bridge.contexts", "sim_bridge.qos", "sim_bridge.rosnode",
+            "sim_bridge.rosbase", "sim_bridge.lifecycle")
 ROS = ("rclpy", "rcl_interfaces", "sensor_msgs", "std_msgs", "std_srvs", "diagnostic_msgs",
        "rosgraph_msgs", "lifecycle_msgs", "builtin_interfaces")
 
