@@ -16,6 +16,7 @@ from sensor_msgs.msg import JointState
 
 from conftest import ROOT
 from ros_helpers import Probe, wait_until
+from sim_bridge import qos
 from sim_bridge import topics as T
 from test_evaluate import tiny_checkpoint
 from trainer import mcap_io as M
@@ -74,10 +75,18 @@ def assert_every_step_answered_from_stamp_0(bag: Path) -> int:
     return len(steps)
 
 
+def steps_seen(probe) -> list:
+    """The actions the policy publishes, one per step. Not step_info: a reader of step_info is
+    one of the readers the lock-step bridge waits for, and could stand in for the recorder's
+    (the bridge would then start before the recorder's reader is matched, and step_info would
+    be missing from the bag)."""
+    return probe.record(T.ACTION, JointState, qos.action_qos())
+
+
 def test_the_one_command_stack_as_written(workdir, probe):
     script = workdir / "stack_block.sh"
     script.write_text(readme_block("protocad-stack stack.yaml"))
-    seen = probe.record(T.STEP_INFO, JointState)
+    seen = steps_seen(probe)
     p = subprocess.Popen(["bash", "-e", str(script)], cwd=workdir, stdout=open(workdir / "stack.log", "wb"),
                          stderr=subprocess.STDOUT, start_new_session=True)
     try:
@@ -91,7 +100,7 @@ def test_the_one_command_stack_as_written(workdir, probe):
 
 def test_three_terminals_then_the_everyday_ros2_verbs_as_written(workdir, probe):
     record, policy, bridge = [ln for ln in readme_block("ros2 run trainer record").splitlines() if ln.strip()]
-    seen = probe.record(T.STEP_INFO, JointState)
+    seen = steps_seen(probe)
     node = probe.node
     action = T.topic_name(NS, T.ACTION)
     procs = [terminal(workdir, record, workdir / "record.log")]
