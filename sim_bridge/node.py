@@ -88,7 +88,7 @@ class SimBridgeNode(BridgeDiagnostics, ManagedNode):
                                                          qos_overriding_options=qos.overridable())
         self.pub_info = self.create_lifecycle_publisher(JointState, topics.STEP_INFO, obs_qos)
         self.pub_context = self.create_lifecycle_publisher(JointState, topics.CONTEXT, obs_qos)
-        self.pub_clock = self.create_lifecycle_publisher(Clock, topics.CLOCK, qos.clock_qos())
+        self.pub_clock = self.create_lifecycle_publisher(Clock, topics.CLOCK, qos.clock_qos(lossless))
         self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
                                               qos.diagnostics_qos())
         # Not a lifecycle publisher: the announcement goes out at configure, so a policy can

@@ -71,9 +71,15 @@ def action_qos() -> QoSProfile:
                       reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
 
 
-def clock_qos() -> QoSProfile:
+def clock_qos(lossless: bool = False) -> QoSProfile:
     """/clock: reliable so that reliable recorders match; rclpy's TimeSource subscribes
-    best-effort depth 1, which a reliable writer also serves."""
+    best-effort depth 1, which a reliable writer also serves. lossless (the bridge in
+    lock-step): KEEP_ALL like the observations, so a recorder that falls behind for more than
+    CLOCK_DEPTH steps still gets the sim time of every step (best-effort readers never hold a
+    KEEP_ALL writer back)."""
+    if lossless:
+        return QoSProfile(history=HistoryPolicy.KEEP_ALL, depth=CLOCK_DEPTH,
+                          reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE)
     return _reliable(CLOCK_DEPTH)
 
 
