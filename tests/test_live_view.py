@@ -3,6 +3,7 @@ rerun's own reader, a real rerun gRPC server for 'connect', a real tiny agent's 
 from __future__ import annotations
 
 import os
+import signal
 import socket
 import subprocess
 import sys
@@ -199,11 +200,13 @@ def test_connect_mode_streams_to_a_rerun_server(tmp_path, tiny_policy):
                     break
             time.sleep(0.2)
     finally:
-        server.send_signal(2)
+        # The whole group: `rerun` is a Python wrapper whose child, the native server, would
+        # outlive a signal to the wrapper alone (each run of this test left one behind).
+        os.killpg(server.pid, signal.SIGINT)
         try:
             server.wait(10)
         except subprocess.TimeoutExpired:
-            server.kill()
+            os.killpg(server.pid, signal.SIGKILL)
             server.wait()
     assert rec.get("/policy/image", {}).get("rows") == 6, sorted(rec)
     assert rec["/policy/assignment"]["rows"] == 6
