@@ -11,7 +11,6 @@ import re
 import signal
 import subprocess
 import sys
-from concurrent.futures import ThreadPoolExecutor
 
 import pytest
 import yaml
@@ -29,17 +28,11 @@ def ros2(*args: str, timeout: float = 60, env: dict | None = None) -> subprocess
                           timeout=timeout, cwd=ROOT, env={**os.environ, **(env or {})})
 
 
-#: ros2cli's --spin-time for a graph verb: without a daemon it answers from what discovery found
-#: so far, and here a participant's endpoints sometimes take up to ~2.7 s to be discovered
-#: (measured: bimodal, 0.05 s or 1.5-2.7 s).
-GRAPH_SPIN = ("--spin-time", "3")
-
-
-def ros2_all(*calls: tuple[str, ...]) -> list[subprocess.CompletedProcess]:
-    """Independent verbs run at once, answers in order: each spends its time waiting for
-    discovery, not on the CPU, so a batch takes about as long as one."""
-    with ThreadPoolExecutor(len(calls)) as pool:
-        return list(pool.map(lambda args: ros2(*args), calls))
+def ros2_graph(*args: str) -> subprocess.CompletedProcess:
+    """A graph verb given ros2cli's --spin-time: without a daemon it answers from what discovery
+    found so far, and here a participant's endpoints sometimes take up to ~2.7 s to be
+    discovered (measured: bimodal, 0.05 s or 1.5-2.7 s)."""
+    return ros2(*args, "--spin-time", "3")
 
 
 @pytest.fixture(scope="module")
@@ -59,14 +52,14 @@ def bridge(tmp_path_factory):
 
 
 def test_node_list_and_info(bridge):
-    out, count, info, missing = ros2_all(("node", "list", *GRAPH_SPIN), ("node", "list", "-c", *GRAPH_SPIN),
-                                         ("node", "info", BRIDGE, *GRAPH_SPIN), ("node", "info", "/protocad/nobody"))
+    out = ros2_graph("node", "list")
     assert out.returncode == 0, out.stderr
     names = out.stdout.split()
     assert BRIDGE in names and "/protocad/ros2cli_test_probe" in names
     assert not any(n.rsplit("/", 1)[-1].startswith("_") for n in names)   # hidden nodes (ours) not listed
-    assert count.stdout.strip() == str(len(names))
+    assert ros2_graph("node", "list", "-c").stdout.strip() == str(len(names))
 
+    info = ros2_graph("node", "info", BRIDGE)
     assert info.returncode == 0, info.stderr
     lines = info.stdout.splitlines()
     assert lines[0] == BRIDGE
@@ -78,56 +71,59 @@ def test_node_list_and_info(bridge):
     assert "    /protocad/image: sensor_msgs/msg/Image" in body
     assert "    /protocad/reset: std_srvs/srv/Trigger" in body
     assert f"    {BRIDGE}/set_parameters: rcl_interfaces/srv/SetParameters" in body
+    missing = ros2("node", "info", "/protocad/nobody")
     assert missing.returncode == 1 and "Unable to find node '/protocad/nobody'" in missing.stderr
 
 
 def test_topic_list_and_info(bridge):
-    out, plain, info, verbose, unknown = ros2_all(
-        ("topic", "list", "-t", *GRAPH_SPIN), ("topic", "list", *GRAPH_SPIN),
-        ("topic", "info", "/protocad/image", *GRAPH_SPIN), ("topic", "info", "-v", "/protocad/image", *GRAPH_SPIN),
-        ("topic", "info", "/protocad/nope"))
+    out = ros2_graph("topic", "list", "-t")
     assert out.returncode == 0, out.stderr
     assert "/protocad/image [sensor_msgs/msg/Image]" in out.stdout.splitlines()
     assert "/clock [rosgraph_msgs/msg/Clock]" in out.stdout.splitlines()
-    plain = plain.stdout.splitlines()
+    plain = ros2_graph("topic", "list").stdout.splitlines()
     assert plain == sorted(plain) and "/protocad/step_info" in plain
 
+    info = ros2_graph("topic", "info", "/protocad/image")
     assert info.returncode == 0, info.stderr
     lines = info.stdout.splitlines()
     assert lines[0] == "Type: sensor_msgs/msg/Image" and lines[1] == "Publisher count: 1"
     assert re.fullmatch(r"Subscription count: [1-9]\d*", lines[2]) and len(lines) == 3
+    verbose = ros2_graph("topic", "info", "-v", "/protocad/image").stdout
     for needle in ("Node name: sim_bridge", "Node namespace: /protocad", "Topic type: sensor_msgs/msg/Image",
                    "Endpoint type: PUBLISHER", "Reliability: RELIABLE", "Durability: VOLATILE"):
-        assert needle in verbose.stdout, (needle, verbose.stdout)
+        assert needle in verbose, (needle, verbose)
+    unknown = ros2("topic", "info", "/protocad/nope")
     assert unknown.returncode == 1 and unknown.stderr.strip() == "Unknown topic '/protocad/nope'"
 
 
 def test_topic_echo_prints_ros2cli_yaml(bridge):
-    echo = ("topic", "echo", "--once")
-    out, img, no_arr, stamp, csv, bad, picked, failing = ros2_all(
-        (*echo, "/protocad/bridge_info"), (*echo, "/protocad/image"), (*echo, "/protocad/image", "--no-arr"),
-        (*echo, "/protocad/step_info", "--field", "header.stamp"), (*echo, "/protocad/step_info", "--csv"),
-        (*echo, "/protocad/step_info", "--field", "nope"),
-        (*echo, "/protocad/step_info", "--filter", "m.header.stamp.sec >= 0"),
-        (*echo, "/protocad/step_info", "--filter", "m.nope > 0"))
     # The latched bridge_info is deterministic: the whole text is ros2cli's block YAML.
+    out = ros2("topic", "echo", "/protocad/bridge_info", "--once")
     assert out.returncode == 0, out.stderr
     assert out.stdout == (
         "header:\n  stamp:\n    sec: 0\n    nanosec: 0\n  frame_id: pendulum_swingup\n"
         "name:\n- torque\n- '@control_dt'\n- '@image_size'\n"
         "position:\n- 0.0\n- 0.04\n- 64.0\nvelocity: []\neffort: []\n---\n")
 
+    img = ros2("topic", "echo", "/protocad/image", "--once")
     doc = yaml.safe_load(img.stdout.split("\n---\n")[0])
     assert list(doc) == ["header", "height", "width", "encoding", "is_bigendian", "step", "data"]
     assert (doc["height"], doc["width"], doc["encoding"], doc["step"]) == (64, 64, "rgb8", 192)
     assert len(doc["data"]) == 129 and doc["data"][-1] == "..."    # truncated at 128 like ros2cli
     assert all(isinstance(v, int) and 0 <= v < 256 for v in doc["data"][:128])
-    assert yaml.safe_load(no_arr.stdout.split("---")[0])["data"] == "<sequence type: uint8, length: 12288>"
-    stamp = yaml.safe_load(stamp.stdout.split("---")[0])
+    no_arr = yaml.safe_load(ros2("topic", "echo", "/protocad/image", "--once", "--no-arr").stdout.split("---")[0])
+    assert no_arr["data"] == "<sequence type: uint8, length: 12288>"
+    stamp = yaml.safe_load(ros2("topic", "echo", "/protocad/step_info", "--once", "--field",
+                                "header.stamp").stdout.split("---")[0])
     assert set(stamp) == {"sec", "nanosec"} and stamp["nanosec"] % 20_000_000 == 0   # control_dt = 20 ms steps
-    assert csv.stdout.strip().split(",")[3:5] == ["reward", "discount"]    # sec, nanosec, frame_id, then the names
+    csv = ros2("topic", "echo", "/protocad/step_info", "--once", "--csv").stdout.strip().split(",")
+    assert csv[3:5] == ["reward", "discount"]    # sec, nanosec, frame_id, then the names
+    bad = ros2("topic", "echo", "/protocad/step_info", "--once", "--field", "nope")
     assert bad.returncode == 1 and "Invalid field 'nope'" in bad.stderr
-    assert yaml.safe_load(picked.stdout.split("---")[0])["name"][:2] == ["reward", "discount"]
+    picked = yaml.safe_load(ros2("topic", "echo", "/protocad/step_info", "--once", "--filter",
+                                 "m.header.stamp.sec >= 0").stdout.split("---")[0])
+    assert picked["name"][:2] == ["reward", "discount"]
+    failing = ros2("topic", "echo", "/protocad/step_info", "--once", "--filter", "m.nope > 0")
     assert failing.returncode == 1 and "--filter 'm.nope > 0' failed on a message: AttributeError" in failing.stderr
     assert "Traceback" not in failing.stderr
 
@@ -155,65 +151,63 @@ def test_topic_hz_prints_the_ros2cli_summary(bridge, tmp_path):
 
 def test_param_list_get_set_dump(bridge):
     probe, _ = bridge
-    listed, typed, every, task, seed, hidden, undeclared = ros2_all(
-        ("param", "list", BRIDGE), ("param", "list", BRIDGE, "--param-type"), ("param", "list", *GRAPH_SPIN),
-        ("param", "get", BRIDGE, "task"), ("param", "get", BRIDGE, "seed"),
-        ("param", "get", BRIDGE, "task", "--hide-type"), ("param", "get", BRIDGE, "nope"))
+    listed = ros2("param", "list", BRIDGE)
     assert listed.returncode == 0, listed.stderr
     names = listed.stdout.splitlines()
     assert "  task" in names and "  control_rate_hz" in names and names == sorted(names)
-    assert "  task (type: string)" in typed.stdout.splitlines()
-    assert f"{BRIDGE}:" in every.stdout.splitlines() and "  use_sim_time" in every.stdout.splitlines()
-    assert task.stdout == f"String value is: {TASK}\n"
-    assert seed.stdout == "Integer value is: 3\n"
-    assert hidden.stdout == f"{TASK}\n"
+    assert "  task (type: string)" in ros2("param", "list", BRIDGE, "--param-type").stdout.splitlines()
+    every = ros2_graph("param", "list").stdout.splitlines()
+    assert f"{BRIDGE}:" in every and "  use_sim_time" in every
+
+    assert ros2("param", "get", BRIDGE, "task").stdout == f"String value is: {TASK}\n"
+    assert ros2("param", "get", BRIDGE, "seed").stdout == "Integer value is: 3\n"
+    assert ros2("param", "get", BRIDGE, "task", "--hide-type").stdout == f"{TASK}\n"
+    undeclared = ros2("param", "get", BRIDGE, "nope")
     assert undeclared.returncode == 1 and undeclared.stderr == "Parameter not set\n"
 
     ok = ros2("param", "set", BRIDGE, "control_rate_hz", "40.0")
     assert ok.returncode == 0 and ok.stdout == "Set parameter successful\n", ok.stderr
+    assert ros2("param", "get", BRIDGE, "control_rate_hz").stdout == "Double value is: 40.0\n"
     wait_until(lambda: probe.node_diag("sim_bridge").get("control_rate_hz") in ("40", "40.0"), 20,
                "the bridge to run at the new rate")
-    refused, read_only, nobody, described = ros2_all(
-        ("param", "set", BRIDGE, "control_rate_hz", "5000.0"), ("param", "set", BRIDGE, "task", "walker_walk"),
-        ("param", "get", "/protocad/nobody", "task"), ("param", "describe", BRIDGE, "control_rate_hz"))
+    refused = ros2("param", "set", BRIDGE, "control_rate_hz", "5000.0")
     assert refused.returncode == 0 and refused.stdout == ""           # ros2cli: exit 0, reason on stderr
     assert refused.stderr.startswith("Setting parameter failed: ") and "1000" in refused.stderr
+    assert ros2("param", "get", BRIDGE, "control_rate_hz").stdout == "Double value is: 40.0\n"
+    read_only = ros2("param", "set", BRIDGE, "task", "walker_walk")
     assert read_only.stderr.startswith("Setting parameter failed: ")
-    assert nobody.stderr.strip() == "Node not found"
-    assert described.stdout.startswith("Parameter name: control_rate_hz\n  Type: double\n")
-    assert "    Min value: 0.0\n    Max value: 1000.0" in described.stdout
+    assert ros2("param", "get", "/protocad/nobody", "task").stderr.strip() == "Node not found"
 
-    rate, dumped = ros2_all(("param", "get", BRIDGE, "control_rate_hz"), ("param", "dump", BRIDGE))
-    assert rate.stdout == "Double value is: 40.0\n"                  # the refused value left it alone
-    params = yaml.safe_load(dumped.stdout)[BRIDGE]["ros__parameters"]
+    dumped = yaml.safe_load(ros2("param", "dump", BRIDGE).stdout)
+    params = dumped[BRIDGE]["ros__parameters"]
     assert params["task"] == TASK and params["seed"] == 3 and params["control_rate_hz"] == 40.0
     assert params["qos_overrides"]["/protocad/image"]["publisher"]["reliability"] == "reliable"
 
+    described = ros2("param", "describe", BRIDGE, "control_rate_hz").stdout
+    assert described.startswith("Parameter name: control_rate_hz\n  Type: double\n")
+    assert "    Min value: 0.0\n    Max value: 1000.0" in described
+
 
 def test_service_list_and_call(bridge):
-    listed, typed, out, bad, bad_field = ros2_all(
-        ("service", "list", "-t", *GRAPH_SPIN), ("service", "type", "/protocad/reset"),
-        ("service", "call", "/protocad/reset", "std_srvs/srv/Trigger"),
-        ("service", "call", "/protocad/reset", "std_srvs/srv/Nope"),
-        ("service", "call", "/protocad/reset", "std_srvs/srv/Trigger", "{nope: 1}"))
-    assert "/protocad/reset [std_srvs/srv/Trigger]" in listed.stdout.splitlines()
-    assert typed.stdout == "std_srvs/srv/Trigger\n"
+    listed = ros2_graph("service", "list", "-t").stdout.splitlines()
+    assert "/protocad/reset [std_srvs/srv/Trigger]" in listed
+    assert ros2("service", "type", "/protocad/reset").stdout == "std_srvs/srv/Trigger\n"
+    out = ros2("service", "call", "/protocad/reset", "std_srvs/srv/Trigger")
     assert out.returncode == 0, out.stderr
     m = re.fullmatch(r"(waiting for service to become available\.\.\.\n)?"
                      r"requester: making request: std_srvs\.srv\.Trigger_Request\(\)\n\n"
                      r"response:\nstd_srvs\.srv\.Trigger_Response\(success=True, message='(.+)'\)\n\n", out.stdout)
     assert m, out.stdout
     assert "started" in m.group(2)
+    bad = ros2("service", "call", "/protocad/reset", "std_srvs/srv/Nope")
     assert bad.returncode == 1 and bad.stderr.strip() == "The passed service type is invalid"
+    bad_field = ros2("service", "call", "/protocad/reset", "std_srvs/srv/Trigger", "{nope: 1}")
     assert bad_field.returncode == 1 and bad_field.stderr.startswith("Failed to populate field:")
 
 
 def test_lifecycle_nodes_get_list_set(bridge):
-    # One verb at a time here: once, in a CI-like run, a `lifecycle list` started together with
-    # three other lifecycle verbs on the same node hung past 60 s without a word (not seen one
-    # at a time).
     probe, _ = bridge
-    assert BRIDGE in ros2("lifecycle", "nodes", *GRAPH_SPIN).stdout.splitlines()
+    assert BRIDGE in ros2_graph("lifecycle", "nodes").stdout.splitlines()
     assert ros2("lifecycle", "get", BRIDGE).stdout == "active [3]\n"
     listed = ros2("lifecycle", "list", BRIDGE).stdout
     assert "- deactivate [4]\n\tStart: active\n\tGoal: deactivating\n" in listed
