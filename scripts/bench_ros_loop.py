@@ -9,9 +9,18 @@ Measured in one run, on the same machine, with the same task and settings:
                (an rclpy node in this process): the cost of the ROS round trip alone
 4. ros policy  sim-bridge node + policy node (random agent), two processes
 
-3 and 4 run twice: with the bridge's lossless lock-step (`lossless`, the default: KEEP_ALL
-observation writers, nothing a reliable reader has not acknowledged is dropped) and without.
-Observations this process's reader did not receive are reported as lost, never asserted.
+5. floor       a bare rclpy round trip of the same messages between two processes: this process
+               publishes a 64x64 image and a step_info (the bridge's QoS), a 40-line echo node
+               answers each pair with an action; no env, no validation, no counters. It bounds
+               what any rclpy bridge/policy pair can reach here: the ceiling ratios printed
+               are direct / (direct + round trip) with this floor's mean round trip. Once
+               more with the image alone, to show what one message per step would give.
+
+3 and 4 run with the bridge's lossless lock-step (`lossless`, the default: KEEP_ALL observation
+writers, nothing a reliable reader has not acknowledged is dropped) and without, in the order
+on, off, off, on (the first ROS run of a process is slower; each row is the mean of its two
+runs, both shown). Observations this process's reader did not receive are reported as lost,
+never asserted.
 
 For 3 and 4 the steps/s are agent steps between the first and the last observation seen
 (resets included, as in 1 and 2). Latencies: the policy node's own per-step latency
@@ -48,6 +57,21 @@ import numpy as np  # noqa: E402
 
 def pct(values, q) -> float:
     return float(np.percentile(np.asarray(values), q)) if len(values) else float("nan")
+
+
+class RunMean(float):
+    """The mean steps/s of a row's runs, carrying the runs themselves (printed beside it)."""
+    runs: tuple[float, ...] = ()
+
+
+def mean_run(results: list[dict[str, float]]) -> dict[str, float]:
+    """One row from repeated runs: steps/s and latencies averaged, losses summed."""
+    out = {k: float(np.mean([r[k] for r in results])) for k in results[0] if k != "lost"}
+    out["lost"] = sum(r["lost"] for r in results)
+    sps = RunMean(out["steps_per_s"])
+    sps.runs = tuple(r["steps_per_s"] for r in results)
+    out["steps_per_s"] = sps
+    return out
 
 
 def direct(args, with_policy: bool) -> tuple[float, list[float]]:
@@ -98,6 +122,99 @@ def direct(args, with_policy: bool) -> tuple[float, list[float]]:
 
 
 PROFILE: Path | None = None   # --profile DIR: every node process runs under py-spy
+
+
+def echo_node(ns: str, image_only: bool) -> None:
+    """`--echo NS`: answer each (image, step_info) pair (each image with `--image-only`) with a
+    zero action, nothing else."""
+    import rclpy
+    from rclpy.node import Node
+    from sensor_msgs.msg import Image, JointState
+
+    from sim_bridge import qos, topics
+
+    rclpy.init()
+    node = Node("bench_echo", namespace=ns)
+    pub = node.create_publisher(JointState, topics.ACTION, qos.action_qos())
+    halves: dict[int, int] = {}
+
+    def on(msg) -> None:
+        stamp = topics.stamp_to_ns(msg.header.stamp)
+        if not image_only and halves.pop(stamp, None) is None:
+            halves[stamp] = 1
+            return
+        pub.publish(topics.fill_action(JointState(), [0.0], ["a0"], stamp))
+
+    node.create_subscription(Image, topics.IMAGE, on, qos.observation_qos(lossless=True))
+    if not image_only:
+        node.create_subscription(JointState, topics.STEP_INFO, on, qos.observation_qos(lossless=True))
+    try:
+        rclpy.spin(node)
+    except (KeyboardInterrupt, Exception):
+        pass
+
+
+def floor(args, logdir: Path, image_only: bool = False) -> dict[str, float]:
+    """Round trips/s and latency of the bare rclpy pair (see the module docstring, 5); with
+    `image_only` the observation is the image alone (one message per step, not two)."""
+    import signal
+
+    import rclpy
+    from rclpy.executors import SingleThreadedExecutor
+    from rclpy.node import Node
+    from sensor_msgs.msg import Image, JointState
+
+    from ros_helpers import wait_until
+    from sim_bridge import qos, topics
+
+    ns = "/bench_floor"
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    node = Node("bench_floor", namespace=ns, context=ctx)
+    ex = SingleThreadedExecutor(context=ctx)
+    ex.add_node(node)
+    pub_img = node.create_publisher(Image, topics.IMAGE, qos.observation_qos(lossless=True))
+    pub_info = node.create_publisher(JointState, topics.STEP_INFO, qos.observation_qos(lossless=True))
+    answers: list[int] = []
+    node.create_subscription(JointState, topics.ACTION,
+                             lambda m: answers.append(topics.stamp_to_ns(m.header.stamp)),
+                             qos.action_qos())
+    echo = spawn("echo", __file__, "--echo", ns, *(["--image-only"] if image_only else []), logdir=logdir)
+    try:
+        def matched() -> bool:
+            ex.spin_once(timeout_sec=0.01)
+            return (pub_img.get_subscription_count() > 0
+                    and (image_only or pub_info.get_subscription_count() > 0) and node.count_publishers(f"{ns}/{topics.ACTION}") > 0)
+
+        wait_until(matched, 60, "the echo node")
+        image = np.zeros((64, 64, 3), np.uint8)
+        img, info = Image(), JointState()
+        lat: list[float] = []
+        n = args.episodes * (args.length + 1)
+        warm = 50
+        start = 0.0
+        for i in range(warm + n):
+            if i == warm:
+                start = time.perf_counter()
+            t = time.perf_counter()
+            stamp = (i + 1) * 1_000_000
+            pub_img.publish(topics.fill_image(img, image, stamp))
+            if not image_only:
+                pub_info.publish(topics.fill_step_info(info, topics.StepInfo(
+                    0.0, 1.0, False, False, False, 0, i), stamp))
+            while not answers or answers[-1] != stamp:
+                ex.spin_once(timeout_sec=1.0)
+            if i >= warm:
+                lat.append(time.perf_counter() - t)
+        total = time.perf_counter() - start
+        return {"rt_per_s": n / total, "rt_mean_ms": 1e3 * total / n,
+                "rt_p50_ms": pct(lat, 50) * 1e3, "rt_p99_ms": pct(lat, 99) * 1e3}
+    finally:
+        os.killpg(echo.pid, signal.SIGKILL)
+        echo.wait()
+        ex.shutdown()
+        node.destroy_node()
+        rclpy.shutdown(context=ctx)
 
 
 def spawn(name: str, *argv: str, logdir: Path) -> subprocess.Popen:
@@ -224,7 +341,11 @@ def main() -> None:
                     help="run the nodes under py-spy (pip install py-spy) and print the top functions of "
                          "the bridge and the policy node (profiled runs are slower; their figures are "
                          "not the benchmark's)")
+    ap.add_argument("--echo", metavar="NS", help=argparse.SUPPRESS)   # the floor's echo node
+    ap.add_argument("--image-only", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.echo:
+        return echo_node(args.echo, args.image_only)
     logdir = Path(args.logdir)
     logdir.mkdir(parents=True, exist_ok=True)
     if args.profile:
@@ -236,10 +357,17 @@ def main() -> None:
 
     d_env, _ = direct(args, with_policy=False)
     d_pol, act_lat = direct(args, with_policy=True)
-    r_zero = ros_loop(args, with_policy=False, logdir=logdir, acks=True)
-    r_pol = ros_loop(args, with_policy=True, logdir=logdir, acks=True)
-    r_zero_off = ros_loop(args, with_policy=False, logdir=logdir, acks=False)
-    r_pol_off = ros_loop(args, with_policy=True, logdir=logdir, acks=False)
+    floors = [floor(args, logdir)]
+    runs: dict[tuple[bool, bool], list[dict[str, float]]] = {}
+    for acks in (True, False, False, True):   # on, off, off, on: order effects cancel
+        for with_policy in (False, True):
+            runs.setdefault((with_policy, acks), []).append(
+                ros_loop(args, with_policy=with_policy, logdir=logdir, acks=acks))
+    floors.append(floor(args, logdir))
+    one_message = floor(args, logdir, image_only=True)
+    bare = {k: float(np.mean([f[k] for f in floors])) for k in floors[0]}
+    r_zero, r_pol = mean_run(runs[False, True]), mean_run(runs[True, True])
+    r_zero_off, r_pol_off = mean_run(runs[False, False]), mean_run(runs[True, False])
 
     n = args.episodes * (args.length + 1)
     print(f"bench_ros_loop: {args.task}, {args.episodes} episodes x {args.length} steps "
@@ -257,11 +385,24 @@ def main() -> None:
         ("ROS lock-step, policy node", r_pol["steps_per_s"], d_pol, r_pol["lost"]),
         ("  same, lossless off", r_pol_off["steps_per_s"], d_pol, r_pol_off["lost"]),
     ]
-    print(f"{'loop':34s} {'steps/s':>9s} {'ratio vs direct':>16s} {'lost':>6s}")
+    print(f"{'loop':34s} {'steps/s':>9s} {'ratio vs direct':>16s} {'lost':>6s}  runs (steps/s)")
     for name, v, ref, lost in rows:
         ratio = f"{v / ref:16.2f}" if ref else f"{'':16s}"
-        print(f"{name:34s} {v:9.1f} {ratio} {'' if lost is None else lost:>6}")
+        both = "  ".join(f"{x:.1f}" for x in v.runs) if isinstance(v, RunMean) else ""
+        print(f"{name:34s} {v:9.1f} {ratio} {'' if lost is None else lost:>6}  {both}")
     print(f"{'ROS policy node vs env direct':34s} {'':9s} {r_pol['steps_per_s'] / d_env:16.2f}")
+    rt = bare["rt_mean_ms"] / 1e3
+    each_floor = " / ".join(f"{f['rt_mean_ms']:.3f}" for f in floors)
+    print(f"floor: bare rclpy round trip (image + step_info -> action, two processes): "
+          f"{bare['rt_per_s']:.0f} round trips/s, mean {bare['rt_mean_ms']:.3f} ms, "
+          f"p50 {bare['rt_p50_ms']:.3f}, p99 {bare['rt_p99_ms']:.3f} (means of a run before and one "
+          f"after the loops: {each_floor} ms)")
+    print(f"  ceiling at that round trip: zero responder {1 / (1 + rt * d_env):.2f} of direct, "
+          f"policy node {1 / (1 + rt * d_pol):.2f} of env + Policy.act")
+    rt1 = one_message["rt_mean_ms"] / 1e3
+    print(f"  the image alone (one message a step, not the contract's two): mean "
+          f"{one_message['rt_mean_ms']:.3f} ms, p50 {one_message['rt_p50_ms']:.3f}; ceiling "
+          f"{1 / (1 + rt1 * d_env):.2f} / {1 / (1 + rt1 * d_pol):.2f}")
     print("latency (ms)                          p50      p99")
     lat_rows = [
         ("Policy.act in-process", pct(act_lat, 50) * 1e3, pct(act_lat, 99) * 1e3),
