@@ -11,6 +11,7 @@ kernel selection, allocator growth) are not timed but do count for peak memory.
     python scripts/bench_train.py --dreamerv3-sizes     # + dreamer at dreamerv3-torch sizes
     python scripts/bench_train.py --device cuda --dreamerv3-sizes
     python scripts/bench_train.py --only-dreamerv3 --profile   # + top ops from torch.profiler
+    python scripts/bench_train.py --only-dreamerv3 --precision float32 --flops   # + FLOPs, roof
 
 Precision: `--precision auto` (default) times bfloat16 autocast only where the device has bf16
 arithmetic (protocad_ros/precision.py) and float32 elsewhere; `--precision float32` runs float32
@@ -102,6 +103,10 @@ def worker(spec: dict) -> dict:
     }
     if cuda:
         out["cuda_gb"] = torch.cuda.max_memory_allocated() / 1e9
+    if spec.get("flops"):
+        out.update(count_flops(agent, batch))
+        out["roof_gflops"] = gemm_roof(torch.float32 if spec.get("precision") != "bfloat16"
+                                       else torch.bfloat16)
     if spec.get("profile"):
         from torch.profiler import ProfilerActivity, profile
 
@@ -119,6 +124,35 @@ def worker(spec: dict) -> dict:
                           f"{t2 - t1:.2f} s\n" + prof.key_averages().table(sort_by=sort,
                                                                             row_limit=20))
     return out
+
+
+def count_flops(agent, batch) -> dict:
+    """Matmul + convolution FLOPs of one update, forward and backward (torch's FlopCounterMode
+    counts the ops that dominate: mm/addmm/bmm/convolution and their gradients)."""
+    from torch.utils.flop_counter import FlopCounterMode
+
+    wm = FlopCounterMode(display=False)
+    with wm:
+        start, _ = agent.train_world_model(batch)
+    beh = FlopCounterMode(display=False)
+    with beh:
+        agent.train_behavior(start)
+    return {"wm_gflop": wm.get_total_flops() / 1e9, "beh_gflop": beh.get_total_flops() / 1e9}
+
+
+def gemm_roof(dtype, seconds: float = 2.0) -> float:
+    """GFLOP/s of a large square matmul with this process's threads: the most these cores do
+    with the library's best kernel, a roof no update of the same FLOPs can beat."""
+    import torch
+
+    a, b = torch.randn(2048, 2048, dtype=dtype), torch.randn(2048, 2048, dtype=dtype)
+    for _ in range(2):
+        a @ b
+    n, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        a @ b
+        n += 1
+    return 2 * 2048 ** 3 * n / (time.perf_counter() - t0) / 1e9
 
 
 # ---- driver -------------------------------------------------------------------------------------
@@ -167,6 +201,10 @@ def main(argv=None) -> int:
     ap.add_argument("--task", default="cheetah_run", help="task (sets K; default cheetah_run)")
     ap.add_argument("--profile", action="store_true",
                     help="print the top ops of one profiled update per config")
+    ap.add_argument("--flops", action="store_true",
+                    help="also count one update's matmul/conv FLOPs (torch FlopCounterMode) and time a "
+                         "2048^2 matmul: prints GFLOP/s reached and the fastest an update of those "
+                         "FLOPs could be on these cores")
     ap.add_argument("--timeout", type=float, default=1800, help="seconds per config")
     ap.add_argument("--json", type=Path, help="also write the results here")
     ap.add_argument("--list", action="store_true", help="print the configurations it would time and exit")
@@ -185,7 +223,8 @@ def main(argv=None) -> int:
     precisions = list(dict.fromkeys(resolve_precision(p, args.device).precision for p in args.precision))
     specs = []
     common = {"task": args.task, "device": args.device, "threads": args.threads,
-              "updates": args.updates, "warmup": args.warmup, "profile": args.profile}
+              "updates": args.updates, "warmup": args.warmup, "profile": args.profile,
+              "flops": args.flops}
     if not args.only_dreamerv3:
         for preset in args.presets:
             for variant in args.variants:
@@ -236,6 +275,12 @@ def main(argv=None) -> int:
         if cuda:
             line += f" {r.get('cuda_gb', 0):7.2f}GB"
         print(line, flush=True)
+        if "wm_gflop" in r:
+            total = r["wm_gflop"] + r["beh_gflop"]
+            print(f"{'':26} FLOPs per update {total:.0f} G (world model {r['wm_gflop']:.0f}, "
+                  f"behaviour {r['beh_gflop']:.0f}): {total / r['sec']:.0f} GFLOP/s reached; "
+                  f"matmul roof here {r['roof_gflops']:.0f} GFLOP/s -> no update of these FLOPs "
+                  f"under {total / r['roof_gflops']:.2f} s", flush=True)
         if r.get("profile"):
             print(r["profile"])
     print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
