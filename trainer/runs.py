@@ -237,15 +237,16 @@ def resolve_device(name: str | None) -> str:
     return name
 
 
-def set_threads(n: int | None) -> int:
+def set_threads(n: int | None, *, cores_shared: bool = True) -> int:
     """torch intra-op threads: n > 0 as given; 0/None = auto: 1 on machines with <= 2 cores
-    (the sim, the nodes or another process share them; an oversubscribed OpenMP pool spins and
-    runs several times slower), else torch's default. Returns the number in use."""
+    while the sim, the nodes or another process compute beside this one (`cores_shared`: an
+    oversubscribed OpenMP pool spins and runs several times slower), else torch's default (one
+    per core). Returns the number in use."""
     import torch
 
     if n:
         torch.set_num_threads(int(n))
-    elif (os.cpu_count() or 1) <= 2:
+    elif cores_shared and (os.cpu_count() or 1) <= 2:
         torch.set_num_threads(1)
     return torch.get_num_threads()
 
