@@ -365,7 +365,7 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--domain-id", type=int, default=None, help="--through-ros: ROS_DOMAIN_ID (default: a fresh one)")
     ap.add_argument("--json", default=None, metavar="FILE", help="write the results as JSON")
     ap.add_argument("--threads", type=int, default=0,
-                    help="torch threads (default 0 = auto: 1 on machines with <= 2 cores, else torch's default)")
+                    help=runs.THREADS_HELP)
     ap.add_argument("--no-progress", action="store_true")
     return ap
 

@@ -59,9 +59,7 @@ def build_parser() -> argparse.ArgumentParser:
                          f"{DEMO['cycles']} cycles of {DEMO['episodes_per_cycle']} episode, C="
                          f"{DEMO['updates_per_episode']}, then the test-context table and a rerun "
                          "recording (a few minutes on 2 CPU cores)")
-    add_common_model_args(ap, threads_help="torch intra-op threads of the training phases and the final "
-                                           "evaluation (default 0 = torch's default, one per core: the nodes "
-                                           "wait while the loop trains, so it has the cores to itself)")
+    add_common_model_args(ap)
     g = ap.add_argument_group("loop")
     g.add_argument("--cycles", type=int, default=None, help="collection cycles after the prefill (default 10; demo 3)")
     g.add_argument("--episodes-per-cycle", type=int, default=None, help="E episodes recorded per cycle (default 1)")
@@ -122,9 +120,7 @@ class Loop:
                 if getattr(a, k) is None:
                     setattr(a, k, DEMO[v])
         self.device = runs.resolve_device(a.device)
-        # The nodes are other processes and idle while this one trains or evaluates (phases
-        # alternate), so the loop takes every core: 1.8x faster updates on 2 cores than 1 thread.
-        runs.set_threads(a.threads, cores_shared=False)
+        runs.set_threads(a.threads)
 
     # ------------------------------------------------------------------ setup
     def _setup(self) -> None:

@@ -237,17 +237,30 @@ def resolve_device(name: str | None) -> str:
     return name
 
 
-def set_threads(n: int | None, *, cores_shared: bool = True) -> int:
-    """torch intra-op threads: n > 0 as given; 0/None = auto: 1 on machines with <= 2 cores
-    while the sim, the nodes or another process compute beside this one (`cores_shared`: an
-    oversubscribed OpenMP pool spins and runs several times slower), else torch's default (one
-    per core). Returns the number in use."""
+THREADS_HELP = ("torch intra-op threads (default 0 = auto: one per core, shared among torchrun's ranks "
+                "on this machine; give 1 to runs that compute side by side)")
+
+
+_TORCH_DEFAULT_THREADS: int | None = None
+
+
+def set_threads(n: int | None) -> int:
+    """torch intra-op threads: n > 0 as given; 0/None = auto: one per core (torch's default),
+    shared out among the ranks torchrun started on this machine (LOCAL_WORLD_SIZE). The CLIs
+    compute in turn with their envs and nodes, never beside them (collect, then update; a
+    lock-step loop; the loop's nodes wait while it trains), so each has the cores while it
+    computes; jobs that do run side by side (protocad-compare's) are given --threads. Returns
+    the number in use."""
     import torch
 
+    global _TORCH_DEFAULT_THREADS
+    if _TORCH_DEFAULT_THREADS is None:   # before anything set it: torch's own, one per core
+        _TORCH_DEFAULT_THREADS = torch.get_num_threads()
     if n:
         torch.set_num_threads(int(n))
-    elif cores_shared and (os.cpu_count() or 1) <= 2:
-        torch.set_num_threads(1)
+    else:
+        ranks = max(1, int(os.environ.get("LOCAL_WORLD_SIZE", "1")))
+        torch.set_num_threads(max(1, _TORCH_DEFAULT_THREADS // ranks))
     return torch.get_num_threads()
 
 

@@ -246,9 +246,7 @@ class RanksDiverged(RuntimeError):
 
 
 # ---------------------------------------------------------------------- CLI
-def add_common_model_args(ap: argparse.ArgumentParser, *, defaults_from_config: bool = True,
-                          threads_help: str = "torch intra-op threads (default 0 = auto: 1 on machines with <= 2 "
-                                              "cores, else torch's default)") -> None:
+def add_common_model_args(ap: argparse.ArgumentParser, *, defaults_from_config: bool = True) -> None:
     from protocad_ros.config import DEFAULT_CLI_PRESET, PRESETS, VARIANTS
     from sim_bridge.contexts import TASKS
 
@@ -268,7 +266,7 @@ def add_common_model_args(ap: argparse.ArgumentParser, *, defaults_from_config: 
     g.add_argument("--seq-len", type=int, default=None, help="M (train.seq_len)")
     g.add_argument("--seed", type=int, default=0, help="seeds model init, sampling and augmentation")
     g.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (cuda when available)")
-    g.add_argument("--threads", type=int, default=0, help=threads_help)
+    g.add_argument("--threads", type=int, default=0, help=runs.THREADS_HELP)
     g.add_argument("--precision", choices=("auto", "float32", "bfloat16"), default=None,
                    help="train.precision; auto = bfloat16 where the device has bf16 arithmetic "
                         "(AVX512-BF16/AMX CPUs, Ampere+ GPUs), else float32 (default: the config's, float32)")
