@@ -20,6 +20,7 @@ def ament_data_files():
         files.append((f"share/{pkg}", [f"{pkg}/package.xml"]))
         exes = sorted(str(p) for p in Path(pkg, "libexec").iterdir() if p.is_file())
         files.append((f"lib/{pkg}", exes))
+    files.append(("share/sim_bridge", ["sim_bridge/fastdds_discovery.xml"]))   # scripts/env.sh
     return files
 
 

@@ -74,3 +74,34 @@ def test_front_end_defers_to_a_real_ros2cli(tmp_path):
     env = {"PATH": f"{PREFIX / 'bin'}{os.pathsep}{tmp_path}{os.pathsep}{os.environ['PATH']}"}
     out = ros2("topic", "list", env=env)
     assert out.returncode == 0 and out.stdout.strip() == "stand-in real ros2cli: topic list"
+
+
+def _participant_log(profile: Path) -> str:
+    """What Fast DDS prints while an rclpy participant starts with `profile` as its defaults."""
+    code = ("import rclpy; from rclpy.node import Node; rclpy.init(); n = Node('profile_check'); "
+            "n.destroy_node(); rclpy.shutdown(); print('started')")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120,
+                       env={**os.environ, "FASTRTPS_DEFAULT_PROFILES_FILE": str(profile)})
+    assert r.returncode == 0, r.stderr
+    return r.stdout + r.stderr
+
+
+def test_the_environment_sets_a_discovery_profile_fast_dds_loads(tmp_path):
+    root = Path(__file__).resolve().parents[1]
+    tree = root / "sim_bridge" / "fastdds_discovery.xml"
+    env = {k: v for k, v in os.environ.items() if k != "FASTRTPS_DEFAULT_PROFILES_FILE"}
+
+    def exported(extra: dict) -> str:
+        r = subprocess.run(["bash", "-c", f"source {root}/scripts/env.sh; echo $FASTRTPS_DEFAULT_PROFILES_FILE"],
+                           capture_output=True, text=True, env={**env, **extra}, timeout=30)
+        return r.stdout.strip()
+
+    assert Path(exported({})) == tree                                # the environment's default
+    assert exported({"FASTRTPS_DEFAULT_PROFILES_FILE": "/mine.xml"}) == "/mine.xml"   # a user's own wins
+    installed = PREFIX / "share" / "sim_bridge" / "fastdds_discovery.xml"
+    assert installed.read_bytes() == tree.read_bytes()
+    assert "XMLPARSER" not in _participant_log(tree)
+    # The check can fail: a profile Fast DDS cannot parse is reported on start-up.
+    bad = tmp_path / "bad.xml"
+    bad.write_text(tree.read_text().replace("<sec>0</sec>", "<sec>zero</sec>", 1))
+    assert "XMLPARSER" in _participant_log(bad)

@@ -30,8 +30,9 @@ def ros2(*args: str, timeout: float = 60, env: dict | None = None) -> subprocess
 
 def ros2_graph(*args: str) -> subprocess.CompletedProcess:
     """A graph verb given ros2cli's --spin-time: without a daemon it answers from what discovery
-    found so far, and here a participant's endpoints sometimes take up to ~2.7 s to be
-    discovered (measured: bimodal, 0.05 s or 1.5-2.7 s)."""
+    found so far: a participant is discovered at once or at the next announcement of the
+    running ones (every 0.5 s with the suite's sim_bridge/fastdds_discovery.xml, 3 s without),
+    and a CI machine under load adds to that."""
     return ros2(*args, "--spin-time", "3")
 
 
