@@ -59,18 +59,12 @@ def pct(values, q) -> float:
     return float(np.percentile(np.asarray(values), q)) if len(values) else float("nan")
 
 
-class RunMean(float):
-    """The mean steps/s of a row's runs, carrying the runs themselves (printed beside it)."""
-    runs: tuple[float, ...] = ()
-
-
-def mean_run(results: list[dict[str, float]]) -> dict[str, float]:
-    """One row from repeated runs: steps/s and latencies averaged, losses summed."""
-    out = {k: float(np.mean([r[k] for r in results])) for k in results[0] if k != "lost"}
+def mean_run(results: list[dict[str, float]]) -> dict:
+    """One row from repeated runs: steps/s and latencies averaged, losses summed, and each
+    run's steps/s under "runs"."""
+    out: dict = {k: float(np.mean([r[k] for r in results])) for k in results[0] if k != "lost"}
     out["lost"] = sum(r["lost"] for r in results)
-    sps = RunMean(out["steps_per_s"])
-    sps.runs = tuple(r["steps_per_s"] for r in results)
-    out["steps_per_s"] = sps
+    out["runs"] = [r["steps_per_s"] for r in results]
     return out
 
 
@@ -128,6 +122,7 @@ def echo_node(ns: str, image_only: bool) -> None:
     """`--echo NS`: answer each (image, step_info) pair (each image with `--image-only`) with a
     zero action, nothing else."""
     import rclpy
+    from rclpy.executors import ExternalShutdownException
     from rclpy.node import Node
     from sensor_msgs.msg import Image, JointState
 
@@ -150,7 +145,7 @@ def echo_node(ns: str, image_only: bool) -> None:
         node.create_subscription(JointState, topics.STEP_INFO, on, qos.observation_qos(lossless=True))
     try:
         rclpy.spin(node)
-    except (KeyboardInterrupt, Exception):
+    except (KeyboardInterrupt, ExternalShutdownException):
         pass
 
 
@@ -378,18 +373,19 @@ def main() -> None:
           f"RMW {os.environ.get('RMW_IMPLEMENTATION', 'default')}, "
           f"torch CPU capability {torch.backends.cpu.get_cpu_capability()}")
     rows = [
-        ("env direct (zero actions)", d_env, None, None),
-        ("env + Policy.act direct", d_pol, None, None),
-        ("ROS lock-step, zero responder", r_zero["steps_per_s"], d_env, r_zero["lost"]),
-        ("  same, lossless off", r_zero_off["steps_per_s"], d_env, r_zero_off["lost"]),
-        ("ROS lock-step, policy node", r_pol["steps_per_s"], d_pol, r_pol["lost"]),
-        ("  same, lossless off", r_pol_off["steps_per_s"], d_pol, r_pol_off["lost"]),
+        ("env direct (zero actions)", {"steps_per_s": d_env}, None),
+        ("env + Policy.act direct", {"steps_per_s": d_pol}, None),
+        ("ROS lock-step, zero responder", r_zero, d_env),
+        ("  same, lossless off", r_zero_off, d_env),
+        ("ROS lock-step, policy node", r_pol, d_pol),
+        ("  same, lossless off", r_pol_off, d_pol),
     ]
     print(f"{'loop':34s} {'steps/s':>9s} {'ratio vs direct':>16s} {'lost':>6s}  runs (steps/s)")
-    for name, v, ref, lost in rows:
+    for name, row, ref in rows:
+        v = row["steps_per_s"]
         ratio = f"{v / ref:16.2f}" if ref else f"{'':16s}"
-        both = "  ".join(f"{x:.1f}" for x in v.runs) if isinstance(v, RunMean) else ""
-        print(f"{name:34s} {v:9.1f} {ratio} {'' if lost is None else lost:>6}  {both}")
+        each = "  ".join(f"{x:.1f}" for x in row.get("runs", ()))
+        print(f"{name:34s} {v:9.1f} {ratio} {row.get('lost', ''):>6}  {each}")
     print(f"{'ROS policy node vs env direct':34s} {'':9s} {r_pol['steps_per_s'] / d_env:16.2f}")
     rt = bare["rt_mean_ms"] / 1e3
     each_floor = " / ".join(f"{f['rt_mean_ms']:.3f}" for f in floors)
