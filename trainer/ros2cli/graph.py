@@ -6,7 +6,7 @@ spin time; a listing here also keeps spinning (at most four more seconds) until 
 not changed for a second, and a verb about one named node or topic (param, lifecycle, echo,
 hz) skips that and waits (as long) for its target instead, so that no verb answers from a
 half-discovered graph (with Fast DDS's default 3 s participant announcements a running node
-was found at once or after 2.0-2.8 s; the environment's sim_bridge/fastdds_discovery.xml
+was found at once or after 1.8-2.8 s (scripts/bench_discovery.py); the environment's sim_bridge/fastdds_discovery.xml
 announces every 0.5 s, bounding it to about 0.6 s).
 """
 from __future__ import annotations
