@@ -194,3 +194,19 @@ def test_config_options_set_what_set_and_the_file_set(tmp_path):
         assert exit_.value.code == 2
     with pytest.raises(ValueError, match="train.precision"):
         config("--train.precision", "float8")
+
+
+@pytest.mark.parametrize("local_ranks", [None, "2"])
+def test_auto_threads_are_the_cores_shared_among_the_local_ranks(local_ranks):
+    """--threads 0: torch's one thread per core, divided among torchrun's ranks on the machine;
+    an explicit number wins, and auto after it comes back to the same share."""
+    code = ("import torch; from trainer import runs; d = torch.get_num_threads(); "
+            "print(d, runs.set_threads(0), runs.set_threads(3), runs.set_threads(None))")
+    env = {k: v for k, v in os.environ.items() if k != "LOCAL_WORLD_SIZE"}
+    if local_ranks:
+        env["LOCAL_WORLD_SIZE"] = local_ranks
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, env=env, timeout=120)
+    assert r.returncode == 0, r.stderr
+    default, auto, given, auto_again = map(int, r.stdout.split())
+    share = max(1, default // int(local_ranks or 1))
+    assert (auto, given, auto_again) == (share, 3, share)
