@@ -33,7 +33,7 @@ from .agent_base import BATCH_KEYS, AgentBase, frozen
 from .augment import random_shift
 from .behavior import ActorCritic, ImagineFns
 from .config import Config
-from .networks import MLP, ConvDecoder, ConvEncoder
+from .networks import MLP, ConvDecoder, ConvEncoder, init_weights
 from .prototypes import ContextModule, sinkhorn_knopp
 from .rssm import RSSM, State, detach_state, flatten_state
 
@@ -294,8 +294,10 @@ class Agent(AgentBase):
         device = torch.device(device if device is not None else cfg.train.device)
         with torch.random.fork_rng(devices=[]):
             torch.manual_seed(cfg.train.seed)
-            self.wm = WorldModel(cfg, self.action_dim)
-            self.ac = ActorCritic(self.wm.feat_dim, self.action_dim, cfg.behavior)
+            self.wm = init_weights(WorldModel(cfg, self.action_dim), cfg.weight_init)
+            self.ac = init_weights(ActorCritic(self.wm.feat_dim, self.action_dim, cfg.behavior),
+                                   cfg.weight_init)
+            self.ac.slow_critic.load_state_dict(self.ac.critic.state_dict())
         self.to(device)
         wm, bh = cfg.world_model, cfg.behavior
         self.wm_opt = self._adam(self.wm.parameters(), wm.lr, wm.eps, wm.weight_decay)
@@ -424,7 +426,7 @@ class Agent(AgentBase):
         """Actor output in [-1, 1] for features x (B, X): mode, or a sample."""
         with self._autocast():
             dist = self.ac.actor(x)
-        return (dist.sample(generator) if sample else dist.mode()).float().clamp(-1, 1)
+        return (dist.sample(generator) if sample else dist.mode(generator)).float().clamp(-1, 1)
 
     # ---- inspection (no grad, no augmentation) -------------------------------------------------
     @torch.no_grad()

@@ -27,7 +27,7 @@ class CheckpointServing:
     def _policy_kwargs(self) -> dict[str, Any]:
         p = self.params
         return dict(device=p["device"], mode=p["mode"], exploration_noise=p["exploration_noise"],
-                    seed=p["seed"])
+                    seed=p["seed"], state_mean=p["state_mean"])
 
     def _load(self, path: str):
         from protocad_ros.checkpoint import load_checkpoint

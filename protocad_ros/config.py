@@ -159,7 +159,7 @@ class BehaviorConfig:
     # min_std: 0.1} (its dmc section does not override the default; DreamerV2's own dmc config
     # uses trunc_normal, kept as an option). Same parameterisation as DreamerPro's DistLayer
     # (mean 5 tanh(out / 5), std softplus(out + init) + min_std); its SampleDist takes mode and
-    # entropy from 100 samples, ours tanh(mean) and a one-sample estimate.
+    # entropy from 100 samples: ours the mode likewise, the entropy from one sample.
     actor_dist: str = "tanh_normal"
     actor_min_std: float = 0.1
     actor_init_std: float = 0.0
@@ -244,6 +244,14 @@ class Config:
     # DMC config for 'dreamerpro'), as the paper ran it; false = ProtoCAD's settings for every
     # variant (an ablation-style comparison on one schedule).
     own_settings: bool = True
+    # Which reference config fills what the paper leaves to "the official implementation":
+    # 'dreamerpro' (DreamerPro dmc, what the paper used) or 'dreamerv2' (DreamerV2 dmc_vision:
+    # 32 x 32 discrete latents without unimix, trunc_normal actor; the anchor's, and the
+    # paper's appendix comparison on standard DMC keeps DreamerV2's settings). REFERENCE_SETTINGS.
+    reference: str = "dreamerpro"
+    # Weight initialisation: 'glorot' (uniform fan-average, zero biases: the Keras default both
+    # references use) or 'torch' (PyTorch's layer defaults, what runs before 2026-12 used).
+    weight_init: str = "glorot"
     world_model: WorldModelConfig = field(default_factory=WorldModelConfig)
     context: ContextConfig = field(default_factory=ContextConfig)
     behavior: BehaviorConfig = field(default_factory=BehaviorConfig)
@@ -332,6 +340,10 @@ class Config:
                   "drq update frequencies must be >= 1")
             check(d.image_pad >= 0 and d.target_augs >= 1 and d.q_augs >= 1,
                   "drq.image_pad >= 0, drq.target_augs >= 1, drq.q_augs >= 1")
+        check(self.reference in REFERENCE_SETTINGS, f"unknown reference {self.reference!r}; "
+              f"valid: {sorted(REFERENCE_SETTINGS)}")
+        check(self.weight_init in ("glorot", "torch"),
+              f"weight_init must be 'glorot'|'torch', got {self.weight_init!r}")
         check(wm.cnn in ("dreamerv2", "dreamerv3"), f"world_model.cnn must be 'dreamerv2' or "
               f"'dreamerv3', got {wm.cnn!r}")
         check(wm.norm in ("none", "layer"), f"world_model.norm must be 'none'|'layer', got {wm.norm!r}")
@@ -399,6 +411,22 @@ _MODEL_FREE_PRESET_OVERRIDES: dict[str, dict[str, Any]] = {
 }
 
 
+#: The reference configs behind `Config.reference`, as overrides of the defaults above (which
+#: are DreamerPro's dmc). DreamerV2: danijar/dreamerv2 dreamerv2/configs.yaml (commit 07d906e),
+#: defaults + dmc_vision: rssm {stoch 32, discrete 32} (no unimix: a DreamerV3 addition),
+#: actor dist 'auto' = trunc_normal for continuous actions; its other dmc_vision values (deter
+#: and hidden 200, kl free 1.0, lr 3e-4 / 8e-5 / 8e-5, actor_ent 1e-4, CNN depth 48) are
+#: DreamerPro's too. Applied first by make_config, so variant settings, presets and overrides
+#: win.
+REFERENCE_SETTINGS: dict[str, dict[str, Any]] = {
+    "dreamerpro": {},
+    "dreamerv2": {
+        "world_model.discrete": 32,
+        "world_model.unimix": 0.0,
+        "behavior.actor_dist": "trunc_normal",
+    },
+}
+
 #: Settings a baseline was published with where they differ from ProtoCAD's, applied by
 #: make_config before the preset (which sizes the run) and the overrides. DreamerPro:
 #: fdeng18/dreamer-pro, DreamerPro/dreamerv2/configs.yaml (commit 033edd7), defaults + dmc.
@@ -407,9 +435,10 @@ VARIANT_OWN_SETTINGS: dict[str, dict[str, Any]] = {
         "context.sinkhorn_eps": 0.0125,          # dmc: rssm.sinkhorn_eps 0.0125
         "train.batch_size": 50,                  # dataset.batch 50
         "train.seq_len": 51,                     # dataset.length 51
-        # train_every 5 (one update per 5 env steps) = 200 per 1000-step episode;
+        # train_every 5 counts agent steps (its train.py divides prefill and time limit by
+        # action_repeat, never train_every): 500 agent steps / 5 = 100 per 1000-step episode;
         # prefill 5000 env steps = 5 episodes (dmc time_limit 1000).
-        "train.collect_interval": 200,
+        "train.collect_interval": 100,
         "train.prefill_episodes": 5,
     },
     # DrQ: denisyarats/drq config.yaml (dd040f1) and its paper: batch 512 transitions, one
@@ -444,13 +473,18 @@ def make_config(task: str = "pendulum_swingup", preset: str = "paper",
     if variant not in VARIANTS:
         raise ConfigError(f"unknown variant {variant!r}; valid: {VARIANTS}")
     own = _coerce(overrides.get("own_settings", True), "bool", "own_settings", True)
-    cfg = Config(task=task, variant=variant, preset=preset, own_settings=own)
+    reference = _coerce(overrides.get("reference", "dreamerpro"), "str", "reference", "")
+    if reference not in REFERENCE_SETTINGS:
+        raise ConfigError(f"unknown reference {reference!r}; valid: {sorted(REFERENCE_SETTINGS)}")
+    cfg = Config(task=task, variant=variant, preset=preset, own_settings=own, reference=reference)
     cfg.context.num_prototypes = task_num_prototypes(task)
     model_free = cfg.spec.family == "model_free"
     presets = _MODEL_FREE_PRESET_OVERRIDES if model_free else _PRESET_OVERRIDES
     if preset not in presets:
         raise ConfigError(f"preset {preset!r} does not apply to variant {variant!r}; valid: "
                           f"{sorted(presets)}")
+    if not model_free:
+        apply_overrides(cfg, REFERENCE_SETTINGS[reference], validate=False)
     if own:
         apply_overrides(cfg, VARIANT_OWN_SETTINGS.get(variant, {}), validate=False)
     apply_overrides(cfg, presets[preset], validate=False)

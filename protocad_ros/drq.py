@@ -323,4 +323,6 @@ class DrQAgent(AgentBase):
         """tanh(mu) (DrQ's evaluation action), or a sample of the squashed Gaussian."""
         with self._autocast():
             dist = self.actor.dist(x)
-        return (dist.sample(generator) if sample else dist.mode()).float().clamp(-1, 1)
+        # DrQ acts with SquashedNormal.mean = tanh(mu), not the most likely sample (its
+        # reference differs from DreamerPro's here).
+        return (dist.sample(generator) if sample else torch.tanh(dist.mean)).float().clamp(-1, 1)

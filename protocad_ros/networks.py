@@ -15,7 +15,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-__all__ = ["activation", "MLP", "ChannelNorm", "ConvEncoder", "ConvDecoder", "GRUCell",
+__all__ = ["activation", "init_weights", "MLP", "ChannelNorm", "ConvEncoder", "ConvDecoder", "GRUCell",
            "TruncNormal", "TanhNormal", "ActionHead", "flatten_leading"]
 
 
@@ -24,6 +24,23 @@ def activation(name: str) -> nn.Module:
     if name not in acts:
         raise ValueError(f"unknown activation {name!r}; valid: {sorted(acts)}")
     return acts[name]()
+
+
+def init_weights(module: nn.Module, scheme: str = "glorot") -> nn.Module:
+    """Re-initialise every Linear / Conv / ConvTranspose in `module`: 'glorot' = uniform
+    fan-average weights and zero biases (Keras' default, i.e. DreamerV2's and DreamerPro's;
+    fan-average is the same for a conv and its transpose), 'torch' = leave PyTorch's
+    defaults. Norm layers and free parameters (prototypes) keep their own."""
+    if scheme == "torch":
+        return module
+    if scheme != "glorot":
+        raise ValueError(f"unknown weight init {scheme!r}; valid: glorot, torch")
+    for m in module.modules():
+        if isinstance(m, (nn.Linear, nn.Conv2d, nn.ConvTranspose2d)):
+            nn.init.xavier_uniform_(m.weight)
+            if m.bias is not None:
+                nn.init.zeros_(m.bias)
+    return module
 
 
 def flatten_leading(x: torch.Tensor, keep: int) -> tuple[torch.Tensor, tuple[int, ...]]:
@@ -201,7 +218,8 @@ class TruncNormal:
         clipped = x.clamp(-1 + self._clip, 1 - self._clip)
         return x + (clipped - x).detach()
 
-    def mode(self) -> torch.Tensor:
+    def mode(self, generator: torch.Generator | None = None) -> torch.Tensor:
+        # DreamerV2's TruncNormalDist mode: the (clipped) mean, which lies inside (-1, 1).
         return self.mean
 
     def log_prob(self, x: torch.Tensor) -> torch.Tensor:
@@ -216,10 +234,15 @@ class TruncNormal:
         return h.sum(-1)
 
 
+#: Draws the tanh_normal mode is picked from (DreamerV1/DreamerPro SampleDist(samples=100)).
+MODE_SAMPLES = 100
+
+
 class TanhNormal:
     """tanh(Normal(mean, std)) (DreamerV1 'tanh_normal'): mean = 5 tanh(out / 5),
     std = softplus(out_std + init) + min_std.  Entropy is the one-sample estimate
-    -log p(sample) (DreamerV1 estimates it from samples too)."""
+    -log p(sample) (DreamerV1 estimates it from 100 samples); the mode is the most likely of
+    100 samples, as in DreamerV1 and DreamerPro."""
 
     def __init__(self, mean: torch.Tensor, std: torch.Tensor):
         self.mean, self.std = mean, std
@@ -231,8 +254,18 @@ class TanhNormal:
         self._last_pre = self.mean + self.std * eps
         return torch.tanh(self._last_pre)
 
-    def mode(self) -> torch.Tensor:
-        return torch.tanh(self.mean)
+    def mode(self, generator: torch.Generator | None = None, samples: int = MODE_SAMPLES
+             ) -> torch.Tensor:
+        """The most likely of `samples` draws, by their joint density over the actions
+        (DreamerV1/DreamerPro SampleDist.mode). Not tanh(mean): where std is large the density
+        of tanh(Normal) piles up near +-1 (mean 0.5, std 1.5: tanh(mean) 0.46, this ~0.999),
+        which is where a swing-up's torque is."""
+        eps = torch.randn((samples, *self.mean.shape), generator=generator,
+                          device=self.mean.device, dtype=self.mean.dtype)
+        pre = self.mean + self.std * eps                        # (S, ..., A)
+        best = self._log_prob_pre(pre).argmax(0)                # (...)
+        pick = torch.gather(pre, 0, best[None, ..., None].expand(1, *pre.shape[1:]))[0]
+        return torch.tanh(pick)
 
     def sample_log_prob(self, generator: torch.Generator | None = None
                         ) -> tuple[torch.Tensor, torch.Tensor]:

@@ -7,10 +7,13 @@
     # batched: (B, 64, 64, 3), (B, A), (B,) -> (B, A); feats.u (B, D), feats.w (B, K), feats.e
 
 prev_action is a_{t-1}, the action that led to this observation (ignored where is_first: the
-state of that batch entry restarts from the initial state). mode 'deterministic' uses the
-posterior mean/mode and the actor's mode (reproducible); 'sample' samples both from a
-generator seeded by `seed`. exploration_noise adds N(0, noise^2) to the action, then clips to
-[-1, 1] (Dreamer's exploration). No ROS import here.
+state of that batch entry restarts from the initial state). mode 'deterministic' takes the
+actor's mode (for tanh_normal the most likely of 100 samples, as DreamerPro's SampleDist);
+'sample' samples the actor. The posterior state is sampled in both modes, as DreamerV2 and
+DreamerPro evaluate (their `eval_state_mean: False`); state_mean=True filters with its mean
+instead. All sampling draws from a generator seeded by `seed` and re-seeded by reset(), so a
+policy repeats itself exactly. exploration_noise adds N(0, noise^2) to the action, then clips
+to [-1, 1] (Dreamer's exploration). No ROS import here.
 """
 from __future__ import annotations
 
@@ -39,7 +42,8 @@ class Policy:
     MODES = ("deterministic", "sample")
 
     def __init__(self, agent: AgentBase, device: str | torch.device = "cpu",
-                 mode: str = "deterministic", exploration_noise: float = 0.0, seed: int = 0):
+                 mode: str = "deterministic", exploration_noise: float = 0.0, seed: int = 0,
+                 state_mean: bool = False):
         if mode not in self.MODES:
             raise ValueError(f"mode must be one of {self.MODES}, got {mode!r}")
         if not (np.isfinite(exploration_noise) and exploration_noise >= 0):
@@ -48,6 +52,7 @@ class Policy:
         self.device = torch.device(device)
         self.agent = agent.to(self.device).eval()
         self.mode, self.exploration_noise, self.seed = mode, float(exploration_noise), seed
+        self.state_mean = bool(state_mean)
         self.action_dim = agent.action_dim
         self.context_dims = agent.context_dims  # (D, K, D) or (0, 0, 0)
         self._generator = torch.Generator(device=self.device)
@@ -107,12 +112,12 @@ class Policy:
         ContextFeatures) with the input's batching (single or batched)."""
         single, image, act, first = self._inputs(image, prev_action, is_first)
         dev = self.device
-        sample = self.mode == "sample"
         self._state, x, (u, w, e) = self.agent.observe_step(
             self._state, torch.from_numpy(np.ascontiguousarray(image)).to(dev),
             torch.from_numpy(act).to(dev), torch.from_numpy(first).to(dev),
-            sample=sample, generator=self._generator)
-        action = self.agent.act(x, sample=sample, generator=self._generator).cpu().numpy()
+            sample=not self.state_mean, generator=self._generator)
+        action = self.agent.act(x, sample=self.mode == "sample",
+                                generator=self._generator).cpu().numpy()
         if self.exploration_noise > 0:
             action = action + self._np_rng.normal(0.0, self.exploration_noise, action.shape)
         action = np.clip(action, -1.0, 1.0).astype(np.float32)

@@ -28,8 +28,11 @@ PARAMS: tuple[Param, ...] = (
     Param("preset", DEFAULT_CLI_PRESET, "Model size preset of the random agent.", choices=PRESETS),
     Param("variant", "protocad", "Model variant of the random agent.", choices=VARIANTS),
     Param("device", "cpu", "Torch device of the model, e.g. cpu, cuda, cuda:0."),
-    Param("mode", "deterministic", "deterministic: the actor's mode; sample: a sample of the "
-          "actor's distribution.", choices=("deterministic", "sample")),
+    Param("mode", "deterministic", "deterministic: the actor's mode (tanh_normal: the most "
+          "likely of 100 samples, as DreamerPro); sample: a sample of the actor's distribution.",
+          choices=("deterministic", "sample")),
+    Param("state_mean", False, "Filter with the posterior's mean instead of a sample of it "
+          "(DreamerV2's eval_state_mean; false, as DreamerV2 and DreamerPro evaluate)."),
     Param("latest_only", False, "Real time: subscribe to observations with KEEP_LAST(1), so a "
           "policy that falls behind skips to the newest observation instead of answering every "
           "queued one in turn (the skipped ones are counted in observations_skipped). Off for "

@@ -7,6 +7,7 @@ one core. Frames are real MuJoCo renders (pendulum swingup, EGL) from sim_bridge
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import numpy as np
 import pytest
@@ -15,6 +16,7 @@ import torch
 from protocad_ros.agent import Agent
 from protocad_ros.config import WORLD_MODEL_VARIANTS, Config, ConfigError, make_config
 from protocad_ros.policy import ContextFeatures, Policy
+from protocad_ros.policy import Policy as _Policy
 
 B, T = 4, 16  # 4 real sequences of 16 agent steps
 
@@ -277,8 +279,13 @@ def test_policy_single_and_batched(real_batch):
     policy.reset(batch_size=B)
     actions, feats = policy.act(img[:, 0], np.zeros((B, 1)), np.ones(B, bool))
     assert actions.shape == (B, 1) and feats.w.shape == (B, 16)
-    # the batched answer for entry 0 equals the single-stream answer
-    single = Policy(agent)
+    # the batched answer for entry 0 equals the single-stream answer (nothing sampled: the
+    # posterior's mean and trunc_normal's mode, its mean; sampled draws depend on the batch)
+    det = Agent(tiny("protocad", **{"behavior.actor_dist": "trunc_normal"}), action_dim=1)
+    batched = Policy(det, state_mean=True)
+    batched.reset(batch_size=B)
+    actions, feats = batched.act(img[:, 0], np.zeros((B, 1)), np.ones(B, bool))
+    single = Policy(det, state_mean=True)
     a0, f0 = single.act(img[0, 0], np.zeros(1), True)
     assert np.allclose(actions[0], a0, atol=1e-5) and np.allclose(feats.u[0], f0.u, atol=1e-5)
     # variants without a context module give size-0 features
@@ -296,7 +303,10 @@ def _run(policy, batch, b, steps):
 
 
 def test_policy_is_first_resets_state_and_is_reproducible(real_batch):
-    agent = Agent(tiny("protocad"), action_dim=1)
+    # nothing sampled (posterior mean, trunc_normal's mode): answers depend on the state alone,
+    # not on how far a policy's generator has advanced
+    agent = Agent(tiny("protocad", **{"behavior.actor_dist": "trunc_normal"}), action_dim=1)
+    Policy = functools.partial(_Policy, state_mean=True)  # noqa: N806
     p1, p2 = Policy(agent), Policy(agent)
     run1, run2 = _run(p1, real_batch, 0, 6), _run(p2, real_batch, 0, 6)
     for (a1, u1), (a2, u2) in zip(run1, run2):  # deterministic mode: identical

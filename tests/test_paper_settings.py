@@ -36,9 +36,10 @@ DREAMERPRO_DMC = {
     ("behavior", "actor_lr"): 8e-5, ("behavior", "critic_lr"): 8e-5, ("behavior", "actor_entropy"): 1e-4,
     ("behavior", "actor_grad"): "dynamics", ("behavior", "discount"): 0.99, ("behavior", "lambda_"): 0.95,
     ("behavior", "horizon"): 15, ("behavior", "slow_critic"): True, ("behavior", "slow_critic_update"): 100,
-    # dmc: action_repeat 2, time_limit 1000, train_every 5 (200 updates per 1000-step episode),
-    # prefill 5000 env steps (5 episodes), expl_noise 0
-    ("train", "action_repeat"): 2, ("train", "time_limit"): 1000, ("train", "collect_interval"): 200,
+    # dmc: action_repeat 2, time_limit 1000, train_every 5 agent steps (train.py divides prefill
+    # and time_limit by action_repeat, never train_every): 500 / 5 = 100 updates per 1000-step
+    # episode; prefill 5000 env steps (5 episodes), expl_noise 0
+    ("train", "action_repeat"): 2, ("train", "time_limit"): 1000, ("train", "collect_interval"): 100,
     ("train", "prefill_episodes"): 5, ("train", "expl_noise"): 0.0,
 }
 
@@ -57,9 +58,11 @@ def test_dreamerpro_at_protocad_settings_is_the_ablation_option():
     ours = make_config("walker_walk", "paper", "protocad")
     assert not same.own_settings
     for section, key in (("train", "batch_size"), ("train", "seq_len"), ("context", "sinkhorn_eps"),
-                         ("train", "collect_interval"), ("train", "prefill_episodes")):
+                         ("train", "prefill_episodes")):
         assert getattr(getattr(same, section), key) == getattr(getattr(ours, section), key)
         assert getattr(getattr(own, section), key) != getattr(getattr(ours, section), key)
+    # DreamerPro's update rate is ProtoCAD's C = 100 (both 5 agent steps per update)
+    assert own.train.collect_interval == same.train.collect_interval == 100
 
 
 def test_protocad_defaults_are_the_paper_tables_and_dreamerpro_where_it_defers():
@@ -74,3 +77,39 @@ def test_protocad_defaults_are_the_paper_tables_and_dreamerpro_where_it_defers()
     for variant in ("dreamer", "dreamer_context", "no_projection", "no_temporal_consistency"):
         assert make_config("walker_walk", "paper", variant).to_dict() | {"own_settings": False} == \
             make_config("walker_walk", "paper", variant, own_settings=False).to_dict()
+
+
+# danijar/dreamerv2 dreamerv2/configs.yaml (commit 07d906e), defaults + dmc_vision: rssm {hidden 200,
+# deter 200} with the defaults' stoch 32, discrete 32; actor dist auto (trunc_normal for
+# continuous actions), min_std 0.1; kl.free 1.0, balance 0.8; model_opt lr 3e-4; actor/critic lr
+# 8e-5; actor_ent 1e-4; dataset 16 x 50; action_repeat 2; train_every 5 agent steps.
+DREAMERV2_DMC_VISION = {
+    ("world_model", "hidden"): 200, ("world_model", "deter"): 200, ("world_model", "stoch"): 32,
+    ("world_model", "discrete"): 32, ("world_model", "unimix"): 0.0, ("world_model", "cnn_depth"): 48,
+    ("world_model", "kl_free"): 1.0, ("world_model", "kl_balance"): 0.8, ("world_model", "lr"): 3e-4,
+    ("behavior", "actor_dist"): "trunc_normal", ("behavior", "actor_min_std"): 0.1,
+    ("behavior", "actor_lr"): 8e-5, ("behavior", "critic_lr"): 8e-5, ("behavior", "actor_entropy"): 1e-4,
+    ("train", "batch_size"): 16, ("train", "seq_len"): 50, ("train", "action_repeat"): 2,
+    ("train", "collect_interval"): 100,
+}
+
+
+def test_reference_dreamerv2_is_dreamerv2s_dmc_vision_config():
+    cfg = make_config("walker_walk", "paper", "dreamer", reference="dreamerv2")
+    got = {k: getattr(getattr(cfg, k[0]), k[1]) for k in DREAMERV2_DMC_VISION}
+    assert got == DREAMERV2_DMC_VISION
+    assert cfg.reference == "dreamerv2"
+    # a preset sizes it, and an explicit override still wins over the reference
+    small = make_config("walker_walk", "small", "dreamer", reference="dreamerv2",
+                        **{"behavior.actor_dist": "tanh_normal"})
+    assert (small.world_model.discrete, small.world_model.deter) == (32, 128)
+    assert small.behavior.actor_dist == "tanh_normal"
+
+
+def test_reference_and_weight_init_are_checked():
+    from protocad_ros.config import ConfigError
+    with pytest.raises(ConfigError, match="unknown reference"):
+        make_config("walker_walk", "small", "dreamer", reference="dreamerv9")
+    with pytest.raises(ConfigError, match="weight_init"):
+        make_config("walker_walk", "small", "dreamer", weight_init="he")
+    assert make_config("walker_walk").weight_init == "glorot"    # the references' Keras default

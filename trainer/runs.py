@@ -138,11 +138,16 @@ def build_config(task: str | None = None, variant: str | None = None, preset: st
     task = task or file_dict.get("task") or "pendulum_swingup"
     variant = variant or file_dict.get("variant") or "protocad"
     preset = preset or file_dict.get("preset") or DEFAULT_CLI_PRESET
-    cfg = make_config(task=task, preset=preset, variant=variant)
     settings = {k: v for k, v in flatten(file_dict).items() if k not in ("task", "variant", "preset")}
     settings.update(overrides or {})
+    # own_settings and reference choose defaults of other fields, so they go to make_config first
+    selectors = {k: settings[k] for k in SELECTOR_FIELDS if k in settings}
+    cfg = make_config(task=task, preset=preset, variant=variant, **selectors)
     return apply_overrides(cfg, settings)   # ConfigError is a ValueError: one line in the CLIs
 
+
+#: Config fields that choose the defaults of others (make_config applies their settings first).
+SELECTOR_FIELDS = ("own_settings", "reference")
 
 #: Config fields with flags of their own (--task, --variant, --preset: they pick the defaults
 #: of every other field), so not among the generated options.
@@ -449,6 +454,15 @@ def parse_duration(text: str | float) -> float:
         raise argparse.ArgumentTypeError(f"expected a duration like 5400, 90m, 1h30m or 45s, got {text!r}")
     h, mi, se = (float(g) if g else 0.0 for g in m.groups())
     return h * 3600 + mi * 60 + se
+
+
+def format_duration(seconds: float) -> str:
+    """Seconds as parse_duration reads them back: 45s, 12m, 3h10m."""
+    seconds = max(0, int(round(seconds)))
+    if seconds < 60:
+        return f"{seconds}s"
+    h, m = divmod(seconds // 60, 60)
+    return f"{h}h{m:02d}m" if h else f"{m}m"
 
 
 def torch_threads() -> int:

@@ -286,8 +286,16 @@ def config_from_args(a: argparse.Namespace):
         overrides["train.precision"] = choice.precision
         print(f"[config] {choice.describe()}", flush=True)
     cfg = runs.build_config(a.task, a.variant, a.preset, a.config, overrides)
-    flags = getattr(a, "config_args", [])
-    return runs.apply_config_flags(cfg, flags, getattr(a, "prog", "protocad")) if flags else cfg
+    flags, prog = getattr(a, "config_args", []), getattr(a, "prog", "protocad")
+    if not flags:
+        return cfg
+    flagged = runs.apply_config_flags(cfg, flags, prog)
+    chosen = {k: getattr(flagged, k) for k in runs.SELECTOR_FIELDS}
+    if chosen != {k: getattr(cfg, k) for k in runs.SELECTOR_FIELDS}:
+        # --reference / --no_own_settings pick other defaults: rebuild on them, flags on top
+        cfg = runs.build_config(a.task, a.variant, a.preset, a.config, {**overrides, **chosen})
+        flagged = runs.apply_config_flags(cfg, flags, prog)
+    return flagged
 
 
 def add_topic_args(ap: argparse.ArgumentParser) -> None:
