@@ -47,6 +47,34 @@ class TaskSpec:
         grid = itertools.product(*(values[p] for p in self.params))
         return [dict(zip(self.params, combo)) for combo in grid]
 
+    def stratified(self, split: str, k: int) -> list[dict[str, float]]:
+        """A fixed subset of k contexts of the split, stratified: every value of each parameter
+        appears equally often (as far as k allows). One parameter: k values evenly spaced over
+        its list. Two (m, d): m cycles through its list while d steps through its own by a
+        stride coprime with its length, shifted on each pass (an 8 x 8 grid, k = 8: (0, 0),
+        (1, 3), (2, 6), (3, 1), ... in index terms, so m and d are not correlated); k >= the
+        grid's size gives the whole grid. What periodic evaluations use."""
+        allc = self.contexts(split)
+        if k <= 0 or k >= len(allc):
+            return allc
+        values = self.values(split)
+        if len(self.params) == 1:
+            (p,) = self.params
+            idx = np.unique(np.round(np.linspace(0, len(values[p]) - 1, k)).astype(int))
+            return [{p: values[p][i]} for i in idx]
+        if len(self.params) != 2:
+            raise NotImplementedError("stratified subsets of more than two context parameters")
+        pa, pb = self.params
+        na, nb = len(values[pa]), len(values[pb])
+        stride = next(s for s in range(max(1, round(0.38 * nb)), nb + 1) if math.gcd(s, nb) == 1)
+        passes = -(-k // na)
+        shift = max(1, nb // passes)
+        out = []
+        for j in range(k):
+            i, r = j % na, j // na
+            out.append({pa: values[pa][i], pb: values[pb][(i * stride + r * shift) % nb]})
+        return out
+
     def sample(self, split: str, rng: np.random.Generator) -> dict[str, float]:
         """A context drawn uniformly from the split's grid (each parameter independently)."""
         values = self.values(split)
@@ -136,11 +164,13 @@ CAMERA_IDS = {"quadruped": 2}
 @dataclass(frozen=True)
 class BodyScaling:
     """Which part of a domain's model a context scales: the bodies in the subtree of ``root``
-    (without ``root`` itself when ``include_root`` is False), and their joints' damping."""
+    (without ``root`` itself when ``include_root`` is False), and their joints' damping. Bodies
+    in the subtrees of ``inverse`` get 1/m instead of m (CaDM's and RIA's Ant)."""
 
     root: str
     include_root: bool = True
     damping: bool = False
+    inverse: tuple[str, ...] = ()
 
 
 #: What a context scales in each domain's model (sim_bridge.envs applies it; its docstring says why).
@@ -150,7 +180,12 @@ SCALING = {
     "hopper": BodyScaling("torso"),
     "finger": BodyScaling("proximal"),  # the finger, not the spinner (see module docstring)
     "pendulum": BodyScaling("pole"),
-    "quadruped": BodyScaling("torso", include_root=False),  # legs only
+    # Legs only, as the Ant of CaDM and RIA, whose mass ranges the paper's quadruped copies
+    # (train 0.85-1.0, test 0.2-0.6): the front legs by m, the back legs by 1/m
+    # (younggyoseo/CaDM cadm/envs/ant_env.py: mass[2:8] *= m, mass[8:14] *= 1/m; RIA's
+    # ria/envs/ant_env.py is the same). At m = 0.2 the back legs weigh 5x, the front 0.2x.
+    "quadruped": BodyScaling("torso", include_root=False,
+                             inverse=("hip_back_right", "hip_back_left")),
 }
 
 

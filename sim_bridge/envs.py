@@ -11,7 +11,9 @@ defaults captured once at construction, so contexts never compound across episod
   scales "the mass of the finger agent", and the spinner is the object the agent acts on,
   whose inertia is what the task's reward is about;
 - pendulum: ``m`` scales the pole;
-- quadruped: ``m`` scales the leg bodies (hip, knee, ankle, toe of each leg), not the torso.
+- quadruped: ``m`` scales the bodies of the front legs (hip, knee, ankle, toe) and ``1/m`` those
+  of the back legs, not the torso: the Ant of CaDM and RIA, whose mass ranges the paper copies
+  (``sim_bridge.contexts.SCALING`` quotes the source).
 
 Only ``body_mass`` (and ``dof_damping``) are scaled, not ``body_inertia``: that is what the
 environments of this line of work do (CaDM's ``change_env`` sets ``model.body_mass`` and
@@ -144,6 +146,10 @@ class ContextDMCEnv:
         self._dofs = (np.flatnonzero(np.isin(model.dof_bodyid, self._bodies))
                       if scaling.damping else np.zeros(0, dtype=int))
         assert scaling.damping == ("d" in self.spec.params), self.spec.name
+        inverse = [b for r in scaling.inverse
+                   for b in _subtree(model, model.name2id(r, "body"), True)]
+        # m ** power per scaled body: +1, or -1 in the subtrees scaling.inverse names
+        self._mass_power = np.where(np.isin(self._bodies, inverse), -1.0, 1.0)
         self._default_mass = model.body_mass[self._bodies].copy()
         self._default_inertia = model.body_inertia[self._bodies].copy()
         self._default_damping = model.dof_damping[self._dofs].copy()
@@ -235,8 +241,10 @@ class ContextDMCEnv:
     def _apply(self, context: Mapping[str, float]) -> None:
         model = self.physics.model
         m, d = context["m"], context.get("d", 1.0)
-        model.body_mass[self._bodies] = self._default_mass * m
-        model.body_inertia[self._bodies] = self._default_inertia * (m if self.scale_inertia else 1.0)
+        factor = np.power(m, self._mass_power)
+        model.body_mass[self._bodies] = self._default_mass * factor
+        model.body_inertia[self._bodies] = self._default_inertia * (
+            factor[:, None] if self.scale_inertia else 1.0)
         model.dof_damping[self._dofs] = self._default_damping * d
         # mj_setConst overwrites mjData (it evaluates qpos0); the reset that follows restores it.
         self._mujoco.mj_setConst(model.ptr, self.physics.data.ptr)
