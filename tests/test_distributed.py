@@ -201,7 +201,7 @@ def test_protocad_online_on_two_ranks_collects_on_each_and_resumes_on_one(tmp_pa
             "train.batch_size=4", "--set", "train.seq_len=16", "--threads", "1"]
     args = ["--task", "pendulum_swingup", "--preset", "small", "--time-limit", "200",
             "--prefill-episodes", "2", "--updates-per-episode", "3", "--eval-every", "0",
-            "--eval-episodes", "1", "--final-max-contexts", "1", "--run-dir", str(run),
+            "--eval-episodes", "1", "--final-episodes", "1", "--final-max-contexts", "1", "--run-dir", str(run),
             "--no-progress", *tiny]
     out = torchrun("--no-python", str(BIN / "protocad-online"), "--env-steps", "1200", *args)
     assert out.returncode == 0, out.stdout + out.stderr

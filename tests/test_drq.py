@@ -193,7 +193,7 @@ def test_compare_runs_drq_online_and_protocad_train_learns_from_its_logs(tmp_pat
     cmd = [sys.executable, "-m", "trainer.compare", "--tasks", TASK, "--variants", "drq",
            "--seeds", "0", "--env-steps", "800", "--jobs", "1", "--out", str(out_dir), "--",
            "--preset", "small", "--time-limit", "200", "--prefill-episodes", "2",
-           "--updates-per-episode", "20", "--eval-every", "0", "--eval-episodes", "1",
+           "--updates-per-episode", "20", "--eval-every", "0", "--eval-episodes", "1", "--final-episodes", "1",
            "--final-max-contexts", "1", "--log-every", "10", "--set", "train.batch_size=32"]
     out = subprocess.run(cmd, capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stdout + out.stderr

@@ -29,8 +29,8 @@ def test_select_contexts_subsets():
     from trainer.evaluate import parse_context, select_contexts
 
     assert len(select_contexts("walker_walk")) == 64
-    sub = select_contexts("walker_walk", max_contexts=5)
-    assert len(sub) == 5 and sub[0] == {"m": 0.2, "d": 0.2} and sub[-1] == {"m": 1.8, "d": 1.8}
+    sub = select_contexts("walker_walk", max_contexts=5)   # the stratified subset: 5 m, 5 d values
+    assert len(sub) == 5 and len({c["m"] for c in sub}) == 5 and len({c["d"] for c in sub}) == 5
     assert select_contexts("pendulum_swingup", contexts=[parse_context("m=0.4")]) == [{"m": 0.4}]
     with pytest.raises(ValueError, match="belongs to the train split"):
         select_contexts("pendulum_swingup", contexts=[{"m": 1.0}])

@@ -9,7 +9,7 @@ import json
 from trainer_bags import TINY, run_cli
 
 ARGS = ["--task", "pendulum_swingup", *TINY, "--time-limit", "40", "--prefill-episodes", "2",
-        "--updates-per-episode", "2", "--eval-every", "80", "--eval-episodes", "1",
+        "--updates-per-episode", "2", "--eval-every", "80", "--eval-episodes", "1", "--final-episodes", "1",
         "--eval-max-contexts", "2", "--eval-workers", "0", "--log-every", "1", "--no-progress"]
 
 

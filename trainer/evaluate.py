@@ -8,12 +8,13 @@
 Paper protocol (ProtoCAD, ICLR 2023, "Evaluation protocol"): train on C_train, evaluate on
 C_test; the return of each test context is averaged over its episodes, a task's score is the
 mean over its test contexts, and several tasks are summarised by the mean and the median of
-their scores. Episodes run deterministically (the actor's mode, the posterior mean).
+their scores. Episodes act with the actor's mode on a sampled posterior, as DreamerV2 and
+DreamerPro evaluate (protocad_ros.policy; seeded, so a run repeats itself).
 
 Contexts: every context of the split by default (pendulum, finger, hopper: 4-8; cheetah and
-walker: the 8 x 8 = 64 (m, d) grid). `--max-contexts K` takes K of them evenly spaced over the
-grid (always including the first and the last); `--context m=0.2,d=1.5` (repeatable) picks
-exact ones.
+walker: the 8 x 8 = 64 (m, d) grid). `--max-contexts K` takes the fixed stratified subset of
+K (every value of m and of d equally often: TaskSpec.stratified); `--context m=0.2,d=1.5`
+(repeatable) picks exact ones.
 
 In-process (default): ContextDMCEnv copies with the context fixed per episode, stepped in this
 process (`--workers 0`) or in worker processes (`--workers N`), the policy batched over them.
@@ -169,17 +170,14 @@ def parse_context(text: str) -> dict[str, float]:
 
 def select_contexts(task: str, split: str = "test", contexts: Sequence[Mapping[str, float]] | None = None,
                     max_contexts: int = 0) -> list[dict[str, float]]:
-    """The split's contexts (validated), a given subset, or K evenly spaced ones."""
+    """The split's contexts (validated), a given subset, or the fixed stratified subset of
+    K (TaskSpec.stratified: every value of m and of d equally often; 0 = all)."""
     from sim_bridge.contexts import get_task
 
     spec = get_task(task)
     if contexts:
         return [spec.validate(c, split) for c in contexts]
-    allc = spec.contexts(split)
-    if max_contexts and max_contexts < len(allc):
-        idx = np.unique(np.round(np.linspace(0, len(allc) - 1, max_contexts)).astype(int))
-        return [allc[i] for i in idx]
-    return allc
+    return spec.stratified(split, max_contexts)
 
 
 def run_episodes(task: str, policy: Any, contexts: Sequence[Mapping[str, float]], episodes: int = 1, *,
@@ -342,8 +340,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--context", action="append", default=[], metavar="k=v[,k=v]",
                     help="evaluate only these contexts (repeatable), e.g. --context m=0.2,d=1.5")
     ap.add_argument("--max-contexts", type=int, default=0,
-                    help="at most K contexts, evenly spaced over the split's grid (0 = all; the "
-                         "(m, d) tasks have 64 test contexts)")
+                    help="the fixed stratified subset of K contexts (every m and d equally often; "
+                         "0 = all; the (m, d) tasks have 64 test contexts)")
     ap.add_argument("--time-limit", type=int, default=None,
                     help="env steps per episode (default: the checkpoint's train.time_limit, 1000)")
     ap.add_argument("--seed", type=int, default=0)
