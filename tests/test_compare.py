@@ -18,7 +18,7 @@ from trainer import results as R
 
 # 4 runs of 100-agent-step episodes; 2 test contexts, 1 episode each, so a run takes seconds.
 TINY = ["--preset", "small", "--time-limit", "200", "--prefill-episodes", "1", "--updates-per-episode", "2",
-        "--batch-size", "4", "--seq-len", "16", "--eval-every", "400", "--eval-episodes", "1",
+        "--batch-size", "4", "--seq-len", "16", "--eval-every", "400", "--eval-episodes", "1", "--final-episodes", "1",
         "--eval-contexts", "m=0.2", "m=1.8", "--checkpoint-every", "1",
         "--set", "context.freeze_prototypes_updates=2"]
 
@@ -45,6 +45,8 @@ def test_grid_runs_in_parallel_resumes_after_ctrl_c_and_reports(tmp_path, spawn)
              "a checkpoint in every run directory")
     pids = set(re.findall(r"started \S+ \(fresh\) pid (\d+)", first.output()))
     assert len(pids) == 4, first.output()
+    # what the grid has to do, said before it starts
+    assert "4 of 4 runs to go, 3,200 env steps in all, 4 at once" in first.output()
     assert first.stop(signal.SIGINT, timeout=120) == 130, first.output()
     assert "interrupted" in first.output()
     saved = {d: read_counters(d) for d in run_dirs}
@@ -56,6 +58,8 @@ def test_grid_runs_in_parallel_resumes_after_ctrl_c_and_reports(tmp_path, spawn)
     wait_for(lambda: not second.alive(), 400, "the resumed grid to finish")
     log = second.output()
     assert second.p.returncode == 0, log
+    # status lines carry the grid's estimated wall time once the runs have been timed
+    assert re.search(r"about \S+ left \([\d.]+ env steps/s per run\)", log), log
     for d in run_dirs:
         c = saved[d]
         run_log = (d / "online.log").read_text()
@@ -147,3 +151,11 @@ def test_compare_help_and_bad_report_are_clear(tmp_path):
     r = subprocess.run([sys.executable, "-m", "trainer.compare", "--report", str(bad)], capture_output=True,
                        text=True, cwd=ROOT, timeout=120)
     assert r.returncode == 2 and "does not match protocad-compare/1" in r.stderr
+
+
+def test_durations_print_as_they_parse():
+    from trainer.runs import format_duration, parse_duration
+    for seconds in (0, 45, 600, 3600, 11400, 90061):
+        text = format_duration(seconds)
+        assert abs(parse_duration(text) - seconds) < 60, text
+    assert (format_duration(45), format_duration(11400)) == ("45s", "3h10m")

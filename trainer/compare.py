@@ -20,9 +20,10 @@ across resumes) reaches `--wall-budget`; either way it then runs the final evalu
 test contexts and saves its checkpoint and curves. results.json records which budget ended
 each run and the env steps it reached.
 
-`--anchor-seeds S...` adds the sanity anchor of the RL core: `dreamer` trained and evaluated
-on the unrandomized task (the default context, m=1 / m=1,d=1), label `dreamer_standard`,
-to set beside the published DreamerV2 scores on standard DMC.
+`--anchor-seeds S...` adds the sanity anchor of the RL core: `dreamer` at DreamerV2's dmc_vision
+settings (`reference=dreamerv2`: 32 x 32 discrete latents, trunc_normal actor) trained and
+evaluated on the unrandomized task (the default context, m=1 / m=1,d=1), label
+`dreamer_standard`, to set beside DreamerV2's published curves on standard DMC.
 
 Everything after `--` goes to every `protocad-online` run unchanged (preset, C, eval options,
 `--set` overrides).
@@ -43,8 +44,8 @@ from pathlib import Path
 from typing import Sequence
 
 from trainer import runs
+from trainer.results import ANCHOR_LABEL
 
-ANCHOR_LABEL = "dreamer_standard"
 
 
 @dataclass
@@ -91,7 +92,9 @@ def plan(a: argparse.Namespace) -> list[RunSpec]:
         extra = []
         if label == ANCHOR_LABEL:
             ctx = standard_context(task)
-            extra = ["--train-context", ctx, "--eval-split", "train", "--eval-contexts", ctx]
+            # DreamerV2's own dmc_vision settings, so its published curve is the reference
+            extra = ["--train-context", ctx, "--eval-split", "train", "--eval-contexts", ctx,
+                     "--set", "reference=dreamerv2"]
         specs.append(RunSpec(task, label, variant, seed, Path(a.out) / task / label / f"seed{seed}",
                              a.devices[i % len(a.devices)], extra))
     return specs
@@ -152,7 +155,12 @@ def run_grid(specs: Sequence[RunSpec], a: argparse.Namespace) -> int:
     bar = runs.progress(len(specs) * a.env_steps, desc="env steps (all runs)", unit="step")
     done_steps = {id(s): (a.env_steps if s.state(a.env_steps, a.wall_budget) == "done" else 0) for s in specs}
     bar.update(sum(done_steps.values()))
-    last_status = 0.0
+    last_status = time.monotonic() - a.status_every + min(a.status_every, FIRST_ESTIMATE_S)
+    remaining = sum(a.env_steps - done_steps[id(s)] for s in specs)
+    print(f"[compare] {len(todo)} of {len(specs)} runs to go, {remaining:,} env steps in all, "
+          f"{a.jobs} at once; the estimated wall time follows a first timing of "
+          f"{min(a.status_every, FIRST_ESTIMATE_S):.0f} s", flush=True)
+    started = {}   # id(spec) -> (monotonic time, env steps) when this invocation first saw it run
     with runs.StopFlag() as stop:
         try:
             while (todo or running) and not stop.stop:
@@ -180,10 +188,13 @@ def run_grid(specs: Sequence[RunSpec], a: argparse.Namespace) -> int:
                     print(f"[compare] {s.task}/{s.label}/seed{s.seed}: exit {p.returncode}, "
                           f"{res.get('status', 'no result')} at {res.get('env_steps', '?')} env steps"
                           + ("" if ok else f" (see {s.run_dir / 'online.log'})"), flush=True)
+                for s, _, _ in running.values():
+                    started.setdefault(id(s), (time.monotonic(), done_steps[id(s)]))
                 if time.monotonic() - last_status > a.status_every:
                     last_status = time.monotonic()
                     print("[compare] " + ", ".join(f"{s.label}/seed{s.seed}: {done_steps[id(s)]}"
-                                                   for s, _, _ in running.values()), flush=True)
+                                                   for s, _, _ in running.values())
+                          + grid_estimate(specs, running, started, done_steps, a), flush=True)
         finally:
             for s, p, log in running.values():
                 if p.poll() is None:
@@ -201,6 +212,26 @@ def run_grid(specs: Sequence[RunSpec], a: argparse.Namespace) -> int:
               "resume", flush=True)
         return -1
     return failed
+
+
+#: Seconds of running before the first status line with a wall-time estimate.
+FIRST_ESTIMATE_S = 120.0
+
+
+def grid_estimate(specs, running, started, done_steps, a) -> str:
+    """'; about 3h10m left' from the env steps/s the running runs made since this invocation
+    started them (evaluations and all), the grid's remaining steps, and a.jobs at once."""
+    now = time.monotonic()
+    rates = [(done_steps[id(s)] - started[id(s)][1]) / max(1e-9, now - started[id(s)][0])
+             for s, _, _ in running.values()
+             if id(s) in started and now - started[id(s)][0] > min(30.0, a.status_every)]
+    rates = [r for r in rates if r > 0]
+    if not rates:
+        return "; no estimate yet"
+    per_run = sum(rates) / len(rates)
+    left = sum(max(0, a.env_steps - done_steps[id(s)]) for s in specs)
+    seconds = left / (per_run * min(a.jobs, max(1, len(running))))
+    return f"; about {runs.format_duration(seconds)} left ({per_run:.1f} env steps/s per run)"
 
 
 def add_grid_wall_time(out: Path, seconds: float) -> float:
@@ -249,7 +280,8 @@ def build_parser() -> argparse.ArgumentParser:
     g = ap.add_argument_group("grid")
     g.add_argument("--tasks", nargs="+", choices=sorted(TASKS), default=["pendulum_swingup"])
     g.add_argument("--variants", nargs="+", choices=VARIANTS, default=["protocad", "dreamer"])
-    g.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    g.add_argument("--seeds", nargs="*", type=int, default=[0, 1, 2],
+                   help="seeds of every variant (none: only the anchor's)")
     g.add_argument("--anchor-seeds", nargs="*", type=int, default=[],
                    help=f"also run dreamer on the unrandomized task (label {ANCHOR_LABEL}) with these seeds")
     g = ap.add_argument_group("budgets and resources")

@@ -57,13 +57,8 @@ PAPER_TABLE1: dict[str, dict[str, tuple[float, float]]] = {
                     "dreamer_context": (845.5, 12.8), "drq": (927.1, 17.7)},
 }
 PAPER_ENV_STEPS = 2_000_000
-# DreamerV2 on standard (unrandomized) pixel DMC, env steps -> return (published curves).
-DREAMERV2_STANDARD: dict[str, dict[int, float]] = {
-    "cheetah_run": {100_000: 332, 500_000: 610, 1_000_000: 732},
-    "walker_walk": {100_000: 408, 500_000: 934, 1_000_000: 956},
-    "pendulum_swingup": {100_000: 357, 500_000: 804, 1_000_000: 799},
-    "hopper_stand": {100_000: 4, 500_000: 869, 1_000_000: 899},
-}
+#: protocad-compare's label of the anchor (Dreamer on the unrandomized task).
+ANCHOR_LABEL = "dreamer_standard"
 
 _NUM = {"type": "number"}
 _INT = {"type": "integer"}
@@ -385,6 +380,9 @@ def format_report(doc: Mapping[str, Any]) -> str:
            f"{_machine_line(doc['machine'])}; grid wall time {doc['wall_time_s'] / 60:.1f} min", "",
            _text_table(*table_rows(doc, s)), "", "over tasks (test contexts; stratified bootstrap):",
            _text_table(*aggregate_rows(s))]
+    anchor = anchor_rows(doc)
+    if anchor[1]:
+        out += ["", "anchor vs DreamerV2's published seeds (standard task):", _text_table(*anchor)]
     return "\n".join(out)
 
 
@@ -412,6 +410,41 @@ def curves(doc: Mapping[str, Any], task: str, label: str) -> tuple[np.ndarray, n
     return np.array(steps), np.array(mean), np.array(lo), np.array(hi)
 
 
+#: DreamerV2's published per-seed curves on standard DMC (danijar/dreamerv2
+#: scores/dmc-vision-dreamerv2.json @07d906e, the paper's eight tasks up to 300k env steps).
+DREAMERV2_SCORES = Path(__file__).with_name("dreamerv2_dmc_vision.json")
+
+
+def dreamerv2_reference(task: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """DreamerV2's published seeds on the standard task: env steps, mean, min and max over its
+    seeds at every step all of them report (empty arrays for a task it has no curve of)."""
+    doc = json.loads(DREAMERV2_SCORES.read_text())
+    rs = [c for c in doc["curves"] if c["task"] == task]
+    if not rs:
+        return (np.zeros(0),) * 4
+    steps = sorted(set.intersection(*(set(c["env_steps"]) for c in rs)))
+    v = np.array([[dict(zip(c["env_steps"], c["return"]))[s] for s in steps] for c in rs])
+    return np.array(steps), v.mean(0), v.min(0), v.max(0)
+
+
+def anchor_rows(doc: Mapping[str, Any]) -> tuple[list[str], list[list[str]]]:
+    """The anchor beside DreamerV2's published seeds at every env-step count both have: our mean
+    over seeds, theirs with its range, and whether ours lies within that range."""
+    head = ["task", "env steps", "dreamer_standard (mean of seeds)", "DreamerV2 mean (range)",
+            "within range"]
+    rows = []
+    for task in sorted({r["task"] for r in doc["runs"] if r["label"] == ANCHOR_LABEL}):
+        x, m, _, _ = curves(doc, task, ANCHOR_LABEL)
+        n = len({r["seed"] for r in doc["runs"] if r["task"] == task and r["label"] == ANCHOR_LABEL})
+        ours = dict(zip(x.tolist(), m.tolist()))
+        for st, rm, lo, hi in zip(*dreamerv2_reference(task)):
+            if int(st) in ours:
+                v = ours[int(st)]
+                rows.append([task, f"{int(st):,}", f"{v:.1f} (n={n})", f"{rm:.0f} ({lo:.0f}-{hi:.0f})",
+                             "yes" if lo <= v <= hi else ("above" if v > hi else "no")])
+    return head, rows
+
+
 def labels_of(doc: Mapping[str, Any], task: str) -> list[str]:
     return sorted({r["label"] for r in doc["runs"] if r["task"] == task})
 
@@ -435,6 +468,14 @@ def plot_curves(doc: Mapping[str, Any], path: str | Path) -> Path:
             name = f"{label} (n={n}" + (", m=1 only)" if split == "train" else ")")
             line, = ax.plot(x, m, marker="o", ms=3, label=name, gid=f"curve:{label}")
             ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.2, linewidth=0)
+        if any(r["task"] == task and r["label"] == ANCHOR_LABEL for r in doc["runs"]):
+            x, m, lo, hi = dreamerv2_reference(task)
+            if x.size:   # the anchor's reference: DreamerV2's seeds, their range as the band
+                until = max(r["env_steps"] for r in doc["runs"] if r["task"] == task)
+                keep = x <= max(until, x[0])
+                ax.errorbar(x[keep], m[keep], yerr=[m[keep] - lo[keep], hi[keep] - m[keep]],
+                            color="black", ls=":", lw=1.2, marker="s", ms=4, capsize=4,
+                            label="DreamerV2 published (mean, range of 5 seeds)", gid="curve:dreamerv2")
         rnd = doc["random"].get(task)
         if rnd is not None:
             ax.axhline(rnd["mean_return"], color="gray", ls="--", lw=1, label="random policy")
@@ -502,12 +543,12 @@ def markdown_section(doc: Mapping[str, Any], image: str | None = None, source: s
     if s["aggregates"] and max(a["tasks"] for a in s["aggregates"]) > 1:
         lines += ["Over tasks (test contexts; 95% stratified bootstrap intervals):", "",
                   _md_table(*aggregate_rows(s)), ""]
-    anchors = [r for r in s["rows"] if r["eval_split"] == "train" and r["task"] in DREAMERV2_STANDARD]
-    for r in anchors:
-        ref = ", ".join(f"{v} at {k // 1000}k" for k, v in DREAMERV2_STANDARD[r["task"]].items())
-        lines += [f"Sanity anchor: `{r['label']}` on the unrandomized {r['task']} (m=1) reached "
-                  f"{r['mean']:.1f} at {_steps(r['env_steps'])} env steps; DreamerV2 on standard pixel "
-                  f"DMC: {ref} env steps.", ""]
+    anchor = anchor_rows(doc)
+    if anchor[1]:
+        lines += ["Sanity anchor: `dreamer_standard` (Dreamer trained and evaluated on the "
+                  "unrandomized task) against DreamerV2's five published seeds on standard DMC "
+                  "(danijar/dreamerv2 `scores/dmc-vision-dreamerv2.json` @07d906e; black squares "
+                  "and their range in the plot):", "", _md_table(*anchor), ""]
     if image:
         lines += [f"![test-context return vs env steps]({image})", ""]
     lines.append(END)
