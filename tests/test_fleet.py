@@ -73,6 +73,14 @@ def test_bad_discovery_server_addresses_are_one_clear_line(capsys):
     assert build_parser().parse_args(["--discovery-server", ";10.0.0.2:11811"]).discovery_server == ";10.0.0.2:11811"
 
 
+def test_a_server_on_every_interface_is_warned_about():
+    from trainer.discovery import exposure_warning
+    for host in ("0.0.0.0", "::"):
+        w = exposure_warning(host)
+        assert w and host in w and "msgs_docs/security.md" in w and "actions" in w
+    assert exposure_warning("127.0.0.1") is None and exposure_warning("10.0.0.2") is None
+
+
 def test_actor_groups_placed_like_on_other_machines(tmp_path, spawn):
     """`protocad-fleet` as on three machines (here all on 127.0.0.1): A runs the server, one
     recorder for robot0 and robot1 and the checkpoint publisher on the learner's file; B and C
@@ -116,3 +124,18 @@ def test_actor_groups_placed_like_on_other_machines(tmp_path, spawn):
                 *TINY, "--updates", "1", "--run-dir", tmp_path / "learner", "--cache-dir", tmp_path / "cache",
                 timeout=300)
     assert t.returncode == 0, t.stdout + t.stderr
+
+
+def test_a_fleet_profile_allows_the_fleet_interface_beside_loopback(tmp_path):
+    import subprocess
+    import sys
+
+    from trainer.discovery import fleet_profile
+    text = fleet_profile(["10.0.0.5"])
+    assert "<address>127.0.0.1</address><address>10.0.0.5</address>" in text
+    r = subprocess.run([sys.executable, "-m", "trainer.discovery", "--print-profile", "10.0.0.5"],
+                       capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0 and r.stdout == text
+    bad = subprocess.run([sys.executable, "-m", "trainer.discovery", "--print-profile", "eth0"],
+                         capture_output=True, text=True, timeout=60)
+    assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1

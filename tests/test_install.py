@@ -105,3 +105,61 @@ def test_the_environment_sets_a_discovery_profile_fast_dds_loads(tmp_path):
     bad = tmp_path / "bad.xml"
     bad.write_text(tree.read_text().replace("<sec>0</sec>", "<sec>zero</sec>", 1))
     assert "XMLPARSER" in _participant_log(bad)
+
+
+def _udp_sockets(pid: int) -> list[tuple[str, int, int]]:
+    """(local IPv4 address, port, bytes queued unread) of every UDP socket process `pid` holds,
+    from /proc (no ss needed)."""
+    import socket
+    import struct
+
+    inodes = set()
+    for fd in Path(f"/proc/{pid}/fd").iterdir():
+        try:
+            target = os.readlink(fd)
+        except OSError:
+            continue
+        if target.startswith("socket:["):
+            inodes.add(target[8:-1])
+    out = []
+    for line in Path("/proc/net/udp").read_text().splitlines()[1:]:
+        f = line.split()
+        if f[9] in inodes:
+            hexaddr, hexport = f[1].split(":")
+            addr = socket.inet_ntoa(struct.pack("<I", int(hexaddr, 16)))
+            out.append((addr, int(hexport, 16), int(f[4].split(":")[1], 16)))
+    return out
+
+
+def test_dds_reads_only_loopback_sockets_in_the_default_environment():
+    """With the environment's profile, every socket Fast DDS receives on is bound to 127.0.0.1;
+    the others (send-only, rmw_fastrtps's LOCALHOST mode) are never read."""
+    import socket
+    import time
+
+    from conftest import wait_for
+
+    domain = int(os.environ["ROS_DOMAIN_ID"])
+    code = ("import rclpy, time; from std_msgs.msg import String; rclpy.init(); "
+            "n = rclpy.create_node('socket_check'); p = n.create_publisher(String, 'x', 10); "
+            "print('up', flush=True); time.sleep(60)")
+    proc = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True,
+                            env={**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"})
+    try:
+        assert proc.stdout.readline().strip() == "up"
+        wait_for(lambda: len(_udp_sockets(proc.pid)) >= 3, 30, "the participant's sockets")
+        socks = _udp_sockets(proc.pid)
+        base = 7400 + 250 * domain      # RTPS well-known ports of this domain
+        rtps = [s for s in socks if base <= s[1] < base + 250]
+        assert rtps and all(a == "127.0.0.1" for a, _, _ in rtps), socks
+        other = [s for s in socks if s[0] == "0.0.0.0"]
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as tx:
+            for _, port, _ in other:
+                tx.sendto(b"not rtps", ("127.0.0.1", port))
+        time.sleep(0.5)   # proving a negative: a reader would drain them within one poll
+        after = {(a, p): q for a, p, q in _udp_sockets(proc.pid)}
+        for a, p, _ in other:
+            assert after[(a, p)] > 0, f"{a}:{p} was read: it is a receiving socket beyond loopback"
+    finally:
+        proc.kill()
+        proc.wait()

@@ -11,7 +11,8 @@ and random actors stay plain clients: they only hear about the topics they use, 
 keeps discovery traffic small as the fleet grows (msgs_docs/scaling.md).
 
     protocad-discovery-server                      # a server on 127.0.0.1:11811, foreground
-    protocad-discovery-server --listen 0.0.0.0:11811   # reachable from other machines
+    protocad-discovery-server --listen 10.0.0.5:11811  # reachable on that interface (see
+                                                       # --print-profile and msgs_docs/security.md)
 
 The server is the `fast-discovery-server` executable the ROS wheels install into the
 environment's `bin/`; it needs the wheels' libraries on LD_LIBRARY_PATH, which every Python
@@ -96,7 +97,8 @@ def add_args(ap: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
                    const=(LOCALHOST, DEFAULT_PORT), metavar="[HOST:]PORT",
                    help=f"start a Discovery Server (fast-discovery-server, default {LOCALHOST}:{DEFAULT_PORT}) "
                         "before the nodes, stop it after them, and discover through it; listen on "
-                        "0.0.0.0:PORT to let actor groups on other machines join")
+                        "this machine's fleet-facing address to let actor groups on other machines "
+                        "join (0.0.0.0 works but exposes it everywhere)")
 
 
 def from_args(a: argparse.Namespace) -> tuple[str | None, tuple[str, int] | None]:
@@ -128,6 +130,31 @@ def server_executable() -> str:
         raise FileNotFoundError("fast-discovery-server not found (it ships with the ros-jazzy Fast DDS wheels "
                                 f"in {exe.parent}/)")
     return found
+
+
+def exposure_warning(host: str) -> str | None:
+    """What to tell a user who makes a server listen on every interface, or None."""
+    if host not in ("0.0.0.0", "::"):
+        return None
+    return (f"WARNING: listening on {host}: every network this machine is on reaches the server "
+            "and, through it, the ROS domain, where any participant can publish actions, "
+            "resets or checkpoints (msgs_docs/security.md). Listen on the fleet's own interface "
+            "address, on a private network or behind a firewall, and give the fleet's processes "
+            "a Fast DDS profile that allows that interface.")
+
+
+def fleet_profile(addresses: list[str]) -> str:
+    """The environment's Fast DDS profile (sim_bridge/fastdds_discovery.xml) with these
+    interface addresses allowed beside 127.0.0.1: what every process of a fleet across
+    machines needs, each machine with its own fleet-facing address."""
+    for a in addresses:
+        ipaddress.IPv4Address(a)   # ValueError for anything but one IPv4 address
+    name = "fastdds_discovery.xml"
+    installed = Path(sys.prefix) / "share" / "sim_bridge" / name
+    tree = Path(__file__).resolve().parents[1] / "sim_bridge" / name
+    text = (installed if installed.exists() else tree).read_text()
+    loopback = "<address>127.0.0.1</address>"
+    return text.replace(loopback, loopback + "".join(f"<address>{a}</address>" for a in addresses), 1)
 
 
 def server_command(host: str, port: int, server_id: int = 0) -> list[str]:
@@ -189,14 +216,25 @@ def build_parser() -> argparse.ArgumentParser:
                                         "introspection), or give the launchers --discovery-server HOST:PORT.")
     ap.add_argument("--listen", type=_argtype(parse_listen), default=(LOCALHOST, DEFAULT_PORT), metavar="[HOST:]PORT",
                     help=f"address to listen on (default {LOCALHOST}:{DEFAULT_PORT}: this machine only; "
-                         "0.0.0.0:PORT or this machine's address for other machines)")
+                         "this machine's fleet-facing address for other machines; 0.0.0.0 is warned about)")
     ap.add_argument("--server-id", type=int, default=0,
                     help="the server's position in ROS_DISCOVERY_SERVER lists of several servers")
+    ap.add_argument("--print-profile", nargs="+", metavar="ADDRESS", default=None,
+                    help="print the environment's Fast DDS profile with these interface addresses "
+                         "allowed beside 127.0.0.1 (for FASTRTPS_DEFAULT_PROFILES_FILE on a fleet's "
+                         "machines) and exit")
     return ap
 
 
 def main(argv=None) -> int:
     a = build_parser().parse_args(argv)
+    if a.print_profile:
+        try:
+            print(fleet_profile(a.print_profile), end="")
+        except ValueError as exc:
+            print(f"protocad-discovery-server: error: --print-profile: {exc}", file=sys.stderr)
+            return 2
+        return 0
     host, port = a.listen
     try:
         cmd = server_command(host, port, a.server_id)
@@ -205,6 +243,9 @@ def main(argv=None) -> int:
         return 2
     print(f"[discovery] {' '.join(cmd)}\n[discovery] clients: export {SERVER_ENV}={connect_address(host, port)}",
           flush=True)
+    warning = exposure_warning(host)
+    if warning:
+        print(f"[discovery] {warning}", file=sys.stderr, flush=True)
     os.execv(cmd[0], cmd)
 
 

@@ -182,6 +182,9 @@ class RosStack:
     def _start_discovery_server(self, host: str, port: int, timeout: float) -> str:
         from trainer import discovery
 
+        warning = discovery.exposure_warning(host)
+        if warning:
+            print(f"[{DISCOVERY_SERVER}] {warning}", file=sys.stderr, flush=True)
         # Its own ROS_DOMAIN_ID does not matter: the server takes no domain option and serves
         # the clients that reach its address, whatever their domain.
         proc = NodeProc(DISCOVERY_SERVER, discovery.server_command(host, port),
