@@ -41,3 +41,29 @@ def test_stack_file_mistakes_are_refused_with_the_reason(tmp_path):
     bad.write_text("brigde: {task: walker_walk}\n")
     r = subprocess.run([sys.executable, "-m", "trainer.stack", str(bad)], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "unknown key(s) ['brigde']" in r.stderr
+
+
+def test_a_checkpoint_of_another_task_is_refused_before_any_node_starts(tmp_path):
+    import subprocess
+
+    from protocad_ros.agent import Agent
+    from protocad_ros.checkpoint import save_checkpoint
+    from protocad_ros.config import make_config
+
+    cfg = make_config("pendulum_swingup", "small", "dreamer", **{
+        "world_model.deter": 16, "world_model.hidden": 16, "world_model.stoch": 4,
+        "world_model.cnn_depth": 4, "world_model.mlp_units": 16, "behavior.actor_units": 16,
+        "behavior.critic_units": 16})
+    save_checkpoint(tmp_path / "run" / "checkpoints" / "latest.pt", Agent(cfg, 1), {"env_steps": 0})
+    stack = tmp_path / "stack.yaml"
+    # the README's example: a walker bridge, and the only checkpoint a newcomer has (pendulum)
+    stack.write_text(f"bridge: {{task: walker_walk}}\npolicy: {{checkpoint: {tmp_path / 'run'}}}\nrecorder: false\n")
+    r = subprocess.run([sys.executable, "-m", "trainer.stack", str(stack), "--log-dir", str(tmp_path / "logs")],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 2, r.stdout + r.stderr
+    assert "trained on pendulum_swingup but bridge.task is walker_walk" in r.stderr, r.stderr
+    assert not (tmp_path / "logs").exists()             # nothing started
+    # the same checkpoint with its own task passes the check
+    from trainer.stack import checkpoint_mismatch
+    assert checkpoint_mismatch({"bridge": {"task": "pendulum_swingup"},
+                                "policy": {"checkpoint": str(tmp_path / "run")}}) is None

@@ -76,6 +76,12 @@ def build_parser() -> argparse.ArgumentParser:
 def run(a: argparse.Namespace) -> int:
     from trainer.rosprocs import NodeFailed, RosStack, robot_namespaces
 
+    from trainer.stack import checkpoint_mismatch
+
+    mismatch = checkpoint_mismatch({"bridge": {"task": a.task}, "policy": {"checkpoint": a.checkpoint}})
+    if mismatch:   # before any node: its policies would refuse every bridge
+        print(f"protocad-fleet: error: {mismatch.replace('bridge.task', '--task')}", file=sys.stderr)
+        return 2
     namespaces = robot_namespaces(T.DEFAULT_NAMESPACE, a.robots, first=a.first_robot)
     log_dir = Path(a.log_dir or time.strftime("runs/fleet-%Y%m%d-%H%M%S/logs"))
     server, start_server = discovery.from_args(a)

@@ -55,6 +55,7 @@ class RosGraph:
         self.executor.add_node(self.node)
         self._clients: dict[str, object] = {}
         self._diag: dict[str, tuple[float, dict[str, str]]] = {}   # name -> (stamp s, values)
+        self._diag_status: dict[str, tuple[int, str]] = {}          # name -> (level, message)
         self.node.create_subscription(DiagnosticArray, T.DIAGNOSTICS, self._on_diag,
                                       qos.diagnostics_qos())
 
@@ -116,6 +117,8 @@ class RosGraph:
         stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
         for st in msg.status:
             self._diag[st.name] = (stamp, {kv.key: kv.value for kv in st.values})
+            level = st.level[0] if isinstance(st.level, (bytes, bytearray)) else int(st.level)
+            self._diag_status[st.name] = (level, st.message)
 
     def diagnostics(self, node_fqn: str, newer_than: float | None = None) -> dict[str, str] | None:
         """The latest diagnostics values of `node_fqn` (stamped after `newer_than`, wall-clock
@@ -125,6 +128,11 @@ class RosGraph:
         if got is None or (newer_than is not None and got[0] < newer_than):
             return None
         return got[1]
+
+    def diagnostic_status(self, node_fqn: str) -> tuple[int, str] | None:
+        """(level, message) of `node_fqn`'s latest diagnostics (level 2 = ERROR), or None."""
+        self.spin(0.0)
+        return self._diag_status.get(node_fqn)
 
     # ------------------------------------------------------------------ waiting
     def wait(self, ready: Callable[[], bool], *, what: str, timeout: float,

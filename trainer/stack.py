@@ -20,6 +20,9 @@ step and every action from stamp 0. Each node logs to LOG_DIR/NAME.log (default 
 bag, else runs/stack-STAMP/logs) and to this terminal with a `[name]` prefix. The stack ends
 when the bridge finishes (`max_episodes`), a node fails, or on Ctrl-C; the nodes stop in that
 order: bridge, policy, recorder (it drains and closes its bag). Exit 0 when every node exited 0.
+A policy checkpoint whose task or image size differs from the bridge's is refused before any
+node starts (exit 2); a policy that refuses its bridge while running (its diagnostics at
+ERROR, e.g. after reloading another task's checkpoint) stops the stack with exit 1.
 The ROS domain is $ROS_DOMAIN_ID (or `--domain-id`); DDS stays on this machine.
 """
 from __future__ import annotations
@@ -38,6 +41,7 @@ from sim_bridge import topics as T
 from trainer import discovery, runs
 
 SECTIONS = ("bridge", "policy", "recorder")
+DIAG_ERROR = 2   # diagnostic_msgs/DiagnosticStatus.ERROR
 MODULES = {"bridge": "sim_bridge.node", "policy": "protocad_ros.policy_node", "recorder": "trainer.recorder"}
 
 
@@ -67,6 +71,36 @@ def load_stack(path: str | Path, overrides: Sequence[str] = ()) -> dict[str, Any
     if doc.get("recorder", {}) not in (False, None) and not isinstance(doc.get("recorder", {}), dict):
         raise ValueError(f"{path}: recorder must be a mapping of its parameters, or false")
     return doc
+
+
+def checkpoint_mismatch(doc: dict[str, Any]) -> str | None:
+    """Why the policy's checkpoint cannot drive the bridge of this stack file (its task or image
+    size differ), or None. Read before any node starts: a mismatched stack would otherwise run
+    with a policy that refuses every observation."""
+    from protocad_ros.checkpoint import CheckpointError, read_checkpoint
+    from sim_bridge.bridge_params import PARAMS as BRIDGE_PARAMS
+
+    path = (doc.get("policy") or {}).get("checkpoint")
+    if not path or not Path(path).exists():
+        return None   # a random agent, or wait_for_checkpoint: the node checks what arrives
+    path = runs.checkpoint_path(path) if Path(path).is_dir() else Path(path)
+    try:
+        cfg = read_checkpoint(path)["config"]
+    except CheckpointError as exc:
+        return str(exc)
+    defaults = {p.name: p.default for p in BRIDGE_PARAMS}
+    bridge = {**defaults, **(doc.get("bridge") or {})}
+    why = []
+    if cfg.get("task") != bridge["task"]:
+        why.append(f"it was trained on {cfg.get('task')} but bridge.task is {bridge['task']}")
+    size = (cfg.get("train") or {}).get("image_size", 64)
+    if int(size) != int(bridge["image_size"]):
+        why.append(f"it sees {size}x{size} images but bridge.image_size is {bridge['image_size']}")
+    if not why:
+        return None
+    return (f"policy.checkpoint {path} ({cfg.get('variant')}) does not fit this bridge: "
+            + "; ".join(why) + f". Set bridge.task: {cfg.get('task')} or give a checkpoint of "
+            f"{bridge['task']}.")
 
 
 def ros_params(params: dict[str, Any]) -> list[str]:
@@ -122,6 +156,7 @@ def run(doc: dict[str, Any], *, log_dir: Path, domain_id: int | None, ready_time
     print(f"[stack] ROS_DOMAIN_ID={stack.domain_id}, namespace {ns}, {stack.describe_discovery()}, logs in {log_dir}",
           flush=True)
     codes: dict[str, int | None] = {}
+    refused = None
     with runs.StopFlag() as stop:
         try:
             if record:
@@ -145,7 +180,14 @@ def run(doc: dict[str, Any], *, log_dir: Path, domain_id: int | None, ready_time
             bridge.setdefault("min_subscribers", 2 if record else 1)
             stack._spawn("bridge", MODULES["bridge"], ["--ros-args", *ros_params(bridge), "-r", f"__ns:={ns}"])
             print("[stack] running: Ctrl-C stops every node", flush=True)
+            policy_fqn = stack.node_fqn("policy")
             while not stop.stop:
+                status = stack.graph.diagnostic_status(policy_fqn)
+                if status and status[0] == DIAG_ERROR and status[1].startswith("not answering"):
+                    # e.g. a reloaded checkpoint of another task: the bridge would wait forever
+                    refused = f"the policy refuses the bridge: {status[1]}"
+                    print(f"[stack] {refused}: stopping the stack", file=sys.stderr, flush=True)
+                    break
                 dead = [n for n, p in stack.procs.items() if not p.alive()]
                 if dead:
                     if dead == ["bridge"] and stack.procs["bridge"].p.returncode == 0:
@@ -162,6 +204,9 @@ def run(doc: dict[str, Any], *, log_dir: Path, domain_id: int | None, ready_time
             follower.flush()
             follower.stop.set()
     print("[stack] exit codes: " + ", ".join(f"{n} {c}" for n, c in codes.items()), flush=True)
+    if refused:
+        print(f"[stack] failed: {refused}", file=sys.stderr, flush=True)
+        return 1
     return 0 if codes and all(c == 0 for c in codes.values()) else 1
 
 
@@ -185,6 +230,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         doc = load_stack(a.file, a.set)
     except ValueError as exc:
         print(f"protocad-stack: error: {exc}", file=sys.stderr)
+        return 2
+    mismatch = checkpoint_mismatch(doc)
+    if mismatch:
+        print(f"protocad-stack: error: {mismatch}", file=sys.stderr)
         return 2
     out = (doc.get("recorder") or {}).get("output") if isinstance(doc.get("recorder"), dict) else None
     log_dir = Path(a.log_dir) if a.log_dir else (Path(out).parent / "logs" if out else
