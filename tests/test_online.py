@@ -58,8 +58,25 @@ def test_online_runs_end_to_end_and_resumes(tmp_path):
                 "--eval-workers", "0", timeout=300)
     assert r.returncode == 0, r.stdout + r.stderr
     assert "resuming" in r.stdout and "finished: 200 env steps" in r.stdout
+    # run.json keeps the original command and appends the resume's
+    info = json.loads((run / "run.json").read_text())
+    assert "--random-baseline" in info["args"] and "--num-envs" in info["args"]
+    assert len(info["resumes_argv"]) == 1 and "--resume" in info["resumes_argv"][0]
     # two more bags, one per env, each a partial episode (the budget ends mid-episode): kept,
     # and read as episodes without is_last
     ds = MCAPDataset([run / "bags"], seq_len=8, cache_dir=tmp_path / "cache")
     assert len(ds.stores) == 6 and not ds.report.problems()
     assert sorted(e["has_last"] for e in ds.episodes()) == [False, False, True, True, True, True]
+
+
+def test_resume_keeps_the_original_options_unless_given_again(tmp_path):
+    from trainer import runs
+    from trainer.online import build_parser
+
+    run = tmp_path / "run"
+    run.mkdir()
+    (run / "run.json").write_text(json.dumps({"args": ["--eval-max-contexts", "1", "--log-every", "1",
+                                                       "--task", "walker_walk", "--run-dir", str(run)]}))
+    a = runs.resumed_cli(build_parser, runs.parse_cli(build_parser(), [
+        "--run-dir", str(run), "--resume", "--log-every", "5"]))
+    assert (a.eval_max_contexts, a.log_every, a.task, a.resume) == (1, 5, "walker_walk", True)

@@ -96,6 +96,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     a = runs.parse_cli(build_parser(), argv)
+    if a.resume:   # the original command's options, unless given again
+        a = runs.resumed_cli(build_parser, a)
     from trainer.rosprocs import NodeFailed
 
     try:
@@ -156,7 +158,8 @@ class Loop:
         from trainer.rosprocs import robot_namespaces
 
         self.namespaces = robot_namespaces(T.DEFAULT_NAMESPACE, a.robots)
-        self.run_json.update(kind="loop", argv=sys.argv, task=self.cfg.task, variant=self.cfg.variant,
+        runs.record_invocation(self.run_json, a)
+        self.run_json.update(kind="loop", task=self.cfg.task, variant=self.cfg.variant,
                              preset=self.cfg.preset, seed=tr.seed, device=self.device, protocol={
                                  k: getattr(a, k) for k in ("cycles", "episodes_per_cycle", "prefill_episodes",
                                                             "updates_per_episode", "episode_length",

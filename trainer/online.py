@@ -188,6 +188,8 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     a = runs.parse_cli(build_parser(), argv)
+    if a.resume:   # the original command's options, unless given again
+        a = runs.resumed_cli(build_parser, a)
     from trainer.train import CheckpointWriteError, RanksDiverged
 
     try:
@@ -259,7 +261,8 @@ def _run(a: argparse.Namespace, ctx: distributed.DistContext, device: str) -> in
     versions = list(run_json.get("code_versions", []))
     if code_version() not in versions:   # every invocation's code, resumes included
         versions.append(code_version())
-    run_json.update(kind="online", argv=sys.argv, code_versions=versions, task=cfg.task, variant=cfg.variant, preset=cfg.preset,
+    runs.record_invocation(run_json, a)
+    run_json.update(kind="online", code_versions=versions, task=cfg.task, variant=cfg.variant, preset=cfg.preset,
                     seed=tr.seed, device=device, protocol={
                         "env_steps": a.env_steps, "num_envs": a.num_envs, "prefill_episodes": N,
                         "updates_per_episode": C, "action_repeat": R, "time_limit": tr.time_limit,

@@ -201,8 +201,42 @@ def parse_cli(ap: argparse.ArgumentParser, argv: Sequence[str] | None) -> argpar
         ap.print_help()
         print(flush=True)
         apply_config_flags(build_config(a.task, a.variant, a.preset, a.config), ["--help"], ap.prog)
-    a.config_args, a.prog = rest, ap.prog
+    a.config_args, a.prog, a.args = rest, ap.prog, argv
     return a
+
+
+def resumed_cli(build_parser: Callable[[], argparse.ArgumentParser], a: argparse.Namespace
+                ) -> argparse.Namespace:
+    """For `--resume`: the options of the run's original command (run.json `args`), replaced
+    by those given again; `a` unchanged when the run directory has no readable original. So a
+    resumed run keeps `--no-visualize`, `--eval-max-contexts 1`, ... unless told otherwise."""
+    saved = None
+    if a.run_dir:
+        try:
+            info = json.loads((Path(a.run_dir) / "run.json").read_text())
+            saved = info.get("args") or (info.get("argv") or [None])[1:]
+        except (OSError, ValueError, AttributeError, TypeError):
+            saved = None
+    if not isinstance(saved, list) or not all(isinstance(x, str) for x in saved):
+        return a
+    base, _ = build_parser().parse_known_args(saved)
+    only_given = build_parser()
+    for action in only_given._actions:
+        action.default = argparse.SUPPRESS
+    given, _ = only_given.parse_known_args(a.args)
+    for key, value in vars(given).items():
+        setattr(base, key, value)
+    base.config_args, base.prog, base.args = a.config_args, a.prog, a.args
+    return base
+
+
+def record_invocation(run_json: dict[str, Any], a: argparse.Namespace) -> None:
+    """run.json keeps the command that started the run (`argv`, `args`) and appends each
+    resume's (`resumes_argv`), instead of the resume overwriting the original."""
+    if getattr(a, "resume", False) and "argv" in run_json:
+        run_json.setdefault("resumes_argv", []).append(list(sys.argv))
+    else:
+        run_json.update(argv=list(sys.argv), args=list(getattr(a, "args", sys.argv[1:])))
 
 
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
