@@ -21,6 +21,7 @@ def ament_data_files():
         exes = sorted(str(p) for p in Path(pkg, "libexec").iterdir() if p.is_file())
         files.append((f"lib/{pkg}", exes))
     files.append(("share/sim_bridge", ["sim_bridge/fastdds_discovery.xml"]))   # scripts/env.sh
+    files.append(("share/trainer/launch", ["trainer/ros_launch/protocad.launch.py"]))   # ros2 launch
     return files
 
 

@@ -159,3 +159,20 @@ def test_durations_print_as_they_parse():
         text = format_duration(seconds)
         assert abs(parse_duration(text) - seconds) < 60, text
     assert (format_duration(45), format_duration(11400)) == ("45s", "3h10m")
+
+
+def test_a_report_writes_only_where_it_is_told(tmp_path):
+    import shutil
+    import subprocess
+
+    src = tmp_path / "results"
+    src.mkdir()
+    shutil.copyfile(ROOT / "msgs_docs" / "results" / "pendulum_cpu.json", src / "results.json")
+    r = subprocess.run([sys.executable, "-m", "trainer.compare", "--report", str(src / "results.json")],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert sorted(p.name for p in src.iterdir()) == ["results.json"]     # nothing beside the json
+    assert "plot: not written (--image PNG)" in r.stdout
+    r = subprocess.run([sys.executable, "-m", "trainer.compare", "--report", str(src / "results.json"),
+                        "--image", str(tmp_path / "c.png")], capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0 and (tmp_path / "c.png").stat().st_size > 0

@@ -163,3 +163,33 @@ def test_dds_reads_only_loopback_sockets_in_the_default_environment():
     finally:
         proc.kill()
         proc.wait()
+
+
+LAUNCH_FILE = Path(__file__).resolve().parents[1] / "trainer" / "ros_launch" / "protocad.launch.py"
+
+
+def test_the_launch_file_is_installed_and_names_real_parameters():
+    import ast
+
+    installed = PREFIX / "share" / "trainer" / "launch" / "protocad.launch.py"
+    assert installed.read_bytes() == LAUNCH_FILE.read_bytes()      # where `ros2 launch trainer` looks
+    tree = ast.parse(LAUNCH_FILE.read_text())                         # valid Python without launch
+    params = {k.value for node in ast.walk(tree) if isinstance(node, ast.Dict)
+              for k in node.keys if isinstance(k, ast.Constant) and isinstance(k.value, str)}
+    from protocad_ros.policy_params import PARAMS as POLICY
+    from sim_bridge.bridge_params import PARAMS as BRIDGE
+    known = {p.name for p in BRIDGE} | {p.name for p in POLICY}
+    node_params = params - {"task", "split", "checkpoint", "output", "record", "max_episodes", "namespace"}
+    assert {"checkpoint", "task", "split", "max_episodes", "min_subscribers"} <= known
+    assert node_params <= known, node_params - known
+
+
+def test_the_launch_file_parses_with_launch_ros():
+    pytest.importorskip("launch", reason="ros2 launch is not installable from PyPI (needs a full ROS 2 install)")
+    pytest.importorskip("launch_ros", reason="launch_ros is not installable from PyPI (needs a full ROS 2 install)")
+    from launch.launch_description_sources import PythonLaunchDescriptionSource
+    from launch_ros.actions import Node
+
+    description = PythonLaunchDescriptionSource(str(LAUNCH_FILE)).get_launch_description(None)
+    nodes = [e for e in description.entities if isinstance(e, Node)]
+    assert len(nodes) == 3

@@ -44,6 +44,10 @@ def test_two_collect_train_reload_cycles_through_ros(tmp_path):
     assert int(ck["modules"]["updates"]) == 3 * C
     assert ck["counters"]["episodes"] == 4 and ck["counters"]["collect_phases"] == 2
     assert "mean over contexts" in r.stdout and list((run / "eval").glob("test_*.json"))
+    # the final table sets the random policy beside the trained one, on the same contexts
+    assert "random mean" in r.stdout and "diff" in r.stdout
+    final = json.loads(next((run / "eval").glob("test_*.json")).read_text())
+    assert [c["context"] for c in final["random"]["per_context"]] == [c["context"] for c in final["per_context"]]
     # every bag is a complete, cleanly closed rosbag2 bag without any problem to report
     for p in phases:
         assert (run / "bags" / p["bag"] / "metadata.yaml").exists() and not p["problems"], p

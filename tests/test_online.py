@@ -80,3 +80,26 @@ def test_resume_keeps_the_original_options_unless_given_again(tmp_path):
     a = runs.resumed_cli(build_parser, runs.parse_cli(build_parser(), [
         "--run-dir", str(run), "--resume", "--log-every", "5"]))
     assert (a.eval_max_contexts, a.log_every, a.task, a.resume) == (1, 5, "walker_walk", True)
+
+
+def test_defaults_quoted_in_help_are_the_configs():
+    """'(default train.X = V)' in a command's --help is what the config tree holds."""
+    import re
+
+    from protocad_ros.config import DEFAULT_CLI_PRESET, make_config
+    from trainer.loop import DEMO
+    from trainer.loop import build_parser as loop_parser
+    from trainer.online import build_parser as online_parser
+
+    cfg = make_config("pendulum_swingup", DEFAULT_CLI_PRESET, "protocad")
+    quoted = 0
+    for ap in (loop_parser(), online_parser()):
+        text = " ".join(ap.format_help().split())
+        for key, value in re.findall(r"default train\.(\w+) = (\d+)", text):
+            assert getattr(cfg.train, key) == int(value), (ap.prog, key, value)
+            quoted += 1
+    assert quoted >= 4
+    loop_help = " ".join(loop_parser().format_help().split())
+    assert f"demo {DEMO['updates_per_episode']}" in loop_help
+    online_help = " ".join(online_parser().format_help().split())
+    assert "(default: auto)" in online_help and "float32 (default" not in online_help

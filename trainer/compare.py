@@ -349,8 +349,11 @@ def main(argv: Sequence[str] | None = None) -> int:
                   flush=True)
         print(R.format_report(doc), flush=True)
         # A grid writes its plot and recording beside results.json; --report only where asked.
-        png = R.plot_curves(doc, a.image if a.report and a.image else out_dir / "curves.png")
-        if a.image and Path(a.image) != Path(png):
+        # (never into the directory of a results.json it was only asked to read: that may be
+        # the source tree, msgs_docs/results/)
+        png = (R.plot_curves(doc, a.image) if a.image else "not written (--image PNG)") if a.report \
+            else R.plot_curves(doc, out_dir / "curves.png")
+        if a.image and not a.report:
             shutil.copyfile(png, a.image)
         rrd_path = a.rrd or (None if a.report else out_dir / "curves.rrd")
         try:

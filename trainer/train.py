@@ -269,7 +269,7 @@ def add_common_model_args(ap: argparse.ArgumentParser, *, defaults_from_config: 
     g.add_argument("--threads", type=int, default=0, help=runs.THREADS_HELP)
     g.add_argument("--precision", choices=("auto", "float32", "bfloat16"), default=None,
                    help="train.precision; auto = bfloat16 where the device has bf16 arithmetic "
-                        "(AVX512-BF16/AMX CPUs, Ampere+ GPUs), else float32 (default: the config's, float32)")
+                        "(AVX512-BF16/AMX CPUs, Ampere+ GPUs), else float32; unset: the config's train.precision")
 
 
 def config_from_args(a: argparse.Namespace):

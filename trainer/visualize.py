@@ -575,6 +575,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         except ValueError as exc:
             raise SystemExit(str(exc))
     out = Path(args.out) if args.out else _default_out(ckpt)
+    if out.exists():
+        print(f"[visualize] {out} exists: replacing it (--out PATH writes elsewhere)", flush=True)
     progress = False if args.no_progress else None
     try:
         res = write_context_recording(
