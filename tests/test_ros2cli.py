@@ -274,6 +274,18 @@ def test_bag_info_prints_the_rosbag2_table(tmp_path):
     assert partial.returncode == 0 and "truncated" in partial.stderr and "Messages:" in partial.stdout
     missing = ros2("bag", "info", str(tmp_path / "nope"))
     assert missing.returncode == 1 and "nope" in missing.stderr
+    # a folder of bags (what protocad-train --logs takes): each bag, not an empty 1970 one
+    import shutil
+    folder = tmp_path / "bags"
+    for name in ("ep1", "ep2"):
+        shutil.copytree(bag, folder / name)
+    many = ros2("bag", "info", str(folder), env={"TZ": "UTC"})
+    assert many.returncode == 0 and many.stdout.count("Messages:          8\n") == 2, many.stdout
+    assert f"{folder / 'ep1'}:" in many.stdout and f"{folder / 'ep2'}:" in many.stdout
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    nothing = ros2("bag", "info", str(empty))
+    assert nothing.returncode == 1 and "is not a bag" in nothing.stderr and "1970" not in nothing.stdout
 
 
 def test_bag_record_is_the_recorder_and_the_rest_needs_ros():
@@ -284,6 +296,7 @@ def test_bag_record_is_the_recorder_and_the_rest_needs_ros():
         res = ros2(*argv)
         assert res.returncode == 2 and "not supported by this front-end" in res.stderr, argv
         assert "ros2 topic list | info | echo | hz" in res.stderr
+        assert "Instead: " in res.stderr, argv            # the project's own way to do it
 
 
 def test_bad_input_is_one_clear_line_and_no_traceback(tmp_path):

@@ -71,9 +71,25 @@ def _die(msg: str, code: int = 1):
     sys.exit(code)
 
 
+#: What this project offers instead of a verb the front-end lacks (first words of the command).
+ALTERNATIVES = {
+    ("launch",): "protocad-stack FILE.yaml starts the bridge, the policy and the recorder (README "
+                 "'Running it as ROS 2 nodes'); with a full ROS 2 install: ros2 launch trainer "
+                 "protocad.launch.py",
+    ("topic", "pub"): "the nodes publish and read the contract of msgs_docs/topics.md; "
+                      "protocad-stack runs them, ros2 service call /protocad/reset resets an episode",
+    ("bag", "play"): "the trainers read bags directly: protocad-train --logs BAG (and "
+                     "protocad-visualize --logs BAG); `rerun BAG.mcap` shows one",
+    ("interface",): "msgs_docs/topics.md lists every topic's type and fields; ros2 topic list -t "
+                    "shows the types on the graph",
+}
+
+
 def _unsupported(argv: list[str]):
+    hint = next((text for words, text in ALTERNATIVES.items() if tuple(argv[:len(words)]) == words), None)
     _die(f"ros2 {' '.join(argv)}: not supported by this front-end (needs a full ROS 2 install with "
-         "ros2cli; this environment has the ROS 2 Python wheels only).\nSupported:\n\n" + SUBSET, 2)
+         "ros2cli; this environment has the ROS 2 Python wheels only)."
+         + (f"\nInstead: {hint}." if hint else "") + "\nSupported:\n\n" + SUBSET, 2)
 
 
 # ------------------------------------------------------------------ run / pkg (the ament index)

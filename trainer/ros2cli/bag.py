@@ -92,6 +92,14 @@ def _metadata_from_files(path: Path) -> tuple[dict[str, Any], int, list[str]]:
     return info, sum(Path(f).stat().st_size for f in rep.files), notes
 
 
+def sub_bags(path: Path) -> list[Path]:
+    """The bags inside a folder that is not a bag itself (runs/X/bags, which the trainers take)."""
+    if not path.is_dir() or (path / "metadata.yaml").exists() or any(path.glob("*.mcap")):
+        return []
+    return sorted(d for d in path.iterdir()
+                  if d.is_dir() and ((d / "metadata.yaml").exists() or any(d.glob("*.mcap"))))
+
+
 def read_info(bag: str | Path) -> tuple[dict[str, Any], int, list[str]]:
     """(bag info mapping, bag size in bytes, notes for stderr) of a bag directory or .mcap file."""
     from trainer.mcap_io import read_bag_metadata
@@ -99,6 +107,8 @@ def read_info(bag: str | Path) -> tuple[dict[str, Any], int, list[str]]:
     path = Path(bag)
     if not path.exists():
         raise FileNotFoundError(f"No such file or directory: {bag}")
+    if path.is_dir() and not (path / "metadata.yaml").exists() and not any(path.glob("*.mcap")):
+        raise ValueError(f"{bag} is not a bag: no metadata.yaml and no .mcap file in it")
     if path.is_dir() and (path / "metadata.yaml").exists():
         info = read_bag_metadata(path)
         size = sum((path / Path(str(f)).name).stat().st_size for f in info.get("relative_file_paths") or []
@@ -112,6 +122,17 @@ def cmd_info(args) -> int | str | None:
         return f"storage {args.storage!r} is not supported here (only mcap)"
     import yaml
 
+    bags = sub_bags(Path(args.bag_path))
+    if bags:   # a folder of bags: each one, as `ros2 bag info` would print it
+        failed = []
+        for i, bag in enumerate(bags):
+            print(("\n" if i else "") + f"{bag}:")
+            args.bag_path = str(bag)
+            why = cmd_info(args)
+            if why is not None:
+                print(why, file=sys.stderr)
+                failed.append(bag.name)
+        return f"could not read {', '.join(failed)}" if failed else None
     try:
         info, size, notes = read_info(args.bag_path)
         table = format_bag_metadata(info, size)
