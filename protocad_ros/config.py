@@ -18,6 +18,7 @@ Unknown keys are rejected everywhere (overrides, from_dict, load) with the list 
 from __future__ import annotations
 
 import dataclasses
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -233,6 +234,9 @@ class TrainConfig:
     precision: str = "float32"
     device: str = "cpu"
     seed: int = 0
+    # What one training process may plan to allocate (estimate_train_memory), in GB; 0 = 90% of
+    # this machine's memory. Training refuses a config estimated above it before building it.
+    memory_limit_gb: float = 0.0
 
 
 @dataclass
@@ -320,6 +324,7 @@ class Config:
         def check(ok: bool, msg: str) -> None:
             if not ok:
                 raise ConfigError(msg)
+        _check_ranges(self)
         check(self.variant in VARIANTS, f"unknown variant {self.variant!r}; valid: {VARIANTS}")
         check(self.preset in PRESETS, f"unknown preset {self.preset!r}; valid: {PRESETS}")
         wm, ctx, bh, tr = self.world_model, self.context, self.behavior, self.train
@@ -369,6 +374,116 @@ class Config:
                   f"(drop_first_steps={ctx.drop_first_steps})")
             check(ctx.num_prototypes >= 1 and ctx.proto_dim >= 1, "context sizes must be >= 1")
             check(0.0 < ctx.ema <= 1.0, "context.ema must be in (0, 1]")
+
+
+# ------------------------------------------------------------------------------------------------
+# Value ranges: every numeric field, checked before anything is built
+# ------------------------------------------------------------------------------------------------
+_INF = float("inf")
+#: field -> (low, high, low inclusive): sizes positive and bounded by what one process can hold,
+#: probabilities in [0, 1], rates positive. Fields not listed only need to be finite.
+RANGES: dict[str, tuple[float, float, bool]] = {
+    **{f"world_model.{k}": (1, 16384, True) for k in ("deter", "hidden")},
+    "world_model.stoch": (1, 1024, True), "world_model.discrete": (0, 1024, True),
+    "world_model.cnn_depth": (1, 1024, True), "world_model.mlp_layers": (0, 64, True),
+    "world_model.mlp_units": (1, 16384, True), "world_model.unimix": (0, 1, True),
+    "world_model.min_std": (0, 100, False), "world_model.kl_balance": (0, 1, True),
+    "world_model.kl_free": (0, 1e6, True), "world_model.kl_scale": (0, 1e6, True),
+    "world_model.image_scale": (0, 1e6, True), "world_model.reward_scale": (0, 1e6, True),
+    "world_model.discount_scale": (0, 1e6, True), "world_model.lr": (0, 1, False),
+    "world_model.eps": (0, 1, False), "world_model.grad_clip": (0, _INF, False),
+    "world_model.weight_decay": (0, 1, True),
+    "context.num_prototypes": (1, 1_000_000, True), "context.proto_dim": (1, 16384, True),
+    "context.temperature": (0, 1e6, False), "context.sinkhorn_iters": (1, 1000, True),
+    "context.sinkhorn_eps": (0, 1e6, False), "context.ema": (0, 1, False),
+    "context.freeze_prototypes_updates": (0, 1e12, True), "context.drop_first_steps": (0, 1000, True),
+    "context.swav_scale": (0, 1e6, True), "context.aug_pad": (0, 32, True),
+    "context.dreamerpro_num_prototypes": (1, 1_000_000, True),
+    "context.dreamerpro_temp_scale": (0, 1e6, True), "context.dreamerpro_norm_scale": (0, 1e6, True),
+    "behavior.horizon": (1, 1000, True), "behavior.discount": (0, 1, False),
+    "behavior.lambda_": (0, 1, True), "behavior.actor_min_std": (0, 100, False),
+    "behavior.actor_layers": (0, 64, True), "behavior.actor_units": (1, 16384, True),
+    "behavior.critic_layers": (0, 64, True), "behavior.critic_units": (1, 16384, True),
+    "behavior.actor_grad_mix": (0, 1, True), "behavior.actor_entropy": (0, 1e6, True),
+    "behavior.actor_lr": (0, 1, False), "behavior.critic_lr": (0, 1, False),
+    "behavior.eps": (0, 1, False), "behavior.grad_clip": (0, _INF, False),
+    "behavior.weight_decay": (0, 1, True), "behavior.slow_critic_update": (1, 1e9, True),
+    "behavior.slow_critic_fraction": (0, 1, False),
+    "train.batch_size": (1, 65536, True), "train.seq_len": (2, 100_000, True),
+    "train.action_repeat": (1, 1000, True), "train.prefill_episodes": (0, 1e6, True),
+    "train.collect_interval": (0, 1e9, True), "train.expl_noise": (0, 100, True),
+    "train.eval_noise": (0, 100, True), "train.time_limit": (1, 1e9, True),
+    "train.memory_limit_gb": (0, 1e6, True),
+    "drq.frame_stack": (1, 64, True), "drq.num_filters": (1, 4096, True),
+    "drq.num_conv_layers": (1, 64, True), "drq.feature_dim": (1, 16384, True),
+    "drq.hidden_dim": (1, 16384, True), "drq.hidden_depth": (0, 64, True),
+    "drq.discount": (0, 1, False), "drq.lr": (0, 1, False),
+}
+
+
+def _check_ranges(cfg: "Config") -> None:
+    """ConfigError naming the first numeric field that is not finite or out of its range."""
+    for section in dataclasses.fields(cfg):
+        sub = getattr(cfg, section.name)
+        if not dataclasses.is_dataclass(sub):
+            continue
+        for f in dataclasses.fields(sub):
+            v = getattr(sub, f.name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)):
+                continue
+            key = f"{section.name}.{f.name}"
+            if not math.isfinite(v):
+                raise ConfigError(f"{key} must be a finite number, got {v!r}")
+            lo, hi, lo_in = RANGES.get(key, (-_INF, _INF, True))
+            if not ((v >= lo if lo_in else v > lo) and v <= hi):
+                low = f"[{lo:g}" if lo_in else f"({lo:g}"
+                raise ConfigError(f"{key}={v!r} is out of range: it must be in {low}, {hi:g}]")
+
+
+def estimate_train_memory(cfg: "Config", action_dim: int = 6) -> int:
+    """A rough upper estimate, in bytes, of what training a world-model config allocates:
+    weights with their gradients and Adam moments, and the activations one update keeps for
+    its backward pass (the observed sequences through the CNNs, the imagined rollout through
+    the heads). It errs high so that only configs far beyond a machine are refused."""
+    wm, bh, tr, ctx = cfg.world_model, cfg.behavior, cfg.train, cfg.context
+    stoch = wm.stoch * (wm.discrete or 1)
+    feat = wm.deter + stoch + 2 * ctx.proto_dim
+    d = wm.cnn_depth
+    mlp = lambda inp, layers, units: inp * units + max(0, layers - 1) * units * units  # noqa: E731
+    params = (3 * (wm.hidden + wm.deter) * wm.deter + 4 * wm.hidden * (stoch + action_dim + wm.deter)
+              + 2 * 16 * 42 * d * d + 8 * d * 16 * feat
+              + mlp(feat, wm.mlp_layers, wm.mlp_units) + mlp(feat, bh.actor_layers, bh.actor_units)
+              + 2 * mlp(feat, bh.critic_layers, bh.critic_units)
+              + ctx.num_prototypes * ctx.proto_dim + ctx.dreamerpro_num_prototypes * ctx.proto_dim)
+    steps = tr.batch_size * tr.seq_len
+    observe = steps * (4 * 2000 * d + 8 * (wm.deter + wm.hidden + stoch) + mlp(1, wm.mlp_layers, wm.mlp_units))
+    widest = max(wm.mlp_units * wm.mlp_layers, bh.actor_units * bh.actor_layers,
+                 bh.critic_units * bh.critic_layers, 1)
+    imagine = steps * (bh.horizon + 1) * (4 * feat + 8 * wm.deter + 6 * widest)
+    swav = steps * 2 * ctx.num_prototypes
+    return int(4 * (4 * params + observe + imagine + swav))
+
+
+def machine_memory_bytes() -> int:
+    """Physical memory of this machine (0 where the OS does not say)."""
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (ValueError, OSError, AttributeError):
+        return 0
+
+
+def check_train_memory(cfg: "Config") -> None:
+    """ConfigError when training `cfg` is estimated to need more memory than the limit
+    (train.memory_limit_gb, else 90% of this machine's), before anything is allocated."""
+    if cfg.spec.family != "world_model":
+        return
+    need = estimate_train_memory(cfg)
+    limit = cfg.train.memory_limit_gb * 2**30 or 0.9 * machine_memory_bytes()
+    if limit and need > limit:
+        raise ConfigError(f"this config needs about {need / 2**30:,.1f} GB to train (estimate: "
+                          f"weights, optimiser state and one update's activations) and the limit is "
+                          f"{limit / 2**30:,.1f} GB; make it smaller (batch_size, seq_len, "
+                          f"behavior.horizon, sizes) or raise --set train.memory_limit_gb=N")
 
 
 # ------------------------------------------------------------------------------------------------

@@ -129,8 +129,17 @@ def build_config(task: str | None = None, variant: str | None = None, preset: st
 
     file_dict: dict[str, Any] = {}
     if config_file:
-        text = Path(config_file).read_text()
-        loaded = yaml.safe_load(text) or {}
+        try:
+            text = Path(config_file).read_text()
+        except OSError as exc:   # missing, a directory, unreadable
+            raise ValueError(f"--config {config_file}: {exc.strerror or exc}") from None
+        try:
+            loaded = yaml.safe_load(text) or {}
+        except yaml.YAMLError as exc:
+            where = getattr(exc, "problem_mark", None)
+            line = f" (line {where.line + 1}, column {where.column + 1})" if where else ""
+            raise ValueError(f"--config {config_file}: not valid YAML{line}: "
+                             f"{getattr(exc, 'problem', None) or exc}") from None
         if not isinstance(loaded, dict):
             raise ValueError(f"{config_file}: expected a YAML mapping at the top level")
         file_dict = loaded

@@ -285,17 +285,20 @@ def config_from_args(a: argparse.Namespace):
         choice = resolve_precision(a.precision, runs.resolve_device(a.device))
         overrides["train.precision"] = choice.precision
         print(f"[config] {choice.describe()}", flush=True)
+    from protocad_ros.config import check_train_memory
+
     cfg = runs.build_config(a.task, a.variant, a.preset, a.config, overrides)
     flags, prog = getattr(a, "config_args", []), getattr(a, "prog", "protocad")
-    if not flags:
-        return cfg
-    flagged = runs.apply_config_flags(cfg, flags, prog)
-    chosen = {k: getattr(flagged, k) for k in runs.SELECTOR_FIELDS}
-    if chosen != {k: getattr(cfg, k) for k in runs.SELECTOR_FIELDS}:
-        # --reference / --no_own_settings pick other defaults: rebuild on them, flags on top
-        cfg = runs.build_config(a.task, a.variant, a.preset, a.config, {**overrides, **chosen})
+    if flags:
         flagged = runs.apply_config_flags(cfg, flags, prog)
-    return flagged
+        chosen = {k: getattr(flagged, k) for k in runs.SELECTOR_FIELDS}
+        if chosen != {k: getattr(cfg, k) for k in runs.SELECTOR_FIELDS}:
+            # --reference / --no_own_settings pick other defaults: rebuild on them, flags on top
+            cfg = runs.build_config(a.task, a.variant, a.preset, a.config, {**overrides, **chosen})
+            flagged = runs.apply_config_flags(cfg, flags, prog)
+        cfg = flagged
+    check_train_memory(cfg)   # before anything is built (ConfigError: one line, exit 2)
+    return cfg
 
 
 def add_topic_args(ap: argparse.ArgumentParser) -> None:
