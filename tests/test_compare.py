@@ -64,8 +64,9 @@ def test_grid_runs_in_parallel_resumes_after_ctrl_c_and_reports(tmp_path, spawn)
         c = saved[d]
         run_log = (d / "online.log").read_text()
         # The resumed run starts from exactly the counters its checkpoint holds.
-        assert (f"resuming {d}: {c['env_steps']} env steps, {c['updates']} updates"
-                in run_log.replace(str(d.resolve()), str(d))), run_log[-2000:]
+        line = next(x for x in run_log.replace(str(d.resolve()), str(d)).splitlines() if "resuming" in x)
+        assert line.startswith(f"[online] resuming {d}: {c['env_steps']} env steps, {c['episodes']} episodes")
+        assert line.endswith(f", {c['updates']} updates"), line
         res = json.loads((d / "run.json").read_text())["result"]
         assert res["status"] == "finished" and res["env_steps"] == 800 and res["resumes"] == 1
 

@@ -5,6 +5,9 @@ evaluation JSON, and resumes. Whether it learns is shown by the documented exper
 from __future__ import annotations
 
 import json
+import os
+
+import pytest
 
 from trainer_bags import TINY, run_cli
 
@@ -103,3 +106,114 @@ def test_defaults_quoted_in_help_are_the_configs():
     assert f"demo {DEMO['updates_per_episode']}" in loop_help
     online_help = " ".join(online_parser().format_help().split())
     assert "(default: auto)" in online_help and "float32 (default" not in online_help
+
+
+def _bag_count(run) -> int:
+    bags = run / "bags"
+    return sum(1 for p in bags.iterdir() if p.is_dir()) if bags.is_dir() else 0
+
+
+def test_sigkill_at_any_point_then_resume_completes_with_counters_from_the_data(tmp_path, spawn):
+    """Five SIGKILLs in a row (before the first checkpoint, right after a resume, after a
+    checkpoint, mid-collection), then a resume to completion: the counters are the bags' steps,
+    no metrics row is repeated, no temporary or reserve file is left."""
+    import re
+    import signal
+
+    from conftest import wait_for
+    from protocad_ros.checkpoint import read_checkpoint
+    from trainer.dataset import MCAPDataset
+    from trainer.online import data_counts
+
+    run = tmp_path / "run"
+    args = ["-m", "trainer.online", "--task", "pendulum_swingup", *TINY, "--time-limit", "40",
+            "--prefill-episodes", "2", "--updates-per-episode", "2", "--eval-every", "0",
+            "--final-episodes", "1", "--final-max-contexts", "1", "--eval-workers", "0",
+            "--log-every", "1", "--no-progress", "--env-steps", "1600", "--run-dir", str(run)]
+    resume = ["-m", "trainer.online", "--run-dir", str(run), "--resume", "--no-progress"]
+    ckpt = run / "checkpoints" / "latest.pt"
+
+    def kill_when(proc, ready, what):
+        wait_for(lambda: ready() or not proc.alive(), 240, what)
+        assert proc.alive(), proc.output()[-3000:]
+        proc.stop(signal.SIGKILL)
+
+    # 1: before the first checkpoint (prefill bags only, none checkpointed)
+    p = spawn("a1", *args, "--checkpoint-every", "1000")
+    kill_when(p, lambda: _bag_count(run) >= 2, "two bags of the first attempt")
+    assert not ckpt.exists()
+    # 2: right after a resume (from the bags alone), 3: again at once
+    for name in ("a2", "a3"):
+        p = spawn(name, *resume)
+        kill_when(p, lambda: "resuming" in p.output(), "the resume to start")
+    # 4: after a checkpoint was written
+    p = spawn("a4", *resume, "--checkpoint-every", "1")
+    kill_when(p, lambda: ckpt.exists(), "a checkpoint")
+    # 5: mid-collection, two more bags later
+    n = _bag_count(run)
+    p = spawn("a5", *resume)
+    kill_when(p, lambda: _bag_count(run) >= n + 2, "two more bags")
+    # then to completion
+    p = spawn("a6", *resume)
+    wait_for(lambda: not p.alive(), 400, "the final resume to finish")
+    log = p.output()
+    assert p.p.returncode == 0, log[-3000:]
+    assert "finished: " in log
+
+    counters = read_checkpoint(ckpt)["counters"]
+    steps, episodes = data_counts(MCAPDataset([run / "bags"], seq_len=8, cache_dir=tmp_path / "cache"))
+    assert counters["env_steps"] == 2 * steps >= 1600 and counters["episodes"] == episodes
+    rows = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines() if line.strip()]
+    train = [r["update"] for r in rows if r.get("kind") == "train"]
+    assert len(train) == len(set(train)), "a train row logged twice"
+    eps = [r["episodes"] for r in rows if r.get("kind") == "episode"]
+    assert len(eps) == len(set(eps)), "an episode row logged twice"
+    names = [q.name for q in run.rglob("*")]
+    assert not [x for x in names if x.endswith(".tmp") or ".tmp-" in x or x == ".protocad-reserve"], names
+    bag_names = sorted(q.name for q in (run / "bags").iterdir())
+    assert len(bag_names) == len(set(bag_names)) and all(re.match(r"ep\d{6}_env0_a\d", b) for b in bag_names)
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 1 MB tmpfs (a disk that fills up for real), and a way to free space on it."""
+    import subprocess
+
+    mnt = tmp_path / "disk"
+    mnt.mkdir()
+    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mnt)],
+                                           capture_output=True).returncode != 0:
+        pytest.skip("mounting a small tmpfs needs root (CI runs as root)")
+
+    def grow():
+        subprocess.run(["mount", "-o", "remount,size=256m", str(mnt)], check=True)
+
+    yield mnt, grow
+    subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
+
+
+@pytest.mark.parametrize("full", ["run_dir", "cache"])
+def test_a_full_disk_is_one_line_with_the_cause_and_the_run_resumes_after_space_is_freed(tmp_path, small_disk, full):
+    disk, grow = small_disk
+    run = disk / "run" if full == "run_dir" else tmp_path / "run"
+    cache = tmp_path / "cache" if full == "run_dir" else disk / "cache"
+    args = ["--task", "pendulum_swingup", *TINY, "--time-limit", "40", "--prefill-episodes", "2",
+            "--updates-per-episode", "2", "--eval-every", "0", "--final-episodes", "1",
+            "--final-max-contexts", "1", "--eval-workers", "0", "--no-progress", "--env-steps", "400",
+            "--run-dir", run, "--cache-dir", cache]
+    r = run_cli("trainer.online", *args, timeout=300)
+    assert r.returncode == 1, r.stdout + r.stderr
+    errors = [line for line in r.stderr.splitlines() if line.startswith("protocad-online: error:")]
+    assert len(errors) == 1 and "No space left on device" in errors[0], r.stderr
+    assert "Traceback" not in r.stderr
+    if full == "cache":
+        assert str(cache) in errors[0]
+    # what is said of the checkpoint is true
+    ckpt = run / "checkpoints" / "latest.pt"
+    if "no earlier checkpoint" in r.stderr:
+        assert not ckpt.exists()
+    if "the last good checkpoint there is intact" in r.stderr:
+        assert ckpt.exists()
+    grow()   # free space, then the same run to completion
+    r = run_cli("trainer.online", "--run-dir", run, "--resume", "--no-progress", timeout=300)
+    assert r.returncode == 0 and "finished: 400 env steps" in r.stdout, r.stdout + r.stderr

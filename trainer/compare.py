@@ -10,8 +10,9 @@ directory, run as parallel worker processes, gathered into one `results.json` an
 Each run is `python -m trainer.online --run-dir OUT/TASK/LABEL/seedS ...` with its own torch
 thread budget (`--threads`) and device (`--devices`, assigned round robin), its output in
 RUN_DIR/online.log. Re-running the same command skips finished runs and resumes the others
-from their last checkpoint (`protocad-online --resume`: weights, optimisers, RNG, sampler and
-counters, exactly); a run killed before its first checkpoint starts again from nothing. Ctrl-C
+from their last checkpoint (`protocad-online --resume`: weights, optimisers, RNG, sampler;
+counters from the bags on disk, which all count); a run killed before its first checkpoint
+resumes from its bags. Ctrl-C
 (or SIGTERM) asks every run to stop cleanly (checkpoint, no final evaluation) and exits 130;
 the runs also die with this process if it is killed outright (PR_SET_PDEATHSIG).
 
@@ -67,7 +68,10 @@ class RunSpec:
         if (result.get("status") == "wall_budget" and wall_budget
                 and float(result.get("wall_time", 0.0)) >= wall_budget):
             return "done"
-        return "resume" if runs.checkpoint_path(self.run_dir).exists() else "fresh"
+        # protocad-online resumes from its bags too (a run killed before its first checkpoint)
+        bags = self.run_dir / "bags"
+        started = runs.checkpoint_path(self.run_dir).exists() or (bags.is_dir() and any(bags.iterdir()))
+        return "resume" if started and (self.run_dir / "run.json").exists() else "fresh"
 
 
 def read_run_json(run_dir: Path) -> dict:

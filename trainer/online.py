@@ -197,15 +197,88 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as exc:
         print(f"protocad-online: error: {exc}", file=sys.stderr)
         return 2
-    except (CheckpointWriteError, RanksDiverged, mcap_io_errors()) as exc:
-        print(f"protocad-online: error: {exc}", file=sys.stderr)
+    except (CheckpointWriteError, RanksDiverged, mcap_io_errors(), cache_errors(), OSError) as exc:
+        # a full disk (cache, bags, checkpoints, metrics) is one line with the path; the run
+        # resumes once space is freed (protocad-online --resume)
+        where = (f" ({exc.filename})" if isinstance(exc, OSError) and exc.filename
+                 and str(exc.filename) not in str(exc) else "")
+        print(f"protocad-online: error: {exc}{where}", file=sys.stderr)
+        if a.run_dir:
+            print(f"protocad-online: continue with: protocad-online --run-dir {a.run_dir} --resume",
+                  file=sys.stderr)
         return 1
+
+
+def bag_name(bags_dir: Path, index: int, env: int, attempt: int, rank_tag: str = "") -> str:
+    """A new episode's bag directory name: its index, env, and the attempt (invocation) that
+    writes it, so an attempt killed before its checkpoint never collides with the next one;
+    a name already on disk gets a suffix (a bag is never overwritten)."""
+    name = f"ep{index:06d}_env{env}_a{attempt}{rank_tag}"
+    k = 1
+    while (bags_dir / name).exists():
+        name, k = f"ep{index:06d}_env{env}_a{attempt}{rank_tag}_{k}", k + 1
+    return name
+
+
+def data_counts(ds: MCAPDataset) -> tuple[int, int]:
+    """(agent steps, complete episodes) in the replayed bags: the counters a resume continues
+    from. A step is a row after an episode's first observation; an episode counts once it has
+    its last one (a bag cut by a kill counts its steps, not as an episode)."""
+    steps = episodes = 0
+    for e in ds.episodes():
+        steps += int(e["length"]) - (1 if e["has_first"] else 0)
+        episodes += int(e["has_last"])
+    return steps, episodes
+
+
+def leftovers(run_dir: Path, cache_dir: Path) -> list[Path]:
+    """Remove what killed attempts leave behind: temporaries of atomic writes in the run
+    directory, half-built dataset cache entries, and the disk reserves of bags that were never
+    closed. Returns what was removed."""
+    import shutil
+
+    from protocad_ros.atomic import remove_stale_temporaries
+
+    removed = list(remove_stale_temporaries(run_dir / "metrics.jsonl"))
+    removed += remove_stale_temporaries(run_dir / "run.json")
+    for tmp in sorted(Path(cache_dir).glob("*.tmp-*")) if Path(cache_dir).is_dir() else []:
+        pid = tmp.name.rsplit(".tmp-", 1)[-1]
+        if pid.isdigit() and int(pid) != os.getpid():
+            shutil.rmtree(tmp, ignore_errors=True) if tmp.is_dir() else tmp.unlink(missing_ok=True)
+            removed.append(tmp)
+    for reserve in sorted((run_dir / "bags").glob("*/.protocad-reserve")):
+        reserve.unlink(missing_ok=True)
+        removed.append(reserve)
+    for bag in sorted(p for p in (run_dir / "bags").glob("*") if p.is_dir()):
+        if not any(bag.glob("*.mcap")):   # killed before its first byte: it holds nothing
+            shutil.rmtree(bag, ignore_errors=True)
+            removed.append(bag)
+    return removed
+
+
+def close_quietly(steps) -> list[tuple[str, Exception]]:
+    """Run every (what, clean-up step), each even if another failed (a full disk fails them
+    all); the (what, error) pairs, for the caller to report without losing the error that
+    stopped the run."""
+    errors = []
+    for what, step in steps:
+        try:
+            step()
+        except Exception as exc:  # noqa: BLE001 - reported by the caller, one line each
+            errors.append((what, exc))
+    return errors
 
 
 def mcap_io_errors() -> type:
     from trainer.mcap_io import BagWriteError
 
     return BagWriteError
+
+
+def cache_errors() -> type:
+    from trainer.dataset_types import CacheWriteError
+
+    return CacheWriteError
 
 
 def run(a: argparse.Namespace) -> int:
@@ -222,7 +295,8 @@ def _run(a: argparse.Namespace, ctx: distributed.DistContext, device: str) -> in
     say = print if main_rank else (lambda *args, **kw: None)
     run_json: dict[str, Any] = {}
     if a.resume:
-        run_dir, run_json = runs.resume_run_dir(a.run_dir)
+        # A run killed before its first checkpoint still resumes: from its config and its bags.
+        run_dir, run_json = runs.resume_run_dir(a.run_dir, need_checkpoint=False)
         from protocad_ros.config import Config
 
         cfg = Config.load(run_dir / "config.yaml")
@@ -279,7 +353,12 @@ def _run(a: argparse.Namespace, ctx: distributed.DistContext, device: str) -> in
                      cache_budget_gb=None if a.cache_dir else 0)
     # On resume each rank replays a share of the bags on disk (all of them on one process),
     # whatever the number of ranks that wrote them.
-    existing = sorted(p for p in bags_dir.iterdir() if p.is_dir())[ctx.rank::world]
+    if main_rank and a.resume:
+        for left in leftovers(run_dir, cache_dir):
+            say(f"[online] removed {left}, left by an interrupted attempt", flush=True)
+    distributed.barrier_if(ctx)
+    all_bags = sorted(p for p in bags_dir.iterdir() if p.is_dir())
+    existing = all_bags[ctx.rank::world]
     if existing:
         ds.add(existing)
     callbacks = []
@@ -287,21 +366,30 @@ def _run(a: argparse.Namespace, ctx: distributed.DistContext, device: str) -> in
         from trainer.rerun_log import metrics_callback
 
         callbacks.append(metrics_callback(a.rerun or run_dir / "metrics.rrd", application="protocad-online"))
-    if a.resume:
+    if a.resume and runs.checkpoint_path(run_dir).exists():
         trainer = Trainer.from_checkpoint(runs.checkpoint_path(run_dir), run_dir, ds, device=device,
                                           callbacks=callbacks, log_every=a.log_every, dist_ctx=ctx)
-        say(f"[online] resuming {run_dir}: {trainer.counters.get('env_steps', 0)} env steps, "
-              f"{trainer.updates} updates, {len(existing)} bags", flush=True)
     else:
         from sim_bridge.contexts import task_actuators
 
+        if a.resume and main_rank:   # killed before its first checkpoint: updates start again
+            runs.truncate_metrics(run_dir / "metrics.jsonl", 0)
         trainer = Trainer(cfg, run_dir, ds, device=device, callbacks=callbacks, log_every=a.log_every,
                           action_dim=len(task_actuators(cfg.task)), dist_ctx=ctx)
         trainer.counters.update(env_steps=0, agent_steps=0, episodes=0, prefill_done=0,
                                 next_eval=a.eval_every, evals=0, resumes=0, last_return=0.0, bags=0)
     c = trainer.counters
     if a.resume:
-        c["resumes"] = int(c.get("resumes", 0)) + 1
+        # The data is the truth: every bag on disk counts, also those written after the last
+        # checkpoint (their updates are made up by the schedule, which counts from episodes).
+        steps, episodes = (sum(x) for x in zip(*distributed.gather_objects(data_counts(ds), ctx)))
+        c.update(agent_steps=steps, env_steps=steps * R, episodes=episodes, bags=len(all_bags),
+                 prefill_done=int(episodes >= N), resumes=int(c.get("resumes", 0)) + 1)
+        say(f"[online] resuming {run_dir}: {c['env_steps']} env steps, {c['episodes']} episodes "
+            f"in {len(all_bags)} bags, {trainer.updates} updates"
+            + ("" if runs.checkpoint_path(run_dir).exists() else " (no checkpoint yet: from the bags)"),
+            flush=True)
+    attempt = len(run_json.get("resumes_argv", []))   # this invocation's number, unique per run
     eval_workers = a.eval_workers if a.eval_workers >= 0 else (0 if (os.cpu_count() or 1) <= 2 else
                                                                min(16, (os.cpu_count() or 2) - 1))
     periodic_contexts = select_contexts(cfg.task, a.eval_split, a.eval_contexts, a.eval_max_contexts)
@@ -351,6 +439,7 @@ def _run(a: argparse.Namespace, ctx: distributed.DistContext, device: str) -> in
     writers: list[EpisodeBagWriter | None] = []
     t_start = time.monotonic()
     status = "failed"   # until the loop below ends normally or is stopped
+    cause: BaseException | None = None
     with runs.StopFlag() as stop:
         try:
             if a.random_baseline and main_rank and not (eval_dir / "random.json").exists():
@@ -416,7 +505,7 @@ def _run(a: argparse.Namespace, ctx: distributed.DistContext, device: str) -> in
                     if o.is_first or writers[i] is None:
                         if writers[i] is not None:
                             writers[i].close()
-                        name = f"ep{int(c['bags']):06d}_env{i}_r{int(c['resumes'])}{rank_tag}"
+                        name = bag_name(bags_dir, int(c["bags"]), i, attempt, rank_tag)
                         c["bags"] = int(c["bags"]) + 1
                         writers[i] = EpisodeBagWriter(bags_dir / name, names)
                         ep_return[i] = 0.0
@@ -468,20 +557,27 @@ def _run(a: argparse.Namespace, ctx: distributed.DistContext, device: str) -> in
                 if main_rank and not stop.stop:
                     print(f"[online] final mean return on {len(final.per_context)} test contexts: "
                           f"{final.mean:.1f}", flush=True)
+        except BaseException as exc:
+            cause = exc   # the real error: the clean-up below must neither hide nor replace it
+            raise
         finally:
-            for w in writers:
-                if w is not None:
-                    w.close()
-            if venv is not None:
-                venv.close()
+            cleanup_errors = close_quietly([*(("closing the bag", w.close) for w in writers if w is not None),
+                                            *([("closing the envs", venv.close)] if venv is not None else [])])
             if trainer.updates or status == "interrupted":
-                trainer.save()
-            trainer.close()
+                cleanup_errors += close_quietly([("saving the checkpoint", trainer.save)])
+            cleanup_errors += close_quietly([("closing the metrics", trainer.close)])
             run_json["result"] = {"status": status, "env_steps": int(c["env_steps"]), "updates": trainer.updates,
                                   "episodes": int(c["episodes"]), "wall_time": round(trainer.metrics.wall_time, 1),
                                   "precision": tr.precision, "resumes": int(c.get("resumes", 0))}
+            if cause is not None and not isinstance(cause, KeyboardInterrupt):
+                run_json["result"]["error"] = f"{type(cause).__name__}: {cause}"
             if main_rank:
-                runs.atomic_write_json(run_dir / "run.json", run_json)
+                cleanup_errors += close_quietly([(f"writing {run_dir / 'run.json'}",
+                                                  lambda: runs.atomic_write_json(run_dir / "run.json", run_json))])
+            for what, err in cleanup_errors:
+                print(f"[online] while stopping, {what}: {err}", file=sys.stderr, flush=True)
+            if cleanup_errors and cause is None:
+                raise cleanup_errors[0][1]
     dt = time.monotonic() - t_start
     say(f"[online] {status}: {c['env_steps']} env steps, {c['episodes']} episodes, {trainer.updates} "
           f"updates in {runs.fmt_seconds(dt)}", flush=True)

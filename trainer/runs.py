@@ -387,11 +387,14 @@ def read_metrics(path: Path) -> list[dict]:
 
 
 def truncate_metrics(path: Path, max_update: int) -> None:
-    """Drop lines logged after the checkpoint we resume from (they will be logged again)."""
+    """Drop lines logged after the checkpoint we resume from (they will be logged again).
+    Episode rows stay: they describe collected data, which a resume keeps and counts, and their
+    episodes are never collected again."""
     path = Path(path)
     if not path.exists():
         return
-    rows = [r for r in read_metrics(path) if int(r.get("update", 0)) <= max_update]
+    rows = [r for r in read_metrics(path)
+            if int(r.get("update", 0)) <= max_update or r.get("kind") == "episode"]
     atomic_write_text(path, "".join(json.dumps(r) + "\n" for r in rows))
 
 

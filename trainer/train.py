@@ -228,10 +228,14 @@ class Trainer:
             self._last_saved = self.updates
             return out
         except OSError as exc:   # disk full, quota, permission: the previous file is untouched
+            if target.exists():
+                state = "the last good checkpoint there is intact" + (
+                    f" (update {self._last_saved})" if self._last_saved is not None else "")
+            else:
+                state = "there is no earlier checkpoint there (the run resumes from its bags)"
             raise CheckpointWriteError(
-                f"writing the checkpoint {target} at update {self.updates} failed: {exc.strerror or exc}; "
-                f"the last good checkpoint there is intact"
-                + (f" (update {self._last_saved})" if self._last_saved is not None else "")) from exc
+                f"writing the checkpoint {target} at update {self.updates} failed: "
+                f"{exc.strerror or exc}; {state}") from exc
 
     def close(self) -> None:
         self.metrics.close()
