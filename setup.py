@@ -50,6 +50,8 @@ INSTALL_REQUIRES = [
     "matplotlib>=3.8",    # protocad-compare's learning-curve PNG
     "jsonschema>=4.20",   # results.json is checked against its schema on save and load
     "tyro==1.0.17",       # the config options of the CLIs, generated from the config tree (flag names pinned)
+    "tensorboard==2.21.0",   # event files beside metrics.jsonl (torch.utils.tensorboard writes them)
+    "cryptography==50.0.2",   # Ed25519 signatures of checkpoints (protocad_ros/checkpoint_signing.py)
 ]
 
 setup(
@@ -77,6 +79,8 @@ setup(
             "protocad-compare = trainer.compare:main",
             "protocad-stack = trainer.stack:main",
             "protocad-checkpoint-publisher = trainer.checkpoint_publisher:main",
+            "protocad-keygen = protocad_ros.checkpoint_signing:keygen_main",
+            "protocad-sign-checkpoint = protocad_ros.checkpoint_signing:sign_main",
             "protocad-fleet = trainer.fleet:main",
             "protocad-discovery-server = trainer.discovery:main",
         ]

@@ -11,6 +11,12 @@ torch.load(weights_only=True)):
     counters (the caller's: env steps, episodes, ...), torch_rng (optional).
 A `config.yaml` with the same config is written beside the file (for humans and tools).
 
+A file may come from elsewhere (a policy node receives them over ROS), so loading checks before
+it allocates: the weights' shapes against the config's, on torch's meta device (a config that
+asks for huge networks costs nothing there), and, with `fits`, the caller's own conditions (a
+policy node: the task and architecture it serves). Only the trainer's resume takes the file's
+torch RNG state (`restore_rng`); a served checkpoint never changes its process's RNG.
+
 Writes go to a temporary file in the same directory, are flushed and fsync'ed, and replace the
 target with os.replace: a crash leaves either the old or the new checkpoint, never half of one.
 Every failure to read (truncated/corrupt, not ours, other version, config or action size that
@@ -23,7 +29,7 @@ import os
 import time
 import zipfile
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import torch
 
@@ -33,7 +39,8 @@ from .atomic import atomic_open
 from .config import Config, ConfigError
 
 __all__ = ["save_checkpoint", "load_checkpoint", "restore_checkpoint", "read_checkpoint",
-           "CheckpointError", "FORMAT", "VERSION", "CONFIG_NAME"]
+           "architecture_differences", "CheckpointError", "CheckpointMismatch", "FORMAT", "VERSION",
+           "CONFIG_NAME"]
 
 FORMAT = "protocad-ros/agent-checkpoint"
 VERSION = 1
@@ -42,6 +49,25 @@ CONFIG_NAME = "config.yaml"
 
 class CheckpointError(RuntimeError):
     """A checkpoint that cannot be used: corrupt/truncated, foreign, or incompatible."""
+
+
+class CheckpointMismatch(CheckpointError):
+    """A sound checkpoint that is not what the caller serves (another task, variant or
+    architecture): refused before anything is built."""
+
+
+def checkpoint_file(path: str | os.PathLike) -> Path:
+    """A checkpoint named as a file or as a run directory: the file. A directory means its
+    checkpoints/latest.pt (or a latest.pt in it, a bare checkpoints/ directory); a path that
+    does not exist yet is returned as it is (a node waiting for its first checkpoint). The one
+    way every node and CLI reads the name."""
+    p = Path(path)
+    if not p.is_dir():
+        return p
+    for cand in (p / "checkpoints" / "latest.pt", p / "latest.pt"):
+        if cand.is_file():
+            return cand
+    return p / "checkpoints" / "latest.pt"
 
 
 def save_checkpoint(path: str | os.PathLike, agent: AgentBase, counters: Mapping[str, Any] | None = None,
@@ -114,7 +140,8 @@ def _config(path: Path, payload: Mapping[str, Any]) -> Config:
         raise CheckpointError(f"{path}: incompatible config in checkpoint: {err}") from None
 
 
-def _load_into(path: Path, agent: AgentBase, payload: Mapping[str, Any]) -> dict[str, Any]:
+def _load_into(path: Path, agent: AgentBase, payload: Mapping[str, Any],
+               restore_rng: bool = True) -> dict[str, Any]:
     try:
         agent.load_state_dict(payload["modules"], strict=True)
     except (RuntimeError, KeyError) as err:
@@ -129,27 +156,83 @@ def _load_into(path: Path, agent: AgentBase, payload: Mapping[str, Any]) -> dict
             opt.load_state_dict(payload["optimizers"][name])
         except (ValueError, KeyError, RuntimeError) as err:
             raise CheckpointError(f"{path}: {name} optimizer state does not fit: {err}") from None
-    if "torch_rng" in payload:
+    if restore_rng and "torch_rng" in payload:
         torch.set_rng_state(payload["torch_rng"])
     return dict(payload.get("counters", {}))
 
 
+def _action_dim(path: Path, payload: Mapping[str, Any]) -> int:
+    dim = payload["action_dim"]
+    if isinstance(dim, bool) or not isinstance(dim, int) or dim < 1:
+        raise CheckpointError(f"{path}: action_dim must be a whole number >= 1, got {dim!r}")
+    return dim
+
+
+# Config fields that count layers: each layer brings at least one tensor, so a config that asks
+# for more than the file has tensors cannot fit it (and would take long to build, even on meta).
+_LAYER_COUNTS = (("world_model", "mlp_layers"), ("behavior", "actor_layers"),
+                 ("behavior", "critic_layers"), ("drq", "num_conv_layers"), ("drq", "hidden_depth"))
+
+
+def _check_weights_fit(path: Path, cfg: Config, action_dim: int, payload: Mapping[str, Any]) -> None:
+    """CheckpointError unless the file's tensors have the shapes its own config builds, checked
+    on the meta device: a config that claims huge sizes is refused without allocating them."""
+    modules = payload["modules"]
+    if not isinstance(modules, Mapping):
+        raise CheckpointError(f"{path}: modules is a {type(modules).__name__}, not a state dict")
+    for sec, key in _LAYER_COUNTS:
+        n = getattr(getattr(cfg, sec), key)
+        if n > len(modules):
+            raise CheckpointError(f"{path}: config {sec}.{key}={n} asks for more layers than the "
+                                  f"file has tensors ({len(modules)})")
+    try:
+        with torch.device("meta"):
+            shapes = {k: tuple(v.shape) for k, v in make_agent(cfg, action_dim, device="meta").state_dict().items()}
+    except Exception as err:  # noqa: BLE001 (a config no agent can be built from)
+        raise CheckpointError(f"{path}: its config builds no agent: {type(err).__name__}: {err}") from None
+    theirs = {k: tuple(v.shape) if isinstance(v, torch.Tensor) else None for k, v in modules.items()}
+    wrong = [f"{k}: {theirs.get(k, 'missing')} in the file, {shape} from its config"
+             for k, shape in shapes.items() if theirs.get(k) != shape]
+    wrong += [f"{k}: not built by its config" for k in theirs if k not in shapes]
+    if wrong:
+        raise CheckpointError(f"{path}: weights do not fit the file's own config "
+                              f"({len(wrong)} tensor(s)): " + "; ".join(wrong[:3]))
+
+
 def load_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu",
-                    action_dim: int | None = None) -> tuple[AgentBase, dict[str, Any]]:
+                    action_dim: int | None = None, *,
+                    fits: Callable[[Config, int], None] | None = None,
+                    restore_rng: bool = True) -> tuple[AgentBase, dict[str, Any]]:
     """Rebuild the agent from a checkpoint. Returns (agent, counters).
 
-    action_dim, if given, must match the checkpoint's (e.g. the environment's).
+    action_dim, if given, must match the checkpoint's (e.g. the environment's). fits(config,
+    action_dim), if given, is called before anything is built and raises (CheckpointMismatch)
+    to refuse the file. restore_rng: set torch's global RNG from the file (the trainer's
+    exact resume); False for anything that only serves or evaluates it.
     """
     path = Path(path)
     payload = read_checkpoint(path)
     cfg = _config(path, payload)
-    ckpt_dim = int(payload["action_dim"])
+    ckpt_dim = _action_dim(path, payload)
     if action_dim is not None and int(action_dim) != ckpt_dim:
         raise CheckpointError(f"{path}: checkpoint was trained with action_dim={ckpt_dim}, "
                               f"but action_dim={action_dim} was requested")
+    if fits is not None:
+        fits(cfg, ckpt_dim)
+    _check_weights_fit(path, cfg, ckpt_dim, payload)
     agent = make_agent(cfg, ckpt_dim, device=device)
-    counters = _load_into(path, agent, payload)
+    counters = _load_into(path, agent, payload, restore_rng)
     return agent, counters
+
+
+def architecture_differences(mine: Config, theirs: Config) -> list[str]:
+    """What makes `theirs` another network than `mine` (variant, shape-giving fields), as
+    'section.key: mine != theirs'; training-only fields (learning rates, ...) may differ."""
+    a, b = mine.to_dict(), theirs.to_dict()
+    diffs = [f"variant: {a['variant']!r} != {b['variant']!r}"] if a["variant"] != b["variant"] else []
+    return diffs + [f"{sec}.{k}: {a[sec][k]!r} != {b[sec][k]!r}"
+                    for sec in ("world_model", "context", "behavior", "drq") for k in sorted(_ARCH_KEYS[sec])
+                    if a[sec].get(k) != b[sec].get(k)]
 
 
 def restore_checkpoint(path: str | os.PathLike, agent: AgentBase) -> dict[str, Any]:
@@ -164,15 +247,7 @@ def restore_checkpoint(path: str | os.PathLike, agent: AgentBase) -> dict[str, A
     if int(payload["action_dim"]) != agent.action_dim:
         raise CheckpointError(f"{path}: checkpoint action_dim={payload['action_dim']} but the "
                               f"agent has action_dim={agent.action_dim}")
-    mine, theirs = agent.cfg.to_dict(), cfg.to_dict()
-    diffs = [f"{sec}.{k}: {mine[sec][k]!r} != {theirs[sec][k]!r}"
-             for sec in ("world_model", "context") for k in mine[sec]
-             if mine[sec][k] != theirs[sec][k] and k in _ARCH_KEYS[sec]]
-    if mine["variant"] != theirs["variant"]:
-        diffs.insert(0, f"variant: {mine['variant']!r} != {theirs['variant']!r}")
-    diffs += [f"{sec}.{k}: {mine[sec][k]!r} != {theirs[sec][k]!r}"
-              for sec in ("behavior", "drq") for k in _ARCH_KEYS[sec]
-              if mine[sec][k] != theirs[sec][k]]
+    diffs = architecture_differences(agent.cfg, cfg)
     if diffs:
         raise CheckpointError(f"{path}: checkpoint does not fit this agent: " + "; ".join(diffs))
     return _load_into(path, agent, payload)

@@ -64,7 +64,8 @@ class Policy:
     @classmethod
     def from_checkpoint(cls, path, device: str | torch.device = "cpu", **kwargs: Any) -> "Policy":
         from .checkpoint import load_checkpoint
-        agent, _ = load_checkpoint(path, device=device)
+        # Serving a file must not reseed this process (the trainer's resume alone takes its RNG).
+        agent, _ = load_checkpoint(path, device=device, restore_rng=False)
         return cls(agent, device=device, **kwargs)
 
     def reset(self, batch_size: int = 1) -> None:

@@ -20,6 +20,14 @@ PARAMS: tuple[Param, ...] = (
           "(trainer/checkpoint_publisher.py) announcing on this topic, e.g. checkpoint; each "
           "verified version is written to `checkpoint` (required then) and served from the next "
           "is_first observation. Empty: off (the file alone)."),
+    Param("trusted_keys", "", "Ed25519 public key file(s), comma-separated (protocad-keygen "
+          "NAME writes NAME.pub): only checkpoints signed by one of them are served, received "
+          "over checkpoint_topic (signed announcement) or loaded from the checkpoint file "
+          "(detached signature FILE.sig), and each version's sequence number must grow. Empty: "
+          "unsigned checkpoints are accepted (a WARNING at start)."),
+    Param("max_checkpoint_bytes", 512 << 20, "Largest checkpoint accepted over checkpoint_topic: "
+          "a bigger announced version is refused before any chunk is kept.",
+          range=(4096, 1 << 40), units="bytes"),
     Param("checkpoint_transfer_timeout_s", 60.0, "A version announced on checkpoint_topic from "
           "which no new chunk arrived for this long (and not all of them arrived) is rejected as "
           "incomplete.", range=(0.1, 3600.0), units="s"),
@@ -62,4 +70,6 @@ COUNTERS = ("observations_answered", "episodes", "images_received", "images_reje
             "act_callback_errors", "unknown_parameters", "parameters_rejected",
             "observations_lost", "observations_skipped", "fragments_discarded", "step_info_received",
             "mismatched_observations", "awaiting_bridge_info", "bridge_info_rejected",
-            "observations_while_inactive", "checkpoint_transfers", "checkpoint_transfers_rejected")
+            "observations_while_inactive", "checkpoint_transfers", "checkpoint_transfers_rejected",
+            "checkpoint_signatures_rejected", "checkpoint_rollbacks_rejected",
+            "checkpoint_limits_rejected", "checkpoint_mismatches", "checkpoint_chunks_dropped")

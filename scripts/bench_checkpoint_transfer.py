@@ -85,8 +85,12 @@ def main() -> None:
         done.set()
 
     rejects: list[str] = []
+    def count(key: str, why: str | None = None) -> None:
+        if key == CheckpointReceiver.REJECTED:   # not the chunks a late start drops and re-reads
+            rejects.append(why)
+
     receiver = Timed(node, "checkpoint", timeout_s=120.0, wake=wake, next_sha=lambda: None,
-                     serving=lambda: "", count=lambda *args, **kw: rejects.append(args))
+                     serving=lambda: "", count=count)
     cpu = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
                 if line.startswith("model name")), platform.machine())
     from protocad_ros.precision import cpu_capability

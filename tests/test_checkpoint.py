@@ -205,6 +205,46 @@ def test_incompatible_checkpoints(tmp_path, trained):
         restore_checkpoint(path, Agent(tiny(), action_dim=2))
 
 
+def test_a_file_whose_config_claims_huge_networks_is_refused_before_they_are_built(tmp_path, trained):
+    """The shapes are compared on the meta device: a 16384-wide GRU (3 GB of weights if built)
+    and an action size of a billion cost nothing; a caller's `fits` refuses before that."""
+    import resource
+
+    from protocad_ros.checkpoint import CheckpointMismatch
+
+    payload = read_checkpoint(save_checkpoint(tmp_path / "agent.pt", trained))
+    wm = payload["config"]["world_model"]
+    for name, bad in [("deter", dict(payload, config={**payload["config"], "world_model": {**wm, "deter": 16384}})),
+                      ("dim", dict(payload, action_dim=10**9))]:
+        torch.save(bad, tmp_path / f"{name}.pt")
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+        with pytest.raises(CheckpointError, match="weights do not fit the file's own config"):
+            load_checkpoint(tmp_path / f"{name}.pt")
+        assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - peak < 500_000   # KiB
+
+    def only_walker(cfg, action_dim):
+        if cfg.task != "walker_walk":
+            raise CheckpointMismatch(f"it is for {cfg.task}")
+
+    built = []
+    with pytest.raises(CheckpointMismatch, match="it is for cheetah_run"):
+        load_checkpoint(tmp_path / "agent.pt", fits=lambda c, d: (built.append(1), only_walker(c, d)))
+    assert built == [1]
+
+
+def test_only_the_trainers_resume_takes_the_files_rng_state(tmp_path, trained):
+    path = save_checkpoint(tmp_path / "agent.pt", trained, rng_state=True)
+    torch.manual_seed(123)
+    expected = torch.rand(3)
+    torch.manual_seed(123)
+    load_checkpoint(path, restore_rng=False)
+    Policy.from_checkpoint(path)
+    assert torch.equal(torch.rand(3), expected)          # serving never reseeds the process
+    torch.manual_seed(123)
+    load_checkpoint(path)                                # the trainer's exact resume does
+    assert not torch.equal(torch.rand(3), expected)
+
+
 def test_restore_into_running_agent(tmp_path, trained, frames):
     path = save_checkpoint(tmp_path / "agent.pt", trained, counters={"episodes": 3})
     fresh = Agent(tiny(**{"world_model.lr": 1e-3}), action_dim=6)  # training-only field differs

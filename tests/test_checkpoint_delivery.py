@@ -5,18 +5,27 @@ on one side, a policy node that only knows the topic on the other, real processe
 The checkpoint publisher watches a learner directory written by save_checkpoint, as the trainer
 writes it. The policy runs in a directory of its own, with its own checkpoint path, and is given
 only the topic. Observations come from this test process (Feeder), so the test decides where
-episodes start and can tell which version served each one.
+episodes start and can tell which version served each one. With trusted keys
+(msgs_docs/security.md) the strangers on the domain are this test process: plain rclpy writers
+that announce and send whatever they are told.
 """
 from __future__ import annotations
 
+import dataclasses
 import hashlib
+import io
 import json
+import os
+from pathlib import Path
 
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from std_msgs.msg import String, UInt8MultiArray
 
+from protocad_ros.checkpoint_receiver import CheckpointReceiver, manifest_of
+from protocad_ros.checkpoint_signing import (generate_keypair, load_private_key, next_seq,
+                                             sign_file, sign_manifest)
 from ros_helpers import Probe, wait_until
 from sim_bridge import qos, topics
 from test_policy_node import START, TASK, Feeder, _save, policy_args
@@ -42,7 +51,10 @@ class FakeCheckpointPublisher:
         self.announce = probe.publisher(topics.CHECKPOINT, String, qos.announcement_qos())
         self.chunk_pub = None
 
-    def send(self, ann: topics.CheckpointAnnouncement, chunks: list[bytes]) -> None:
+    def send(self, ann: topics.CheckpointAnnouncement, chunks: list[bytes],
+             labels: list[tuple[int, int]] | None = None) -> None:
+        """Chunks first (so receivers must read them again after the announcement), `labels`
+        the (index, n_chunks) each one claims (default: as sent)."""
         node = self.probe.node
         if self.chunk_pub is not None:
             node.destroy_publisher(self.chunk_pub)
@@ -50,9 +62,14 @@ class FakeCheckpointPublisher:
             UInt8MultiArray, self.probe.topic(topics.chunks_topic(topics.CHECKPOINT)),
             qos.checkpoint_chunks_qos(len(chunks)))
         for i, piece in enumerate(chunks):
-            self.chunk_pub.publish(topics.fill_checkpoint_chunk(UInt8MultiArray(), ann.sha256, i,
-                                                                ann.n_chunks, piece))
-        self.announce.publish(String(data=topics.checkpoint_announcement_json(ann)))
+            index, n = labels[i] if labels else (i, ann.n_chunks)
+            self.chunk_pub.publish(topics.fill_checkpoint_chunk(UInt8MultiArray(), ann.sha256, index,
+                                                                n, piece))
+        self.announce_only(ann)
+
+    def announce_only(self, ann: topics.CheckpointAnnouncement | str) -> None:
+        text = ann if isinstance(ann, str) else topics.checkpoint_announcement_json(ann)
+        self.announce.publish(String(data=text))
 
     def close(self) -> None:
         for pub in (self.announce, self.chunk_pub):
@@ -114,27 +131,33 @@ def test_new_versions_reach_a_policy_that_sees_only_the_topic_and_bad_ones_are_r
     assert (d["checkpoint_transfers"], d["checkpoint_reloads"]) == ("2", "2")
 
     # Faulty transfers of another version: each is refused with its reason, counted, and the
-    # policy goes on serving version 2 (file on disk included, for a restart).
+    # policy goes on serving version 2 (file on disk included, for a restart). With per-chunk
+    # hashes a flipped byte or a short chunk is dropped alone (the version then never completes);
+    # without them (an older sender) the whole version fails its sha256.
     other = tmp_path / "other.pt"
     _save(other, 9, seed=3)
     data = other.read_bytes()
     size = topics.DEFAULT_CHUNK_SIZE
     ann = topics.describe_checkpoint(data, size, updates=9, task=TASK, variant="protocad")
+    legacy = dataclasses.replace(ann, chunk_sha256=())
     flipped = bytearray(data[size:2 * size])
     flipped[123] ^= 0xFF
+    pieces = _chunks(data, size)
     junk = bytes(range(256)) * 4000
     fake = FakeCheckpointPublisher(probe)
+    dropped = probe.counter(node, "checkpoint_chunks_dropped")
     cases = [
-        (ann, [data[:size], bytes(flipped), *_chunks(data[2 * size:], size)], "checksum mismatch"),
-        (ann, [*_chunks(data, size)[:-1], _chunks(data, size)[-1][:-10]], "size mismatch"),
+        (ann, [pieces[0], bytes(flipped), *pieces[2:-1], pieces[-1][:-10]], "incomplete"),
+        (legacy, [pieces[0], bytes(flipped), *pieces[2:]], "checksum mismatch"),
         (topics.describe_checkpoint(junk, size), _chunks(junk, size), "not a usable checkpoint"),
-        (ann, _chunks(data, size)[:-1], "incomplete"),     # the sender stops half-way
     ]
     for n, (announcement, chunks, reason) in enumerate(cases, start=1):
         fake.send(announcement, chunks)
         wait_until(lambda: probe.counter(node, "checkpoint_transfers_rejected") == n,
                    TIMEOUT_S + 30, f"the {reason} transfer to be rejected")
         assert reason in policy.output()
+    # The flipped and the short chunk (and the chunks that beat each announcement) were dropped.
+    assert probe.counter(node, "checkpoint_chunks_dropped") >= dropped + 2
     f.obs(50, 1, episode=1)
     f.obs(60, 0, episode=2, is_first=True)
     f.wait_answers(6, "answers after the refused transfers")
@@ -146,8 +169,9 @@ def test_new_versions_reach_a_policy_that_sees_only_the_topic_and_bad_ones_are_r
 
     assert policy.stop() == 0
     out = policy.output()
-    assert out.count(f"checkpoint version {ann.short_id} (updates=9) from /protocad/checkpoint rejected") == 3
+    assert out.count(f"checkpoint version {ann.short_id} (updates=9) from /protocad/checkpoint rejected") == 2
     assert "still serving checkpoint" in out and "Traceback" not in out
+    assert "accepts UNSIGNED checkpoints over checkpoint" in out     # no trusted_keys: said at start
 
     # A restarted policy serves the version it received last at once, from its own file, and
     # does not fetch the same version again when the publisher's announcement reaches it.
@@ -164,6 +188,215 @@ def test_new_versions_reach_a_policy_that_sees_only_the_topic_and_bad_ones_are_r
     d = probe.node_diag(node)
     assert d["checkpoint_updates"] == "7" and d["checkpoint_sha256"] == hashlib.sha256(v2).hexdigest()
     assert (d["checkpoint_transfers"], d["checkpoint_transfers_rejected"]) == ("0", "0")
+    assert again.stop() == 0 and publisher.stop() == 0
+    assert "Traceback" not in again.output() + publisher.output()
+
+
+WALKER = "walker_walk"   # 6-d actions, as cheetah_run: another task of the same action size
+
+
+def _save_task(path, task: str, updates: int, seed: int = 0) -> bytes:
+    """A small-preset checkpoint of `task`, written as the trainer writes it; its bytes."""
+    from protocad_ros.agents import make_agent
+    from protocad_ros.checkpoint import save_checkpoint
+    from protocad_ros.config import make_config
+    from sim_bridge.contexts import task_actuators
+
+    agent = make_agent(make_config(task, "small", **{"train.seed": seed}), len(task_actuators(task)))
+    agent.updates.fill_(updates)
+    save_checkpoint(path, agent, counters={"env_steps": 100 * updates})
+    return Path(path).read_bytes()
+
+
+def _with_config(data: bytes, section: str, key: str, value) -> bytes:
+    """The checkpoint's bytes with one config field changed (its weights left as they are)."""
+    import torch
+
+    payload = torch.load(io.BytesIO(data), weights_only=True)
+    payload["config"][section][key] = value
+    buf = io.BytesIO()
+    torch.save(payload, buf)
+    return buf.getvalue()
+
+
+def _rss_anon_mb(pid: int) -> float:
+    """The process's private resident memory (heap; shared-memory transport pages excluded)."""
+    status = Path(f"/proc/{pid}/status").read_text()
+    return int(next(line.split()[1] for line in status.splitlines() if line.startswith("RssAnon:"))) / 1024
+
+
+def _write_signed(path: Path, data: bytes, key, seq: int) -> None:
+    from protocad_ros.atomic import atomic_open
+
+    with atomic_open(path, "wb") as f:
+        f.write(data)
+    sign_file(path, key, seq)
+
+
+def _keyed_policy_args(served, pub, *extra: str) -> list[str]:
+    args = ["-m", "protocad_ros.policy_node", "--ros-args", "-p", f"task:={WALKER}",
+            "-p", "diagnostics_period_s:=0.1", "-p", "num_threads:=1", "-p", f"checkpoint:={served}",
+            "-p", "checkpoint_topic:=checkpoint", "-p", f"trusted_keys:={pub}",
+            "-p", f"checkpoint_transfer_timeout_s:={TIMEOUT_S}"]
+    for p in extra:
+        args += ["-p", p]
+    return args
+
+
+def test_with_trusted_keys_only_the_learners_newer_versions_are_served(spawn, probe, tmp_path, keys):
+    """The learner signs, the robot trusts its public key. Strangers on the domain (this test
+    process) send a bad chunk into a genuine transfer, versions signed by another key, unsigned,
+    rolled back, too large, of another architecture or task: each is refused and counted, the
+    genuine versions still arrive, memory stays flat under a flood of chunks, and the sequence
+    number survives a restart (FILE.sig), which also guards the file-reload path."""
+    learner_key, learner_pub, learner = keys["learner"]
+    stranger = keys["stranger"][2]
+    path = tmp_path / "learner" / "agent.pt"
+    v1 = _save_task(path, WALKER, 5, seed=1)
+    announcements = probe.record(topics.CHECKPOINT, String, qos.announcement_qos())
+    publisher = spawn("publisher", "-m", "trainer.checkpoint_publisher", "--ros-args",
+                      "-p", f"checkpoint:={path}", "-p", "poll_s:=0.1", "-p", "diagnostics_period_s:=0.1",
+                      "-p", f"signing_key:={learner_key}")
+    robot = tmp_path / "robot"
+    robot.mkdir()
+    served = robot / "served.pt"
+    f = Feeder(probe)
+    policy = spawn("policy", *_keyed_policy_args(served, learner_pub), cwd=robot)
+    wait_until(f.ready, START, "the policy's subscriptions and publishers to match")
+    node = "policy"
+    wait_until(lambda: probe.node_diag(node).get("pending_checkpoint_updates") == "5", 60,
+               "signed version 1 to be received and loaded")
+    assert served.read_bytes() == v1 and (robot / "served.pt.sig").is_file()
+    v1_announcement = next(m.data for m in list(announcements)
+                           if json.loads(m.data)["sha256"] == hashlib.sha256(v1).hexdigest())
+    f.obs(10, 0, is_first=True)
+    f.wait_answers(1, "the first answer")
+
+    def count(key: str) -> float:
+        return probe.counter(node, key)
+
+    # A stranger's chunks for the learner's next version, sent before it is announced: wrong
+    # bytes and a wrong length. The genuine version still completes.
+    scratch = tmp_path / "scratch" / "agent.pt"
+    v2 = _save_task(scratch, WALKER, 7, seed=2)
+    sha2, n2 = hashlib.sha256(v2).hexdigest(), -(-len(v2) // topics.DEFAULT_CHUNK_SIZE)
+    stranger_pub = probe.publisher(topics.chunks_topic(topics.CHECKPOINT), UInt8MultiArray,
+                                   qos.checkpoint_chunks_qos(2))
+    wait_until(lambda: stranger_pub.get_subscription_count() >= 1, START, "the stranger's chunk writer to match")
+    dropped = count("checkpoint_chunks_dropped")
+    stranger_pub.publish(topics.fill_checkpoint_chunk(UInt8MultiArray(), sha2, 0, n2,
+                                                      bytes(topics.DEFAULT_CHUNK_SIZE)))
+    stranger_pub.publish(topics.fill_checkpoint_chunk(UInt8MultiArray(), sha2, 1, n2, b"short"))
+    os.replace(scratch, path)
+    wait_until(lambda: probe.node_diag(node).get("pending_checkpoint_updates") == "7", 60,
+               "signed version 2 to arrive despite the stranger's chunks")
+    wait_until(lambda: count("checkpoint_chunks_dropped") >= dropped + 2, 30, "the stranger's chunks dropped")
+    f.obs(20, 0, episode=1, is_first=True)
+    f.wait_answers(2, "episode 1")
+    wait_until(lambda: probe.node_diag(node).get("checkpoint_updates") == "7", 10, "version 2 served")
+    seq2 = int(probe.node_diag(node)["checkpoint_seq"])
+    assert seq2 == json.loads(list(announcements)[-1].data)["seq"]
+
+    # Refused versions, each counted by kind (and in checkpoint_transfers_rejected).
+    size = topics.DEFAULT_CHUNK_SIZE
+    v3 = _save_task(tmp_path / "v3" / "agent.pt", WALKER, 9, seed=3)
+    ann3 = topics.describe_checkpoint(v3, size, updates=9, task=WALKER, variant="protocad", preset="small")
+    huge = _with_config(v2, "world_model", "deter", 16384)   # the largest a config may ask for
+    cheetah = _save_task(tmp_path / "cheetah" / "agent.pt", "cheetah_run", 9)
+    fake = FakeCheckpointPublisher(probe)
+    fake_sha = "f" * 64
+
+    def huge_ann(size_, chunk):
+        return topics.CheckpointAnnouncement(fake_sha, size_, chunk, -(-size_ // chunk), task=WALKER)
+
+    cases = [   # (how it is sent, counter, what the log says)
+        (lambda: fake.send(_sign(ann3, stranger), _chunks(v3, size)), "checkpoint_signatures_rejected",
+         "which is not trusted here"),
+        (lambda: fake.send(ann3, _chunks(v3, size)), "checkpoint_signatures_rejected", "unsigned"),
+        (lambda: fake.announce_only(v1_announcement), "checkpoint_rollbacks_rejected", "rollback"),
+        (lambda: fake.announce_only(huge_ann(1 << 30, size)), "checkpoint_limits_rejected",
+         "max_checkpoint_bytes"),
+        (lambda: fake.announce_only(huge_ann(256 << 20, 4096)), "checkpoint_limits_rejected", "chunks, more than"),
+        (lambda: fake.announce_only(huge_ann(200 << 20, 128 << 20)), "checkpoint_limits_rejected", "chunk_size"),
+        (lambda: fake.send(_sign(topics.describe_checkpoint(huge, size, updates=7, task=WALKER,
+                                                            variant="protocad"), learner), _chunks(huge, size)),
+         "checkpoint_mismatches", "world_model.deter: 128 != 16384"),
+        (lambda: fake.send(_sign(topics.describe_checkpoint(cheetah, size, updates=9, task="cheetah_run",
+                                                            variant="protocad"), learner), _chunks(cheetah, size)),
+         "checkpoint_mismatches", "it is for cheetah_run, this node serves walker_walk"),
+    ]
+    rejected = count("checkpoint_transfers_rejected")
+    for send, key, says in cases:
+        before = count(key)
+        send()
+        wait_until(lambda: count(key) == before + 1, 60, f"a refusal counted in {key} ({says})")
+        rejected += 1
+        assert count("checkpoint_transfers_rejected") == rejected
+        wait_until(lambda: says in policy.output(), 10, f"{says!r} in the policy's log")
+    # Signed by the learner, but chunk 0 too short and no good copy: dropped, then incomplete.
+    dropped = count("checkpoint_chunks_dropped")
+    signed3 = _sign(ann3, learner)
+    fake.send(signed3, [_chunks(v3, size)[0][:-1], *_chunks(v3, size)[1:]])
+    wait_until(lambda: count("checkpoint_transfers_rejected") == rejected + 1, TIMEOUT_S + 30,
+               "the transfer with a short chunk to time out")
+    assert count("checkpoint_chunks_dropped") > dropped and "incomplete" in policy.output()
+
+    # A flood of chunks of a version nobody announced, ever new indices: dropped unbuffered,
+    # memory stays flat.
+    flood = probe.node.create_publisher(UInt8MultiArray, probe.topic(topics.chunks_topic(topics.CHECKPOINT)),
+                                        qos.checkpoint_chunks_qos(16))
+    wait_until(lambda: flood.get_subscription_count() >= 1, START, "the flood writer to match")
+    rss0, dropped = _rss_anon_mb(policy.p.pid), count("checkpoint_chunks_dropped")
+    payload, flood_sha = os.urandom(size), hashlib.sha256(b"flood").hexdigest()
+    for batch in range(12):
+        for i in range(16):
+            flood.publish(topics.fill_checkpoint_chunk(UInt8MultiArray(), flood_sha, batch * 16 + i,
+                                                       1_000_000, payload))
+        wait_until(lambda: count("checkpoint_chunks_dropped") >= dropped + 16 * (batch + 1), 60,
+                   f"flood batch {batch} to be dropped")
+    grown = _rss_anon_mb(policy.p.pid) - rss0
+    assert grown < 96, f"{grown:.0f} MB more after 192 MB of unannounced chunks"
+    assert probe.node_diag(node)["checkpoint_buffered_bytes"] == "0"
+
+    f.obs(30, 0, episode=2, is_first=True)
+    f.wait_answers(3, "episode 2")
+    wait_until(lambda: probe.counter(node, "episodes") == 3, 10, "diagnostics after episode 2 began")
+    d = probe.node_diag(node)
+    assert (d["checkpoint_updates"], d["pending_checkpoint_updates"]) == ("7", "-1")
+    assert d["checkpoint_sha256"] == sha2 and served.read_bytes() == v2
+    assert d["checkpoint_transfers"] == "2"
+    assert policy.stop() == 0 and "Traceback" not in policy.output()
+    fake.close()
+    for pub in (flood, stranger_pub):
+        probe.node.destroy_publisher(pub)
+
+    # Restarted, the policy knows the sequence number it served (served.pt.sig): the learner's
+    # own old announcement replayed is a rollback still. Its file is checked the same way.
+    with probe.lock:
+        probe.diag.clear()   # what the first policy said last
+    again = spawn("policy_again", *_keyed_policy_args(served, learner_pub, "reload_poll_s:=0.1"), cwd=robot)
+    wait_until(lambda: probe.node_diag(node).get("lifecycle_state") == "active", START,
+               "the restarted policy to be active")
+    assert probe.node_diag(node)["checkpoint_seq"] == str(seq2)
+    fake = FakeCheckpointPublisher(probe)
+    fake.announce_only(v1_announcement)
+    wait_until(lambda: count("checkpoint_rollbacks_rejected") == 1, 30, "the replayed version 1 refused")
+    _write_signed(served, v3, stranger, next_seq())                     # another key's FILE.sig
+    wait_until(lambda: count("checkpoint_signatures_rejected") == 1, 30, "a file signed by a stranger")
+    _write_signed(served, cheetah, learner, next_seq())                 # another task
+    wait_until(lambda: count("checkpoint_mismatches") == 1, 30, "a file of another task")
+    _write_signed(served, v1, learner, seq2 - 1)                        # an older one
+    wait_until(lambda: count("checkpoint_rollbacks_rejected") == 2, 30, "an older file")
+    _write_signed(served, v3, learner, next_seq())                      # the learner's: served
+    wait_until(lambda: probe.node_diag(node).get("pending_checkpoint_updates") == "9", 30,
+               "a newer file signed by the learner")
+    (robot / "served.pt.sig").unlink()
+    from protocad_ros.atomic import atomic_open
+
+    with atomic_open(served, "wb") as out:                              # unsigned: refused after the grace
+        out.write(v1)
+    wait_until(lambda: count("checkpoint_signatures_rejected") == 2, 30, "an unsigned file")
+    assert count("checkpoint_load_errors") == 4
     assert again.stop() == 0 and publisher.stop() == 0
     assert "Traceback" not in again.output() + publisher.output()
 
@@ -253,64 +486,131 @@ def test_no_announcement_or_chunk_breaks_the_receiver(receiving_policy, text, la
     assert receiving_policy.callback_errors == 0
 
 
-def test_receiver_order_supersession_and_disagreeing_chunks():
-    """In process, callbacks driven directly: chunks may beat their announcement (two topics);
-    the newest announcement wins over a version still coming in; chunks numbered for another
-    chunk count never complete a version, and one of them after the announcement rejects it."""
+def _sign(ann: topics.CheckpointAnnouncement, key, seq: int | None = None) -> topics.CheckpointAnnouncement:
+    """The announcement as a publisher with `key` signs it (seq: the next one by default)."""
+    ann = dataclasses.replace(ann, seq=next_seq() if seq is None else seq)
+    manifest, signature = sign_manifest(manifest_of(ann), key)
+    return dataclasses.replace(ann, key_id=manifest.key_id, signature=signature)
+
+
+@pytest.fixture(scope="module")
+def keys(tmp_path_factory):
+    """Two key pairs: `learner` (trusted by the nodes under test) and `stranger`."""
+    d = tmp_path_factory.mktemp("keys")
+    out = {}
+    for name in ("learner", "stranger"):
+        generate_keypair(d / f"{name}.key", d / f"{name}.pub")
+        out[name] = (d / f"{name}.key", d / f"{name}.pub", load_private_key(d / f"{name}.key"))
+    return out
+
+
+@pytest.fixture
+def bare_receiver():
+    """In process, callbacks driven directly: make(**kw) -> (receiver, woken, counted)."""
     import rclpy
     from rclpy.node import Node
-
-    from protocad_ros.checkpoint_receiver import CheckpointReceiver
 
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     node = Node("receiver_probe", namespace="/receiver_test", context=ctx)
-    woken, counted = [], []
-    r = CheckpointReceiver(node, "checkpoint", timeout_s=60.0, wake=lambda: woken.append(1),
-                           next_sha=lambda: None, serving=lambda: "nothing",
-                           count=lambda key, why=None: counted.append((key, why)))
+    made = []
 
-    def chunk(a, i, data, n=None):
-        return topics.fill_checkpoint_chunk(UInt8MultiArray(), a.sha256, i, n or a.n_chunks, data)
+    def make(**kw):
+        woken, counted = [], []
+        r = CheckpointReceiver(node, "checkpoint", timeout_s=60.0, wake=lambda: woken.append(1),
+                               next_sha=kw.pop("next_sha", lambda: None), serving=lambda: "nothing",
+                               count=lambda key, why=None: counted.append(key), **kw)
+        made.append(r)
+        return r, woken, counted
 
-    def announce(a):
-        r._on_announcement(String(data=topics.checkpoint_announcement_json(a)))
-
-    try:
-        one, two = b"1" * 10, b"2" * 10
-        a1, a2 = topics.describe_checkpoint(one, 4), topics.describe_checkpoint(two, 4)
-        for i, piece in enumerate(_chunks(one, 4)):
-            r._on_chunk(chunk(a1, i, piece))
-        assert woken == []                                   # nothing announced yet
-        announce(a1)
-        assert woken == [1] and r._received.verify() == one  # whole as soon as announced
-        r._received = None
-
-        announce(a2)
-        r._on_chunk(chunk(a2, 0, two[:4]))
-        announce(a1)                                         # the newest: a2 is dropped
-        r._on_chunk(chunk(a2, 1, two[4:8]))
-        r._on_chunk(chunk(a2, 2, two[8:]))
-        assert woken == [1]                                  # a2 whole, but not announced now
-        for i, piece in enumerate(_chunks(one, 4)):          # a1's new writer sends it again
-            r._on_chunk(chunk(a1, i, piece))
-        assert woken == [1, 1] and r._received.verify() == one
-        r._received = None
-
-        # Chunks of a2 numbered as if it had 5 chunks: they never complete it, and one that
-        # arrives after the announcement rejects it at once (a sender that contradicts itself).
-        three = b"3" * 10
-        a3 = topics.describe_checkpoint(three, 4)
-        for i in (3, 4):
-            r._on_chunk(chunk(a3, i, b"x", n=5))
-        announce(a3)
-        r._on_chunk(chunk(a3, 0, three[:4]))
-        r._on_chunk(chunk(a3, 1, three[4:8]))
-        assert woken == [1, 1] and r.announced == a3        # still waiting for chunk 2
-        r._on_chunk(chunk(a3, 2, three[8:], n=5))
-        assert woken == [1, 1] and counted == [(CheckpointReceiver.REJECTED, None)]
-        assert r.announced is None                           # rejected, nothing coming in
-    finally:
+    yield make
+    for r in made:
         r.destroy()
-        node.destroy_node()
-        rclpy.shutdown(context=ctx)
+    node.destroy_node()
+    rclpy.shutdown(context=ctx)
+
+
+def _chunk(a, i, data, n=None):
+    return topics.fill_checkpoint_chunk(UInt8MultiArray(), a.sha256, i, n or a.n_chunks, data)
+
+
+def _announce(r, a):
+    r._on_announcement(String(data=topics.checkpoint_announcement_json(a)))
+
+
+def test_receiver_buffers_only_announced_versions_and_drops_bad_chunks_alone(bare_receiver):
+    """Chunks that beat their announcement are dropped unbuffered (the chunk subscription is
+    then made anew, so the publisher's history brings them again); a chunk with a wrong hash,
+    length, index or chunk count is dropped alone and a good copy still completes the version;
+    the newest announcement wins over a version still coming in."""
+    r, woken, counted = bare_receiver()
+    size = topics.MIN_CHUNK_SIZE
+    one, two = os.urandom(2 * size + 100), os.urandom(size + 1)
+    a1, a2 = topics.describe_checkpoint(one, size), topics.describe_checkpoint(two, size)
+    p1 = _chunks(one, size)
+    for i, piece in enumerate(p1):
+        r._on_chunk(_chunk(a1, i, piece))
+    assert woken == [] and r.buffered_bytes() == 0 and counted.count(r.DROPPED) == 3
+    sub = r.sub_chunks
+    _announce(r, a1)
+    assert r.sub_chunks is not sub                           # history read again
+    bad = bytearray(p1[0])
+    bad[7] ^= 1
+    r._on_chunk(_chunk(a1, 0, bytes(bad)))                   # a stranger's chunk 0: wrong hash
+    r._on_chunk(_chunk(a1, 1, p1[1][:-1]))                   # wrong length
+    r._on_chunk(_chunk(a1, 2, p1[2], n=4))                   # claims another chunk count
+    assert r._parts == {} and counted.count(r.DROPPED) == 6
+    for i, piece in enumerate(p1):                           # the publisher's history
+        r._on_chunk(_chunk(a1, i, piece))
+    assert woken == [1] and r._received.verify() == one and r.buffered_bytes() == len(one)
+    r._on_chunk(_chunk(a1, 0, p1[0]))                        # late duplicate: not buffered
+    assert counted.count(r.DROPPED) == 7
+    r._received = None
+
+    _announce(r, a2)
+    r._on_chunk(_chunk(a2, 0, two[:size]))
+    assert r.buffered_bytes() == size
+    _announce(r, a1)                                         # newer: a2 is dropped
+    assert r.buffered_bytes() == 0
+    r._on_chunk(_chunk(a2, 1, two[size:]))
+    assert woken == [1]
+    assert counted.count(r.REJECTED) == 0
+
+
+def test_receiver_with_trusted_keys_refuses_before_buffering(bare_receiver, keys):
+    learner, stranger = keys["learner"][2], keys["stranger"][2]
+    from protocad_ros.checkpoint_signing import load_trusted_keys
+
+    trusted = load_trusted_keys([keys["learner"][1]])
+    held = {"seq": 100}
+    r, woken, counted = bare_receiver(trusted=trusted, newest_seq=lambda: held["seq"],
+                                      max_bytes=1 << 20)
+    size = topics.MIN_CHUNK_SIZE
+    data = os.urandom(3 * size)
+    ann = topics.describe_checkpoint(data, size, task=TASK, variant="protocad")
+    refused = [
+        (ann, r.SIGNATURE),                                          # unsigned
+        (_sign(ann, stranger, 200), r.SIGNATURE),                    # a key not trusted here
+        (dataclasses.replace(_sign(ann, learner, 200), updates=5), r.SIGNATURE),   # altered
+        (dataclasses.replace(_sign(ann, learner, 200), signature="AAAA"), r.SIGNATURE),
+        (_sign(dataclasses.replace(ann, chunk_sha256=()), learner, 200), r.SIGNATURE),
+        (_sign(ann, learner, 100), r.ROLLBACK),                      # not above the held one
+        (_sign(topics.describe_checkpoint(b"x" * (2 << 20), 1 << 20), learner, 200), r.LIMITS),
+        (_sign(topics.describe_checkpoint(data, 1024), learner, 200), r.LIMITS),
+    ]
+    for a, counter in refused:
+        _announce(r, a)
+        for i, piece in enumerate(_chunks(data, size)):
+            r._on_chunk(_chunk(a, i, piece))
+        assert (counted[-len(_chunks(data, size)) - 2:-len(_chunks(data, size))]
+                == [r.REJECTED, counter]), a
+        assert r.announced is None and r.buffered_bytes() == 0 and woken == []
+    good = _sign(ann, learner, 200)
+    _announce(r, good)
+    r._on_chunk(_chunk(good, 0, data[:size]))
+    _announce(r, _sign(ann, stranger, 300))                  # refused: does not stop it
+    _announce(r, _sign(ann, learner, 150))                   # an older signature of it: heard again
+    assert r.announced == good
+    for i, piece in enumerate(_chunks(data, size)):
+        r._on_chunk(_chunk(good, i, piece))
+    assert woken == [1] and r._received.verify() == data

@@ -4,12 +4,17 @@
 
 A policy node on another machine cannot watch the learner's file. This node watches it (the
 trainer replaces it atomically with os.replace) and, for each new version (new bytes: the
-version is its sha256), publishes its bytes in chunks on `<topic>/chunks` and then announces it
-on `<topic>` (std_msgs/String, JSON), both reliable + transient local, so a policy that starts
-or reconnects later still gets the newest version. Contract: msgs_docs/policy.md#checkpoints-over-ros.
+version is its sha256), announces it on `<topic>` (std_msgs/String, JSON: sha256, size, the
+sha256 of every chunk, what it is, a growing sequence number) and publishes its bytes in chunks
+on `<topic>/chunks`, both reliable + transient local, so a policy that starts or reconnects
+later still gets the newest version. With `signing_key` the announcement carries the learner's
+Ed25519 signature (msgs_docs/security.md), which policies with `trusted_keys` require.
+Contract: msgs_docs/checkpoint_publisher.md.
 """
 from __future__ import annotations
 
+import dataclasses
+import hashlib
 import os
 import time
 from pathlib import Path
@@ -19,21 +24,30 @@ from diagnostic_msgs.msg import DiagnosticArray
 from std_msgs.msg import String, UInt8MultiArray
 
 from protocad_ros.atomic import file_signature
+from protocad_ros.checkpoint_receiver import manifest_of
+from protocad_ros.checkpoint_signing import (SigningError, key_id, load_private_key, next_seq,
+                                             sign_manifest, write_signature_file)
 from sim_bridge import qos, topics
 from sim_bridge.rosbase import ProtocadNode
 from sim_bridge.rosnode import (ConfigError, Param, declare_all, executor_param, install_parameter_guards,
                                 make_status, run_node, strict_param)
 
 NODE_NAME = "checkpoint_publisher"
-MAX_CHUNK = 64 << 20
 
 PARAMS: tuple[Param, ...] = (
     Param("checkpoint", "", "The learner's checkpoint file to watch (protocad_ros.checkpoint "
           "format; it need not exist yet). Required."),
     Param("topic", topics.CHECKPOINT, "Announcement topic; the bytes go on <topic>/chunks. "
           "Relative names resolve in the node's namespace (default /protocad)."),
-    Param("chunk_size", topics.DEFAULT_CHUNK_SIZE, "Bytes per chunk message.",
-          range=(4096, MAX_CHUNK), units="bytes"),
+    Param("chunk_size", topics.DEFAULT_CHUNK_SIZE, "Bytes per chunk message (at most "
+          f"{topics.MAX_CHUNKS} chunks per version).",
+          range=(topics.MIN_CHUNK_SIZE, topics.MAX_CHUNK_SIZE), units="bytes"),
+    Param("signing_key", "", "Ed25519 private key file (protocad-keygen NAME writes NAME.key): "
+          "every announcement is signed with it, for policies with trusted_keys. Empty: "
+          "unsigned announcements (a WARNING at start)."),
+    Param("write_signature_file", False, "With signing_key: also write CHECKPOINT.sig beside "
+          "the checkpoint file for each announced version (for policies on this machine that "
+          "watch the file itself with trusted_keys)."),
     Param("poll_s", 1.0, "How often the file is checked for a new version (mtime/inode/size).",
           range=(0.01, 3600.0), units="s"),
     Param("diagnostics_period_s", 1.0, "Period of /diagnostics.", range=(0.05, 3600.0), units="s"),
@@ -56,6 +70,16 @@ class CheckpointPublisherNode(ProtocadNode):
         self.executor_kind = p["executor"]
         self.counters = dict.fromkeys(COUNTERS, 0)
         self.counters["unknown_parameters"] = len(self.unknown_parameters)
+        self.key = None
+        if p["signing_key"]:
+            try:
+                self.key = load_private_key(p["signing_key"])
+            except SigningError as e:
+                raise ConfigError(str(e)) from None
+        elif p["write_signature_file"]:
+            raise ConfigError("write_signature_file:=true needs signing_key:=FILE (the private key to sign with)")
+        self.key_id = key_id(self.key.public_key()) if self.key is not None else ""
+        self.seq = 0   # of the newest announcement: grows across restarts too (next_seq)
         self.current: topics.CheckpointAnnouncement | None = None
         self.published_at = 0.0
         self._seen_sig: tuple | None = None
@@ -70,7 +94,12 @@ class CheckpointPublisherNode(ProtocadNode):
         self._diag_name = self.get_fully_qualified_name()
         where = "" if os.path.exists(p["checkpoint"]) else " (it does not exist yet: waiting for it)"
         self.get_logger().info(f"watching {p['checkpoint']}{where}; announcing on "
-                               f"{self.pub_announce.topic_name}, bytes on {self.chunk_topic}")
+                               f"{self.pub_announce.topic_name}, bytes on {self.chunk_topic}"
+                               + (f"; signing with key {self.key_id}" if self.key is not None else ""))
+        if self.key is None:
+            self.get_logger().warning("no signing_key: announcements are UNSIGNED; policies with "
+                                      "trusted_keys refuse them (protocad-keygen makes a key pair; "
+                                      "msgs_docs/security.md)")
         self._poll()
 
     def _rejected_parameter(self, reason: str) -> None:
@@ -113,12 +142,31 @@ class CheckpointPublisherNode(ProtocadNode):
             return
         self._seen_sig = sig
         data, fields = got
-        ann = topics.describe_checkpoint(data, self.params["chunk_size"],
-                                         seq=self.counters["versions_announced"] + 1, **fields)
-        if self.current is not None and ann.sha256 == self.current.sha256:
+        if self.current is not None and hashlib.sha256(data).hexdigest() == self.current.sha256:
             self.counters["unchanged_rewrites"] += 1   # same bytes written again: same version
             return
+        n_chunks = -(-len(data) // self.params["chunk_size"])
+        if n_chunks > topics.MAX_CHUNKS:
+            self._failed_sig = sig
+            self.counters["read_errors"] += 1
+            self.get_logger().error(f"not announcing {path}: {len(data)} bytes are {n_chunks} chunks of "
+                                    f"{self.params['chunk_size']}, more than {topics.MAX_CHUNKS} (raise chunk_size)")
+            return
+        self.seq = next_seq(self.seq)
+        ann = self._sign(topics.describe_checkpoint(data, self.params["chunk_size"], seq=self.seq, **fields))
+        if self.params["write_signature_file"]:
+            try:
+                write_signature_file(path, manifest_of(ann), ann.signature)
+            except OSError as e:   # the announcement still goes out; the file's watchers wait
+                self.get_logger().error(f"cannot write the signature file beside {path}: {e}")
         self._publish(ann, data)
+
+    def _sign(self, ann: topics.CheckpointAnnouncement) -> topics.CheckpointAnnouncement:
+        """The announcement with the learner's signature over its manifest (unsigned without a key)."""
+        if self.key is None:
+            return ann
+        manifest, signature = sign_manifest(manifest_of(ann), self.key)
+        return dataclasses.replace(ann, key_id=manifest.key_id, signature=signature)
 
     def _publish(self, ann: topics.CheckpointAnnouncement, data: bytes) -> None:
         t0 = time.monotonic()
@@ -126,12 +174,14 @@ class CheckpointPublisherNode(ProtocadNode):
             self.destroy_publisher(self._chunk_pub)
         self._chunk_pub = self.create_publisher(UInt8MultiArray, self.chunk_topic,
                                                 qos.checkpoint_chunks_qos(ann.n_chunks))
-        # Chunks before the announcement: whoever sees the announcement can fetch them all.
+        # The announcement first: receivers buffer only chunks of a version they accepted, and a
+        # running one hears it before the new chunk writer is even matched. The writer keeps
+        # every chunk (transient local), so a receiver that got chunks first reads them again.
+        self.pub_announce.publish(String(data=topics.checkpoint_announcement_json(ann)))
         for i in range(ann.n_chunks):
             piece = data[i * ann.chunk_size:(i + 1) * ann.chunk_size]
             self._chunk_pub.publish(topics.fill_checkpoint_chunk(UInt8MultiArray(), ann.sha256, i,
                                                                  ann.n_chunks, piece))
-        self.pub_announce.publish(String(data=topics.checkpoint_announcement_json(ann)))
         self.current, self.published_at = ann, time.time()
         self.counters["versions_announced"] += 1
         self.counters["bytes_published"] += ann.size
@@ -151,6 +201,7 @@ class CheckpointPublisherNode(ProtocadNode):
         values = {"checkpoint": self.params["checkpoint"], "topic": self.pub_announce.topic_name,
                   "sha256": a.sha256 if a else "", "updates": a.updates if a else -1,
                   "size": a.size if a else 0, "n_chunks": a.n_chunks if a else 0,
+                  "seq": a.seq if a else 0, "key_id": self.key_id,
                   "chunk_size": self.params["chunk_size"], "announced_unix": self.published_at,
                   "subscribers": self.pub_announce.get_subscription_count(),
                   "callback_errors": self.callback_errors, **self.counters}
@@ -177,10 +228,11 @@ def main(argv: list[str] | None = None) -> int:
     return run_node(
         CheckpointPublisherNode, prog="checkpoint_publisher", params=PARAMS, argv=argv,
         description="Publishes each new version of a learner's checkpoint file over ROS: "
-                    "the bytes in chunks on <topic>/chunks, then a JSON announcement (sha256, "
-                    "size, chunking, updates, task, variant) on <topic>, both latched (reliable, "
-                    "transient local). Policy nodes receive it with -p checkpoint_topic:=checkpoint. "
-                    "Contract: msgs_docs/policy.md.",
+                    "a JSON announcement (sha256, size, per-chunk sha256, updates, task, variant, "
+                    "sequence number; signed with -p signing_key:=FILE) on <topic>, then the bytes "
+                    "in chunks on <topic>/chunks, both latched (reliable, transient local). Policy "
+                    "nodes receive it with -p checkpoint_topic:=checkpoint. Contract: "
+                    "msgs_docs/checkpoint_publisher.md, msgs_docs/security.md.",
         example="protocad-checkpoint-publisher --ros-args -p checkpoint:=runs/x/checkpoints/latest.pt")
 
 
