@@ -35,6 +35,7 @@ from protocad_ros.policy_params import COUNTERS, PARAMS
 from sim_bridge import qos, topics
 from sim_bridge.contexts import task_actuators
 from sim_bridge.lifecycle import ManagedNode
+from sim_bridge.publisher_watch import PublisherWatch
 from sim_bridge.rosnode import (ConfigError, KeyThrottle, Percentiles, declare_all,
                                 flush_publishers, install_parameter_guards, make_status, run_node)
 
@@ -106,14 +107,20 @@ class PolicyNode(CheckpointServing, ManagedNode):
                                               qos.diagnostics_qos())
         image_qos = qos.observation_qos()
         image_qos.depth = obs_qos.depth
+        # One bridge per namespace: a second publisher of what the policy reads (a second
+        # bridge announcing itself, an impostor) is warned about once and counted.
+        self.publisher_watch = PublisherWatch(self._on_new_publisher)
+        watch = self.publisher_watch.callbacks
         self.sub_image = self.create_subscription(Image, topics.IMAGE, self._on_image, image_qos,
-                                                  qos_overriding_options=qos.overridable())
+                                                  qos_overriding_options=qos.overridable(),
+                                                  event_callbacks=watch(self.resolve_topic_name(topics.IMAGE)))
         self.sub_info = self.create_subscription(JointState, topics.STEP_INFO, self._on_info,
-                                                 obs_qos)
+                                                 obs_qos, event_callbacks=watch(self.resolve_topic_name(topics.STEP_INFO)))
         self.bridge: topics.BridgeInfo | None = None
         self._announcer_checked_at, self._announcer_present = -1e9, False
         self.sub_bridge_info = self.create_subscription(JointState, topics.BRIDGE_INFO, self._on_bridge_info,
-                                                        qos.announcement_qos())
+                                                        qos.announcement_qos(),
+                                                        event_callbacks=watch(self.resolve_topic_name(topics.BRIDGE_INFO)))
         self.diag_timer = self.create_timer(p["diagnostics_period_s"], self._publish_diagnostics)
         install_parameter_guards(self, PARAMS, lambda name, value: None,
                                  lambda reason: self._count("parameters_rejected",
@@ -134,11 +141,14 @@ class PolicyNode(CheckpointServing, ManagedNode):
         self.action_dim, self.image_hw, self.action_names = 0, (0, 0), []
         self.live_view: LiveView | None = None
         self._watcher: threading.Thread | None = None
-        self._loaded_sig: tuple | None = None
+        self._loaded_sig: tuple | None = None     # watch keys (checkpoint_serving._watch_key)
         self._failed_sig: tuple | None = None
+        self._unsigned_since: tuple = (None, 0.0)   # (watch key, since): a file awaiting FILE.sig
         self.ckpt_sha: str | None = None          # sha256 of the served checkpoint file
+        self.ckpt_seq = -1                        # its signed sequence number (-1: unsigned)
+        self.trusted = None                       # key id -> public key; None: unsigned accepted
         with self._lock:
-            self._pending_policy: tuple | None = None   # (policy, counters, sig, sha) to swap in
+            self._pending_policy: tuple | None = None   # (policy, counters, key, sha, seq) to swap in
         self.mismatch: str | None = None
         self._reset_filter()
 
@@ -156,18 +166,26 @@ class PolicyNode(CheckpointServing, ManagedNode):
         """Load the checkpoint (or build the random agent), start the file watcher; a missing
         or unloadable checkpoint is a ConfigError."""
         p = self.params
+        if p["checkpoint"]:   # a file or a run directory, as everywhere else
+            from protocad_ros.checkpoint import checkpoint_file
+            p["checkpoint"] = str(checkpoint_file(p["checkpoint"]))
         path, topic = p["checkpoint"], p["checkpoint_topic"]
         if topic and not path:
             raise ConfigError(f"checkpoint_topic:={topic} needs checkpoint:=FILE: where received "
                               "versions are written (and served from after a restart)")
+        self._load_trust()
         sig = file_signature(path) if path else None
         if sig is not None:
             try:
                 self.ckpt_sha = file_sha256(path)
+            except OSError as e:
+                raise ConfigError(f"cannot read checkpoint {path}: {e}") from None
+            self._configure_seq(path, self.ckpt_sha, sig[2])
+            try:
                 self.policy, self.ckpt_counters = self._load(path)
             except Exception as e:  # CheckpointError and friends: a clear message, exit 2
                 raise ConfigError(f"cannot load checkpoint {path}: {e}") from None
-            self._loaded_sig = sig
+            self._loaded_sig = self._watch_key(path)
             self.agent_kind = "checkpoint"
         elif path and not (p["wait_for_checkpoint"] or topic):
             raise ConfigError(f"checkpoint {path} does not exist (set wait_for_checkpoint:=true "
@@ -206,7 +224,9 @@ class PolicyNode(CheckpointServing, ManagedNode):
             remove_stale_temporaries(path)   # what an install interrupted by a kill left
             self.receiver = CheckpointReceiver(
                 self, topic, timeout_s=p["checkpoint_transfer_timeout_s"], wake=self._wake.set,
-                next_sha=self._next_sha, serving=self._describe_agent, count=self._count)
+                next_sha=self._next_sha, serving=self._describe_agent, count=self._count,
+                max_bytes=p["max_checkpoint_bytes"], trusted=self.trusted,
+                newest_seq=self._newest_seq, fits=self._announced_fits)
         if path and (p["reload_poll_s"] > 0 or topic):
             self._watcher = threading.Thread(target=self._watch, name="checkpoint_watcher",
                                              daemon=True)
@@ -250,6 +270,13 @@ class PolicyNode(CheckpointServing, ManagedNode):
             n = self.counters[key]
         if why:
             self._throttle.warning(key, f"{why} ({key}: {n} so far)")
+
+    def _on_new_publisher(self, topic: str, publishers: int, first_time: bool) -> None:
+        if first_time:
+            self.get_logger().warning(
+                f"{publishers} publishers on {topic}: a second sim bridge in {self.get_namespace()}, or "
+                "another node publishing there (an impostor?); their observations interleave "
+                "(multiple_publishers on /diagnostics)")
 
     def _inactive(self) -> bool:
         """Observations are answered only while active (counted, not kept, otherwise)."""
@@ -443,6 +470,9 @@ class PolicyNode(CheckpointServing, ManagedNode):
             "checkpoint_sha256": self.ckpt_sha or "",
             "checkpoint_announced": self.receiver.last_announced if self.receiver is not None else "",
             "checkpoint_transfer": self.receiver.progress() if self.receiver is not None else "",
+            "checkpoint_buffered_bytes": self.receiver.buffered_bytes() if self.receiver is not None else 0,
+            "checkpoint_seq": self.ckpt_seq,
+            "checkpoint_trusted_keys": ",".join(sorted(self.trusted)) if self.trusted else "",
             # The trainer's scalar counters only (env steps, episodes, ...): its sampler state
             # and bag list would be kilobytes on every diagnostics message.
             **{f"checkpoint/{k}": v for k, v in self.ckpt_counters.items()
@@ -462,9 +492,13 @@ class PolicyNode(CheckpointServing, ManagedNode):
                or self.callback_errors)
         unknown = self.unknown_parameters
         values["bridge"] = (f"{self.bridge.task} {self.bridge.action_names}" if self.bridge else "")
+        several = self.publisher_watch.summary()
+        values["multiple_publishers"] = several
+        values["multiple_publishers_detected"] = self.publisher_watch.detected
         level = ("ERROR" if self.mismatch else
-                 "WARN" if bad or unknown or self.agent_kind == "random" else "OK")
+                 "WARN" if bad or unknown or several or self.agent_kind == "random" else "OK")
         message = (f"not answering: {self.mismatch}" if self.mismatch else
+                   f"several publishers on {several} (a second bridge? an impostor?)" if several else
                    f"unknown parameters ignored: {unknown}" if unknown else
                    f"{state}: not answering" if state != "active" else
                    "random agent" if self.agent_kind == "random" else

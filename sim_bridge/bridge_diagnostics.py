@@ -13,6 +13,7 @@ from sim_bridge.rosnode import make_status
 class BridgeDiagnostics:
     def _publish_diagnostics(self) -> None:
         now = time.monotonic()
+        others = self._other_publishers()   # first: it counts what it finds
         with self._cond:
             c = dict(self.counters)
             t0, s0 = self._rate_window[0]
@@ -39,16 +40,19 @@ class BridgeDiagnostics:
             values["control_rate_hz"] = self._control_rate
         # Late actions are a rate, not a state: WARN only while new ones arrive (one late
         # action must not mark the rest of a run).
-        others = self._other_publishers()
         late_now = c["late_actions"] - self._late_at_last_diag
         self._late_at_last_diag = c["late_actions"]
         warn = c["actions_rejected"] or c["lockstep_timeouts"] or late_now or self.callback_errors
         unknown = self.unknown_parameters
         values["other_publishers"] = ", ".join(others)
+        several = self.publisher_watch.summary()   # on the topics it subscribes to (action)
+        values["multiple_publishers"] = several
+        values["first_action_publisher_only"] = self.params["first_action_publisher_only"]
         status = make_status(self._diag_name, self.params["task"], values,
-                             "ERROR" if others else "WARN" if warn or unknown else "OK",
+                             "ERROR" if others else "WARN" if warn or unknown or several else "OK",
                              f"another publisher on {', '.join(others)} (a second bridge in this "
                              "namespace?)" if others else
+                             f"several publishers on {several} (an impostor?)" if several else
                              f"unknown parameters ignored: {unknown}" if unknown else
                              "rejected/late actions or timeouts" if warn else
                              "running" if state == "active" else f"{state}: not stepping")
@@ -68,6 +72,11 @@ class BridgeDiagnostics:
             topic = pub.topic_name
             if self.count_publishers(topic) > 1:
                 others.append(topic)
+        new = set(others) - self._others_now
+        self._others_now = set(others)
+        if new:   # each time a topic gains another publisher (a second bridge starts)
+            with self._cond:
+                self.counters["multiple_publishers_detected"] += len(new)
         for topic in others:
             if topic not in self._others_warned:
                 self._others_warned.add(topic)

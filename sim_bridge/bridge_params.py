@@ -58,10 +58,17 @@ PARAMS: tuple[Param, ...] = (
           "lockstep_timeouts).", read_only=False, range=(0.01, 3600.0), units="s"),
     Param("lossless", True, "Lock-step: image, step_info and context keep every sample a "
           "reliable reader has not acknowledged (KEEP_ALL history): a stalled reader, e.g. a "
-          "frozen recorder, costs the bridge memory (about 12 KB per 64x64 step, until it catches "
+          "frozen recorder, costs the bridge memory (about 14 KB per 64x64 step, until it catches "
           "up or its process is gone) instead of losing steps. false = KEEP_LAST(100), as in "
           "real time, where a reader more than 100 steps behind loses the oldest (counted by the "
           "recorder). Unused in real time.", read_only=True),
+    Param("first_action_publisher_only", False, "Take actions only from the first action "
+          "publisher (the one that answered while it was the only one matched); actions of any "
+          "other are rejected (rejected_other_publisher) until no publisher is matched. Detection, "
+          "not authentication: publishers are told apart by their sample sequence numbers "
+          "(rclpy gives no publisher id), which another publisher could continue by chance "
+          "or on purpose. false: every publisher's actions are taken; a second publisher is "
+          "still reported (multiple_publishers).", read_only=True),
     Param("max_episodes", 0, "Exit (code 0) after this many complete episodes (lock-step: once "
           "the answer to the last is_last has arrived); 0 = run until stopped.", read_only=False,
           range=(0, 1_000_000_000)),
@@ -89,4 +96,5 @@ COUNTERS = ("steps", "episodes", "observations_published", "observations_republi
             "rejected_wrong_length", "rejected_nonfinite", "rejected_stale_stamp",
             "rejected_duplicate", "actions_clipped", "late_actions", "lockstep_timeouts",
             "realtime_overruns", "resets_requested", "unknown_parameters",
-            "parameters_rejected", "actions_while_inactive")
+            "parameters_rejected", "actions_while_inactive", "rejected_other_publisher",
+            "multiple_publishers_detected", "publish_waits")

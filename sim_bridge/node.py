@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Image, JointState
 from std_srvs.srv import Trigger
@@ -38,10 +38,15 @@ from sim_bridge.bridge_diagnostics import BridgeDiagnostics
 from sim_bridge.bridge_params import (ACTION_HIGH, ACTION_LOW, COUNTERS, FLUSH_TIMEOUT_S, LOSSLESS_FLUSH_TIMEOUT_S,
                                       PARAMS, READY_GRACE_S, episode_contexts)
 from sim_bridge.lifecycle import ManagedNode
+from sim_bridge.publisher_watch import FirstPublisherLock, PublisherWatch
 from sim_bridge.rosnode import (ConfigError, KeyThrottle, Percentiles, declare_all,
                                 flush_publishers, install_parameter_guards)
 
 NODE_NAME = "sim_bridge"
+#: What rclpy raises when the middleware refuses a sample (a full KEEP_ALL history).
+RCLError = _rclpy.RCLError
+#: Seconds between attempts to publish into a full lossless history.
+PUBLISH_RETRY_S = 0.05
 __all__ = ["COUNTERS", "PARAMS", "SimBridgeNode", "episode_contexts", "main"]
 
 
@@ -56,6 +61,11 @@ class SimBridgeNode(BridgeDiagnostics, ManagedNode):
         self.exit_code = 0
         p = self.params = declare_all(self, PARAMS)
         self.executor_kind = p["executor"]
+        if p["first_action_publisher_only"] and self.executor_kind == "events":
+            # rclpy's EventsExecutor (7.1) hands a callback the message only, never its info.
+            self.executor_kind = "single"
+            self.get_logger().info("first_action_publisher_only:=true needs each action's sequence "
+                                   "number, which the events executor does not pass: executor single")
         self._contexts = episode_contexts(p["task"], p["split"], p["context_schedule"],
                                           p["context"])
         self.lockstep = p["mode"] == "lockstep"
@@ -81,7 +91,7 @@ class SimBridgeNode(BridgeDiagnostics, ManagedNode):
         # and _publish checks _go), actions are taken only while active.
         self._img_msg, self._info_msg, self._ctx_msg, self._clock_msg = (
             Image(), JointState(), JointState(), Clock())
-        lossless = p["mode"] == "lockstep" and p["lossless"]
+        lossless = self._obs_lossless = p["mode"] == "lockstep" and p["lossless"]
         obs_qos = self._obs_qos = qos.observation_qos(lossless)
         # A profile of its own: rclpy's QoS overriding changes the profile object it is given.
         self.pub_image = self.create_lifecycle_publisher(Image, topics.IMAGE, qos.observation_qos(lossless),
@@ -95,10 +105,17 @@ class SimBridgeNode(BridgeDiagnostics, ManagedNode):
         # check that it fits before the bridge steps.
         self.pub_bridge_info = self.create_publisher(JointState, topics.BRIDGE_INFO, qos.announcement_qos())
         self._others_warned: set[str] = set()
+        self._others_now: set[str] = set()
+        # A second action publisher (an impostor, a stray `ros2 topic pub`) is reported; with
+        # first_action_publisher_only its actions are refused too.
+        self.publisher_watch = PublisherWatch(self._on_new_publisher)
+        self._action_lock = FirstPublisherLock() if p["first_action_publisher_only"] else None
         self.sub_action = self.create_subscription(
-            JointState, topics.ACTION, self._on_action, qos.action_qos(),
+            JointState, topics.ACTION,
+            self._on_action if self._action_lock is None else self._on_attributed_action, qos.action_qos(),
             qos_overriding_options=qos.overridable(),
-            event_callbacks=SubscriptionEventCallbacks(matched=self._on_action_matched))
+            event_callbacks=self.publisher_watch.callbacks(self.resolve_topic_name(topics.ACTION),
+                                                           also=self._on_action_matched))
         self.srv_reset = self.create_service(Trigger, topics.RESET_SERVICE, self._on_reset)
         self.diag_timer = self.create_timer(p["diagnostics_period_s"], self._publish_diagnostics)
         install_parameter_guards(self, PARAMS, self._apply_param, self._parameter_rejected)
@@ -202,10 +219,32 @@ class SimBridgeNode(BridgeDiagnostics, ManagedNode):
 
     def _on_action_matched(self, info) -> None:
         with self._cond:   # wake the stepping thread (it re-checks _policy_present)
+            if self._action_lock is not None and info.current_count == 0:
+                self._action_lock.release()   # nobody left: the next publisher alone takes it
             self._cond.notify_all()
+
+    def _on_new_publisher(self, topic: str, publishers: int, first_time: bool) -> None:
+        with self._cond:
+            self.counters["multiple_publishers_detected"] += 1
+        if first_time:
+            what = ("only the first one's actions are taken" if self._action_lock is not None
+                    else "every one's actions are taken (first_action_publisher_only:=true takes "
+                         "the first one's only)")
+            self.get_logger().warning(
+                f"{publishers} publishers on {topic}: another node publishes actions to this bridge "
+                f"(an impostor, a second policy, a stray `ros2 topic pub`?); {what}")
 
     def _policy_present(self) -> bool:
         return self.sub_action.get_publisher_count() > 0
+
+    def _other_publisher(self, info: Any) -> str | None:
+        """Why the action comes from another publisher than the first (first_action_publisher_only),
+        or None. Called under _cond."""
+        if self._action_lock is None:
+            return None
+        seq = info.get("publication_sequence_number", 0) if isinstance(info, dict) else \
+            getattr(info, "publication_sequence_number", 0)
+        return self._action_lock.admit(int(seq or 0), self.sub_action.get_publisher_count())
 
     def _reject(self, counter: str, why: str) -> None:
         self.counters["actions_rejected"] += 1
@@ -213,14 +252,23 @@ class SimBridgeNode(BridgeDiagnostics, ManagedNode):
         self._throttle.warning(
             counter, f"action rejected ({counter}, {self.counters[counter]} so far): {why}")
 
-    def _on_action(self, msg) -> None:
+    def _on_attributed_action(self, msg, info) -> None:
+        """first_action_publisher_only: rclpy passes the message info (its sequence number) to
+        a two-argument callback."""
+        self._on_action(msg, info)
+
+    def _on_action(self, msg, info=None) -> None:
         now = time.monotonic()
         stamp = topics.stamp_to_ns(msg.header.stamp)
         with self._cond:
+            # Attribution first: the locked publisher's every sample advances its numbers.
+            other = self._other_publisher(info)
             if not self._go:   # not active: no observation awaits an answer (dropped, counted)
                 self.counters["actions_while_inactive"] += 1
                 return
             self.counters["actions_received"] += 1
+            if other is not None:
+                return self._reject("rejected_other_publisher", f"stamp {topics.format_stamp(stamp)}: {other}")
             try:
                 a = topics.read_action(msg)
             except (ValueError, TypeError) as e:
@@ -410,11 +458,27 @@ class SimBridgeNode(BridgeDiagnostics, ManagedNode):
                           else "observations_published"] += 1
             # What the policy waits for first (it answers once image and step_info are in);
             # the true context and the clock follow while it computes.
-            self.pub_image.publish(img)
-            self.pub_info.publish(info)
-            self.pub_context.publish(ctx)
-            self.pub_clock.publish(self._clock_msg)
+            for pub, msg in ((self.pub_image, img), (self.pub_info, info), (self.pub_context, ctx),
+                             (self.pub_clock, self._clock_msg)):
+                self._send(pub, msg)
         return True
+
+    def _send(self, pub, msg) -> None:
+        """Publish, under _cond. A lossless writer refuses a sample once its history holds
+        Fast DDS's limit (5000) of samples some reliable reader has not acknowledged (a recorder
+        stalled that many steps): then wait for the reader, so a stall costs time, not a sample.
+        The wait releases _cond: callbacks and diagnostics go on meanwhile."""
+        while True:
+            try:
+                return pub.publish(msg)
+            except RCLError as exc:
+                if not self._obs_lossless or self._stop.is_set():
+                    raise
+                self.counters["publish_waits"] += 1
+                self._throttle.warning("publish_waits", f"{pub.topic_name}: the writer's history is full of "
+                                       f"samples a reader has not acknowledged (a stalled reader): waiting "
+                                       f"for it ({self.counters['publish_waits']} waits so far; {exc})".replace("\n", " "))
+                self._cond.wait(PUBLISH_RETRY_S)
 
     def _resume(self, stamp: int) -> bool:
         """Deactivated: hold the episode until active again (False: the thread is to end)."""

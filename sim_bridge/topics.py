@@ -108,12 +108,32 @@ def read_image(msg: Any, expected_hw: tuple[int, int] | None = None) -> np.ndarr
     if msg.encoding != "rgb8":
         raise ValueError(f"image encoding {msg.encoding!r}, expected 'rgb8'")
     h, w, step = int(msg.height), int(msg.width), int(msg.step)
-    buf = np.frombuffer(bytes(msg.data) if not isinstance(msg.data, np.ndarray) else msg.data, np.uint8)
-    if step < w * 3 or buf.size != h * step:
-        raise ValueError(f"image data has {buf.size} bytes, expected {h}x{step} (width {w}, rgb8)")
+    # Sizes first: an oversized or lying payload is refused before a byte of it is copied.
+    size = _payload_size(msg.data)
+    if step < w * 3 or size != h * step:
+        raise ValueError(f"image data has {size} bytes, expected {h}x{step} (width {w}, rgb8)")
     if expected_hw is not None and (h, w) != tuple(expected_hw):
         raise ValueError(f"image is {h}x{w}, expected {expected_hw[0]}x{expected_hw[1]}")
-    return buf.reshape(h, step)[:, : w * 3].reshape(h, w, 3)
+    return _uint8_view(msg.data).reshape(h, step)[:, : w * 3].reshape(h, w, 3)
+
+
+def _payload_size(data: Any) -> int:
+    """Bytes in a uint8[] field (rclpy's array.array, bytes, an ndarray, a list), uncopied."""
+    return int(data.nbytes) if isinstance(data, np.ndarray) else len(data)
+
+
+def _uint8_view(data: Any) -> np.ndarray:
+    """A flat uint8 array over the payload: no copy where it exposes a buffer (rclpy's
+    array.array, bytes, ndarrays); a list (some decoders) is converted."""
+    if isinstance(data, np.ndarray):
+        return data.reshape(-1).view(np.uint8)
+    try:
+        return np.frombuffer(data, np.uint8)
+    except TypeError:
+        try:
+            return np.asarray(data, np.uint8).reshape(-1)
+        except (OverflowError, TypeError) as exc:
+            raise ValueError(f"image data is not bytes: {exc}") from None
 
 
 def fill_named(msg: Any, names: Sequence[str], values: Sequence[float], t_ns: int,
@@ -270,6 +290,12 @@ def read_context_features(msg: Any) -> dict[str, np.ndarray]:
 # ---------------------------------------------------------------------- checkpoint delivery
 ANNOUNCEMENT_FORMAT = "protocad-ros/checkpoint-announcement"
 DEFAULT_CHUNK_SIZE = 1 << 20
+#: The chunk sizes a publisher may use (its chunk_size parameter's range); a receiver refuses others.
+MIN_CHUNK_SIZE, MAX_CHUNK_SIZE = 4096, 64 << 20
+#: At most this many chunks per version: the per-chunk hashes travel in the announcement.
+MAX_CHUNKS = 16384
+#: An announcement longer than this is not read (16384 chunk hashes take about 1.1 MB).
+MAX_ANNOUNCEMENT_CHARS = 2 << 20
 
 
 def chunks_topic(announcement_topic: str) -> str:
@@ -280,7 +306,10 @@ def chunks_topic(announcement_topic: str) -> str:
 @dataclass
 class CheckpointAnnouncement:
     """One checkpoint version, announced (latched) before anyone fetches it. A version is
-    its content: `sha256` of the file's bytes is its identity (logs show `short_id`)."""
+    its content: `sha256` of the file's bytes is its identity (logs show `short_id`).
+    chunk_sha256: the sha256 of each chunk (empty from senders that do not send them), so a
+    receiver checks every chunk on arrival; key_id + signature: the learner's Ed25519 signature
+    (protocad_ros.checkpoint_signing.Manifest; empty: unsigned)."""
 
     sha256: str
     size: int
@@ -290,19 +319,27 @@ class CheckpointAnnouncement:
     task: str = ""
     variant: str = ""
     preset: str = ""
-    seq: int = 0                      # the publisher's announcement number (for people)
+    seq: int = 0                      # grows with every version (signed: no rollback)
     counters: dict = field(default_factory=dict)   # the trainer's (env steps, ...)
+    chunk_sha256: tuple = ()
+    key_id: str = ""
+    signature: str = ""
 
     @property
     def short_id(self) -> str:
         return self.sha256[:12]
+
+    def chunk_length(self, index: int) -> int:
+        """Bytes chunk `index` must carry: chunk_size, the last one the remainder."""
+        return self.chunk_size if index < self.n_chunks - 1 else self.size - self.chunk_size * (self.n_chunks - 1)
 
 
 def checkpoint_announcement_json(a: CheckpointAnnouncement) -> str:
     return json.dumps({"format": ANNOUNCEMENT_FORMAT, "sha256": a.sha256, "size": a.size,
                        "chunk_size": a.chunk_size, "n_chunks": a.n_chunks, "updates": a.updates,
                        "task": a.task, "variant": a.variant, "preset": a.preset, "seq": a.seq,
-                       "counters": dict(a.counters)}, sort_keys=True)
+                       "counters": dict(a.counters), "chunk_sha256": list(a.chunk_sha256),
+                       "key_id": a.key_id, "signature": a.signature}, sort_keys=True)
 
 
 def _whole(d: Mapping[str, Any], key: str, lo: int) -> int:
@@ -312,9 +349,17 @@ def _whole(d: Mapping[str, Any], key: str, lo: int) -> int:
     return v
 
 
+def _is_sha256(v: Any) -> bool:
+    return isinstance(v, str) and len(v) == 64 and all(c in "0123456789abcdef" for c in v)
+
+
 def read_checkpoint_announcement(text: str) -> CheckpointAnnouncement:
-    """Parse an announcement; ValueError saying what is wrong (not JSON, another format, a
-    field missing or impossible: n_chunks must be exactly what size and chunk_size give)."""
+    """Parse an announcement; ValueError saying what is wrong (too long, not JSON, another
+    format, a field missing or impossible: n_chunks must be exactly what size and chunk_size
+    give, chunk hashes one per chunk). Sizes are not bounded here: that is the receiver's
+    choice (max_checkpoint_bytes)."""
+    if len(text) > MAX_ANNOUNCEMENT_CHARS:
+        raise ValueError(f"{len(text)} characters, more than {MAX_ANNOUNCEMENT_CHARS}")
     try:
         d = json.loads(text)
     except ValueError as e:
@@ -322,7 +367,7 @@ def read_checkpoint_announcement(text: str) -> CheckpointAnnouncement:
     if not isinstance(d, dict) or d.get("format") != ANNOUNCEMENT_FORMAT:
         raise ValueError(f"format is not {ANNOUNCEMENT_FORMAT!r}")
     sha = d.get("sha256")
-    if not (isinstance(sha, str) and len(sha) == 64 and all(c in "0123456789abcdef" for c in sha)):
+    if not _is_sha256(sha):
         raise ValueError(f"sha256 must be 64 lower-case hex digits, got {sha!r}")
     size, chunk = _whole(d, "size", 1), _whole(d, "chunk_size", 1)
     n = _whole(d, "n_chunks", 1)
@@ -331,17 +376,32 @@ def read_checkpoint_announcement(text: str) -> CheckpointAnnouncement:
     counters = d.get("counters") or {}
     if not isinstance(counters, dict):
         raise ValueError("counters must be an object")
+    hashes = d.get("chunk_sha256") or []
+    if not isinstance(hashes, list) or not all(_is_sha256(h) for h in hashes):
+        raise ValueError("chunk_sha256 must be a list of sha256 hex digests")
+    if hashes and len(hashes) != n:
+        raise ValueError(f"{len(hashes)} chunk hashes for n_chunks={n}")
+    key_id, signature = d.get("key_id") or "", d.get("signature") or ""
+    if not (isinstance(key_id, str) and isinstance(signature, str)):
+        raise ValueError("key_id and signature must be strings")
     updates, seq = d.get("updates", -1), d.get("seq", 0)
-    # Informative fields: a sender may leave them out, never make a version unusable.
+    # Informative fields: a sender may leave them out, never make a version unusable (signed
+    # ones are checked by the signature, which covers what was read here).
     return CheckpointAnnouncement(sha, size, chunk, n, updates if type(updates) is int else -1,
                                   str(d.get("task", "")), str(d.get("variant", "")),
-                                  str(d.get("preset", "")), seq if type(seq) is int else 0, counters)
+                                  str(d.get("preset", "")), seq if type(seq) is int else 0, counters,
+                                  tuple(hashes), key_id, signature)
 
 
-def describe_checkpoint(data: bytes, chunk_size: int, **fields: Any) -> CheckpointAnnouncement:
-    """The announcement of a file's bytes (sha256, size, chunking) plus `fields`."""
-    return CheckpointAnnouncement(hashlib.sha256(data).hexdigest(), len(data), int(chunk_size),
-                                  -(-len(data) // int(chunk_size)), **fields)
+def describe_checkpoint(data: bytes, chunk_size: int, *, chunk_hashes: bool = True,
+                        **fields: Any) -> CheckpointAnnouncement:
+    """The announcement of a file's bytes (sha256, size, chunking, per-chunk sha256) plus
+    `fields`."""
+    view, chunk_size = memoryview(data), int(chunk_size)
+    hashes = tuple(hashlib.sha256(view[i:i + chunk_size]).hexdigest()
+                   for i in range(0, len(view), chunk_size)) if chunk_hashes else ()
+    return CheckpointAnnouncement(hashlib.sha256(data).hexdigest(), len(data), chunk_size,
+                                  -(-len(data) // chunk_size), chunk_sha256=hashes, **fields)
 
 
 def fill_checkpoint_chunk(msg: Any, sha256: str, index: int, n_chunks: int, data: bytes) -> Any:
@@ -356,12 +416,18 @@ def fill_checkpoint_chunk(msg: Any, sha256: str, index: int, n_chunks: int, data
     return msg
 
 
-def read_checkpoint_chunk(msg: Any) -> tuple[str, int, int, bytes]:
-    """(sha256, index, n_chunks, bytes) of a chunk; ValueError if its label is not ours."""
+def read_checkpoint_chunk_label(msg: Any) -> tuple[str, int, int]:
+    """(sha256, index, n_chunks) of a chunk, without copying its bytes; ValueError if its
+    label is not ours."""
     if len(msg.layout.dim) != 1:
         raise ValueError(f"chunk layout has {len(msg.layout.dim)} dimensions, expected 1")
     sha, _, where = str(msg.layout.dim[0].label).partition(":")
     index, _, n = where.partition("/")
     if len(sha) != 64 or not index.isdigit() or not n.isdigit() or int(index) >= int(n):
         raise ValueError(f"chunk label {msg.layout.dim[0].label!r} is not '<sha256>:<index>/<n>'")
-    return sha, int(index), int(n), bytes(msg.data)
+    return sha, int(index), int(n)
+
+
+def read_checkpoint_chunk(msg: Any) -> tuple[str, int, int, bytes]:
+    """(sha256, index, n_chunks, bytes) of a chunk; ValueError if its label is not ours."""
+    return (*read_checkpoint_chunk_label(msg), bytes(msg.data))

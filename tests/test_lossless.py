@@ -2,8 +2,9 @@
 responder in this process standing in for the policy, and trainer.recorder.
 
 Lock-step: the bridge's observation writers keep every sample a reliable reader has not
-acknowledged (lossless, KEEP_ALL), so a frozen recorder gets the backlog once it runs again and
-every published step is in the bag. Real time: the bridge cannot wait (the clock runs), so steps are lost, and the
+acknowledged (lossless, KEEP_ALL) and the recorder's readers refuse, rather than drop, what they
+have no room for (KEEP_ALL), so a frozen recorder gets the backlog once it runs again and every
+published message is in the bag. Real time: the bridge cannot wait (the clock runs), so steps are lost, and the
 recorder counts exactly what the bag lacks, which the dataset report names.
 """
 from __future__ import annotations
@@ -42,30 +43,60 @@ def start(spawn, tmp_path, mode: list[str]):
     return probe, resp, bag, rec, bridge
 
 
-def test_lockstep_loses_nothing_while_the_recorder_is_frozen(spawn, tmp_path):
-    probe, resp, bag, rec, bridge = start(spawn, tmp_path, ["-p", "episode_length:=150"])
+def clock_stamps(bag) -> list[int]:
+    reader = M.BagReader(bag)
+    return [T.stamp_to_ns(reader.decode(m).clock) for m in reader.messages([T.CLOCK])]
+
+
+#: Steps the bridge takes while the recorder is frozen: more than the 1000 samples per topic
+#: that the recorder's old KEEP_LAST(1000) readers could hold (what they lost on waking).
+FROZEN_STEPS = 1100
+FROZEN_S = 6.0
+
+
+def test_lockstep_recorder_frozen_6s_records_every_message_of_every_topic(spawn, tmp_path):
+    """The recorder (default topics, KEEP_ALL readers) frozen for at least 6 s and 1,100 steps
+    of a lock-step bridge: afterwards every image, step_info, context and /clock message the
+    bridge published is in the bag exactly once, every action too, and nothing counted lost."""
+    probe = Probe("frozen_probe")
+    resp = Responder(probe, lambda info: [0.0], names=["torque"])
+    bag = tmp_path / "bag"
+    rec = spawn("recorder", "-m", "trainer.recorder", "-o", str(bag))
+    wait_for(lambda: "recording to" in rec.output(), START, "the recorder")
+    bridge = spawn("bridge", "-m", "sim_bridge.node", "--ros-args", "-p", f"task:={TASK}", "-p", "seed:=2",
+                   "-p", "min_subscribers:=2", "-p", "episode_length:=400")
     try:
         wait_for(lambda: len(resp.steps) >= 40, START, "40 lock-step steps")
         rec.p.send_signal(signal.SIGSTOP)
-        frozen_at = len(resp.steps)
-        wait_for(lambda: len(resp.steps) >= frozen_at + 600, 120, "600 steps while the recorder is frozen")
+        frozen_at, t_frozen = len(resp.steps), time.monotonic()
+        wait_for(lambda: len(resp.steps) >= frozen_at + FROZEN_STEPS and time.monotonic() - t_frozen >= FROZEN_S,
+                 240, f"{FROZEN_STEPS} steps and {FROZEN_S} s while the recorder is frozen")
         rec.p.send_signal(signal.SIGCONT)
         resumed_at = len(resp.steps)
-        wait_for(lambda: len(resp.steps) >= resumed_at + 100, 60, "100 more steps")
-        assert bridge.stop() == 0, bridge.output()[-2000:]     # SIGINT: flushes to every reader
-        # The stand-in policy flushes its actions too, as the policy node does when it closes:
-        # the frozen recorder's backlog of actions may still be under repair.
+        wait_for(lambda: len(resp.steps) >= resumed_at + 100, 120, "100 more steps")
+        assert bridge.stop() == 0, bridge.output()[-2000:]     # SIGINT: waits for every reader's acks
         assert flush_publishers([resp.pub], 30.0) == []
         assert rec.stop() == 0, rec.output()[-2000:]
     finally:
+        rec.p.send_signal(signal.SIGCONT)                     # never leave it stopped
         probe.close()
-    published = [s for s, _, _ in resp.steps]
-    for rel in (T.STEP_INFO, T.IMAGE):
-        assert bag_stamps(bag, rel) == published, rel          # every step, in order, no repeats
+    out = bridge.output()
+    published = int(re.search(r"observations_published=(\d+)", out).group(1))
+    repeats = re.search(r"observations_republished=(\d+)", out)
+    repeats = int(repeats.group(1)) if repeats else 0
+    dt = resp.steps[1][0] - resp.steps[0][0]
+    expected = [i * dt for i in range(published)]
+    for rel in (T.IMAGE, T.STEP_INFO, T.CONTEXT):
+        stamps = bag_stamps(bag, rel)
+        assert sorted(set(stamps)) == expected and len(stamps) == published + repeats, \
+            (rel, len(stamps), published, repeats)
+    clock = clock_stamps(bag)
+    assert sorted(set(clock)) == expected and len(clock) == published + repeats, (len(clock), published)
     assert set(bag_stamps(bag, T.ACTION)) == set(resp.answered)
     info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
     lost = json.loads((info.get("custom_data") or {}).get("protocad_lost_messages", "{}"))
     assert not any(lost.values()), lost
+    assert "LOST" not in rec.output(), rec.output()[-2000:]
 
 
 def test_realtime_loss_is_counted_exactly_and_named_by_the_dataset(spawn, tmp_path):

@@ -334,6 +334,9 @@ def test_a_checkpoint_for_another_task_is_refused_at_the_first_observation(spawn
 
 
 def test_two_bridges_in_one_namespace_are_reported_by_both(spawn, probe):
+    """...and by the policy that reads them: both announce themselves on bridge_info and
+    publish image and step_info (the policy warns once per topic and counts on /diagnostics)."""
+    policy = spawn("policy", *policy_args())
     a = spawn("bridge_a", "-m", "sim_bridge.node", "--ros-args", "-p", f"task:={TASK}", "-p", "seed:=1",
               "-p", "diagnostics_period_s:=0.1", "-r", "__node:=sim_bridge_a")
     b = spawn("bridge_b", "-m", "sim_bridge.node", "--ros-args", "-p", f"task:={TASK}", "-p", "seed:=2",
@@ -344,3 +347,10 @@ def test_two_bridges_in_one_namespace_are_reported_by_both(spawn, probe):
         assert probe.node_diag(name)["_level"] == 2
     for proc in (a, b):
         wait_until(lambda: "another node also publishes /protocad/image" in proc.output(), 10, "the error line")
+    for name in ("sim_bridge_a", "sim_bridge_b"):
+        assert int(probe.node_diag(name)["multiple_publishers_detected"]) >= 1
+    wait_until(lambda: "/protocad/bridge_info (2)" in probe.node_diag("policy").get("multiple_publishers", ""),
+               START, "the policy to report the second bridge's announcement")
+    d = probe.node_diag("policy")
+    assert "/protocad/image (2)" in d["multiple_publishers"] and int(d["multiple_publishers_detected"]) >= 3, d
+    assert d["_level"] >= 1 and policy.output().count("2 publishers on /protocad/bridge_info") == 1

@@ -323,3 +323,51 @@ def test_loss_while_frozen_is_counted_exactly_and_shown_by_the_dataset(ros, tmp_
     assert f"LOST before the recorder took them (sequence gaps): {lost}" in out
     ds_report = MCAPDataset([bag], seq_len=4, cache_dir=tmp_path / "cache").report.summary()
     assert "the recorder reported lost messages" in ds_report and str(lost) in ds_report
+
+
+class ImportSpy:
+    """A meta path finder that records every module name looked up while installed."""
+
+    def __init__(self):
+        self.names: list[str] = []
+
+    def find_spec(self, name, path=None, target=None):
+        self.names.append(name)
+        return None
+
+    def __enter__(self):
+        sys.meta_path.insert(0, self)
+        return self
+
+    def __exit__(self, *exc):
+        sys.meta_path.remove(self)
+
+
+@pytest.mark.parametrize("type_name", ["idlelib/idle/X", "os/msg/X", "os.path/msg/X", "sensor_msgs/msg/Image.X",
+                                       "sensor_msgs/idle/Image", "trainer/loop/X", "a/b/c/d", "../msg/X", ""])
+def test_graph_type_names_are_checked_before_anything_is_imported(type_name):
+    """Any participant can advertise any type string on a recorded topic (or one `ros2 topic echo`
+    reads): only pkg/msg/Type names of ament packages, identifiers without dots, are imported."""
+    from trainer.recorder import _import_message
+    from trainer.ros2cli.msgyaml import interface_class
+
+    with ImportSpy() as spy:
+        with pytest.raises(M.TypeSupportError):
+            _import_message(type_name)
+        with pytest.raises(ValueError):
+            interface_class(type_name)
+    assert spy.names == [], spy.names
+    assert "idlelib.idle" not in sys.modules
+
+
+def test_installed_message_types_still_import():
+    from trainer.recorder import _import_message
+    from trainer.ros2cli.msgyaml import interface_class
+
+    from sensor_msgs.msg import Image
+    from std_srvs.srv import Trigger
+
+    assert _import_message("sensor_msgs/msg/Image") is Image and _import_message("sensor_msgs/Image") is Image
+    assert interface_class("std_srvs/srv/Trigger", kind="srv") is Trigger
+    with pytest.raises(ValueError, match="unknown interface type"):
+        interface_class("sensor_msgs/msg/Nope")     # an ament package, a type it lacks

@@ -309,6 +309,9 @@ def test_bad_input_is_one_clear_line_and_no_traceback(tmp_path):
         (["topic", "echo", "/x", "--filter", "m.("], 1, "is not a Python expression"),
         (["service", "call", "/x", "std_srvs/srv/Trigger", "{a: [1"], 1, "the values are not YAML"),
         (["service", "call", "/x", "std_msgs/msg/String"], 1, "The passed type is not a service"),
+        # a type name is checked before anything is imported (idlelib.idle would start IDLE)
+        (["topic", "echo", "/x", "idlelib/idle/X"], 1, "The passed message type is invalid"),
+        (["service", "call", "/x", "os/srv/X"], 1, "The passed service type is invalid"),
         (["bag", "info", str(bag)], 1, "Could not read metadata"),
     ]
     for argv, code, needle in cases:

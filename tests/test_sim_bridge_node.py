@@ -13,7 +13,7 @@ import pytest
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 from rosgraph_msgs.msg import Clock
-from sensor_msgs.msg import JointState
+from sensor_msgs.msg import Image, JointState
 from std_srvs.srv import Trigger
 
 from ros_helpers import Probe, Responder, wait_until
@@ -291,3 +291,107 @@ def test_image_qos_is_overridable_by_parameter(spawn, probe):
     assert probe.node.get_publishers_info_by_topic("/protocad/step_info")[0].qos_profile.reliability == \
         ReliabilityPolicy.RELIABLE
     assert "unknown parameter" not in bridge.output()
+
+
+def test_a_second_action_publisher_is_reported_and_refused_with_first_publisher_only(spawn, probe):
+    """An impostor publishes actions the bridge would otherwise take (the pending stamp, valid
+    values) next to the stand-in policy: the bridge warns once, reports the topic and counts it,
+    and with first_action_publisher_only refuses every impostor action while stepping on."""
+    resp = Responder(probe, lambda info: [0.0], names=["torque"])
+    bridge = spawn("bridge", *bridge_args("first_action_publisher_only:=true", "episode_length:=1000"))
+    wait_until(lambda: len(resp.steps) >= 50, START, "50 lock-step steps")
+    impostor = probe.node.create_publisher(JointState, probe.topic(topics.ACTION), qos.action_qos())
+    wait_until(lambda: "/protocad/action (2)" in probe.node_diag("sim_bridge").get("multiple_publishers", ""),
+               30, "the bridge to report two action publishers")
+    n_fake = 20
+    for _ in range(n_fake):
+        msg = JointState()
+        topics.set_stamp(msg.header.stamp, resp.steps[-1][0])   # the observation awaiting an answer
+        msg.name, msg.effort = ["torque"], [1.0]
+        impostor.publish(msg)
+    wait_counter(probe, "sim_bridge", "rejected_other_publisher", n_fake)
+    stepped = len(resp.steps)
+    wait_until(lambda: len(resp.steps) >= stepped + 20, 60, "20 more steps from the first publisher")
+    d = probe.node_diag("sim_bridge")
+    assert int(d["rejected_stale_stamp"]) == int(d["rejected_duplicate"]) == 0, d   # refused before those checks
+    assert int(d["multiple_publishers_detected"]) >= 1 and d["_level"] == 1, d       # WARN
+    assert bridge.output().count("2 publishers on /protocad/action") == 1              # warned once
+    probe.node.destroy_publisher(impostor)
+    wait_until(lambda: probe.node_diag("sim_bridge").get("multiple_publishers") == "", 30,
+               "the report to clear once the impostor is gone")
+    assert bridge.alive()
+
+
+def test_read_image_checks_the_size_before_copying_the_payload():
+    """A wrong-sized payload is refused from its length alone; a right one is read without a copy."""
+    import array
+
+    import numpy as np
+
+    class NoCopy:   # a payload whose bytes must not be touched
+        def __len__(self):
+            return 5
+
+        def __iter__(self):
+            raise AssertionError("the payload was copied before its size was checked")
+
+    msg = Image(height=64, width=64, encoding="rgb8", step=192)
+    msg.data = array.array("B", bytes(64 * 192))
+    with pytest.raises(ValueError, match="5 bytes, expected 64x192"):
+        topics.read_image(type("Msg", (), {"height": 64, "width": 64, "step": 192, "encoding": "rgb8",
+                                           "data": NoCopy()})())
+    img = topics.read_image(msg, (64, 64))
+    assert img.shape == (64, 64, 3) and np.shares_memory(img, np.frombuffer(msg.data, np.uint8))
+    with pytest.raises(ValueError, match="image is 64x64, expected 32x32"):
+        topics.read_image(msg, (32, 32))
+
+
+def test_a_full_lossless_history_is_waited_for_not_fatal():
+    """Fast DDS refuses a sample once a KEEP_ALL writer holds 5000 a reader has not acknowledged
+    (a recorder stalled that long): the bridge waits and publishes it then, counting the waits;
+    only when it is stopping, or not lossless, does the error go up."""
+    import threading
+    from types import SimpleNamespace
+
+    from sim_bridge.node import RCLError, SimBridgeNode
+
+    class FullThenFree:
+        topic_name = "/protocad/image"
+
+        def __init__(self, refusals: int):
+            self.refusals, self.sent = refusals, []
+
+        def publish(self, msg):
+            if self.refusals:
+                self.refusals -= 1
+                raise RCLError("Failed to publish: cannot publish data")
+            self.sent.append(msg)
+
+    def bridge(lossless: bool):
+        return SimpleNamespace(_obs_lossless=lossless, _stop=threading.Event(), _cond=threading.Condition(),
+                               counters={"publish_waits": 0}, _throttle=SimpleNamespace(warning=lambda *a: None))
+
+    b, pub = bridge(True), FullThenFree(3)
+    with b._cond:
+        SimBridgeNode._send(b, pub, "obs")
+    assert pub.sent == ["obs"] and b.counters["publish_waits"] == 3
+    stopping = bridge(True)
+    stopping._stop.set()
+    for b in (bridge(False), stopping):
+        with b._cond, pytest.raises(RCLError):
+            SimBridgeNode._send(b, FullThenFree(1), "obs")
+
+
+def test_the_first_publisher_lock_follows_one_writers_sequence_numbers():
+    from sim_bridge.publisher_watch import FirstPublisherLock
+
+    lock = FirstPublisherLock()
+    assert lock.admit(7, matched=2) is not None            # two before any sample: neither is first
+    assert lock.admit(7, matched=1) is None                # alone: it takes the lock
+    assert lock.admit(8, matched=2) is None                # its next number, a second one matched
+    assert "another publisher" in lock.admit(1, matched=2)  # the newcomer's own numbering
+    assert lock.admit(8, matched=2) is not None            # a repeat is not the locked writer's
+    assert lock.admit(9, matched=2) is None
+    assert lock.admit(3, matched=1) is not None            # alone but not continuing: the impostor stayed
+    lock.release()                                         # nobody matched any more
+    assert lock.admit(1, matched=1) is None and lock.last == 1   # a restarted policy takes it

@@ -210,3 +210,60 @@ def test_auto_threads_are_the_cores_shared_among_the_local_ranks(local_ranks):
     default, auto, given, auto_again = map(int, r.stdout.split())
     share = max(1, default // int(local_ranks or 1))
     assert (auto, given, auto_again) == (share, 3, share)
+
+
+def record_with_a_second_image_publisher(tmp_path: Path, steps: list[dict]) -> Path:
+    """A bag recorded by trainer.recorder (its own process) from publishers in this process: the
+    contract topics, plus a second, silent writer on /protocad/image (an impostor)."""
+    import rclpy
+    from rclpy.duration import Duration
+    from rclpy.node import Node
+    from sensor_msgs.msg import Image, JointState
+
+    from conftest import Proc
+    from sim_bridge import qos
+    from sim_bridge import topics as T
+
+    bag = tmp_path / "impostor_bag"
+    rec = Proc([sys.executable, "-m", "trainer.recorder", "-o", str(bag), "-p", "100"], tmp_path / "recorder.log")
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    node = Node("train_test_publisher", namespace="/protocad", context=ctx)
+    try:
+        pubs = {rel: node.create_publisher(Image if rel == T.IMAGE else JointState, rel, qos.observation_qos(True))
+                for rel in (T.IMAGE, T.STEP_INFO, T.CONTEXT, T.ACTION)}
+        impostor = node.create_publisher(Image, T.IMAGE, qos.observation_qos(True))
+        wait_for(lambda: all(p.get_subscription_count() for p in [*pubs.values(), impostor]), 90,
+                 "the recorder to subscribe to every topic")
+        for st in steps:
+            s = st["stamp"]
+            pubs[T.CONTEXT].publish(T.fill_context(JointState(), st["context"], st["split"], s))
+            pubs[T.STEP_INFO].publish(T.fill_step_info(JointState(), T.StepInfo(
+                st["reward"], 1.0, st["is_first"], st["is_last"], False, st["episode"], st["step"]), s))
+            pubs[T.IMAGE].publish(T.fill_image(Image(), st["image"], s))
+            pubs[T.ACTION].publish(T.fill_action(JointState(), st["action"], ["torque"], s))
+        for p in pubs.values():
+            assert p.wait_for_all_acked(Duration(seconds=30))
+        assert rec.stop() == 0, rec.output()
+    finally:
+        rec.stop()
+        node.destroy_node()
+        rclpy.try_shutdown(context=ctx)
+    assert "SEVERAL PUBLISHERS" in rec.output() and "/protocad/image: 2" in rec.output(), rec.output()
+    return bag
+
+
+def test_a_bag_with_two_image_publishers_is_refused_unless_accepted(tmp_path):
+    bag = record_with_a_second_image_publisher(tmp_path, make_steps(2, 12))
+    custom = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]["custom_data"]
+    assert json.loads(custom["protocad_multiple_publishers"]) == {"/protocad/image": 2}
+    args = ["--logs", bag, "--task", "pendulum_swingup", *TINY, "--updates", "1", "--cache-dir", tmp_path / "cache"]
+    r = run_cli("trainer.train", *args, "--run-dir", tmp_path / "refused")
+    assert r.returncode == 2, r.stdout + r.stderr
+    line = [x for x in r.stderr.splitlines() if "error" in x]
+    assert len(line) == 1 and str(bag) in line[0] and "/protocad/image had 2 publishers" in line[0] \
+        and "--accept-multiple-publishers" in line[0], r.stderr
+    r = run_cli("trainer.train", *args, "--run-dir", tmp_path / "accepted", "--accept-multiple-publishers")
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "finished at update 1" in r.stdout
+    assert "the recorder reported multiple publishers" in r.stdout   # and the dataset report says why

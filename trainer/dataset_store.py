@@ -17,9 +17,9 @@ from typing import Iterable
 import numpy as np
 
 from sim_bridge import topics as T
-from trainer.dataset_types import (EXPECTED_TYPES, KNOWN_UNUSED, REQUIRED_KEYS, SMALL_STORE_STEPS,
-                                   STORE_VERSION, CacheWriteError, DatasetError, SourceReport,
-                                   TopicMap)
+from trainer.dataset_types import (EXPECTED_TYPES, KNOWN_UNUSED, MULTIPLE_PUBLISHERS_KEY, REQUIRED_KEYS,
+                                   SMALL_STORE_STEPS, STORE_VERSION, CacheWriteError, DatasetError,
+                                   SourceReport, TopicMap)
 
 
 # ----------------------------------------------------------------------------- sources
@@ -216,7 +216,7 @@ def recorder_losses(source: Path, used: Iterable[str] | None = None) -> dict[str
         if not k.startswith("protocad_"):
             continue
         if used is not None and k in ("protocad_lost_messages", "protocad_missed_before_subscribing",
-                                      "protocad_loss_untracked_topics"):
+                                      "protocad_loss_untracked_topics", MULTIPLE_PUBLISHERS_KEY):
             try:
                 per = json.loads(v)
             except json.JSONDecodeError:
@@ -230,6 +230,19 @@ def recorder_losses(source: Path, used: Iterable[str] | None = None) -> dict[str
             v = json.dumps(per, sort_keys=True)
         out[k] = v
     return out
+
+
+def multiple_publishers(source: Path, used: Iterable[str]) -> dict[str, int]:
+    """{topic: publishers} for the `used` topics the bag's recorder saw several publishers on
+    (the bag's metadata; empty for unmarked and foreign bags)."""
+    import json
+
+    value = recorder_losses(source, used=used).get(MULTIPLE_PUBLISHERS_KEY)
+    try:
+        marked = json.loads(value) if value else {}
+    except json.JSONDecodeError:
+        return {}
+    return {str(t): int(n) for t, n in marked.items()} if isinstance(marked, dict) else {}
 
 
 def _ingest_into(source: Path, topics: TopicMap, tmp: Path) -> None:

@@ -9,6 +9,9 @@ from typing import Any, Iterable
 from sim_bridge import topics as T
 
 STORE_VERSION = 1
+#: metadata.yaml custom_data key the recorder writes: {topic: most publishers matched at once}
+#: for every recorded topic that had more than one (protocad-train refuses such bags).
+MULTIPLE_PUBLISHERS_KEY = "protocad_multiple_publishers"
 SMALL_STORE_STEPS = 200_000    # stores with more steps keep even their per-step arrays on disk
 REQUIRED_KEYS = ("image", "step_info", "action")
 TOPIC_KEYS = ("image", "step_info", "action", "context")

@@ -23,15 +23,25 @@ import time
 from datetime import datetime
 from typing import Any, Mapping, Sequence
 
+from sim_bridge.publisher_watch import PublisherWatch
 from sim_bridge.rosbase import ProtocadNode
 from sim_bridge.rosnode import ConfigError, KeyThrottle, run_node
 
 from sim_bridge import topics as T
 from trainer import mcap_io
+from trainer.dataset_types import MULTIPLE_PUBLISHERS_KEY
 
 #: Relative contract topics recorded by default (resolved in --namespace), plus /clock.
 DEFAULT_RELATIVE_TOPICS = (T.IMAGE, T.STEP_INFO, T.CONTEXT, T.ACTION, T.CONTEXT_FEATURES, T.BRIDGE_INFO)
-DEFAULT_QUEUE_DEPTH = 1000
+#: Topics that have one publisher per node by design: never marked as having several.
+MANY_PUBLISHERS_BY_DESIGN = frozenset({T.DIAGNOSTICS, "/rosout", "/parameter_events"})
+#: Longest drain at close (s): a KEEP_ALL backlog of 5000 samples on each of five topics takes a
+#: few seconds to write; the processes that stop the recorder give it 20 s.
+DRAIN_LIMIT_S = 10.0
+#: 0 = KEEP_ALL subscriptions (lossless against KEEP_ALL writers); N > 0 = KEEP_LAST(N).
+DEFAULT_QUEUE_DEPTH = 0
+#: rclpy wants a depth even for KEEP_ALL; Fast DDS ignores it there.
+KEEP_ALL_DEPTH = 1000
 
 
 def default_topics(namespace: str = T.DEFAULT_NAMESPACE) -> list[str]:
@@ -78,30 +88,43 @@ def apply_qos_override(qos: Any, override: Mapping[str, Any] | None):
 
 def subscription_qos(offered: Sequence[Any], depth: int):
     """The QoS the recorder requests, adapted to the publishers' offers like rosbag2
-    (Rosbag2QoS::adapt_request_to_offers) but with a deep history:
+    (Rosbag2QoS::adapt_request_to_offers), with the history the contract needs:
 
     * RELIABLE when every publisher is reliable (the protocad contract: a reliable reader never
       loses a sample the writer still holds), else BEST_EFFORT (a reliable reader would not
       match a best-effort writer at all);
     * TRANSIENT_LOCAL when every publisher offers it (latched data is recorded), else VOLATILE;
-    * KEEP_LAST(depth) with depth >> 1 (default 1000): the reader keeps up to `depth` samples
-      while the callback is busy (writing a chunk, compressing), so lock-step at full speed and
-      bursts are lossless; KEEP_ALL is not used because a stalled recorder would then grow
-      without bound (and, with reliable writers, eventually stall the publishers).
+    * KEEP_ALL when depth <= 0 (the default): the reader never drops a sample it accepted and
+      refuses (does not acknowledge) what it has no room for, so a KEEP_ALL writer (the lock-step
+      bridge, every action publisher) keeps it and sends it again: a backlog of any size, e.g.
+      after a stall, costs the writer time and memory, never a sample. A KEEP_LAST writer (a
+      real-time bridge) is not held back: it overwrites, and the gap is counted. depth > 0:
+      KEEP_LAST(depth), which drops the oldest samples of a backlog deeper than that.
     """
     from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
     reliable = bool(offered) and all(q.reliability == ReliabilityPolicy.RELIABLE for q in offered)
     latched = bool(offered) and all(q.durability == DurabilityPolicy.TRANSIENT_LOCAL
                                     for q in offered)
+    keep_all = int(depth) <= 0
     return QoSProfile(
-        history=HistoryPolicy.KEEP_LAST, depth=int(depth),
+        history=HistoryPolicy.KEEP_ALL if keep_all else HistoryPolicy.KEEP_LAST,
+        depth=KEEP_ALL_DEPTH if keep_all else int(depth),
         reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
         durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
 
 
+def history_name(depth: int) -> str:
+    """The history a `queue_depth` asks for, for logs: KEEP_ALL or KEEP_LAST(N)."""
+    return "KEEP_ALL" if int(depth) <= 0 else f"KEEP_LAST({int(depth)})"
+
+
 def _import_message(msgtype: str) -> Any:
-    pkg, ns, name = mcap_io.normalize_type(msgtype).split("/")
-    return getattr(importlib.import_module(f"{pkg}.{ns}"), name)
+    """The rclpy class of a type a remote participant advertises: checked before anything is
+    imported (trainer.rosmsg.interface_module: identifiers, an interface kind, an ament package)."""
+    from trainer.rosmsg import interface_module
+
+    module, name = interface_module(msgtype)
+    return getattr(importlib.import_module(module), name)
 
 
 class RecorderNode(ProtocadNode):
@@ -177,6 +200,9 @@ class RecorderNode(ProtocadNode):
         self.untracked: set[str] = set()
         self._last_seq: dict[str, int] = {}
         self._subs: dict[str, Any] = {}
+        # A recorded topic with several writers mixes their samples in the bag (an impostor, a
+        # second bridge): marked in the bag's metadata as soon as it is seen.
+        self.publisher_watch = PublisherWatch(self._on_new_publisher)
         self._warned: set[str] = set()
         self._throttle = KeyThrottle(self.get_logger())
         self._lock = threading.Lock()
@@ -192,7 +218,7 @@ class RecorderNode(ProtocadNode):
         self.get_logger().info(
             f"recording {what} to {self.writer.bag_dir} (compression {p['compression']}, "
             f"chunk {p['chunk_size']} B, split size {p['max_bagfile_size']} B / duration "
-            f"{p['max_bagfile_duration']} s, KEEP_LAST({p['queue_depth']}))")
+            f"{p['max_bagfile_duration']} s, {history_name(p['queue_depth'])})")
 
     # -- discovery -----------------------------------------------------------------------------
     def _want(self, topic: str) -> bool:
@@ -238,10 +264,27 @@ class RecorderNode(ProtocadNode):
         qos = apply_qos_override(subscription_qos(offered, self.params["queue_depth"]),
                                  self._qos_overrides.get(topic))
         self._subs[topic] = self.create_subscription(
-            msg_class, topic, functools.partial(self._on_message, topic), qos, raw=True)
-        self.get_logger().info(f"subscribed to {topic} [{msgtype}] "
-                               f"({qos.reliability.name}, {qos.durability.name}, "
-                               f"KEEP_LAST({qos.depth}))")
+            msg_class, topic, functools.partial(self._on_message, topic), qos, raw=True,
+            event_callbacks=None if topic in MANY_PUBLISHERS_BY_DESIGN else self.publisher_watch.callbacks(topic))
+        from sim_bridge.qos import describe
+
+        self.get_logger().info(f"subscribed to {topic} [{msgtype}] ({describe(qos)})")
+
+    def _on_new_publisher(self, topic: str, publishers: int, first_time: bool) -> None:
+        with self._lock:
+            self.writer.custom_data = {**(self.writer.custom_data or {}), **self.publishers_summary()}
+        if first_time:
+            self.get_logger().warning(
+                f"{topic}: {publishers} publishers: their messages interleave in the bag (a second "
+                f"bridge, an impostor?); marked in its metadata ({MULTIPLE_PUBLISHERS_KEY}), and "
+                "protocad-train refuses it unless given --accept-multiple-publishers")
+
+    def publishers_summary(self) -> dict[str, str]:
+        """The topics that had several publishers, as metadata.yaml custom_data."""
+        import json
+
+        ever = self.publisher_watch.ever
+        return {MULTIPLE_PUBLISHERS_KEY: json.dumps(ever, sort_keys=True)} if ever else {}
 
     # -- recording -----------------------------------------------------------------------------
     def _on_message(self, topic: str, data: bytes, info: Any) -> None:
@@ -324,8 +367,10 @@ class RecorderNode(ProtocadNode):
         counts = ", ".join(f"{t}: {n}" for t, n in self.writer.topic_counts.items())
         self.get_logger().info(f"{self.writer.message_count} messages ({counts})")
 
-    def drain(self, executor: Any, quiet_s: float = 0.3, limit_s: float = 3.0) -> None:
-        """Take what the middleware already holds before closing (used after SIGINT/SIGTERM)."""
+    def drain(self, executor: Any, quiet_s: float = 0.3, limit_s: float = DRAIN_LIMIT_S) -> None:
+        """Take what the middleware already holds before closing (used after SIGINT/SIGTERM):
+        a KEEP_ALL reader may hold thousands of samples its writers already count as delivered
+        (a backlog after a stall), which closing without taking them would lose."""
         deadline = time.monotonic() + limit_s
         last, quiet_since = self.received, time.monotonic()
         while time.monotonic() < deadline:
@@ -343,9 +388,9 @@ class RecorderNode(ProtocadNode):
         if executor is not None and not self.done.is_set() and self.context.ok():
             self.drain(executor)
         with self._lock:
-            loss = self.loss_summary()
-            if loss:
-                self.writer.custom_data = {**(self.writer.custom_data or {}), **loss}
+            marks = {**self.loss_summary(), **self.publishers_summary()}
+            if marks:
+                self.writer.custom_data = {**(self.writer.custom_data or {}), **marks}
             self.writer.close()
         print(self.summary(), flush=True)
         return self.writer.topic_counts
@@ -365,6 +410,10 @@ class RecorderNode(ProtocadNode):
                 f"{t}: {n}" for t, n in sorted(self.missed_before_subscribing.items())))
         if self.untracked:
             lines.append(f"  loss not tracked (several publishers): {', '.join(sorted(self.untracked))}")
+        several = self.publisher_watch.ever
+        if several:
+            lines.append("  SEVERAL PUBLISHERS (marked in the metadata): " + ", ".join(
+                f"{t}: {n}" for t, n in sorted(several.items())))
         if w.failure is not None:
             lines.append(f"  RECORDING STOPPED EARLY: {w.failure}")
             lines.append(f"  messages lost (received, not in the bag: the open chunk and everything after): "
@@ -485,7 +534,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="write the open chunk at least every this many seconds (0: only by "
                         "size); bounds what a SIGKILL loses (default 1.0)")
     g.add_argument("--queue-depth", type=int, default=DEFAULT_QUEUE_DEPTH,
-                   help=f"KEEP_LAST depth of the subscriptions (default {DEFAULT_QUEUE_DEPTH})")
+                   help="history of the subscriptions: 0 = KEEP_ALL (default: a backlog of any size "
+                        "holds KEEP_ALL writers back instead of being dropped), N > 0 = KEEP_LAST(N) "
+                        "(never holds a writer back; drops the oldest of a deeper backlog, counted)")
     g.add_argument("--status-interval", type=float, default=0.0,
                    help="log message counts every this many seconds (0: off)")
     g = ap.add_argument_group("`ros2 bag record` options this recorder does not have (refused, "

@@ -60,6 +60,41 @@ def normalize_type(msgtype: str) -> str:
     return f"{pkg}/{ns}/{name}"
 
 
+#: The rosidl interface kinds a type name from the ROS graph may name (pkg/<kind>/Type).
+INTERFACE_KINDS = ("msg", "srv", "action")
+
+
+def interface_module(type_name: str, kind: str = "msg") -> tuple[str, str]:
+    """('pkg.kind', 'Type'): the module to import for a type name that came from the ROS graph
+    or a command line, and the class in it. Any participant can advertise any type string, and
+    importing `pkg.kind` runs that module's code (`idlelib/idle/X` would start IDLE), so it is
+    refused (TypeSupportError, nothing imported) unless it is `pkg/kind/Type` (or `pkg/Type`
+    for `kind`) with every part an identifier (no dots), kind one of INTERFACE_KINDS, and pkg a
+    package of the ament index (rosidl generates only those)."""
+    parts = type_name.split("/")
+    if len(parts) == 2:
+        parts = [parts[0], kind, parts[1]]
+    if len(parts) != 3 or not all(p.isidentifier() for p in parts):
+        raise TypeSupportError(f"invalid interface type name {type_name!r}; expected 'pkg/{kind}/Type'")
+    pkg, ns, name = parts
+    if ns not in INTERFACE_KINDS:
+        raise TypeSupportError(f"{type_name!r} is not an interface type ('{ns}' is not one of "
+                               f"{', '.join(INTERFACE_KINDS)})")
+    if not ament_package_exists(pkg):
+        raise TypeSupportError(f"{type_name!r}: package {pkg!r} is not in the ament index "
+                               "(not installed here): its types are not imported")
+    return f"{pkg}.{ns}", name
+
+
+def ament_package_exists(pkg: str) -> bool:
+    """Whether `pkg` is registered in the ament resource index of a prefix (a marker file
+    share/ament_index/resource_index/packages/<pkg>, what ament_index_python reads)."""
+    if not pkg.isidentifier():
+        return False
+    return any((prefix / "share" / "ament_index" / "resource_index" / "packages" / pkg).is_file()
+               for prefix in _prefixes())
+
+
 def _prefixes() -> list[Path]:
     out = [Path(p) for p in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep) if p]
     if Path(sys.prefix) not in out:

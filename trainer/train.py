@@ -351,7 +351,28 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--rerun", nargs="?", const="", default=None, metavar="RRD",
                    help="also log the scalars to a rerun recording (default RUN_DIR/metrics.rrd)")
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
+    g.add_argument("--accept-multiple-publishers", action="store_true",
+                   help="train on bags whose recorder saw several publishers on a topic read here "
+                        "(a second bridge or an impostor interleaved its messages); refused by "
+                        "default, naming the bag and topic")
     return ap
+
+
+def refuse_multiple_publishers(logs: Sequence[str | Path], topic_maps: Sequence[TopicMap]) -> None:
+    """ValueError (one line, naming the bag and topic) when a bag's recorder marked a topic these
+    maps read as having had several publishers: their messages interleave in it (an impostor's
+    actions, a second bridge's observations) and nothing in the bag tells whose is whose."""
+    from trainer.dataset_store import find_sources, multiple_publishers
+
+    used = {t for m in topic_maps for t in m.as_dict().values() if t}
+    marked = [(src, found) for src in find_sources(logs) if (found := multiple_publishers(src, used))]
+    if not marked:
+        return
+    src, found = marked[0]
+    more = f" (and {len(marked) - 1} more bag(s))" if len(marked) > 1 else ""
+    raise ValueError(f"bag {src}: " + ", ".join(f"{t} had {n} publishers" for t, n in sorted(found.items()))
+                     + f" while it was recorded (a second bridge or an impostor: their messages interleave)"
+                     f"{more}; refusing it (--accept-multiple-publishers trains on it anyway)")
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -393,6 +414,9 @@ def _train(a: argparse.Namespace, ctx: distributed.DistContext, device: str) -> 
     namespaces = [namespaces] if isinstance(namespaces, str) else list(namespaces)   # older run.json: one
     topics = TopicMap.parse(topic_args, namespaces[0])
     cache_dir = a.cache_dir or run_json.get("cache_dir")
+    accept_several = bool(a.accept_multiple_publishers or run_json.get("accept_multiple_publishers"))
+    if not accept_several:
+        refuse_multiple_publishers(logs, [TopicMap.parse(topic_args, ns) for ns in namespaces])
 
     say(f"[train] reading logs: {', '.join(map(str, logs))}", flush=True)
     from trainer.dataset import default_cache_dir
@@ -459,7 +483,8 @@ def _train(a: argparse.Namespace, ctx: distributed.DistContext, device: str) -> 
                     cache_dir=str(Path(cache_dir).resolve()) if cache_dir else None, task=cfg.task,
                     variant=cfg.variant, preset=cfg.preset, seed=cfg.train.seed, device=device, updates=target,
                     checkpoint_every=a.checkpoint_every, log_every=a.log_every,
-                    rerun=str(rrd) if rrd else None, topics=topics.as_dict(), world_size=ctx.world_size)
+                    rerun=str(rrd) if rrd else None, topics=topics.as_dict(), world_size=ctx.world_size,
+                    accept_multiple_publishers=accept_several)
     if ctx.is_main:
         runs.atomic_write_json(run_dir / "run.json", run_json)
 

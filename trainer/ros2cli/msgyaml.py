@@ -153,12 +153,13 @@ def set_message_fields(msg: Any, values: dict | None) -> None:
 
 def interface_class(type_name: str, kind: str = "msg") -> Any:
     """`pkg/msg/Name` (or `pkg/Name`) -> the generated Python class; ValueError if unknown."""
-    parts = type_name.split("/")
-    if len(parts) == 2:
-        parts = [parts[0], kind, parts[1]]
-    if len(parts) != 3 or not all(parts):
-        raise ValueError(f"not an interface type: {type_name!r}")
+    from trainer.rosmsg import TypeSupportError, interface_module
+
+    try:   # a name from the graph or the command line: checked before anything is imported
+        module, name = interface_module(type_name, kind)
+    except TypeSupportError as exc:
+        raise ValueError(str(exc)) from None
     try:
-        return getattr(importlib.import_module(f"{parts[0]}.{parts[1]}"), parts[2])
+        return getattr(importlib.import_module(module), name)
     except (ImportError, AttributeError) as exc:
         raise ValueError(f"unknown interface type {type_name!r}: {exc}") from None
