@@ -354,6 +354,9 @@ def run_node(make_node: Callable[..., Any], *, prog: str, description: str = "",
             if stop.is_set() and signum == signal.SIGINT:
                 raise KeyboardInterrupt   # a second Ctrl-C: stop waiting for a clean close
             stop.set()
+            # said at once, so a user knows the first Ctrl-C was heard (the close may take a moment)
+            print(f"[{prog}] {signal.Signals(signum).name}: stopping (Ctrl-C again to skip the "
+                  "clean close)", file=sys.stderr, flush=True)
 
         signal.signal(signal.SIGINT, _on_signal)
         signal.signal(signal.SIGTERM, _on_signal)

@@ -182,11 +182,13 @@ def _save(path, updates: int, seed: int = 0):
 def test_checkpoint_reload_between_episodes(spawn, probe, tmp_path):
     from protocad_ros.policy import Policy
 
-    ckpt = tmp_path / "agent.pt"
+    ckpt = tmp_path / "run" / "checkpoints" / "latest.pt"
+    ckpt.parent.mkdir(parents=True)
     _save(ckpt, 5, seed=1)
     missing = spawn("missing", *policy_args(f"checkpoint:={tmp_path / 'nope.pt'}"))
     f = Feeder(probe)
-    policy = spawn("policy", *policy_args(f"checkpoint:={ckpt}", "reload_poll_s:=0.1"))
+    # named by its run directory, as protocad-evaluate and protocad-visualize take it
+    policy = spawn("policy", *policy_args(f"checkpoint:={tmp_path / 'run'}", "reload_poll_s:=0.1"))
     assert wait_exit(missing, START) == 2
     assert "does not exist" in missing.log_path.read_text()
     wait_until(f.ready, START, "the policy to match")

@@ -44,6 +44,12 @@ def test_log_from_another_tool_trains_and_evaluates(tmp_path):
     ck = run_dir / "checkpoints" / "latest.pt"
     assert ckpt_counters(ck)["agent_updates"] == 3
     assert [m["update"] for m in metrics(run_dir)] == [1, 2, 3]
+    # no terminal here: a line of losses instead of a progress bar, and TensorBoard event files
+    assert "[train] update 1" in r.stdout and "wm_loss" in r.stdout
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+    events = EventAccumulator(str(run_dir / "tensorboard"))
+    events.Reload()
+    assert [e.step for e in events.Scalars("train/wm_loss")] == [1, 2, 3]
     saved = yaml.safe_load((run_dir / "config.yaml").read_text())   # TINY's generated options and --set
     assert (saved["world_model"]["deter"], saved["behavior"]["critic_units"], saved["context"]["proto_dim"]) == (32, 32, 8)
     # evaluate that checkpoint: one short episode of one test context

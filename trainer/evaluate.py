@@ -369,15 +369,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def resolve_checkpoint(p: str | Path) -> Path:
-    p = Path(p)
-    if p.is_dir():
-        c = runs.checkpoint_path(p)
-        if c.exists():
-            return c
-        raise ValueError(f"{p} is a directory without checkpoints/latest.pt")
-    if not p.exists():
-        raise ValueError(f"checkpoint {p} does not exist")
-    return p
+    """A checkpoint file or run directory (protocad_ros.checkpoint.checkpoint_file) that exists."""
+    from protocad_ros.checkpoint import checkpoint_file
+
+    c = checkpoint_file(p)
+    if not c.is_file():
+        raise ValueError(f"{p}: no checkpoint there" + (" (a directory without checkpoints/latest.pt)"
+                                                        if Path(p).is_dir() else ""))
+    return c
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -569,7 +569,7 @@ def _run(a: argparse.Namespace, ctx: distributed.DistContext, device: str) -> in
             run_json["result"] = {"status": status, "env_steps": int(c["env_steps"]), "updates": trainer.updates,
                                   "episodes": int(c["episodes"]), "wall_time": round(trainer.metrics.wall_time, 1),
                                   "precision": tr.precision, "resumes": int(c.get("resumes", 0))}
-            if cause is not None and not isinstance(cause, KeyboardInterrupt):
+            if cause is not None and not isinstance(cause, (KeyboardInterrupt, SystemExit)):
                 run_json["result"]["error"] = f"{type(cause).__name__}: {cause}"
             if main_rank:
                 cleanup_errors += close_quietly([(f"writing {run_dir / 'run.json'}",

@@ -319,14 +319,22 @@ class MetricsLogger:
     Callbacks (e.g. the rerun scalar logger) get (update, metrics) for every logged line.
     path None: nothing is written (a data-parallel rank other than 0 keeps only the clock)."""
 
-    def __init__(self, path: Path | None, callbacks: Iterable[MetricsCallback] = (), wall_offset: float = 0.0):
+    def __init__(self, path: Path | None, callbacks: Iterable[MetricsCallback] = (), wall_offset: float = 0.0,
+                 echo_every_s: float | None = None, tensorboard: bool = True):
         self.path = Path(path) if path is not None else None
         self._f = None
+        self._tb = None
         if self.path is not None:
             self.path.parent.mkdir(parents=True, exist_ok=True)
             self._f = open(self.path, "a", buffering=1)
+            if tensorboard:
+                self._tb = tensorboard_writer(self.path.parent / TENSORBOARD_DIR)
         self.callbacks = [c for c in callbacks if c is not None]
         self._t0 = time.monotonic() - float(wall_offset)
+        # Without a terminal no progress bar shows: a line of losses now and then instead.
+        if echo_every_s is None:
+            echo_every_s = 0.0 if sys.stdout.isatty() else ECHO_EVERY_S
+        self.echo_every_s, self._last_echo = float(echo_every_s), -_INF_TIME
 
     @property
     def wall_time(self) -> float:
@@ -340,6 +348,17 @@ class MetricsLogger:
         if self._f is not None:
             self._f.write(json.dumps(row, default=_json_default) + "\n")
             self._f.flush()
+        if self._tb is not None:
+            kind = str(extra.get("kind", "train"))
+            step = int(update) if kind == "train" else int(extra.get("env_steps", update))
+            for k, v in row.items():
+                if k not in ("update", "time", "env_steps") and isinstance(v, (int, float)) \
+                        and not isinstance(v, bool):
+                    self._tb.add_scalar(f"{kind}/{k}", v, step)
+        if self.path is not None and self.echo_every_s and extra.get("kind") == "train" \
+                and time.monotonic() - self._last_echo >= self.echo_every_s:
+            self._last_echo = time.monotonic()
+            print(echo_line(row), flush=True)
         for cb in self.callbacks:
             try:
                 cb(int(update), {k: v for k, v in row.items() if isinstance(v, (int, float))})
@@ -355,6 +374,9 @@ class MetricsLogger:
     def close(self) -> None:
         if self._f is not None and not self._f.closed:
             self._f.close()
+        if self._tb is not None:
+            self._tb.close()
+            self._tb = None
         for cb in self.callbacks:
             close = getattr(cb, "close", None)
             if callable(close):
@@ -363,6 +385,35 @@ class MetricsLogger:
                 except Exception as exc:  # noqa: BLE001
                     print(f"[metrics] closing {cb!r} failed: {exc}", file=sys.stderr)
         self.callbacks = []
+
+
+#: TensorBoard event files go to RUN_DIR/tensorboard (`tensorboard --logdir RUN_DIR`); the
+#: tags are KIND/NAME (train/wm_loss on the update axis, episode/train_return and
+#: eval/eval_return on the env-step axis).
+TENSORBOARD_DIR = "tensorboard"
+#: Seconds between the loss lines printed when stdout is not a terminal.
+ECHO_EVERY_S = 30.0
+_INF_TIME = float("inf")
+_ECHO_KEYS = ("wm_loss", "image_loss", "reward_loss", "kl", "swav_loss", "actor_loss", "critic_loss",
+              "entropy", "imag_return", "loss", "q_loss", "alpha")
+
+
+def tensorboard_writer(log_dir: Path):
+    """A torch.utils.tensorboard SummaryWriter, or None (with a note) where tensorboard is not
+    installed (the GPU machine's bare Python)."""
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except ImportError as exc:
+        print(f"[metrics] no TensorBoard event files: {exc}", file=sys.stderr)
+        return None
+    return SummaryWriter(log_dir=str(log_dir))
+
+
+def echo_line(row: Mapping[str, Any]) -> str:
+    """'[train] update 120 (1.8 updates/s): wm_loss 412.1, reward_loss 0.05, ...' of a row."""
+    vals = ", ".join(f"{k} {row[k]:.4g}" for k in _ECHO_KEYS if isinstance(row.get(k), (int, float)))
+    rate = f" ({row['updates_per_s']:.2f} updates/s)" if isinstance(row.get("updates_per_s"), (int, float)) else ""
+    return f"[train] update {row['update']}{rate}: {vals}"
 
 
 def _scalar(v: Any) -> Any:
@@ -435,7 +486,7 @@ def progress(total: int | None, initial: int = 0, desc: str = "", disable: bool 
 @dataclass
 class StopFlag:
     """Ctrl-C / SIGTERM turn into a flag the training loop checks between updates; a second
-    Ctrl-C raises KeyboardInterrupt as usual."""
+    Ctrl-C exits (130) without a traceback."""
 
     stop: bool = False
     signum: int | None = None
@@ -451,10 +502,14 @@ class StopFlag:
 
     def _handler(self, signum, frame):
         if self.stop and signum == signal.SIGINT:
-            raise KeyboardInterrupt
+            # A second Ctrl-C: leave now, without a traceback. The clean-up of `finally` blocks
+            # still runs (bags closed); checkpoints and run.json are written atomically, so
+            # what is on disk stays valid either way.
+            print("\n[protocad] SIGINT again: aborting", file=sys.stderr, flush=True)
+            raise SystemExit(130)
         self.stop, self.signum = True, signum
-        print(f"\n[protocad] {signal.Signals(signum).name}: finishing the current step, saving, exiting"
-              " (press Ctrl-C again to abort)", file=sys.stderr, flush=True)
+        print(f"\n[protocad] {signal.Signals(signum).name}: stopping: finishing the current step, "
+              "saving, exiting (press Ctrl-C again to abort)", file=sys.stderr, flush=True)
 
     def __exit__(self, *exc) -> None:
         for sig, old in self._old.items():

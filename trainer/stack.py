@@ -83,7 +83,10 @@ def checkpoint_mismatch(doc: dict[str, Any]) -> str | None:
     path = (doc.get("policy") or {}).get("checkpoint")
     if not path or not Path(path).exists():
         return None   # a random agent, or wait_for_checkpoint: the node checks what arrives
-    path = runs.checkpoint_path(path) if Path(path).is_dir() else Path(path)
+    from protocad_ros.checkpoint import checkpoint_file
+    path = checkpoint_file(path)
+    if not path.is_file():
+        return None   # a run directory without a checkpoint yet: the node waits or says why
     try:
         cfg = read_checkpoint(path)["config"]
     except CheckpointError as exc:

@@ -500,8 +500,9 @@ def build_parser() -> argparse.ArgumentParser:
                "--task cheetah_run\n  protocad-visualize --checkpoint CKPT --logs runs/X/bags/* "
                "--projection tsne --out ctx.rrd\n\nView an MCAP log's images directly: rerun LOG.mcap",
         formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--checkpoint", required=True, help="checkpoint file (checkpoints/latest.pt) "
-                   "or a run directory")
+    p.add_argument("checkpoint_arg", nargs="?", metavar="CHECKPOINT",
+                   help="checkpoint file or run directory, as protocad-evaluate takes it")
+    p.add_argument("--checkpoint", default=None, help="the same, as an option (either form)")
     p.add_argument("--logs", nargs="+", default=None, metavar="BAG",
                    help="MCAP logs (bag directories or .mcap files) to take episodes from")
     p.add_argument("--task", default=None, help="task whose contexts to collect (default: the "
@@ -536,15 +537,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _resolve_checkpoint(path: str) -> Path:
-    p = Path(path)
-    if p.is_dir():
-        for cand in (p / "checkpoints" / "latest.pt", p / "latest.pt"):
-            if cand.is_file():
-                return cand
-        raise SystemExit(f"--checkpoint {path}: no checkpoints/latest.pt in this directory")
-    if not p.is_file():
-        raise SystemExit(f"--checkpoint {path}: no such file")
-    return p
+    from trainer.evaluate import resolve_checkpoint
+
+    try:
+        return resolve_checkpoint(path)
+    except ValueError as exc:
+        raise SystemExit(f"protocad-visualize: {exc}") from None
 
 
 def _default_out(ckpt: Path) -> Path:
@@ -554,7 +552,10 @@ def _default_out(ckpt: Path) -> Path:
 
 def main(argv: Sequence[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    ckpt = _resolve_checkpoint(args.checkpoint)
+    if bool(args.checkpoint) == bool(args.checkpoint_arg):
+        raise SystemExit("protocad-visualize: give one checkpoint (file or run directory), "
+                         "as CHECKPOINT or --checkpoint")
+    ckpt = _resolve_checkpoint(args.checkpoint or args.checkpoint_arg)
     if args.logs and args.collect:
         raise SystemExit("give either --logs or --collect, not both")
     if args.steps_per_context < 2:
