@@ -89,6 +89,8 @@ class PolicyNode(CheckpointServing, ManagedNode):
         self.receiver: CheckpointReceiver | None = None
         self.counters = dict.fromkeys(COUNTERS, 0)
         self.counters["unknown_parameters"] = len(self.unknown_parameters)
+        if not self.params["remote_lifecycle"]:
+            self.refuse_remote_transitions()
         self._throttle = KeyThrottle(self.get_logger())
         self.latency = Percentiles()             # completing message -> action published
         self.act_time = Percentiles()            # model time (Policy.act)

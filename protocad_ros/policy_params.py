@@ -4,7 +4,8 @@ from __future__ import annotations
 
 from protocad_ros.config import DEFAULT_CLI_PRESET, PRESETS, VARIANTS
 from sim_bridge.contexts import TASKS
-from sim_bridge.rosnode import Param, autostart_param, executor_param, strict_param
+from sim_bridge.rosnode import (Param, autostart_param, executor_param, remote_lifecycle_param,
+                                strict_param)
 
 PARAMS: tuple[Param, ...] = (
     Param("checkpoint", "", "Checkpoint file (protocad_ros.checkpoint). Empty: a randomly "
@@ -59,6 +60,7 @@ PARAMS: tuple[Param, ...] = (
           "rerun+http://127.0.0.1:9876/proxy, what a plain `rerun` listens on)."),
     Param("rerun_path", "", "save mode: the .rrd file to write (completed at shutdown)."),
     autostart_param(),
+    remote_lifecycle_param(),
     strict_param(),
     executor_param(),
 )
@@ -72,4 +74,5 @@ COUNTERS = ("observations_answered", "episodes", "images_received", "images_reje
             "mismatched_observations", "awaiting_bridge_info", "bridge_info_rejected",
             "observations_while_inactive", "checkpoint_transfers", "checkpoint_transfers_rejected",
             "checkpoint_signatures_rejected", "checkpoint_rollbacks_rejected",
-            "checkpoint_limits_rejected", "checkpoint_mismatches", "checkpoint_chunks_dropped")
+            "checkpoint_limits_rejected", "checkpoint_mismatches", "checkpoint_chunks_dropped",
+            "remote_transitions_refused")

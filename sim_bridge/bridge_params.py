@@ -4,7 +4,8 @@ without importing rclpy."""
 from __future__ import annotations
 
 from sim_bridge.contexts import TASKS
-from sim_bridge.rosnode import ConfigError, Param, autostart_param, executor_param, strict_param
+from sim_bridge.rosnode import (ConfigError, Param, autostart_param, executor_param,
+                                remote_lifecycle_param, strict_param)
 
 
 def episode_contexts(task: str, split: str, schedule: str, fixed: str) -> list[dict[str, float]]:
@@ -70,7 +71,8 @@ PARAMS: tuple[Param, ...] = (
           "or on purpose. false: every publisher's actions are taken; a second publisher is "
           "still reported (multiple_publishers).", read_only=True),
     Param("max_episodes", 0, "Exit (code 0) after this many complete episodes (lock-step: once "
-          "the answer to the last is_last has arrived); 0 = run until stopped.", read_only=False,
+          "the answer to the last is_last has arrived); 0 = run until stopped. Read-only: set at "
+          "start, so nobody on the domain can end a running bridge with it.", read_only=True,
           range=(0, 1_000_000_000)),
     Param("min_subscribers", 1, "Readers that must be matched on image and on step_info before "
           "the first observation is published (e.g. 2 = policy + recorder); readers already "
@@ -78,7 +80,11 @@ PARAMS: tuple[Param, ...] = (
           range=(0, 1000)),
     Param("diagnostics_period_s", 1.0, "Period of /diagnostics.", range=(0.05, 3600.0),
           units="s"),
+    Param("reset_service", True, "Serve the reset service (reset: end the episode, start a "
+          "new one). false: the service is not created, so nobody on the domain can cut "
+          "episodes short. Off in protocad-fleet.", read_only=True),
     autostart_param(),
+    remote_lifecycle_param(),
     strict_param(),
     executor_param(),
 )
@@ -97,4 +103,4 @@ COUNTERS = ("steps", "episodes", "observations_published", "observations_republi
             "rejected_duplicate", "actions_clipped", "late_actions", "lockstep_timeouts",
             "realtime_overruns", "resets_requested", "unknown_parameters",
             "parameters_rejected", "actions_while_inactive", "rejected_other_publisher",
-            "multiple_publishers_detected", "publish_waits")
+            "multiple_publishers_detected", "publish_waits", "remote_transitions_refused")

@@ -72,6 +72,20 @@ class ManagedNode(LifecycleNodeMixin, ProtocadNode):
     def cleanup_node(self) -> None:
         pass
 
+    # ------------------------------------------------------------------ remote transitions
+    def refuse_remote_transitions(self) -> None:
+        """Answer every change_state request with failure (remote_lifecycle:=false). The
+        service stays, so a caller gets a clear 'no' instead of waiting for a server."""
+        def refused(request, response):
+            self.counters["remote_transitions_refused"] += 1
+            label = request.transition.label or str(request.transition.id)
+            self.get_logger().warning(f"lifecycle transition '{label}' requested by another "
+                                      "process refused (remote_lifecycle:=false)")
+            response.success = False
+            return response
+
+        self._service_change_state.callback = refused
+
     # ------------------------------------------------------------------ autostart / exit
     def autostart(self) -> None:
         """configure + activate; raises what made a transition fail."""

@@ -80,6 +80,8 @@ class SimBridgeNode(BridgeDiagnostics, ManagedNode):
         self._reset_run_state()
         self.counters = dict.fromkeys(COUNTERS, 0)
         self.counters["unknown_parameters"] = len(self.unknown_parameters)
+        if not self.params["remote_lifecycle"]:
+            self.refuse_remote_transitions()
         self._throttle = KeyThrottle(self.get_logger())
         self.latency = Percentiles()             # observation published -> answer received
         self._late_at_last_diag = 0
@@ -116,7 +118,8 @@ class SimBridgeNode(BridgeDiagnostics, ManagedNode):
             qos_overriding_options=qos.overridable(),
             event_callbacks=self.publisher_watch.callbacks(self.resolve_topic_name(topics.ACTION),
                                                            also=self._on_action_matched))
-        self.srv_reset = self.create_service(Trigger, topics.RESET_SERVICE, self._on_reset)
+        self.srv_reset = (self.create_service(Trigger, topics.RESET_SERVICE, self._on_reset)
+                          if p["reset_service"] else None)
         self.diag_timer = self.create_timer(p["diagnostics_period_s"], self._publish_diagnostics)
         install_parameter_guards(self, PARAMS, self._apply_param, self._parameter_rejected)
         self._obs_pubs = (self.pub_image, self.pub_info, self.pub_context)

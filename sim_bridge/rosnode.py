@@ -303,6 +303,14 @@ def autostart_param() -> Param:
                  "transitions (ros2 lifecycle set NODE configure, then activate).")
 
 
+def remote_lifecycle_param() -> Param:
+    return Param("remote_lifecycle", True, "Accept lifecycle transitions from other processes "
+                 "(the change_state service, what `ros2 lifecycle set` calls). false: every "
+                 "request is refused and counted (remote_transitions_refused); the node still "
+                 "runs its own autostart and shutdown. Off in protocad-fleet: anyone on the "
+                 "domain could otherwise stop a fleet's nodes.", read_only=True)
+
+
 def executor_param(default: str = "events") -> Param:
     return Param("executor", default, "rclpy executor spinning the node's callbacks: events = "
                  "rclpy.experimental.EventsExecutor (lower latency per callback), single = "

@@ -315,3 +315,38 @@ def test_a_transition_that_raises_is_an_error_transition_not_a_dead_node():
         node.destroy_node()
     finally:
         rclpy.try_shutdown(context=ctx)
+
+
+def test_a_closed_control_plane_refuses_other_processes(spawn, probe):
+    """remote_lifecycle:=false and reset_service:=false (what protocad-fleet gives its nodes):
+    a transition asked from this process is refused and counted, the bridge keeps stepping, no
+    reset service exists, and max_episodes cannot be changed while it runs."""
+    from rcl_interfaces.msg import Parameter, ParameterType, ParameterValue
+    from rcl_interfaces.srv import SetParameters
+    from std_srvs.srv import Trigger
+
+    life = Lifecycle(probe, "sim_bridge")
+    diag = DiagLog(probe, "sim_bridge")
+    responder = Responder(probe, lambda info: [0.5], names=["torque"])
+    bridge = spawn("bridge", "-m", "sim_bridge.node", "--ros-args", "-p", f"task:={TASK}",
+                   "-p", "remote_lifecycle:=false", "-p", "reset_service:=false",
+                   "-p", "diagnostics_period_s:=0.1", "-p", "episode_length:=1000")
+    life.wait_services()
+    wait_until(lambda: life.state() == "active", START, "autostart (its own transitions run)")
+    wait_until(lambda: len(responder.steps) >= 3, 60, "steps")
+    assert not life.set("deactivate") and life.state() == "active"
+    report = diag.after(1, "remote_transitions_refused", "1")
+    assert report["lifecycle_state"] == "active"
+    n = len(responder.steps)
+    wait_until(lambda: len(responder.steps) > n + 3, 30, "steps after the refused transition")
+    assert "refused (remote_lifecycle:=false)" in bridge.output()
+
+    reset = probe.node.create_client(Trigger, f"{NS}/{topics.RESET_SERVICE}")
+    assert not reset.wait_for_service(timeout_sec=2.0)            # not served at all
+    params = probe.node.create_client(SetParameters, f"{NS}/sim_bridge/set_parameters")
+    assert params.wait_for_service(timeout_sec=30.0)
+    request = SetParameters.Request(parameters=[Parameter(name="max_episodes", value=ParameterValue(
+        type=ParameterType.PARAMETER_INTEGER, integer_value=1))])
+    answer = life._call(params, request)
+    assert not answer.results[0].successful                        # read-only
+    assert bridge.alive()

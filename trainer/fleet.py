@@ -70,6 +70,10 @@ def build_parser() -> argparse.ArgumentParser:
                                                                 "(default $ROS_DOMAIN_ID)")
     ap.add_argument("--log-dir", default=None, help="node logs (default runs/fleet-STAMP/logs)")
     ap.add_argument("--ready-timeout", type=float, default=120.0, help="seconds each node may take to start")
+    ap.add_argument("--open-control-plane", action="store_true",
+                    help="let other processes reset episodes and change the nodes' lifecycle states "
+                         "(closed by default here: anyone on the fleet's network reaches the domain; "
+                         "reset_service:=false, remote_lifecycle:=false)")
     return ap
 
 
@@ -105,7 +109,8 @@ def run(a: argparse.Namespace) -> int:
                     policy = stack.start_policy(
                         checkpoint=a.checkpoint, task=a.task, wait_for_checkpoint=True, reload_poll_s=1.0,
                         mode="sample", exploration_noise=a.exploration_noise, seed=seed,
-                        ready_timeout=a.ready_timeout, ns=ns, checkpoint_topic=a.checkpoint_topic)
+                        ready_timeout=a.ready_timeout, ns=ns, checkpoint_topic=a.checkpoint_topic,
+                        closed_control=not a.open_control_plane)
                     if a.wait_for_checkpoint:
                         stack.wait_checkpoint_loaded(policy, a.ready_timeout, ns=ns)
                 else:
@@ -113,7 +118,7 @@ def run(a: argparse.Namespace) -> int:
                 bridges.append(stack.start_bridge(task=a.task, seed=1000 * a.seed + a.first_robot + i,
                                                   max_episodes=a.episodes, episode_length=a.episode_length,
                                                   action_repeat=a.action_repeat, min_subscribers=a.min_subscribers,
-                                                  ns=ns))
+                                                  ns=ns, closed_control=not a.open_control_plane))
             print(f"[fleet] running {len(bridges)} actor group(s)" + (f", {a.episodes} episode(s) each" if
                   a.episodes and bridges else "") + ": Ctrl-C stops every node", flush=True)
             while not stop.stop:

@@ -285,12 +285,17 @@ class RosStack:
     def start_bridge(self, *, task: str, split: str = "train", seed: int = 0, max_episodes: int = 0,
                      episode_length: int = 500, action_repeat: int = 2, min_subscribers: int = 2,
                      lockstep_timeout_s: float = 5.0, context_schedule: str = "sample",
-                     log_name: str | None = None, ns: str | None = None) -> NodeProc:
+                     log_name: str | None = None, ns: str | None = None, closed_control: bool = False
+                     ) -> NodeProc:
+        """closed_control: no reset service, no lifecycle transitions from other processes
+        (what protocad-fleet gives nodes that anyone on the fleet's network can reach)."""
         args = ["--ros-args", *self._params(task=task, split=split, seed=seed, mode="lockstep",
                                             context_schedule=context_schedule,
                                             max_episodes=max_episodes, episode_length=episode_length,
                                             action_repeat=action_repeat, min_subscribers=min_subscribers,
-                                            lockstep_timeout_s=float(lockstep_timeout_s)),
+                                            lockstep_timeout_s=float(lockstep_timeout_s),
+                                            **({"reset_service": False, "remote_lifecycle": False}
+                                               if closed_control else {})),
                 *self._ns_args(ns)]
         return self._spawn(self.key("bridge", ns), "sim_bridge.node", args, log_name)
 
@@ -298,12 +303,12 @@ class RosStack:
                      reload_poll_s: float = 0.5, mode: str = "deterministic", exploration_noise: float = 0.0,
                      seed: int = 0, device: str = "cpu", preset: str | None = None, variant: str | None = None,
                      num_threads: int = 0, ready_timeout: float = 120.0, ns: str | None = None,
-                     checkpoint_topic: str | None = None) -> NodeProc:
+                     checkpoint_topic: str | None = None, closed_control: bool = False) -> NodeProc:
         args = ["--ros-args", *self._params(
             checkpoint=str(checkpoint) if checkpoint else None, wait_for_checkpoint=wait_for_checkpoint,
             reload_poll_s=float(reload_poll_s), task=task, mode=mode, exploration_noise=float(exploration_noise),
             seed=seed, device=device, preset=preset, variant=variant, num_threads=num_threads,
-            checkpoint_topic=checkpoint_topic),
+            checkpoint_topic=checkpoint_topic, **({"remote_lifecycle": False} if closed_control else {})),
             *self._ns_args(ns)]
         proc = self._spawn(self.key("policy", ns), "protocad_ros.policy_node", args)
         self.wait_active(proc, "policy", ready_timeout, ns=ns)
