@@ -182,20 +182,25 @@ def test_recording_into_a_full_disk_stops_cleanly_with_a_readable_bag(ros, small
     from sim_bridge import qos
     from trainer.recorder import EXIT_WRITE_FAILED
 
+    from sensor_msgs.msg import JointState
+
     bag = small_disk / "bag"
     obs = qos.observation_qos()
     obs.depth = 1000
     pub = ros.create_publisher(Image, T.IMAGE, obs)
+    info_pub = ros.create_publisher(JointState, T.STEP_INFO, obs)   # two topics, two DDS readers
     rec = subprocess.Popen([sys.executable, "-m", "trainer.recorder", "-o", str(bag), T.topic_name(NS, T.IMAGE),
-                            "--ros-args", "-p", "flush_interval:=0.2"],
+                            T.topic_name(NS, T.STEP_INFO), "--ros-args", "-p", "flush_interval:=0.2"],
                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
-        wait_for(lambda: pub.get_subscription_count() >= 1, 60, "the recorder's subscription")
+        wait_for(lambda: pub.get_subscription_count() >= 1 and info_pub.get_subscription_count() >= 1, 60,
+                 "the recorder's subscriptions")
         rng = np.random.default_rng(0)
         sent = 0
         while rec.poll() is None and sent < 400:
             img = rng.integers(0, 256, (64, 64, 3), dtype=np.uint8)
             pub.publish(T.fill_image(Image(), img, stamp(sent)))
+            info_pub.publish(T.fill_named(JointState(), ["step"], [sent], stamp(sent)))
             sent += 1
             time.sleep(0.005)
         out, _ = rec.communicate(timeout=60)
@@ -210,6 +215,12 @@ def test_recording_into_a_full_disk_stops_cleanly_with_a_readable_bag(ros, small
     with open(bag / "bag_0.mcap", "rb") as f:
         n_mcap = sum(1 for _ in make_reader(f).iter_messages())
     assert n_mcap > 0
+    # log times never go back in the file as written (no index): what streaming readers need
+    from mcap.stream_reader import StreamReader
+    from mcap.records import Message
+    with open(bag / "bag_0.mcap", "rb") as f:
+        times = [r.log_time for r in StreamReader(f, emit_chunks=False).records if isinstance(r, Message)]
+    assert times == sorted(times) and len(times) == n_mcap
     with Reader(bag) as reader:
         n_rosbags = sum(1 for _ in reader.messages())
         assert reader.message_count == n_rosbags

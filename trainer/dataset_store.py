@@ -204,8 +204,8 @@ def recorder_losses(source: Path, used: Iterable[str] | None = None) -> dict[str
     meta = Path(source) / "metadata.yaml" if Path(source).is_dir() else Path(source).parent / "metadata.yaml"
     try:
         info = (yaml.safe_load(meta.read_text()) or {}).get("rosbag2_bagfile_information") or {}
-    except (OSError, yaml.YAMLError, AttributeError):
-        return {}
+    except (OSError, ValueError, yaml.YAMLError, AttributeError):   # ValueError: not UTF-8
+        return {}   # the reader reports an unreadable metadata.yaml with the bag's path
     custom = info.get("custom_data") or {}
     if not isinstance(custom, dict):
         return {}

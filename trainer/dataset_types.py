@@ -25,6 +25,26 @@ EXPECTED_TYPES = {
 KNOWN_UNUSED = (T.CONTEXT_FEATURES, T.BRIDGE_INFO, T.CLOCK, T.DIAGNOSTICS, "/rosout", "/parameter_events",
                 "/tf", "/tf_static")
 
+#: Bags (or files) with one and the same problem that a report lists by name; the rest are counted.
+SAME_PROBLEM_SHOWN = 3
+
+
+def summarise_repeats(kind: str, entries: Iterable[str]) -> list[str]:
+    """'KIND: PATH: reason' lines, those sharing a reason folded into one line beyond
+    SAME_PROBLEM_SHOWN of them ('read error: empty file (0 bytes) in 1000 files, e.g. ...')."""
+    by_reason: dict[str, list[str]] = {}
+    for e in entries:
+        path, sep, reason = e.partition(": ")
+        by_reason.setdefault(reason if sep else e, []).append(path if sep else "")
+    out = []
+    for reason, paths in by_reason.items():
+        if len(paths) <= SAME_PROBLEM_SHOWN or not all(paths):
+            out += [f"{kind}: {p}: {reason}" if p else f"{kind}: {reason}" for p in paths]
+        else:
+            names = ", ".join(Path(p).name for p in paths[:SAME_PROBLEM_SHOWN])
+            out.append(f"{kind}: {reason} in {len(paths)} files, e.g. {names}, ...")
+    return out
+
 
 class DatasetError(RuntimeError):
     """No usable data, or a cache that cannot be written (with the reason)."""
@@ -135,8 +155,8 @@ class SourceReport:
             p.append(f"REJECTED: {self.rejected}")
         for f in self.truncated:
             p.append(f"TRUNCATED {f} (every complete chunk before the cut was read)")
-        p += [f"read error: {e}" for e in self.read_errors]
-        p += [f"warning: {w}" for w in self.read_warnings]
+        p += summarise_repeats("read error", self.read_errors)
+        p += summarise_repeats("warning", self.read_warnings)
         p += [f"type error: {e}" for e in self.type_errors]
         if self.missing_topics:
             p.append(f"mapped topics absent from the log: {', '.join(self.missing_topics)}")
@@ -218,7 +238,17 @@ class DatasetReport:
     def summary(self, verbose: bool = False) -> str:
         lines = [f"MCAP dataset: {len(self.sources)} bag(s), {self.steps} steps, {self.episodes} episodes, "
                  f"{self.windows} training windows of length {self.seq_len}"]
+        # Bags rejected for the same reason are listed SAME_PROBLEM_SHOWN times, then counted:
+        # 1,000 empty files are three lines and a count, not 2,000 lines.
+        same: dict[tuple[str, ...], int] = {}
+        hidden: dict[tuple[str, ...], int] = {}
         for s in self.sources:
+            if s.rejected:
+                key = tuple(s.problems())
+                same[key] = same.get(key, 0) + 1
+                if same[key] > SAME_PROBLEM_SHOWN:
+                    hidden[key] = hidden.get(key, 0) + 1
+                    continue
             status = "REJECTED" if s.rejected else ("cached" if s.cached else f"indexed in {s.ingest_seconds:.1f}s")
             lines.append(f"  {s.path}  [{len(s.files)} file(s), {status}]")
             if not s.rejected:
@@ -237,6 +267,9 @@ class DatasetReport:
                              f"{s.unanswered_is_last} is_last (answer not needed)")
             for p in s.problems():
                 lines.append(f"    ! {p}")
+        for key, n in hidden.items():
+            lines.append(f"  ... and {n} more bag(s) rejected for the same reason"
+                         + (f": {key[0]}" if key else ""))
         if self.short_segments_skipped:
             lines.append(f"  skipped {self.short_segments_skipped} episode segment(s) shorter than {self.seq_len} "
                          f"steps ({self.short_steps_skipped} steps)")

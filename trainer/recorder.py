@@ -2,7 +2,8 @@
 
 A minimal `ros2 bag record --storage mcap` for environments without rosbag2 (msgs_docs/
 recorder.md): it subscribes with raw=True (the CDR bytes go to the bag untouched), takes
-log_time = reception time and publish_time = source time from the rmw message info, waits for
+log_time = reception time (never going back within the bag) and publish_time = source time
+from the rmw message info, waits for
 topics that appear late (graph polling), stores the publishers' offered QoS and type hash in the
 channel metadata, and closes the bag cleanly (footer, summary, metadata.yaml) on SIGINT/SIGTERM.
 After a SIGKILL every chunk already written (chunk_size bytes, or flush_interval seconds) can be
@@ -187,6 +188,7 @@ class RecorderNode(ProtocadNode):
             max_bagfile_duration_s=p["max_bagfile_duration"],
             flush_interval_s=p["flush_interval"], custom_data=custom_data)
         self.received = 0
+        self._last_log_time = 0   # ns; the newest log time written (see _on_message)
         self.errors = 0
         self.done = threading.Event()    # set when recording cannot go on (write failure)
         self.exit_code = 0
@@ -302,6 +304,11 @@ class RecorderNode(ProtocadNode):
             if self.writer.closed:
                 return
             self._account(topic, int(seq) if isinstance(seq, int) else 0)
+            # Reception times of different topics come from different DDS readers and can run
+            # a little behind the order the callbacks write in. Log time never goes back in the
+            # bag, so a file cut short (no index: a full disk, a kill) is still in time order
+            # as written, which streaming readers such as rosbags require.
+            recv = self._last_log_time = max(int(recv), self._last_log_time)
             try:
                 self.writer.write(topic, data, recv, src if src else recv, sequence=seq)
                 self.received += 1
