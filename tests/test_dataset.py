@@ -211,3 +211,21 @@ def test_cache_budget_evicts_least_recently_used_bags_never_those_in_use(tmp_pat
     # A dataset using more than the budget keeps all of its own entries.
     big = MCAPDataset(bags, seq_len=8, cache_dir=cache, cache_budget_gb=size / 1e9)
     assert all(entry(b).exists() for b in bags) and big.num_steps == ds.num_steps * 3
+
+
+def test_unreadable_metadata_skips_that_bag_and_repeated_problems_are_one_line(tmp_path):
+    logs = tmp_path / "logs"
+    write_bag(logs / "good", make_steps(2, 20))
+    bad = write_bag(logs / "bad", make_steps(2, 20, first_episode=2))
+    (bad / "metadata.yaml").write_bytes(b"\xff\xfe not utf-8 \xff")
+    ds = MCAPDataset([logs], seq_len=4, cache_dir=tmp_path / "cache")
+    assert ds.num_episodes >= 2                                # the good bag trains
+    text = str(ds.report)
+    assert "bad" in text and "metadata.yaml" in text           # the bad one named, not fatal
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    for i in range(50):
+        (empty / f"f{i}.mcap").write_bytes(b"")
+    rep = MCAPDataset([empty, logs / "good"], seq_len=4, cache_dir=tmp_path / "cache3").report
+    lines = [p for p in rep.problems() if "empty file" in p]
+    assert len(lines) == 1 and "in 50 files" in lines[0], rep.problems()
