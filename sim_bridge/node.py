@@ -39,8 +39,8 @@ from sim_bridge.bridge_params import (ACTION_HIGH, ACTION_LOW, COUNTERS, FLUSH_T
                                       PARAMS, READY_GRACE_S, episode_contexts)
 from sim_bridge.lifecycle import ManagedNode
 from sim_bridge.publisher_watch import FirstPublisherLock, PublisherWatch
-from sim_bridge.rosnode import (ConfigError, KeyThrottle, Percentiles, declare_all,
-                                flush_publishers, install_parameter_guards)
+from sim_bridge.rosnode import (SHUTDOWN_BUDGET_S, ConfigError, KeyThrottle, Percentiles,
+                                declare_all, flush_publishers, install_parameter_guards)
 
 NODE_NAME = "sim_bridge"
 #: What rclpy raises when the middleware refuses a sample (a full KEEP_ALL history).
@@ -629,6 +629,12 @@ class SimBridgeNode(BridgeDiagnostics, ManagedNode):
             sent = self._publish(obs, stamp)
 
     # ------------------------------------------------------------------ shutdown
+    @property
+    def shutdown_budget_s(self) -> float:
+        """What run_node's watchdog allows the close (lossless: the flush's own wait, and more)."""
+        lossless = getattr(self, "lockstep", False) and self.params["lossless"]
+        return (LOSSLESS_FLUSH_TIMEOUT_S if lossless else FLUSH_TIMEOUT_S) + SHUTDOWN_BUDGET_S
+
     def close(self) -> None:
         """The shutdown transition (ends the stepping thread), then flush the last messages to
         reliable readers."""

@@ -327,6 +327,30 @@ def make_executor(kind: str):
     return SingleThreadedExecutor()
 
 
+#: Seconds a node may take to close once asked to stop; then the process exits regardless. DDS
+#: can hold a closing participant for its peers' lease (a peer that died without a clean
+#: shutdown: 20 s seen), and a Ctrl-C must not wait for that. A node sets `shutdown_budget_s`
+#: for a longer close of its own (the recorder drains its readers first).
+SHUTDOWN_BUDGET_S = 5.0
+
+
+def arm_shutdown_watchdog(budget_s: float, prog: str, code: Callable[[], int]) -> threading.Timer:
+    """A daemon timer that ends the process (os._exit with code()) after budget_s: the bound
+    on a node's shutdown. What it skips is the rest of a clean close; checkpoints and bags are
+    written so that an abrupt end leaves them valid (atomic files, recoverable chunks)."""
+    import os
+
+    def expire() -> None:
+        print(f"[{prog}] shutdown took longer than {budget_s:g} s (a peer that left DDS "
+              "uncleanly?): exiting now", file=sys.stderr, flush=True)
+        os._exit(code())
+
+    timer = threading.Timer(budget_s, expire)
+    timer.daemon = True
+    timer.start()
+    return timer
+
+
 def run_node(make_node: Callable[..., Any], *, prog: str, description: str = "",
              params: Iterable[Param] = (), example: str = "", argv: Sequence[str] | None = None,
              parser: argparse.ArgumentParser | None = None) -> int:
@@ -396,6 +420,8 @@ def run_node(make_node: Callable[..., Any], *, prog: str, description: str = "",
     except (KeyboardInterrupt, ExternalShutdownException):
         code = 0
     finally:
+        watchdog = arm_shutdown_watchdog(float(getattr(node, "shutdown_budget_s", SHUTDOWN_BUDGET_S)),
+                                         prog, lambda: code)
         if node is not None:
             try:
                 close = getattr(node, "close", None)
@@ -411,4 +437,5 @@ def run_node(make_node: Callable[..., Any], *, prog: str, description: str = "",
             rclpy.try_shutdown()
         except Exception:
             pass
+        watchdog.cancel()
     return code

@@ -350,3 +350,35 @@ def test_a_closed_control_plane_refuses_other_processes(spawn, probe):
     answer = life._call(params, request)
     assert not answer.results[0].successful                        # read-only
     assert bridge.alive()
+
+
+HANGING_NODE = """
+import sys, time
+from sim_bridge.rosbase import ProtocadNode
+from sim_bridge.rosnode import run_node
+
+class Hanging(ProtocadNode):
+    # Stands in for a close that DDS holds up (a peer gone without a clean shutdown: a state
+    # that cannot be produced on demand): the close never returns.
+    shutdown_budget_s = 1.0
+
+    def __init__(self):
+        super().__init__("hanging")
+        print("up", flush=True)
+
+    def close(self):
+        time.sleep(120)
+
+sys.exit(run_node(Hanging, prog="hanging"))
+"""
+
+
+def test_a_node_whose_close_hangs_still_exits_on_ctrl_c(spawn):
+    import signal
+
+    proc = spawn("hanging", "-c", HANGING_NODE)
+    wait_until(lambda: "up" in proc.output(), START, "the node to start")
+    proc.stop(signal.SIGINT, timeout=60)       # exits long before the close would return
+    out = proc.output()
+    assert proc.p.returncode == 0, out
+    assert "stopping" in out and "shutdown took longer than 1 s" in out and "exiting now" in out

@@ -136,6 +136,9 @@ class RecorderNode(ProtocadNode):
     queue_depth, discovery_interval, status_interval. `qos_overrides` ({topic: policies}) and
     `custom_data` are constructor-only (the command line's YAML file and KEY=VALUE list)."""
 
+    #: run_node's bound on the close: the drain of a backlog, then closing the bag.
+    shutdown_budget_s = DRAIN_LIMIT_S + 10.0
+
     def __init__(self, output: str | None = None, topics: Sequence[str] = (),
                  namespace: str = T.DEFAULT_NAMESPACE, all_topics: bool = False,
                  exclude_regex: str = "", compression: str = "zstd", regex: str = "",
