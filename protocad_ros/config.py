@@ -381,7 +381,7 @@ class Config:
 # ------------------------------------------------------------------------------------------------
 _INF = float("inf")
 #: field -> (low, high, low inclusive): sizes positive and bounded by what one process can hold,
-#: probabilities in [0, 1], rates positive. Fields not listed only need to be finite.
+#: probabilities in [0, 1], learning rates in [0, 1] (0 freezes a part), eps and clips positive. Fields not listed only need to be finite.
 RANGES: dict[str, tuple[float, float, bool]] = {
     **{f"world_model.{k}": (1, 16384, True) for k in ("deter", "hidden")},
     "world_model.stoch": (1, 1024, True), "world_model.discrete": (0, 1024, True),
@@ -390,7 +390,7 @@ RANGES: dict[str, tuple[float, float, bool]] = {
     "world_model.min_std": (0, 100, False), "world_model.kl_balance": (0, 1, True),
     "world_model.kl_free": (0, 1e6, True), "world_model.kl_scale": (0, 1e6, True),
     "world_model.image_scale": (0, 1e6, True), "world_model.reward_scale": (0, 1e6, True),
-    "world_model.discount_scale": (0, 1e6, True), "world_model.lr": (0, 1, False),
+    "world_model.discount_scale": (0, 1e6, True), "world_model.lr": (0, 1, True),
     "world_model.eps": (0, 1, False), "world_model.grad_clip": (0, _INF, False),
     "world_model.weight_decay": (0, 1, True),
     "context.num_prototypes": (1, 1_000_000, True), "context.proto_dim": (1, 16384, True),
@@ -405,7 +405,7 @@ RANGES: dict[str, tuple[float, float, bool]] = {
     "behavior.actor_layers": (0, 64, True), "behavior.actor_units": (1, 16384, True),
     "behavior.critic_layers": (0, 64, True), "behavior.critic_units": (1, 16384, True),
     "behavior.actor_grad_mix": (0, 1, True), "behavior.actor_entropy": (0, 1e6, True),
-    "behavior.actor_lr": (0, 1, False), "behavior.critic_lr": (0, 1, False),
+    "behavior.actor_lr": (0, 1, True), "behavior.critic_lr": (0, 1, True),
     "behavior.eps": (0, 1, False), "behavior.grad_clip": (0, _INF, False),
     "behavior.weight_decay": (0, 1, True), "behavior.slow_critic_update": (1, 1e9, True),
     "behavior.slow_critic_fraction": (0, 1, False),
@@ -417,7 +417,7 @@ RANGES: dict[str, tuple[float, float, bool]] = {
     "drq.frame_stack": (1, 64, True), "drq.num_filters": (1, 4096, True),
     "drq.num_conv_layers": (1, 64, True), "drq.feature_dim": (1, 16384, True),
     "drq.hidden_dim": (1, 16384, True), "drq.hidden_depth": (0, 64, True),
-    "drq.discount": (0, 1, False), "drq.lr": (0, 1, False),
+    "drq.discount": (0, 1, False), "drq.lr": (0, 1, True),
 }
 
 
