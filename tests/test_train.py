@@ -273,3 +273,14 @@ def test_a_bag_with_two_image_publishers_is_refused_unless_accepted(tmp_path):
     assert r.returncode == 0, r.stdout + r.stderr
     assert "finished at update 1" in r.stdout
     assert "the recorder reported multiple publishers" in r.stdout   # and the dataset report says why
+
+
+def test_logs_with_test_split_episodes_are_refused_unless_accepted(tmp_path):
+    bag = write_bag(tmp_path / "bag", make_steps(2, 12, split="test"))
+    args = ["--logs", bag, "--task", "pendulum_swingup", *TINY, "--updates", "1", "--cache-dir", tmp_path / "cache"]
+    r = run_cli("trainer.train", *args, "--run-dir", tmp_path / "refused")
+    assert r.returncode == 2, r.stdout + r.stderr
+    line = [x for x in r.stderr.splitlines() if "error" in x]
+    assert len(line) == 1 and "2 episode(s) of the test split" in line[0] and "--accept-test-split" in line[0]
+    r = run_cli("trainer.train", *args, "--run-dir", tmp_path / "accepted", "--accept-test-split")
+    assert r.returncode == 0 and "WARNING: the logs hold 2 episode(s) of the test split" in r.stdout, r.stderr

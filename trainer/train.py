@@ -351,11 +351,34 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--rerun", nargs="?", const="", default=None, metavar="RRD",
                    help="also log the scalars to a rerun recording (default RUN_DIR/metrics.rrd)")
     g.add_argument("--no-progress", action="store_true", help="no progress bar")
+    g.add_argument("--accept-test-split", action="store_true",
+                   help="train on episodes recorded on the test split's contexts (refused by default: "
+                        "the evaluation keeps them unseen)")
     g.add_argument("--accept-multiple-publishers", action="store_true",
                    help="train on bags whose recorder saw several publishers on a topic read here "
                         "(a second bridge or an impostor interleaved its messages); refused by "
                         "default, naming the bag and topic")
     return ap
+
+
+def refuse_test_split(ds: MCAPDataset, accept: bool, say: Callable[..., None] = print) -> None:
+    """ValueError (one line) when the logs hold episodes of the test split: contexts the
+    evaluation keeps unseen (the paper's protocol), which training would then have seen. With
+    `accept`, a warning instead."""
+    test = {}
+    for e in ds.episodes():
+        if e.get("split") == "test":
+            test[e["source"]] = test.get(e["source"], 0) + 1
+    if not test:
+        return
+    n, bags = sum(test.values()), sorted(test)
+    where = f"{bags[0]}" + (f" and {len(bags) - 1} more bag(s)" if len(bags) > 1 else "")
+    text = (f"the logs hold {n} episode(s) of the test split (unseen contexts) in {where}: training "
+            "on them leaks the evaluation")
+    if not accept:
+        raise ValueError(f"{text}; record training data with split:=train, or pass "
+                         "--accept-test-split to train on them anyway")
+    say(f"[train] WARNING: {text} (--accept-test-split)", flush=True)
 
 
 def refuse_multiple_publishers(logs: Sequence[str | Path], topic_maps: Sequence[TopicMap]) -> None:
@@ -445,6 +468,8 @@ def _train(a: argparse.Namespace, ctx: distributed.DistContext, device: str) -> 
         raise DatasetError(f"nothing to train on: no window of {cfg.train.seq_len} steps in the logs "
                            "(see the report above)")
 
+    accept_test = bool(a.accept_test_split or run_json.get("accept_test_split"))
+    refuse_test_split(ds, accept_test, say)
     from sim_bridge.contexts import task_actuators
 
     n_act = len(task_actuators(cfg.task))
@@ -484,7 +509,7 @@ def _train(a: argparse.Namespace, ctx: distributed.DistContext, device: str) -> 
                     variant=cfg.variant, preset=cfg.preset, seed=cfg.train.seed, device=device, updates=target,
                     checkpoint_every=a.checkpoint_every, log_every=a.log_every,
                     rerun=str(rrd) if rrd else None, topics=topics.as_dict(), world_size=ctx.world_size,
-                    accept_multiple_publishers=accept_several)
+                    accept_multiple_publishers=accept_several, accept_test_split=accept_test)
     if ctx.is_main:
         runs.atomic_write_json(run_dir / "run.json", run_json)
 
