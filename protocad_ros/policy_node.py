@@ -161,6 +161,7 @@ class PolicyNode(CheckpointServing, ManagedNode):
         self._last_stamp: int | None = None
         self._last_answer: tuple[Any, Any] | None = None
         self._episode = -1
+        self._episode_return: float | None = None
         self._step = -1
 
     # ------------------------------------------------------------------ lifecycle
@@ -403,8 +404,9 @@ class PolicyNode(CheckpointServing, ManagedNode):
     def _answer(self, stamp: int, image: np.ndarray, info: topics.StepInfo, t_recv: float) -> None:
         if info.is_first:
             if self._last_stamp is not None:   # the latency while running, not only at exit
+                score = (f"return {self._episode_return:.1f}, " if self._episode_return is not None else "")
                 self.get_logger().info(
-                    f"episode {self._episode} answered ({self._step + 1} steps); latency obs -> action "
+                    f"episode {self._episode} answered ({self._step + 1} steps); {score}latency obs -> action "
                     f"p50 {self.latency.percentile(50) * 1e3:.2f} ms, p99 {self.latency.percentile(99) * 1e3:.2f} ms "
                     f"(model p50 {self.act_time.percentile(50) * 1e3:.2f} ms)")
             self._swap_if_pending()
@@ -442,6 +444,7 @@ class PolicyNode(CheckpointServing, ManagedNode):
         self._prev_action = action.copy()
         self._last_stamp, self._last_answer = stamp, (amsg, fmsg)
         self._episode, self._step = info.episode, info.step
+        self._episode_return = info.episode_return   # the bridge's running return (optional)
         stale = [s for s in self._unpaired if s < stamp]   # pieces that can no longer pair
         for s in stale:
             del self._unpaired[s]

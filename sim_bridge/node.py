@@ -145,6 +145,7 @@ class SimBridgeNode(BridgeDiagnostics, ManagedNode):
         self._reset_note = ""
         self._started = False
         self._episode = -1
+        self._return = 0.0   # the current episode's return so far (step_info episode_return)
         self._step = -1
         self._tick = -1
         self._obs_context: dict[str, float] = {}
@@ -440,10 +441,15 @@ class SimBridgeNode(BridgeDiagnostics, ManagedNode):
         """Publish observation `obs` (stamp); False, and nothing sent, while not active."""
         img, info, ctx = self._img_msg, self._info_msg, self._ctx_msg
         if not republish:
+            self._return = 0.0 if obs.is_first else self._return + float(obs.reward)
             topics.fill_image(img, obs.image, stamp)
             topics.fill_step_info(info, topics.StepInfo(
                 float(obs.reward), float(obs.discount), bool(obs.is_first), bool(obs.is_last),
-                bool(obs.is_terminal), int(obs.episode), int(obs.step)), stamp)
+                bool(obs.is_terminal), int(obs.episode), int(obs.step), self._return), stamp)
+            if obs.is_last:   # the score of the episode, where a ROS user looks: the log
+                label = ", ".join(f"{k}={v:g}" for k, v in obs.context.items())
+                self.get_logger().info(f"episode {obs.episode} finished: return {self._return:.1f} "
+                                       f"over {obs.step} steps ({obs.split} context {label})")
             topics.fill_context(ctx, obs.context, obs.split, stamp)
             topics.set_stamp(self._clock_msg.clock, stamp)
             self._episode, self._step, self._obs_context = obs.episode, obs.step, obs.context

@@ -49,6 +49,9 @@ TYPES = {
 
 IMAGE_FRAME_ID = "camera"
 STEP_INFO_FIELDS = ("reward", "discount", "is_first", "is_last", "is_terminal", "episode", "step")
+#: Sent by the sim bridge after the fields above, read when present: the episode's return so far
+#: (on the is_last step, the episode's return). Other publishers may leave it out.
+STEP_INFO_RETURN = "episode_return"
 SPLIT_FIELD = "split"  # in CONTEXT: 0.0 = train split, 1.0 = test split
 SPLITS = ("train", "test")
 
@@ -86,6 +89,7 @@ class StepInfo:
     is_terminal: bool
     episode: int
     step: int
+    episode_return: float | None = None   # STEP_INFO_RETURN: optional
 
 
 def fill_image(msg: Any, image: np.ndarray, t_ns: int) -> Any:
@@ -182,7 +186,11 @@ def _count(d: Mapping[str, float], name: str) -> int:
 
 
 def fill_step_info(msg: Any, info: StepInfo, t_ns: int) -> Any:
-    return fill_named(msg, STEP_INFO_FIELDS, [float(getattr(info, f)) for f in STEP_INFO_FIELDS], t_ns)
+    names, values = list(STEP_INFO_FIELDS), [float(getattr(info, f)) for f in STEP_INFO_FIELDS]
+    if info.episode_return is not None:
+        names.append(STEP_INFO_RETURN)
+        values.append(float(info.episode_return))
+    return fill_named(msg, names, values, t_ns)
 
 
 def read_step_info(msg: Any) -> StepInfo:
@@ -194,9 +202,11 @@ def read_step_info(msg: Any) -> StepInfo:
         raise ValueError(f"step_info reward is not finite: {d['reward']!r}")
     if not (math.isfinite(d["discount"]) and 0.0 <= d["discount"] <= 1.0):
         raise ValueError(f"step_info discount must be in [0, 1], got {d['discount']!r}")
+    ret = d.get(STEP_INFO_RETURN)
     return StepInfo(reward=d["reward"], discount=d["discount"], is_first=_flag(d, "is_first"),
                     is_last=_flag(d, "is_last"), is_terminal=_flag(d, "is_terminal"),
-                    episode=_count(d, "episode"), step=_count(d, "step"))
+                    episode=_count(d, "episode"), step=_count(d, "step"),
+                    episode_return=float(ret) if ret is not None and math.isfinite(ret) else None)
 
 
 def fill_context(msg: Any, context: Mapping[str, float], split: str, t_ns: int) -> Any:

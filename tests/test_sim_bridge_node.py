@@ -9,6 +9,7 @@ from __future__ import annotations
 import hashlib
 import math
 
+import numpy as np
 import pytest
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
@@ -109,6 +110,14 @@ def test_lockstep_is_deterministic_given_the_seed(spawn, probe):
     assert [c[0] for c in ctx["/det_a"]] == [s[0] for s in a]
     per_episode = {s[6]: c[1] for s, c in zip(a, ctx["/det_a"])}
     assert all(split == "train" and set(c) == {"m"} for c, split in per_episode.values())
+    # Every step_info carries the episode's return so far; the is_last one is the episode's
+    # return, which the bridge also logs with the context.
+    for ep in range(2):
+        infos = [info for _, info, _ in responders["/det_a"].steps if info.episode == ep]
+        running = np.cumsum([0.0 if i.is_first else i.reward for i in infos])
+        assert np.allclose([i.episode_return for i in infos], running)
+        assert f"episode {ep} finished: return {running[-1]:.1f} over 8 steps (train context m=" \
+            in procs["/det_a"].output()
     # Each observation answered once; the answer to is_last is never executed.
     for ns, r in responders.items():
         assert sorted(r.answered) == sorted(set(r.answered)) == [s[0] for s in r.steps]
