@@ -374,8 +374,8 @@ def resolve_checkpoint(p: str | Path) -> Path:
 
     c = checkpoint_file(p)
     if not c.is_file():
-        raise ValueError(f"{p}: no checkpoint there" + (" (a directory without checkpoints/latest.pt)"
-                                                        if Path(p).is_dir() else ""))
+        raise ValueError(f"{p} is a directory without checkpoints/latest.pt" if Path(p).is_dir()
+                         else f"checkpoint {p} does not exist")
     return c
 
 
