@@ -78,6 +78,10 @@ PARAMS: tuple[Param, ...] = (
           "the first observation is published (e.g. 2 = policy + recorder); readers already "
           "visible in the graph on image/step_info/context are awaited too (up to 2 s).",
           range=(0, 1000)),
+    Param("clock_topic", "", "Where sim time goes: empty = /clock for a bridge in the default "
+          "namespace (/protocad), NS/clock for one elsewhere (-r __ns:=/robot1 -> /robot1/clock), so "
+          "two bridges' clocks never interleave on one topic; or a name of your choice, e.g. /clock.",
+          read_only=True),
     Param("diagnostics_period_s", 1.0, "Period of /diagnostics.", range=(0.05, 3600.0),
           units="s"),
     Param("reset_service", True, "Serve the reset service (reset: end the episode, start a "

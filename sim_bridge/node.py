@@ -100,7 +100,7 @@ class SimBridgeNode(BridgeDiagnostics, ManagedNode):
                                                          qos_overriding_options=qos.overridable())
         self.pub_info = self.create_lifecycle_publisher(JointState, topics.STEP_INFO, obs_qos)
         self.pub_context = self.create_lifecycle_publisher(JointState, topics.CONTEXT, obs_qos)
-        self.pub_clock = self.create_lifecycle_publisher(Clock, topics.CLOCK, qos.clock_qos(lossless))
+        self.pub_clock = self.create_lifecycle_publisher(Clock, self._clock_topic(), qos.clock_qos(lossless))
         self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
                                               qos.diagnostics_qos())
         # Not a lifecycle publisher: the announcement goes out at configure, so a policy can
@@ -635,6 +635,11 @@ class SimBridgeNode(BridgeDiagnostics, ManagedNode):
             sent = self._publish(obs, stamp)
 
     # ------------------------------------------------------------------ shutdown
+    def _clock_topic(self) -> str:
+        """clock_topic, or automatic: /clock in the default namespace, NS/clock elsewhere (a
+        global /clock from bridges in two namespaces would interleave two sim times)."""
+        return self.params["clock_topic"] or topics.clock_topic(self.get_namespace())
+
     @property
     def shutdown_budget_s(self) -> float:
         """What run_node's watchdog allows the close (lossless: the flush's own wait, and more)."""

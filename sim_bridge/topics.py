@@ -56,6 +56,14 @@ SPLIT_FIELD = "split"  # in CONTEXT: 0.0 = train split, 1.0 = test split
 SPLITS = ("train", "test")
 
 
+def clock_topic(namespace: str) -> str:
+    """Where a sim bridge in `namespace` publishes sim time (its clock_topic left empty):
+    /clock in the default namespace, NS/clock elsewhere, so bridges in two namespaces never
+    interleave two sim times on one topic. Recorders and launchers look for it here too."""
+    ns = "/" + namespace.strip("/")
+    return CLOCK if ns in ("/", DEFAULT_NAMESPACE) else topic_name(ns, "clock")
+
+
 def topic_name(namespace: str, relative: str) -> str:
     """Fully qualified topic name, e.g. ('/protocad', 'image') -> '/protocad/image'."""
     if relative.startswith("/"):

@@ -80,11 +80,14 @@ def test_lockstep_is_deterministic_given_the_seed(spawn, probe):
     """Two bridges with seed 3 (own namespaces, concurrently) produce identical streams; seed 4
     differs. Each runs 2 episodes of 8 steps, every observation answered exactly once."""
     runs = {"/det_a": 3, "/det_b": 3, "/det_c": 4}
-    responders, contexts, procs = {}, {}, {}
+    from rosgraph_msgs.msg import Clock
+
+    responders, contexts, procs, clocks = {}, {}, {}, {}
     for ns, seed in runs.items():
         responders[ns] = Responder(probe, lambda info: [math.sin(0.7 * info.step)],
                                    names=["torque"], ns=ns)
         contexts[ns] = probe.record(topics.CONTEXT, JointState, ns=ns)
+        clocks[ns] = probe.record("clock", Clock, qos.clock_qos(True), ns=ns)   # NS/clock, not /clock
         procs[ns] = spawn(ns.strip("/"), *bridge_args(
             f"seed:={seed}", "episode_length:=8", "max_episodes:=2",
             ns=ns))
@@ -110,6 +113,12 @@ def test_lockstep_is_deterministic_given_the_seed(spawn, probe):
     assert [c[0] for c in ctx["/det_a"]] == [s[0] for s in a]
     per_episode = {s[6]: c[1] for s, c in zip(a, ctx["/det_a"])}
     assert all(split == "train" and set(c) == {"m"} for c, split in per_episode.values())
+    # Bridges in two namespaces keep their sim times apart: each clock runs on its own topic,
+    # monotonic, one tick per step, and nothing of theirs lands on the global /clock.
+    for ns in ("/det_a", "/det_c"):
+        ticks = [topics.stamp_to_ns(m.clock) for m in clocks[ns]]
+        assert ticks == [s[0] for s in streams[ns]] and ticks == sorted(ticks)
+    assert probe.node.count_publishers("/clock") == 0
     # Every step_info carries the episode's return so far; the is_last one is the episode's
     # return, which the bridge also logs with the context.
     for ep in range(2):

@@ -32,7 +32,8 @@ from sim_bridge import topics as T
 from trainer import mcap_io
 from trainer.dataset_types import MULTIPLE_PUBLISHERS_KEY
 
-#: Relative contract topics recorded by default (resolved in --namespace), plus /clock.
+#: Relative contract topics recorded by default (resolved in --namespace), plus the bridge's
+#: clock there (topics.clock_topic: /clock in the default namespace).
 DEFAULT_RELATIVE_TOPICS = (T.IMAGE, T.STEP_INFO, T.CONTEXT, T.ACTION, T.CONTEXT_FEATURES, T.BRIDGE_INFO)
 #: Topics that have one publisher per node by design: never marked as having several.
 MANY_PUBLISHERS_BY_DESIGN = frozenset({T.DIAGNOSTICS, "/rosout", "/parameter_events"})
@@ -46,7 +47,7 @@ KEEP_ALL_DEPTH = 1000
 
 
 def default_topics(namespace: str = T.DEFAULT_NAMESPACE) -> list[str]:
-    return [T.topic_name(namespace, t) for t in DEFAULT_RELATIVE_TOPICS] + [T.CLOCK]
+    return [T.topic_name(namespace, t) for t in DEFAULT_RELATIVE_TOPICS] + [T.clock_topic(namespace)]
 
 
 def default_output() -> str:

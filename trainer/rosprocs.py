@@ -150,8 +150,9 @@ def robot_namespaces(base: str, robots: int, first: int | None = None) -> list[s
 
 
 def clock_topic(ns: str, base: str) -> str:
-    """/clock for the base namespace, NS/clock for a robot of several (so clocks do not mix)."""
-    return T.CLOCK if ns == base else T.topic_name(ns, "clock")
+    """The clock of the bridge in `ns` (topics.clock_topic; `base` is the stack's namespace,
+    whose bridge the launchers used to give /clock: the same answer for the default one)."""
+    return T.clock_topic(ns)
 
 
 DISCOVERY_SERVER = "discovery_server"   # its process name in a RosStack
