@@ -1,6 +1,6 @@
 """The ProtoCAD policy node (msgs_docs/policy.md).
 
-    python -m protocad_ros.policy_node --ros-args -p checkpoint:=runs/x/checkpoint.pt
+    ros2 run protocad_ros policy --ros-args -p checkpoint:=runs/x   # a run directory or a file
     ros2 run protocad_ros policy --ros-args -p task:=walker_walk        # random agent + WARNING
 
 Subscribes to image and step_info only (never the true context), pairs them by header stamp
@@ -544,7 +544,7 @@ def main(argv: list[str] | None = None) -> None:
         description="ProtoCAD policy node: answers every observation (image + step_info, "
                     "paired by stamp) with an action stamped like it, and publishes the "
                     "inferred context features u, w, e. Contract: msgs_docs/policy.md.",
-        example="python -m protocad_ros.policy_node --ros-args -p checkpoint:=run/ckpt.pt "
+        example="ros2 run protocad_ros policy --ros-args -p checkpoint:=runs/x "
                 "-p reload_poll_s:=5.0 -p mode:=deterministic"))
 
 

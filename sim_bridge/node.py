@@ -1,6 +1,6 @@
 """The sim-bridge node: a context-randomized DMC task as ROS 2 topics (msgs_docs/sim_bridge.md).
 
-    python -m sim_bridge.node --ros-args -p task:=pendulum_swingup -p mode:=lockstep
+    ros2 run sim_bridge node --ros-args -p task:=pendulum_swingup -p mode:=lockstep
     ros2 run sim_bridge node --ros-args -p task:=walker_walk -p split:=test -r __ns:=/robot1
 
 One stepping thread owns the environment (reset, step, render, publish); the executor thread
@@ -677,7 +677,7 @@ def main(argv: list[str] | None = None) -> None:
         description="Sim-bridge node: a context-randomized DMC task as ROS 2 topics "
                     "(image, step_info, context, /clock; action in; reset service). "
                     "Contract: msgs_docs/sim_bridge.md.",
-        example="python -m sim_bridge.node --ros-args -p task:=walker_walk -p mode:=lockstep "
+        example="ros2 run sim_bridge node --ros-args -p task:=walker_walk -p mode:=lockstep "
                 "-p max_episodes:=10 -r __ns:=/protocad"))
 
 

@@ -351,8 +351,10 @@ def build_parser() -> argparse.ArgumentParser:
                          "cores, else cores - 1)")
     ap.add_argument("--batch", type=int, default=0, help="episodes run side by side (0: auto)")
     ap.add_argument("--through-ros", action="store_true",
-                    help="run through the ROS nodes (sim bridge + policy node + recorder); "
-                         "contexts are drawn by the bridge, --episodes is then the total count")
+                    help="run through the ROS nodes (sim bridge + policy node + recorder): the "
+                         "bridge cycles through the split's contexts, --episodes each (or "
+                         "--ros-episodes in all, contexts drawn uniformly); each episode's return "
+                         "is in the bridge's log")
     ap.add_argument("--ros-episodes", type=int, default=0,
                     help="--through-ros: total episodes, contexts drawn uniformly (default: the "
                          "bridge cycles through the split's contexts, --episodes each)")
