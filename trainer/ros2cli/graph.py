@@ -22,6 +22,10 @@ NODE_NAME_PREFIX = "_ros2cli"
 DEFAULT_SPIN_TIME = 0.5
 SETTLE_MAX_S = 4.0
 SETTLE_QUIET_S = 1.0
+#: With no other participant heard of by spin time + this, the graph is taken as empty: the
+#: environment's Fast DDS profile announces participants every 0.5 s, so a running node would
+#: have been heard of by then (an empty graph took the whole SETTLE_MAX_S, 4.9 s in all).
+EMPTY_GRAPH_S = 1.0
 
 
 class NodeName(NamedTuple):
@@ -103,6 +107,8 @@ def _settle(node, spin_time: float) -> None:
             last, quiet_since = now, time.monotonic()
         others = len(now[0]) > 1
         if others and time.monotonic() - quiet_since >= SETTLE_QUIET_S:
+            return
+        if not others and time.monotonic() - start >= spin_time + EMPTY_GRAPH_S:
             return
 
 
