@@ -82,6 +82,7 @@ def test_through_ros_nodes(tmp_path):
                 "--ros-dir", tmp_path / "ros", "--json", out, timeout=240)
     assert r.returncode == 0, r.stdout + r.stderr
     assert "through ROS" in r.stdout
+    assert r.stdout.count("[evaluate] episode ") == 2 and "return " in r.stdout   # a line per episode
     d = json.loads(out.read_text())["results"][0]
     assert d["mode"] == "through ROS" and d["episodes"] == 2
     assert all(c["split"] == "test" for c in d["per_context"])

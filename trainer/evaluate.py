@@ -312,6 +312,8 @@ def evaluate_through_ros(checkpoint: str | None, *, task: str | None, split: str
         if not (e["has_first"] and e["has_last"]) or e["context"] is None:
             continue
         key = context_label(e["context"])
+        print(f"[evaluate] episode {e['episode']} ({e['split'] or split} context {key}): "
+              f"return {e['return']:.1f} over {e['length'] - 1} steps", flush=True)
         per.setdefault(key, ContextResult(e["context"], e["split"] or split)).returns.append(e["return"])
     ordered = sorted(per.values(), key=lambda c: tuple(c.context.values()))
     return EvalResult(task=task, split=split, policy=str(checkpoint) if checkpoint else "random",
