@@ -177,3 +177,35 @@ def test_a_report_writes_only_where_it_is_told(tmp_path):
     r = subprocess.run([sys.executable, "-m", "trainer.compare", "--report", str(src / "results.json"),
                         "--image", str(tmp_path / "c.png")], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and (tmp_path / "c.png").stat().st_size > 0
+
+
+def test_a_grid_whose_parent_is_killed_twice_resumes_to_completion(tmp_path, spawn):
+    """SIGKILL of protocad-compare (its runs die with it) twice in a row, once before any
+    checkpoint: the same command then finishes every run, counters equal to their bags."""
+    from trainer.dataset import MCAPDataset
+    from trainer.online import data_counts
+
+    out = tmp_path / "grid"
+    args = ["-m", "trainer.compare", "--tasks", "pendulum_swingup", "--variants", "dreamer", "--seeds", "0", "1",
+            "--env-steps", "600", "--jobs", "2", "--out", str(out), "--status-every", "5", "--",
+            *TINY, "--checkpoint-every", "1000", "--time-limit", "100"]
+    run_dirs = [out / "pendulum_swingup" / "dreamer" / f"seed{s}" for s in (0, 1)]
+
+    def bags(d):
+        return len(list((d / "bags").glob("*"))) if (d / "bags").is_dir() else 0
+
+    first = spawn("kill1", *args)
+    wait_for(lambda: all(bags(d) >= 2 for d in run_dirs), 300, "bags in both runs")
+    assert not any((d / "checkpoints" / "latest.pt").exists() for d in run_dirs)   # none yet
+    first.stop(signal.SIGKILL)
+    second = spawn("kill2", *args)
+    wait_for(lambda: second.output().count("(resume)") == 2, 120, "both runs resumed from their bags")
+    wait_for(lambda: all(bags(d) >= 4 for d in run_dirs), 300, "more bags")
+    second.stop(signal.SIGKILL)
+    third = spawn("finish", *args)
+    wait_for(lambda: not third.alive(), 400, "the grid to finish")
+    assert third.p.returncode == 0, third.output()[-3000:]
+    for d in run_dirs:
+        assert json.loads((d / "run.json").read_text())["result"]["status"] == "finished"
+        steps, episodes = data_counts(MCAPDataset([d / "bags"], seq_len=4, cache_dir=tmp_path / "c" / d.name))
+        assert read_counters(d)["env_steps"] == 2 * steps >= 600

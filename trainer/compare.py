@@ -194,7 +194,7 @@ def run_grid(specs: Sequence[RunSpec], a: argparse.Namespace) -> int:
                           + ("" if ok else f" (see {s.run_dir / 'online.log'})"), flush=True)
                 for s, _, _ in running.values():
                     started.setdefault(id(s), (time.monotonic(), done_steps[id(s)]))
-                if time.monotonic() - last_status > a.status_every:
+                if running and time.monotonic() - last_status > a.status_every:
                     last_status = time.monotonic()
                     print("[compare] " + ", ".join(f"{s.label}/seed{s.seed}: {done_steps[id(s)]}"
                                                    for s, _, _ in running.values())
