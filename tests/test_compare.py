@@ -187,7 +187,7 @@ def test_a_grid_whose_parent_is_killed_twice_resumes_to_completion(tmp_path, spa
 
     out = tmp_path / "grid"
     args = ["-m", "trainer.compare", "--tasks", "pendulum_swingup", "--variants", "dreamer", "--seeds", "0", "1",
-            "--env-steps", "600", "--jobs", "2", "--out", str(out), "--status-every", "5", "--",
+            "--env-steps", "500", "--jobs", "2", "--out", str(out), "--status-every", "5", "--",
             *TINY, "--checkpoint-every", "1000", "--time-limit", "100"]
     run_dirs = [out / "pendulum_swingup" / "dreamer" / f"seed{s}" for s in (0, 1)]
 
@@ -200,7 +200,7 @@ def test_a_grid_whose_parent_is_killed_twice_resumes_to_completion(tmp_path, spa
     first.stop(signal.SIGKILL)
     second = spawn("kill2", *args)
     wait_for(lambda: second.output().count("(resume)") == 2, 120, "both runs resumed from their bags")
-    wait_for(lambda: all(bags(d) >= 4 for d in run_dirs), 300, "more bags")
+    wait_for(lambda: all(bags(d) >= 3 for d in run_dirs), 300, "more bags")
     second.stop(signal.SIGKILL)
     third = spawn("finish", *args)
     wait_for(lambda: not third.alive(), 400, "the grid to finish")
@@ -208,4 +208,4 @@ def test_a_grid_whose_parent_is_killed_twice_resumes_to_completion(tmp_path, spa
     for d in run_dirs:
         assert json.loads((d / "run.json").read_text())["result"]["status"] == "finished"
         steps, episodes = data_counts(MCAPDataset([d / "bags"], seq_len=4, cache_dir=tmp_path / "c" / d.name))
-        assert read_counters(d)["env_steps"] == 2 * steps >= 600
+        assert read_counters(d)["env_steps"] == 2 * steps >= 500

@@ -199,7 +199,7 @@ def test_a_full_disk_is_one_line_with_the_cause_and_the_run_resumes_after_space_
     cache = tmp_path / "cache" if full == "run_dir" else disk / "cache"
     args = ["--task", "pendulum_swingup", *TINY, "--time-limit", "40", "--prefill-episodes", "2",
             "--updates-per-episode", "2", "--eval-every", "0", "--final-episodes", "1",
-            "--final-max-contexts", "1", "--eval-workers", "0", "--no-progress", "--env-steps", "400",
+            "--final-max-contexts", "1", "--eval-workers", "0", "--no-progress", "--env-steps", "240",
             "--run-dir", run, "--cache-dir", cache]
     r = run_cli("trainer.online", *args, timeout=300)
     assert r.returncode == 1, r.stdout + r.stderr
@@ -216,4 +216,4 @@ def test_a_full_disk_is_one_line_with_the_cause_and_the_run_resumes_after_space_
         assert ckpt.exists()
     grow()   # free space, then the same run to completion
     r = run_cli("trainer.online", "--run-dir", run, "--resume", "--no-progress", timeout=300)
-    assert r.returncode == 0 and "finished: 400 env steps" in r.stdout, r.stdout + r.stderr
+    assert r.returncode == 0 and "finished: 240 env steps" in r.stdout, r.stdout + r.stderr
