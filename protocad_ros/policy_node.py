@@ -162,6 +162,8 @@ class PolicyNode(CheckpointServing, ManagedNode):
         self._last_answer: tuple[Any, Any] | None = None
         self._episode = -1
         self._episode_return: float | None = None
+        # (stamp, image + step_info, receive time) held until bridge_info arrives (_arrive)
+        self._held_for_bridge_info: tuple | None = None
         self._step = -1
 
     # ------------------------------------------------------------------ lifecycle
@@ -333,6 +335,9 @@ class PolicyNode(CheckpointServing, ManagedNode):
         self.bridge = info
         if self.policy is not None:   # else configure checks it
             self._check_bridge()
+        held, self._held_for_bridge_info = self._held_for_bridge_info, None
+        if held is not None and self.mismatch is None and self.policy is not None and self.is_active:
+            self._answer_paired(*held)
 
     def _check_bridge(self) -> None:
         info = self.bridge
@@ -378,9 +383,16 @@ class PolicyNode(CheckpointServing, ManagedNode):
             return self._count("mismatched_observations", f"observation {topics.format_stamp(stamp)} not answered: {self.mismatch}")
         if self.bridge is None and self._announcing_bridge():
             # A bridge that announces itself is there but its announcement has not arrived yet:
-            # answering now could send it actions of the wrong size (lock-step republishes).
-            return self._count("awaiting_bridge_info", f"observation {topics.format_stamp(stamp)} not answered yet: waiting "
+            # answering now could send it actions of the wrong size. Hold the newest such
+            # observation and answer it when the announcement comes (it usually follows within
+            # milliseconds; a lock-step bridge would otherwise wait its timeout to re-send).
+            self._held_for_bridge_info = (stamp, entry, t)
+            return self._count("awaiting_bridge_info", f"observation {topics.format_stamp(stamp)} held: waiting "
                                "for the bridge's announcement")
+        self._answer_paired(stamp, entry, t)
+
+    def _answer_paired(self, stamp: int, entry: dict, t: float) -> None:
+        """An observation with both image and step_info, from a bridge that fits: answer it."""
         if stamp == self._last_stamp and self._last_answer is not None:
             # The bridge published it again (its lock-step timeout): answer it again, same
             # action, without filtering it a second time.
