@@ -94,3 +94,29 @@ def one_torch_thread():
     torch.set_num_threads(1)
     yield
     torch.set_num_threads(n)
+
+
+class SmallDisk:
+    """A tmpfs of a given size mounted at `path` (a disk that fills up for real); grow() frees
+    space by remounting it larger."""
+
+    def __init__(self, path: Path):
+        self.path = path
+
+    def grow(self, size: str = "256m") -> None:
+        subprocess.run(["mount", "-o", f"remount,size={size}", str(self.path)], check=True)
+
+
+@pytest.fixture
+def small_disk(tmp_path, request):
+    """A 1.5 MB tmpfs (size from `@pytest.mark.disk_size("1m")`), unmounted afterwards; skipped
+    where mounting is not allowed (it needs root; CI runs as root)."""
+    marker = request.node.get_closest_marker("disk_size")
+    size = marker.args[0] if marker else "1536k"
+    mnt = tmp_path / "small_disk"
+    mnt.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(mnt)], capture_output=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.decode().strip()}")
+    yield SmallDisk(mnt)
+    subprocess.run(["umount", "-l", str(mnt)], capture_output=True)

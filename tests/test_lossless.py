@@ -131,42 +131,32 @@ def test_realtime_loss_is_counted_exactly_and_named_by_the_dataset(spawn, tmp_pa
     assert "the recorder reported lost messages" in report and str(lost[topic]) in report
 
 
-def test_a_lockstep_recording_stopped_by_a_full_disk_is_in_time_order_and_read_by_rosbags(spawn, tmp_path):
+def test_a_lockstep_recording_stopped_by_a_full_disk_is_in_time_order_and_read_by_rosbags(spawn, small_disk):
     """The recorder's default topics from a lock-step bridge into a 1.5 MB tmpfs: the recorder
     stops by itself (disk full) and its cut file, without an index, is read by rosbags, whose
     streaming reader needs log times that never go back (reception times of different topics
     come from different DDS readers and used to interleave out of order)."""
-    import subprocess
-
-    import pytest
     from mcap.records import Message
     from mcap.stream_reader import StreamReader
     from rosbags.rosbag2 import Reader
 
     from trainer.recorder import EXIT_WRITE_FAILED
 
-    disk = tmp_path / "disk"
-    disk.mkdir()
-    if subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1536k", "tmpfs", str(disk)],
-                      capture_output=True).returncode != 0:
-        pytest.skip("mounting a small tmpfs needs root (CI runs as root)")
-    try:
-        probe = Probe("fulldisk_probe")
-        Responder(probe, lambda info: [0.0], names=["torque"])
-        bag = disk / "bag"
-        rec = spawn("recorder", "-m", "trainer.recorder", "-o", str(bag), "--compression", "none",
-                    "--ros-args", "-p", "flush_interval:=0.2")
-        wait_for(lambda: "recording to" in rec.output(), START, "the recorder")
-        spawn("bridge", "-m", "sim_bridge.node", "--ros-args", "-p", f"task:={TASK}", "-p", "seed:=1",
-              "-p", "min_subscribers:=2")
-        wait_for(lambda: not rec.alive(), 120, "the recorder to stop on the full disk")
-        assert rec.p.returncode == EXIT_WRITE_FAILED, rec.output()[-2000:]
-        (mcap,) = bag.glob("*.mcap")
-        with open(mcap, "rb") as f:
-            times = [r.log_time for r in StreamReader(f, emit_chunks=False).records if isinstance(r, Message)]
-        assert len(times) > 100 and times == sorted(times)
-        with Reader(bag) as reader:
-            assert sum(1 for _ in reader.messages()) == reader.message_count == len(times)
-        probe.close()
-    finally:
-        subprocess.run(["umount", "-l", str(disk)], capture_output=True)
+    disk = small_disk.path
+    probe = Probe("fulldisk_probe")
+    Responder(probe, lambda info: [0.0], names=["torque"])
+    bag = disk / "bag"
+    rec = spawn("recorder", "-m", "trainer.recorder", "-o", str(bag), "--compression", "none",
+                "--ros-args", "-p", "flush_interval:=0.2")
+    wait_for(lambda: "recording to" in rec.output(), START, "the recorder")
+    spawn("bridge", "-m", "sim_bridge.node", "--ros-args", "-p", f"task:={TASK}", "-p", "seed:=1",
+          "-p", "min_subscribers:=2")
+    wait_for(lambda: not rec.alive(), 120, "the recorder to stop on the full disk")
+    assert rec.p.returncode == EXIT_WRITE_FAILED, rec.output()[-2000:]
+    (mcap,) = bag.glob("*.mcap")
+    with open(mcap, "rb") as f:
+        times = [r.log_time for r in StreamReader(f, emit_chunks=False).records if isinstance(r, Message)]
+    assert len(times) > 100 and times == sorted(times)
+    with Reader(bag) as reader:
+        assert sum(1 for _ in reader.messages()) == reader.message_count == len(times)
+    probe.close()

@@ -5,7 +5,6 @@ evaluation JSON, and resumes. Whether it learns is shown by the documented exper
 from __future__ import annotations
 
 import json
-import os
 
 import pytest
 
@@ -174,27 +173,10 @@ def test_sigkill_at_any_point_then_resume_completes_with_counters_from_the_data(
     assert len(bag_names) == len(set(bag_names)) and all(re.match(r"ep\d{6}_env0_a\d", b) for b in bag_names)
 
 
-@pytest.fixture
-def small_disk(tmp_path):
-    """A 1 MB tmpfs (a disk that fills up for real), and a way to free space on it."""
-    import subprocess
-
-    mnt = tmp_path / "disk"
-    mnt.mkdir()
-    if os.geteuid() != 0 or subprocess.run(["mount", "-t", "tmpfs", "-o", "size=1m", "tmpfs", str(mnt)],
-                                           capture_output=True).returncode != 0:
-        pytest.skip("mounting a small tmpfs needs root (CI runs as root)")
-
-    def grow():
-        subprocess.run(["mount", "-o", "remount,size=256m", str(mnt)], check=True)
-
-    yield mnt, grow
-    subprocess.run(["umount", "-l", str(mnt)], capture_output=True)
-
-
+@pytest.mark.disk_size("1m")
 @pytest.mark.parametrize("full", ["run_dir", "cache"])
 def test_a_full_disk_is_one_line_with_the_cause_and_the_run_resumes_after_space_is_freed(tmp_path, small_disk, full):
-    disk, grow = small_disk
+    disk, grow = small_disk.path, small_disk.grow
     run = disk / "run" if full == "run_dir" else tmp_path / "run"
     cache = tmp_path / "cache" if full == "run_dir" else disk / "cache"
     args = ["--task", "pendulum_swingup", *TINY, "--time-limit", "40", "--prefill-episodes", "2",
