@@ -149,12 +149,6 @@ def robot_namespaces(base: str, robots: int, first: int | None = None) -> list[s
     return [T.topic_name(base, f"robot{i}") for i in range(first or 0, (first or 0) + robots)]
 
 
-def clock_topic(ns: str, base: str) -> str:
-    """The clock of the bridge in `ns` (topics.clock_topic; `base` is the stack's namespace,
-    whose bridge the launchers used to give /clock: the same answer for the default one)."""
-    return T.clock_topic(ns)
-
-
 DISCOVERY_SERVER = "discovery_server"   # its process name in a RosStack
 
 
@@ -232,7 +226,7 @@ class RosStack:
         ns = ns or self.namespace
         out = ["-r", f"__ns:={ns}"]
         if ns != self.namespace:
-            out += ["-r", f"{T.CLOCK}:={clock_topic(ns, self.namespace)}"]
+            out += ["-r", f"{T.CLOCK}:={T.clock_topic(ns)}"]
         return out
 
     def wait_until(self, proc: NodeProc, ready, what: str, timeout: float, stop=None) -> bool:
@@ -357,7 +351,7 @@ class RosStack:
         """One recorder for the robots in `namespaces` (default: this stack's namespace)."""
         from trainer.recorder import default_topics
 
-        topics = [t if t != T.CLOCK else clock_topic(ns, self.namespace)
+        topics = [t if t != T.CLOCK else T.clock_topic(ns)
                   for ns in (namespaces or [self.namespace]) for t in default_topics(ns)]
         topics += [t for t in extra_topics]
         args = ["-o", str(bag), "--namespace", self.namespace, "--flush-interval", "1.0",
