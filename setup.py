@@ -45,7 +45,7 @@ INSTALL_REQUIRES = [
     "pyyaml>=6.0",
     "tqdm>=4.66",
     "scikit-learn>=1.4",
-    "scipy>=1.11",        # trim_mean (IQM) in trainer/results.py, imported directly
+    "scipy>=1.11",        # trim_mean (IQM) in trainer/research/results.py, imported directly
     "pillow>=10.1",
     "matplotlib>=3.8",    # protocad-compare's learning-curve PNG
     "jsonschema>=4.20",   # results.json is checked against its schema on save and load
@@ -59,8 +59,8 @@ setup(
     version="0.1.0",
     description="ProtoCAD (ICLR 2023) context-aware world models as a ROS 2 Jazzy stack",
     packages=find_packages(include=["protocad_ros*", "sim_bridge*", "trainer*"]),
-    # DreamerV2's published curves, the anchor's reference (trainer/results.py plots them)
-    package_data={"trainer": ["dreamerv2_dmc_vision.json"]},
+    # DreamerV2's published curves, the anchor's reference (trainer/research/results.py plots them)
+    package_data={"trainer.research": ["dreamerv2_dmc_vision.json"]},
     python_requires=">=3.11,<3.12",
     install_requires=INSTALL_REQUIRES,
     extras_require={"test": ["pytest==9.2.0", "pytest-timeout==2.4.0", "hypothesis==6.170.17",
@@ -70,19 +70,19 @@ setup(
     entry_points={
         "console_scripts": [
             "ros2 = trainer.ros2cli:main",
-            "protocad-record = trainer.recorder:main",
-            "protocad-train = trainer.train:main",
-            "protocad-evaluate = trainer.evaluate:main",
-            "protocad-loop = trainer.loop:main",
-            "protocad-online = trainer.online:main",
-            "protocad-visualize = trainer.visualize:main",
-            "protocad-compare = trainer.compare:main",
-            "protocad-stack = trainer.stack:main",
-            "protocad-checkpoint-publisher = trainer.checkpoint_publisher:main",
+            "protocad-record = trainer.nodes.recorder:main",
+            "protocad-train = trainer.learn.train:main",
+            "protocad-evaluate = trainer.learn.evaluate:main",
+            "protocad-loop = trainer.launch.loop:main",
+            "protocad-online = trainer.research.online:main",
+            "protocad-visualize = trainer.viz.visualize:main",
+            "protocad-compare = trainer.research.compare:main",
+            "protocad-stack = trainer.launch.stack:main",
+            "protocad-checkpoint-publisher = trainer.nodes.checkpoint_publisher:main",
             "protocad-keygen = protocad_ros.checkpoint_signing:keygen_main",
             "protocad-sign-checkpoint = protocad_ros.checkpoint_signing:sign_main",
-            "protocad-fleet = trainer.fleet:main",
-            "protocad-discovery-server = trainer.discovery:main",
+            "protocad-fleet = trainer.launch.fleet:main",
+            "protocad-discovery-server = trainer.launch.discovery:main",
         ]
     },
 )

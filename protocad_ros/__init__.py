@@ -1,0 +1,9 @@
+"""The ProtoCAD agent and its policy node (ROS package `protocad_ros`).
+
+  model/   the method: config, networks, RSSM, prototypes, behaviour, the agents (no ROS)
+  node/    the policy as a ROS 2 node: parameters, checkpoint serving and receiving
+  (here)   what both sides share, free of ROS: atomic files, the checkpoint format and its
+           signatures, `Policy` (an agent acting step by step), the live rerun view
+
+May import: protocad_ros.model, sim_bridge.contract
+"""

@@ -33,10 +33,10 @@ from typing import Any, Callable, Mapping
 
 import torch
 
-from .agent_base import AgentBase
-from .agents import make_agent
-from .atomic import atomic_open
-from .config import Config, ConfigError
+from protocad_ros.model.agent_base import AgentBase
+from protocad_ros.model.agents import make_agent
+from protocad_ros.atomic import atomic_open
+from protocad_ros.model.config import Config, ConfigError
 
 __all__ = ["save_checkpoint", "load_checkpoint", "restore_checkpoint", "read_checkpoint",
            "architecture_differences", "CheckpointError", "CheckpointMismatch", "FORMAT", "VERSION",
@@ -68,6 +68,16 @@ def checkpoint_file(path: str | os.PathLike) -> Path:
         if cand.is_file():
             return cand
     return p / "checkpoints" / "latest.pt"
+
+
+def existing_checkpoint_file(path: str | os.PathLike) -> Path:
+    """`checkpoint_file` for a reader: the file, which must exist (ValueError saying which is
+    missing otherwise)."""
+    c = checkpoint_file(path)
+    if not c.is_file():
+        raise ValueError(f"{path} is a directory without checkpoints/latest.pt" if Path(path).is_dir()
+                         else f"checkpoint {path} does not exist")
+    return c
 
 
 def save_checkpoint(path: str | os.PathLike, agent: AgentBase, counters: Mapping[str, Any] | None = None,

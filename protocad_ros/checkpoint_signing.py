@@ -10,8 +10,8 @@ and the id of the signing key. The signature covers the manifest's canonical JSO
     protocad-keygen learner                    # learner.key (0600) + learner.pub
     protocad-sign-checkpoint --key learner.key runs/x/checkpoints/latest.pt   # latest.pt.sig
 
-Free of ROS: the publisher (trainer/checkpoint_publisher.py), the receiver
-(protocad_ros/checkpoint_receiver.py), the file watcher (protocad_ros/checkpoint_serving.py)
+Free of ROS: the publisher (trainer/nodes/checkpoint_publisher.py), the receiver
+(protocad_ros/node/checkpoint_receiver.py), the file watcher (protocad_ros/node/checkpoint_serving.py)
 and these command-line tools share it.
 """
 from __future__ import annotations
@@ -32,7 +32,7 @@ from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
-from .atomic import atomic_open
+from protocad_ros.atomic import atomic_open
 
 __all__ = ["Manifest", "SignatureRejected", "SigningError", "TrustedKeys", "generate_keypair",
            "key_id", "load_private_key", "load_trusted_keys", "next_seq", "sign_manifest",
@@ -263,7 +263,7 @@ def verify_file(checkpoint: str | os.PathLike, sha256: str, size: int,
 
 def sign_file(checkpoint: str | os.PathLike, key: Ed25519PrivateKey, seq: int | None = None) -> Manifest:
     """Write FILE.sig for a checkpoint file (its task, variant, preset, updates from the file)."""
-    from .checkpoint import read_checkpoint
+    from protocad_ros.checkpoint import read_checkpoint
 
     checkpoint = Path(checkpoint)
     data = checkpoint.read_bytes()

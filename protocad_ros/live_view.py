@@ -42,7 +42,7 @@ Cost: about 1.6 ms per step (64x64 image, K=100 bars; 2-core dev machine under l
 'connect' with nothing listening blocks the constructor for about 5 s (rerun's connection
 attempt), then buffers and finally drops; 'spawn' without a display (DISPLAY /
 WAYLAND_DISPLAY) is a ValueError at construction. The stream carries its
-own layout (``policy_blueprint``). ``open_stream`` also gives trainer/rerun_log.py's
+own layout (``policy_blueprint``). ``open_stream`` also gives trainer/viz/rerun_log.py's
 TrainingRecorder a live target, e.g. ``TrainingRecorder(open_stream('spawn'))``.
 """
 from __future__ import annotations
@@ -212,7 +212,7 @@ class LiveView:
 
     def on_act(self, event: Any) -> None:
         """Act callback for the policy node (``PolicyNode.add_act_callback(view.on_act)``):
-        logs a protocad_ros.policy_node.ActEvent (stamp_ns, info: StepInfo, image, action,
+        logs a protocad_ros.node.policy_node.ActEvent (stamp_ns, info: StepInfo, image, action,
         features: ContextFeatures u/w/e)."""
         if self._rec is None:
             return

@@ -2,7 +2,7 @@
 """How long a new checkpoint version takes to cross ROS: learner file -> policy side.
 
 The checkpoint publisher node runs in its own process on a learner file; this process holds an
-rclpy node with the policy's receiver (protocad_ros.checkpoint_receiver). For each preset and
+rclpy node with the policy's receiver (protocad_ros.node.checkpoint_receiver). For each preset and
 chunk size, the learner file is rewritten (save_checkpoint, a new version each time) and timed:
 
   announce   file in place -> announcement received here (the publisher's poll, read, format
@@ -59,12 +59,12 @@ def main() -> None:
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
 
-    from protocad_ros.agent import Agent
+    from protocad_ros.model.agent import Agent
     from protocad_ros.atomic import atomic_open
     from protocad_ros.checkpoint import load_checkpoint, save_checkpoint
-    from protocad_ros.checkpoint_receiver import CheckpointReceiver, install
-    from protocad_ros.config import make_config
-    from sim_bridge.contexts import task_actuators
+    from protocad_ros.node.checkpoint_receiver import CheckpointReceiver, install
+    from protocad_ros.model.config import make_config
+    from sim_bridge.contract.contexts import task_actuators
 
     torch.set_num_threads(1)
     rclpy.init()
@@ -93,7 +93,7 @@ def main() -> None:
                      serving=lambda: "", count=count)
     cpu = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
                 if line.startswith("model name")), platform.machine())
-    from protocad_ros.precision import cpu_capability
+    from protocad_ros.model.precision import cpu_capability
 
     print(f"machine: {cpu}, {os.cpu_count()} cores, CPU capability {cpu_capability()}; "
           f"transport: {'UDPv4 over loopback' if ARGS.udp else 'Fast DDS default (shared memory)'}")
@@ -112,7 +112,7 @@ def main() -> None:
             learner = Path(tmp) / preset / "agent.pt"
             save_checkpoint(learner, agent)
             for chunk in ARGS.chunk_sizes:
-                pub = subprocess.Popen([sys.executable, "-m", "trainer.checkpoint_publisher", "--ros-args",
+                pub = subprocess.Popen([sys.executable, "-m", "trainer.nodes.checkpoint_publisher", "--ros-args",
                                         "-p", f"checkpoint:={learner}", "-p", f"chunk_size:={chunk}",
                                         "-p", "poll_s:=0.02"], stdout=subprocess.DEVNULL,
                                        stderr=subprocess.STDOUT, cwd=ROOT)

@@ -1,9 +1,9 @@
 #!/usr/bin/env python3
-"""Benchmark of trainer.dataset: indexing speed, sampling speed and memory on a synthetic log.
+"""Benchmark of trainer.data.dataset: indexing speed, sampling speed and memory on a synthetic log.
 
     python scripts/bench_dataset.py --steps 20000 --bags 4     # ~1 GB of raw frames
 
-Writes BAGS bags (trainer.mcap_io.BagWriter, zstd, the contract topics) with STEPS steps in
+Writes BAGS bags (trainer.bag.mcap_io.BagWriter, zstd, the contract topics) with STEPS steps in
 total (episodes of 500 steps, noise images so compression cannot cheat), then reports:
 - first indexing (stream every bag once into the on-disk uint8 store): steps/s, MB/s of frames;
 - a second open (cache reuse): seconds;
@@ -39,8 +39,8 @@ def rss_mb(kind: str = "RssAnon") -> float:
 
 
 def write_bags(root: Path, steps: int, bags: int, ep_len: int = 500) -> list[Path]:
-    from sim_bridge import topics as T
-    from trainer import mcap_io
+    from sim_bridge.contract import topics as T
+    from trainer.bag import mcap_io
 
     rng = np.random.default_rng(0)
     out, per_bag, dt = [], steps // bags, 40_000_000
@@ -72,7 +72,7 @@ def main() -> int:
     ap.add_argument("--batches", type=int, default=200)
     ap.add_argument("--dir", default=None, help="work directory (default: a temp dir, removed)")
     a = ap.parse_args()
-    from trainer.dataset import MCAPDataset
+    from trainer.data.dataset import MCAPDataset
 
     work = Path(a.dir) if a.dir else Path(tempfile.mkdtemp(prefix="bench_dataset_"))
     try:

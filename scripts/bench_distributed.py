@@ -26,8 +26,8 @@ ROOT = Path(__file__).resolve().parents[1]
 def record_bags(out: Path, task: str, episodes: int, steps: int) -> None:
     import numpy as np
 
-    from sim_bridge.envs import ContextDMCEnv
-    from trainer.online import EpisodeBagWriter
+    from sim_bridge.sim.envs import ContextDMCEnv
+    from trainer.research.online import EpisodeBagWriter
 
     env = ContextDMCEnv(task, "train", seed=0, time_limit=2 * steps)
     rng = np.random.default_rng(0)
@@ -47,7 +47,7 @@ def record_bags(out: Path, task: str, episodes: int, steps: int) -> None:
 
 
 def run_row(ranks: int, threads: int, a: argparse.Namespace, bags: Path, work: Path) -> str:
-    train = [sys.executable, "-m", "trainer.train", "--bags", str(bags), "--task", a.task,
+    train = [sys.executable, "-m", "trainer.learn.train", "--bags", str(bags), "--task", a.task,
              "--preset", a.preset, "--variant", a.variant, "--updates", str(a.updates),
              "--run-dir", str(work / f"run{ranks}"), "--no-progress", "--device", a.device,
              "--threads", str(threads), "--cache-dir", str(work / "cache"),
@@ -83,7 +83,7 @@ def main(argv=None) -> int:
     sys.path.insert(0, str(ROOT))
     import torch
 
-    from protocad_ros.precision import cpu_capability
+    from protocad_ros.model.precision import cpu_capability
 
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU"
     print(f"machine: {os.cpu_count()} cores, CPU capability {cpu_capability()}, {gpu}, torch "

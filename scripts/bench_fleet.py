@@ -4,7 +4,7 @@ each, in /protocad/robotI, own clock), for M = 1 and 2, discovering without a se
 (LOCALHOST) and through a Fast DDS Discovery Server on 127.0.0.1.
 
 Each configuration runs in a fresh process (Fast DDS reads the discovery variables when a
-participant is created): RosStack starts the groups (trainer/rosprocs.py), and the launcher's
+participant is created): RosStack starts the groups (trainer/launch/rosprocs.py), and the launcher's
 graph node subscribes to every robot's step_info and image (undecoded, like a recorder); each
 bridge waits for its policy, that reader (and the recorder, with --record), so every step is
 seen. The fleet's rate counts
@@ -47,10 +47,10 @@ def one(args) -> dict:
     """One configuration, in this process: M groups, measured; returns the figures."""
     from sensor_msgs.msg import Image, JointState
 
-    from sim_bridge import qos
-    from sim_bridge import topics as T
-    from trainer import discovery
-    from trainer.rosprocs import RosStack, robot_namespaces
+    from sim_bridge.contract import qos
+    from sim_bridge.contract import topics as T
+    from trainer.launch import discovery
+    from trainer.launch.rosprocs import RosStack, robot_namespaces
 
     namespaces = robot_namespaces(T.DEFAULT_NAMESPACE, args.one, first=0)
     server = (discovery.LOCALHOST, discovery.free_port()) if args.server else None
@@ -91,7 +91,7 @@ def one(args) -> dict:
             stack.stop_all()
             bag_bytes = sum(f.stat().st_size for f in bag.glob("*")) if args.record else None
             if args.record:   # did the recorder keep up: every step of every group in the bag?
-                from trainer import mcap_io
+                from trainer.bag import mcap_io
 
                 counts = mcap_io.BagReader(bag).report.counts
                 recorded = sum(counts.get(T.topic_name(ns, T.STEP_INFO), 0) for ns in namespaces)
@@ -115,7 +115,7 @@ def one(args) -> dict:
 
 
 def machine_line() -> str:
-    from protocad_ros.precision import cpu_capability
+    from protocad_ros.model.precision import cpu_capability
 
     load = " ".join(f"{x:.2f}" for x in os.getloadavg())
     return (f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "

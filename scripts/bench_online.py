@@ -35,13 +35,13 @@ def worker(spec: dict) -> dict:
     import torch
 
     sys.path.insert(0, str(ROOT))
-    from protocad_ros.config import make_config
+    from protocad_ros.model.config import make_config
     from protocad_ros.policy import Policy
-    from protocad_ros.precision import resolve_precision
-    from sim_bridge.envs import ContextDMCEnv
-    from trainer.dataset import MCAPDataset, TopicMap
-    from trainer.online import EpisodeBagWriter
-    from trainer.train import Trainer
+    from protocad_ros.model.precision import resolve_precision
+    from sim_bridge.sim.envs import ContextDMCEnv
+    from trainer.data.dataset import MCAPDataset, TopicMap
+    from trainer.research.online import EpisodeBagWriter
+    from trainer.learn.train import Trainer
 
     torch.set_num_threads(spec["threads"])
     prec = resolve_precision(spec["precision"], "cpu").precision
@@ -78,7 +78,7 @@ def worker(spec: dict) -> dict:
     # 3. updates on what was collected
     ds = MCAPDataset([work / "bags" / "ep0"], topics=TopicMap(), seq_len=cfg.train.seq_len, seed=0,
                      cache_dir=work / "cache")
-    trainer.dataset = ds
+    trainer.data.dataset = ds
     B = cfg.train.batch_size
     for _ in range(spec["warmup"]):
         trainer.update()
@@ -134,7 +134,7 @@ def main(argv=None) -> int:
         print(json.dumps(worker(json.loads(a.worker))))
         return 0
     sys.path.insert(0, str(ROOT))
-    from protocad_ros.precision import cpu_capability
+    from protocad_ros.model.precision import cpu_capability
 
     import torch
     print(f"machine: {os.cpu_count()} cores, torch {torch.__version__}, {a.threads} torch thread(s); "

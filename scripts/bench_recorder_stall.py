@@ -2,7 +2,7 @@
 """What a frozen recorder costs a lossless lock-step loop: time and memory, never a message.
 
 Each run: sim-bridge node (own process, lock-step, lossless) + a zero-action responder (an rclpy
-node in this process) + trainer.recorder (own process, default topics, KEEP_ALL readers), for
+node in this process) + trainer.nodes.recorder (own process, default topics, KEEP_ALL readers), for
 --steps agent steps. Without a stall, then with the recorder frozen (SIGSTOP) for --stall-s
 seconds after --freeze-at steps, alternately (--runs pairs). Printed per run:
 
@@ -98,8 +98,8 @@ def steps_at(samples: list[tuple[float, int]], t: float) -> int:
 
 def run(args, logdir: Path, stall: bool, index: int) -> dict:
     from ros_helpers import Probe, Responder, wait_until
-    from sim_bridge import topics as T
-    from trainer import mcap_io as M
+    from sim_bridge.contract import topics as T
+    from trainer.bag import mcap_io as M
 
     ns = f"/stall{index}"
     bag = logdir / f"bag{index}"
@@ -108,13 +108,13 @@ def run(args, logdir: Path, stall: bool, index: int) -> dict:
     # Each run in its own namespace, with its own clock (a bridge left over must not count).
     clock = f"{ns}/clock"
     topics = [T.topic_name(ns, rel) for rel in (T.IMAGE, T.STEP_INFO, T.CONTEXT, T.ACTION)] + [clock]
-    rec = spawn(f"recorder{index}", logdir, "-m", "trainer.recorder", "-o", str(bag), *topics,
+    rec = spawn(f"recorder{index}", logdir, "-m", "trainer.nodes.recorder", "-o", str(bag), *topics,
                 "--status-interval", "0.2", "--queue-depth", str(args.queue_depth))
     bridge = None
     samples: list[tuple[float, float]] = []
     try:
         wait_until(lambda: "recording to" in (logdir / f"recorder{index}.log").read_text(), 120, "the recorder")
-        bridge = spawn(f"bridge{index}", logdir, "-m", "sim_bridge.node", "--ros-args", "-p", f"task:={TASK}",
+        bridge = spawn(f"bridge{index}", logdir, "-m", "sim_bridge.bridge.node", "--ros-args", "-p", f"task:={TASK}",
                        "-p", "seed:=1", "-p", "min_subscribers:=2", "-p", f"episode_length:={args.steps + 10}",
                        "-r", f"__ns:={ns}", "-r", f"/clock:={clock}")
         wait_until(lambda: len(resp.steps) >= 1, 180, "the first step")

@@ -72,13 +72,13 @@ def direct(args, with_policy: bool) -> tuple[float, list[float]]:
     """(agent steps/s, Policy.act latencies in s) with the env in this process."""
     import torch
 
-    from sim_bridge.envs import ContextDMCEnv
+    from sim_bridge.sim.envs import ContextDMCEnv
 
     torch.set_num_threads(args.threads)
     policy = None
     if with_policy:
-        from protocad_ros.agents import make_agent
-        from protocad_ros.config import make_config
+        from protocad_ros.model.agents import make_agent
+        from protocad_ros.model.config import make_config
         from protocad_ros.policy import Policy
 
         env0 = ContextDMCEnv(args.task, seed=args.seed)
@@ -126,7 +126,7 @@ def echo_node(ns: str, image_only: bool) -> None:
     from rclpy.node import Node
     from sensor_msgs.msg import Image, JointState
 
-    from sim_bridge import qos, topics
+    from sim_bridge.contract import qos, topics
 
     rclpy.init()
     node = Node("bench_echo", namespace=ns)
@@ -160,7 +160,7 @@ def floor(args, logdir: Path, image_only: bool = False) -> dict[str, float]:
     from sensor_msgs.msg import Image, JointState
 
     from ros_helpers import wait_until
-    from sim_bridge import qos, topics
+    from sim_bridge.contract import qos, topics
 
     ns = "/bench_floor"
     ctx = rclpy.Context()
@@ -253,7 +253,7 @@ def ros_loop(args, with_policy: bool, logdir: Path, acks: bool) -> dict[str, flo
     from sensor_msgs.msg import JointState
 
     from ros_helpers import Probe, Responder, wait_until
-    from sim_bridge import qos, topics
+    from sim_bridge.contract import qos, topics
 
     ns = ("/bench_policy" if with_policy else "/bench_zero") + ("_acked" if acks else "")
     probe = Probe("bench_probe", namespace=ns)
@@ -265,7 +265,7 @@ def ros_loop(args, with_policy: bool, logdir: Path, acks: bool) -> dict[str, flo
     procs = []
     try:
         if with_policy:
-            procs.append(spawn("policy" + ns.replace("/", "_"), "-m", "protocad_ros.policy_node", "--ros-args",
+            procs.append(spawn("policy" + ns.replace("/", "_"), "-m", "protocad_ros.node.policy_node", "--ros-args",
                                "-p", f"task:={args.task}", "-p", f"preset:={args.preset}",
                                "-p", f"num_threads:={args.threads}",
                                "-p", "diagnostics_period_s:=0.5", "-r", f"__ns:={ns}",
@@ -273,11 +273,11 @@ def ros_loop(args, with_policy: bool, logdir: Path, acks: bool) -> dict[str, flo
             wait_until(lambda: probe.node.count_publishers(probe.topic(topics.ACTION)) > 0, 180,
                        "the policy node")
         else:
-            from sim_bridge.contexts import task_actuators
+            from sim_bridge.contract.contexts import task_actuators
 
             zero = np.zeros(len(task_actuators(args.task)))
             Responder(probe, lambda info: zero, ns=ns)
-        bridge = spawn("bridge" + ns.replace("/", "_"), "-m", "sim_bridge.node", "--ros-args",
+        bridge = spawn("bridge" + ns.replace("/", "_"), "-m", "sim_bridge.bridge.node", "--ros-args",
                        "-p", f"task:={args.task}", "-p", f"seed:={args.seed}",
                        "-p", f"episode_length:={args.length}",
                        "-p", f"max_episodes:={args.episodes}",

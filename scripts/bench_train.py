@@ -14,7 +14,7 @@ kernel selection, allocator growth) are not timed but do count for peak memory.
     python scripts/bench_train.py --only-dreamerv3 --precision float32 --flops   # + FLOPs, roof
 
 Precision: `--precision auto` (default) times bfloat16 autocast only where the device has bf16
-arithmetic (protocad_ros/precision.py) and float32 elsewhere; `--precision float32` runs float32
+arithmetic (protocad_ros/model/precision.py) and float32 elsewhere; `--precision float32` runs float32
 only, for every row (the --dreamerv3-sizes rows included). The CPU capability is printed first.
 
 Peer reference: NM512/dreamerv3-torch dmc_vision, timed side by side on the same machine
@@ -55,8 +55,8 @@ def worker(spec: dict) -> dict:
 
     torch.set_num_threads(spec["threads"])
     sys.path.insert(0, str(ROOT))
-    from protocad_ros.agent import Agent
-    from protocad_ros.config import make_config
+    from protocad_ros.model.agent import Agent
+    from protocad_ros.model.config import make_config
 
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     overrides = dict(spec["overrides"])
@@ -218,7 +218,7 @@ def main(argv=None) -> int:
         raise KeyboardInterrupt  # the running worker instead of orphaning it
 
     signal.signal(signal.SIGTERM, _interrupt)
-    from protocad_ros.precision import cpu_capability, resolve_precision
+    from protocad_ros.model.precision import cpu_capability, resolve_precision
 
     precisions = list(dict.fromkeys(resolve_precision(p, args.device).precision for p in args.precision))
     specs = []

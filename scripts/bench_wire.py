@@ -30,11 +30,11 @@ def main(argv=None) -> int:
     sys.path.insert(0, str(ROOT))
     import numpy as np
 
-    from protocad_ros.precision import cpu_capability
-    from sim_bridge import topics as T
-    from sim_bridge.envs import ContextDMCEnv
-    from trainer import mcap_io
-    from trainer.online import EpisodeBagWriter
+    from protocad_ros.model.precision import cpu_capability
+    from sim_bridge.contract import topics as T
+    from sim_bridge.sim.envs import ContextDMCEnv
+    from trainer.bag import mcap_io
+    from trainer.research.online import EpisodeBagWriter
 
     print(f"machine: {os.cpu_count()} cores, CPU capability {cpu_capability()}; load average "
           f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}")

@@ -95,7 +95,7 @@ def main(argv=None) -> int:
     left = lambda: a.deadline - (time.monotonic() - t_start)  # noqa: E731
     steps = []
 
-    probe = ("import os, torch; from protocad_ros.precision import cpu_capability; "
+    probe = ("import os, torch; from protocad_ros.model.precision import cpu_capability; "
              "print('torch', torch.__version__, 'cuda', torch.version.cuda); "
              "print('cores', os.cpu_count(), 'CPU capability', cpu_capability()); "
              "[print('gpu', i, torch.cuda.get_device_name(i), "
@@ -117,7 +117,7 @@ def main(argv=None) -> int:
 
     budget = max(30.0, left() - a.final_reserve)
     tasks, seeds = (a.tasks[:1], a.seeds[:1]) if a.tiny else (a.tasks, a.seeds)
-    compare = [py, "-m", "trainer.compare", "--tasks", *tasks, "--variants", "protocad", "dreamer",
+    compare = [py, "-m", "trainer.research.compare", "--tasks", *tasks, "--variants", "protocad", "dreamer",
                "--seeds", *map(str, seeds), "--env-steps", "400" if a.tiny else "2000000",
                "--wall-budget", f"{budget:.0f}", "--jobs", str(a.jobs), "--threads", "1",
                "--devices", device, "--out", str(out / "compare"), "--status-every", "60", "--"]

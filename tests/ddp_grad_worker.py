@@ -8,9 +8,9 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from protocad_ros.agents import make_agent
-from protocad_ros.config import Config
-from trainer import distributed
+from protocad_ros.model.agents import make_agent
+from protocad_ros.model.config import Config
+from trainer.learn import distributed
 
 
 def main(work: str) -> int:

@@ -18,7 +18,7 @@ from rclpy.node import Node
 from sensor_msgs.msg import Image, JointState
 
 from conftest import wait_for
-from sim_bridge import qos, topics
+from sim_bridge.contract import qos, topics
 
 NS = topics.DEFAULT_NAMESPACE
 

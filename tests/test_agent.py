@@ -2,7 +2,7 @@
 gradient routing between world model / context module / actor / critic, and the Policy API.
 
 Sizes are the 'small' preset shrunk further so the whole file runs in well under a minute on
-one core. Frames are real MuJoCo renders (pendulum swingup, EGL) from sim_bridge.envs.
+one core. Frames are real MuJoCo renders (pendulum swingup, EGL) from sim_bridge.sim.envs.
 """
 from __future__ import annotations
 
@@ -13,8 +13,8 @@ import numpy as np
 import pytest
 import torch
 
-from protocad_ros.agent import Agent
-from protocad_ros.config import WORLD_MODEL_VARIANTS, Config, ConfigError, make_config
+from protocad_ros.model.agent import Agent
+from protocad_ros.model.config import WORLD_MODEL_VARIANTS, Config, ConfigError, make_config
 from protocad_ros.policy import ContextFeatures, Policy
 from protocad_ros.policy import Policy as _Policy
 
@@ -38,7 +38,7 @@ def tiny(variant: str = "protocad", **kw) -> Config:
 
 def render_batch(task: str = "pendulum_swingup", batch: int = B, length: int = T, seed: int = 0):
     """Real rendered frames with random actions, in the training-batch layout."""
-    from sim_bridge.envs import ContextDMCEnv
+    from sim_bridge.sim.envs import ContextDMCEnv
 
     rng = np.random.default_rng(seed)
     env = ContextDMCEnv(task, seed=seed)
@@ -387,7 +387,7 @@ def test_config_dataclasses_are_typed():
 def test_one_override_path_for_make_config_files_and_set(tmp_path):
     """make_config, a config file and --set all go through config.apply_overrides: bare keys
     resolve to the one section that has them, ambiguous ones are refused with the choices."""
-    from protocad_ros.config import apply_overrides
+    from protocad_ros.model.config import apply_overrides
     from trainer.runs import build_config
 
     cfg = make_config("pendulum_swingup", "small")

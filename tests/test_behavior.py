@@ -7,9 +7,9 @@ import math
 import pytest
 import torch
 
-from protocad_ros.behavior import ActorCritic, ImagineFns, lambda_return
-from protocad_ros.config import BehaviorConfig
-from protocad_ros.networks import TanhNormal, TruncNormal
+from protocad_ros.model.behavior import ActorCritic, ImagineFns, lambda_return
+from protocad_ros.model.config import BehaviorConfig
+from protocad_ros.model.networks import TanhNormal, TruncNormal
 
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -172,8 +172,8 @@ def test_slow_critic_schedule():
 
 # ---- RSSM pieces used by imagination ----------------------------------------------------------
 def test_categorical_latent_sampling_and_straight_through():
-    from protocad_ros.config import WorldModelConfig
-    from protocad_ros.rssm import RSSM
+    from protocad_ros.model.config import WorldModelConfig
+    from protocad_ros.model.rssm import RSSM
 
     rssm = RSSM(1, 8, WorldModelConfig(stoch=2, discrete=4, unimix=0.0))
     p = torch.tensor([0.1, 0.2, 0.3, 0.4])
@@ -186,8 +186,8 @@ def test_categorical_latent_sampling_and_straight_through():
 
 
 def test_kl_balancing_and_free_nats():
-    from protocad_ros.config import WorldModelConfig
-    from protocad_ros.rssm import RSSM
+    from protocad_ros.model.config import WorldModelConfig
+    from protocad_ros.model.rssm import RSSM
 
     rssm = RSSM(1, 8, WorldModelConfig(stoch=3))
     post = {"mean": torch.zeros(4, 3, requires_grad=True), "std": torch.ones(4, 3)}

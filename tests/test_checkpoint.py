@@ -11,10 +11,10 @@ import pytest
 import torch
 
 from protocad_ros import checkpoint as ckpt_mod
-from protocad_ros.agent import Agent
+from protocad_ros.model.agent import Agent
 from protocad_ros.checkpoint import (CONFIG_NAME, CheckpointError, load_checkpoint,
                                      read_checkpoint, restore_checkpoint, save_checkpoint)
-from protocad_ros.config import Config, make_config
+from protocad_ros.model.config import Config, make_config
 from protocad_ros.policy import Policy
 
 T = 8
@@ -36,7 +36,7 @@ def tiny(variant="protocad", **kw):
 @pytest.fixture(scope="module")
 def frames():
     """Real cheetah frames (2 sequences x T steps) with the random actions that produced them."""
-    from sim_bridge.envs import ContextDMCEnv
+    from sim_bridge.sim.envs import ContextDMCEnv
 
     rng = np.random.default_rng(0)
     env = ContextDMCEnv("cheetah_run", seed=1)
@@ -259,8 +259,8 @@ def test_interrupted_write_leftovers_are_removed_at_the_next_start(tmp_path):
     import sys
 
     from protocad_ros.atomic import remove_stale_temporaries
-    from protocad_ros.config import make_config
-    from trainer.train import Trainer
+    from protocad_ros.model.config import make_config
+    from trainer.learn.train import Trainer
 
     ckpt = tmp_path / "checkpoints" / "latest.pt"
     code = ("import os, signal, sys; from protocad_ros.atomic import atomic_open\n"
@@ -283,8 +283,8 @@ def test_full_disk_checkpoint_write_is_a_clear_error_and_the_last_good_one_stays
     import subprocess
 
     from protocad_ros.checkpoint import load_checkpoint
-    from protocad_ros.config import make_config
-    from trainer.train import CheckpointWriteError, Trainer
+    from protocad_ros.model.config import make_config
+    from trainer.learn.train import CheckpointWriteError, Trainer
 
     mnt = tmp_path / "disk"
     mnt.mkdir()

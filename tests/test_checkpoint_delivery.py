@@ -23,11 +23,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from std_msgs.msg import String, UInt8MultiArray
 
-from protocad_ros.checkpoint_receiver import CheckpointReceiver, manifest_of
+from protocad_ros.node.checkpoint_receiver import CheckpointReceiver, manifest_of
 from protocad_ros.checkpoint_signing import (generate_keypair, load_private_key, next_seq,
                                              sign_file, sign_manifest)
 from ros_helpers import Probe, wait_until
-from sim_bridge import qos, topics
+from sim_bridge.contract import qos, topics
 from test_policy_node import START, TASK, Feeder, _save, policy_args
 
 TIMEOUT_S = 5.0   # the policy's checkpoint_transfer_timeout_s: how long a version may be partial
@@ -44,7 +44,7 @@ class FakeCheckpointPublisher:
     """A FAKE sender, named as such: a healthy DDS link neither corrupts nor drops a reliable
     chunk, so the faults a receiver must survive (a flipped byte, a short chunk, bytes that are
     no checkpoint, a sender that stops half-way) are made here. It speaks the publisher's
-    protocol (sim_bridge.topics helpers, the same QoS) but announces whatever it is told."""
+    protocol (sim_bridge.contract.topics helpers, the same QoS) but announces whatever it is told."""
 
     def __init__(self, probe: Probe):
         self.probe = probe
@@ -85,7 +85,7 @@ def test_new_versions_reach_a_policy_that_sees_only_the_topic_and_bad_ones_are_r
         spawn, probe, tmp_path):
     learner = tmp_path / "learner" / "agent.pt"
     _save(learner, 5, seed=1)
-    publisher = spawn("publisher", "-m", "trainer.checkpoint_publisher", "--ros-args",
+    publisher = spawn("publisher", "-m", "trainer.nodes.checkpoint_publisher", "--ros-args",
                       "-p", f"checkpoint:={learner}", "-p", "poll_s:=0.1",
                       "-p", "diagnostics_period_s:=0.1")
     wait_until(lambda: probe.node_diag("checkpoint_publisher").get("versions_announced") == "1",
@@ -197,10 +197,10 @@ WALKER = "walker_walk"   # 6-d actions, as cheetah_run: another task of the same
 
 def _save_task(path, task: str, updates: int, seed: int = 0) -> bytes:
     """A small-preset checkpoint of `task`, written as the trainer writes it; its bytes."""
-    from protocad_ros.agents import make_agent
+    from protocad_ros.model.agents import make_agent
     from protocad_ros.checkpoint import save_checkpoint
-    from protocad_ros.config import make_config
-    from sim_bridge.contexts import task_actuators
+    from protocad_ros.model.config import make_config
+    from sim_bridge.contract.contexts import task_actuators
 
     agent = make_agent(make_config(task, "small", **{"train.seed": seed}), len(task_actuators(task)))
     agent.updates.fill_(updates)
@@ -234,7 +234,7 @@ def _write_signed(path: Path, data: bytes, key, seq: int) -> None:
 
 
 def _keyed_policy_args(served, pub, *extra: str) -> list[str]:
-    args = ["-m", "protocad_ros.policy_node", "--ros-args", "-p", f"task:={WALKER}",
+    args = ["-m", "protocad_ros.node.policy_node", "--ros-args", "-p", f"task:={WALKER}",
             "-p", "diagnostics_period_s:=0.1", "-p", "num_threads:=1", "-p", f"checkpoint:={served}",
             "-p", "checkpoint_topic:=checkpoint", "-p", f"trusted_keys:={pub}",
             "-p", f"checkpoint_transfer_timeout_s:={TIMEOUT_S}"]
@@ -254,7 +254,7 @@ def test_with_trusted_keys_only_the_learners_newer_versions_are_served(spawn, pr
     path = tmp_path / "learner" / "agent.pt"
     v1 = _save_task(path, WALKER, 5, seed=1)
     announcements = probe.record(topics.CHECKPOINT, String, qos.announcement_qos())
-    publisher = spawn("publisher", "-m", "trainer.checkpoint_publisher", "--ros-args",
+    publisher = spawn("publisher", "-m", "trainer.nodes.checkpoint_publisher", "--ros-args",
                       "-p", f"checkpoint:={path}", "-p", "poll_s:=0.1", "-p", "diagnostics_period_s:=0.1",
                       "-p", f"signing_key:={learner_key}")
     robot = tmp_path / "robot"
@@ -405,7 +405,7 @@ def test_with_trusted_keys_only_the_learners_newer_versions_are_served(spawn, pr
 
 
 def test_start_without_a_file_to_work_with_is_a_configuration_error(spawn):
-    publisher = spawn("publisher", "-m", "trainer.checkpoint_publisher")
+    publisher = spawn("publisher", "-m", "trainer.nodes.checkpoint_publisher")
     policy = spawn("policy", *policy_args("checkpoint_topic:=checkpoint"))
     for proc, says in ((publisher, "checkpoint is required"), (policy, "needs checkpoint:=FILE")):
         wait_until(lambda: not proc.alive(), START, f"{proc.args} to exit")
@@ -435,7 +435,7 @@ def test_announcement_round_trip_keeps_every_field():
 
 def test_docs_cover_every_publisher_parameter_and_counter():
     from conftest import ROOT
-    from trainer.checkpoint_publisher import COUNTERS, PARAMS
+    from trainer.nodes.checkpoint_publisher import COUNTERS, PARAMS
 
     doc = (ROOT / "msgs_docs" / "checkpoint_publisher.md").read_text()
     missing = [n for n in [p.name for p in PARAMS] + list(COUNTERS) if f"`{n}`" not in doc]
@@ -448,7 +448,7 @@ def receiving_policy(tmp_path_factory):
     import rclpy
     from rclpy.parameter import Parameter
 
-    from protocad_ros.policy_node import PolicyNode
+    from protocad_ros.node.policy_node import PolicyNode
 
     ctx = rclpy.Context()
     rclpy.init(context=ctx)

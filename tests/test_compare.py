@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 
 from conftest import ROOT, wait_for
-from trainer import results as R
+from trainer.research import results as R
 
 # 4 runs of 100-agent-step episodes; 2 test contexts, 1 episode each, so a run takes seconds.
 TINY = ["--preset", "small", "--time-limit", "200", "--prefill-episodes", "1", "--updates-per-episode", "2",
@@ -24,7 +24,7 @@ TINY = ["--preset", "small", "--time-limit", "200", "--prefill-episodes", "1", "
 
 
 def grid_args(out: Path) -> list[str]:
-    return ["-m", "trainer.compare", "--tasks", "pendulum_swingup", "--variants", "protocad", "dreamer",
+    return ["-m", "trainer.research.compare", "--tasks", "pendulum_swingup", "--variants", "protocad", "dreamer",
             "--seeds", "0", "1", "--env-steps", "800", "--jobs", "4", "--out", str(out),
             "--status-every", "5", "--", *TINY]
 
@@ -144,12 +144,12 @@ def test_readme_results_section_regenerates_byte_identically_from_the_committed_
 def test_compare_help_and_bad_report_are_clear(tmp_path):
     import subprocess
 
-    h = subprocess.run([sys.executable, "-m", "trainer.compare", "--help"], capture_output=True, text=True,
+    h = subprocess.run([sys.executable, "-m", "trainer.research.compare", "--help"], capture_output=True, text=True,
                        cwd=ROOT, timeout=120)
     assert h.returncode == 0 and "--wall-budget" in h.stdout and "--anchor-seeds" in h.stdout
     bad = tmp_path / "results.json"
     bad.write_text(json.dumps({"schema": "protocad-compare/1"}))
-    r = subprocess.run([sys.executable, "-m", "trainer.compare", "--report", str(bad)], capture_output=True,
+    r = subprocess.run([sys.executable, "-m", "trainer.research.compare", "--report", str(bad)], capture_output=True,
                        text=True, cwd=ROOT, timeout=120)
     assert r.returncode == 2 and "does not match protocad-compare/1" in r.stderr
 
@@ -169,12 +169,12 @@ def test_a_report_writes_only_where_it_is_told(tmp_path):
     src = tmp_path / "results"
     src.mkdir()
     shutil.copyfile(ROOT / "msgs_docs" / "results" / "pendulum_cpu.json", src / "results.json")
-    r = subprocess.run([sys.executable, "-m", "trainer.compare", "--report", str(src / "results.json")],
+    r = subprocess.run([sys.executable, "-m", "trainer.research.compare", "--report", str(src / "results.json")],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 0, r.stderr
     assert sorted(p.name for p in src.iterdir()) == ["results.json"]     # nothing beside the json
     assert "plot: not written (--image PNG)" in r.stdout
-    r = subprocess.run([sys.executable, "-m", "trainer.compare", "--report", str(src / "results.json"),
+    r = subprocess.run([sys.executable, "-m", "trainer.research.compare", "--report", str(src / "results.json"),
                         "--image", str(tmp_path / "c.png")], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and (tmp_path / "c.png").stat().st_size > 0
 
@@ -182,11 +182,11 @@ def test_a_report_writes_only_where_it_is_told(tmp_path):
 def test_a_grid_whose_parent_is_killed_twice_resumes_to_completion(tmp_path, spawn):
     """SIGKILL of protocad-compare (its runs die with it) twice in a row, once before any
     checkpoint: the same command then finishes every run, counters equal to their bags."""
-    from trainer.dataset import MCAPDataset
-    from trainer.online import data_counts
+    from trainer.data.dataset import MCAPDataset
+    from trainer.research.online import data_counts
 
     out = tmp_path / "grid"
-    args = ["-m", "trainer.compare", "--tasks", "pendulum_swingup", "--variants", "dreamer", "--seeds", "0", "1",
+    args = ["-m", "trainer.research.compare", "--tasks", "pendulum_swingup", "--variants", "dreamer", "--seeds", "0", "1",
             "--env-steps", "500", "--jobs", "2", "--out", str(out), "--status-every", "5", "--",
             *TINY, "--checkpoint-every", "1000", "--time-limit", "100"]
     run_dirs = [out / "pendulum_swingup" / "dreamer" / f"seed{s}" for s in (0, 1)]

@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from protocad_ros.config import (PRESETS, ConfigError, check_train_memory, estimate_train_memory,
+from protocad_ros.model.config import (PRESETS, ConfigError, check_train_memory, estimate_train_memory,
                                  make_config)
 
 
@@ -53,7 +53,7 @@ def test_a_config_too_large_to_train_is_refused_before_allocating_and_the_limit_
                                          ("bad.yaml", "not valid YAML (line 2")])
 def test_a_bad_config_file_is_one_line_and_exit_2(tmp_path, config, says):
     (tmp_path / "bad.yaml").write_text("train: [1\n")
-    r = subprocess.run([sys.executable, "-m", "trainer.train", "--config", str(tmp_path / config),
+    r = subprocess.run([sys.executable, "-m", "trainer.learn.train", "--config", str(tmp_path / config),
                         "--logs", str(tmp_path), "--run-dir", str(tmp_path / "run")],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2, r.stderr

@@ -1,4 +1,4 @@
-"""trainer.dataset on real MCAP bags: episode rebuild, the reported problems, the step convention,
+"""trainer.data.dataset on real MCAP bags: episode rebuild, the reported problems, the step convention,
 window sampling, the on-disk store and its reuse, truncated files."""
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import shutil
 import numpy as np
 import pytest
 
-from trainer.dataset import DatasetError, MCAPDataset, TopicMap, find_sources
+from trainer.data.dataset import DatasetError, MCAPDataset, TopicMap, find_sources
 from trainer_bags import DT_NS, answer, make_steps, write_bag
 
 
@@ -106,7 +106,7 @@ def test_store_is_on_disk_uint8_reused_and_appendable(tmp_path):
 
 
 def test_truncated_log_yields_every_complete_message_and_a_clear_report(tmp_path):
-    from trainer import mcap_io
+    from trainer.bag import mcap_io
 
     steps = make_steps(3, 40)
     bag = write_bag(tmp_path / "bag", steps, chunk_size=64 * 1024, compression="none")
@@ -161,7 +161,7 @@ def test_dataset_cli_prints_the_report(tmp_path):
     from trainer_bags import run_cli
 
     bag = write_bag(tmp_path / "bag", make_steps(2, 6), extra_topics={"/x": 1})
-    r = run_cli("trainer.dataset", bag, "--seq-len", "4", "--cache-dir", tmp_path / "c", "--json", tmp_path / "r.json")
+    r = run_cli("trainer.data.dataset", bag, "--seq-len", "4", "--cache-dir", tmp_path / "c", "--json", tmp_path / "r.json")
     assert r.returncode == 0, r.stderr
     assert "2 episodes" in r.stdout and "foreign topics" in r.stdout
     assert json.loads((tmp_path / "r.json").read_text())["steps"] == 12
@@ -172,7 +172,7 @@ def test_a_full_cache_disk_is_a_clear_error_and_skips_nothing(tmp_path):
     the partial cache entry is removed, and the bag is untouched."""
     import subprocess
 
-    from trainer.dataset import CacheWriteError, MCAPDataset
+    from trainer.data.dataset import CacheWriteError, MCAPDataset
 
     bag = write_bag(tmp_path / "bag", make_steps(2, 60))
     mnt = tmp_path / "cache_disk"
@@ -193,7 +193,7 @@ def test_a_full_cache_disk_is_a_clear_error_and_skips_nothing(tmp_path):
 def test_cache_budget_evicts_least_recently_used_bags_never_those_in_use(tmp_path):
     import os
 
-    from trainer.dataset import MCAPDataset, TopicMap, cache_key
+    from trainer.data.dataset import MCAPDataset, TopicMap, cache_key
 
     bags = [write_bag(tmp_path / f"bag{i}", make_steps(1, 40, first_episode=i)) for i in range(3)]
     cache = tmp_path / "cache"

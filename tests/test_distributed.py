@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 import torch
 
-from protocad_ros.agents import make_agent
+from protocad_ros.model.agents import make_agent
 from protocad_ros.checkpoint import load_checkpoint, read_checkpoint
-from protocad_ros.config import make_config
+from protocad_ros.model.config import make_config
 from test_agent import render_batch
-from trainer import distributed
+from trainer.learn import distributed
 from trainer_bags import TINY, make_steps, write_bag
 
 pytestmark = [pytest.mark.usefixtures("one_torch_thread"),
@@ -179,7 +179,7 @@ def test_a_killed_two_rank_run_resumes_with_two_ranks_and_with_one(bags, tmp_pat
     assert train_rows == sorted(set(train_rows))     # nothing logged twice across the kill
 
     # The same run on one process (any N resumes): rank 0's weights, fresh draws.
-    one = subprocess.run([sys.executable, "-m", "trainer.train", "--run-dir", str(run), "--resume",
+    one = subprocess.run([sys.executable, "-m", "trainer.learn.train", "--run-dir", str(run), "--resume",
                           "--updates", str(at_kill + 6), "--no-progress", "--threads", "1"],
                          capture_output=True, text=True, timeout=240, cwd=ROOT, env=ENV)
     assert one.returncode == 0, one.stdout + one.stderr
@@ -213,7 +213,7 @@ def test_protocad_online_on_two_ranks_collects_on_each_and_resumes_on_one(tmp_pa
     prints = json.loads(read_checkpoint(run / "checkpoints" / "latest.pt")["counters"]["rank_fingerprints"])
     assert prints[0] == prints[1]
     assert (run / "eval" / "final.json").exists()
-    one = subprocess.run([sys.executable, "-m", "trainer.online", "--run-dir", str(run), "--resume",
+    one = subprocess.run([sys.executable, "-m", "trainer.research.online", "--run-dir", str(run), "--resume",
                           "--env-steps", "1600", "--no-progress", "--threads", "1"],
                          capture_output=True, text=True, timeout=240, cwd=ROOT, env=ENV)
     assert one.returncode == 0, one.stdout + one.stderr

@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 import torch
 
-from protocad_ros.agents import make_agent
-from protocad_ros.augment import crop_images, random_crop
+from protocad_ros.model.agents import make_agent
+from protocad_ros.model.augment import crop_images, random_crop
 from protocad_ros.checkpoint import load_checkpoint, save_checkpoint
-from protocad_ros.config import ConfigError, make_config
-from protocad_ros.drq import (DrQAgent, soft_q_target, soft_update, temperature_loss,
+from protocad_ros.model.config import ConfigError, make_config
+from protocad_ros.model.drq import (DrQAgent, soft_q_target, soft_update, temperature_loss,
                               transitions)
 from protocad_ros.policy import Policy
 from test_agent import render_batch
@@ -190,7 +190,7 @@ def test_compare_runs_drq_online_and_protocad_train_learns_from_its_logs(tmp_pat
     and trains from them; protocad-train then continues from the same logs offline (DrQ is
     off-policy)."""
     out_dir = tmp_path / "grid"
-    cmd = [sys.executable, "-m", "trainer.compare", "--tasks", TASK, "--variants", "drq",
+    cmd = [sys.executable, "-m", "trainer.research.compare", "--tasks", TASK, "--variants", "drq",
            "--seeds", "0", "--env-steps", "800", "--jobs", "1", "--out", str(out_dir), "--",
            "--preset", "small", "--time-limit", "200", "--prefill-episodes", "2",
            "--updates-per-episode", "20", "--eval-every", "0", "--eval-episodes", "1", "--final-episodes", "1",
@@ -207,7 +207,7 @@ def test_compare_runs_drq_online_and_protocad_train_learns_from_its_logs(tmp_pat
     assert json.loads((run / "run.json").read_text())["result"]["status"] == "finished"
 
     offline = tmp_path / "offline"
-    cmd = [sys.executable, "-m", "trainer.train", "--logs", str(run / "bags"), "--task", TASK,
+    cmd = [sys.executable, "-m", "trainer.learn.train", "--logs", str(run / "bags"), "--task", TASK,
            "--variant", "drq", "--preset", "small", "--updates", "6", "--run-dir", str(offline),
            "--no-progress", "--set", "train.batch_size=32", "--cache-dir", str(tmp_path / "c")]
     out = subprocess.run(cmd, capture_output=True, text=True, timeout=300)

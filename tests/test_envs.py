@@ -1,4 +1,4 @@
-"""sim_bridge.contexts / sim_bridge.envs against real dm_control physics and EGL rendering.
+"""sim_bridge.contract.contexts / sim_bridge.sim.envs against real dm_control physics and EGL rendering.
 
 Scaling is checked by reading the physics model after reset() and comparing it with a fresh,
 unmodified suite.load() of the same task: the intended bodies/joints are default * value
@@ -12,8 +12,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sim_bridge.contexts import TASKS, get_task
-from sim_bridge.envs import ContextDMCEnv
+from sim_bridge.contract.contexts import TASKS, get_task
+from sim_bridge.sim.envs import ContextDMCEnv
 
 # The paper's appendix Table env_para and Table setting_k, typed in again on purpose.
 LINK_TRAIN = (0.75, 0.85, 1.00, 1.15, 1.25)
@@ -268,12 +268,12 @@ def test_fast_and_default_rendering_show_the_same_state(make_env):
 
 @pytest.mark.parametrize("task", sorted(TASKS))
 def test_stored_actuator_names_are_the_models_in_action_order(task):
-    """sim_bridge.contexts.ACTUATORS is read once from the suite's XML: it must stay the model's."""
+    """sim_bridge.contract.contexts.ACTUATORS is read once from the suite's XML: it must stay the model's."""
     import importlib.util
 
     import mujoco
 
-    from sim_bridge.contexts import task_actuators
+    from sim_bridge.contract.contexts import task_actuators
 
     spec = TASKS[task]
     root = list(importlib.util.find_spec("dm_control").submodule_search_locations)[0]
@@ -282,7 +282,7 @@ def test_stored_actuator_names_are_the_models_in_action_order(task):
 
 
 def test_scale_inertia_scales_the_inertia_of_the_scaled_bodies_too(reference):
-    from sim_bridge.envs import ContextDMCEnv
+    from sim_bridge.sim.envs import ContextDMCEnv
 
     ref = reference("pendulum_swingup")
     mask = np.isin(np.arange(ref.nbody), [ref.name2id(n, "body") for n in MASS_BODIES["pendulum"]])

@@ -7,7 +7,7 @@ import json
 import numpy as np
 import pytest
 
-from sim_bridge.contexts import TASKS
+from sim_bridge.contract.contexts import TASKS
 from trainer_bags import run_cli
 
 TINY_OVERRIDES = {"world_model.deter": 32, "world_model.hidden": 32, "world_model.stoch": 8,
@@ -17,16 +17,16 @@ TINY_OVERRIDES = {"world_model.deter": 32, "world_model.hidden": 32, "world_mode
 
 
 def tiny_checkpoint(path, task="pendulum_swingup", action_dim=1):
-    from protocad_ros.agent import Agent
+    from protocad_ros.model.agent import Agent
     from protocad_ros.checkpoint import save_checkpoint
-    from protocad_ros.config import make_config
+    from protocad_ros.model.config import make_config
 
     cfg = make_config(task, "small", "protocad", **TINY_OVERRIDES)
     return save_checkpoint(path, Agent(cfg, action_dim), {"env_steps": 1234})
 
 
 def test_select_contexts_subsets():
-    from trainer.evaluate import parse_context, select_contexts
+    from trainer.learn.evaluate import parse_context, select_contexts
 
     assert len(select_contexts("walker_walk")) == 64
     sub = select_contexts("walker_walk", max_contexts=5)   # the stratified subset: 5 m, 5 d values
@@ -40,7 +40,7 @@ def test_checkpoints_of_two_tasks_with_random_baseline(tmp_path):
     tiny_checkpoint(tmp_path / "pend" / "checkpoints" / "latest.pt")
     b = tiny_checkpoint(tmp_path / "hop.pt", task="hopper_stand", action_dim=4)
     out = tmp_path / "eval.json"
-    r = run_cli("trainer.evaluate", tmp_path / "pend", b, "--random", "--episodes", "2", "--max-contexts", "2",
+    r = run_cli("trainer.learn.evaluate", tmp_path / "pend", b, "--random", "--episodes", "2", "--max-contexts", "2",
                 "--time-limit", "10", "--workers", "0", "--json", out)
     assert r.returncode == 0, r.stdout + r.stderr
     txt = r.stdout
@@ -58,15 +58,15 @@ def test_checkpoints_of_two_tasks_with_random_baseline(tmp_path):
     s = d["summary"]
     assert s["mean_over_tasks"] == pytest.approx(np.mean(list(s["per_task"].values())))
     # bad input: a clear error, exit code 2
-    r = run_cli("trainer.evaluate", tmp_path / "nothing.pt")
+    r = run_cli("trainer.learn.evaluate", tmp_path / "nothing.pt")
     assert r.returncode == 2 and "does not exist" in r.stderr
     (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
-    r = run_cli("trainer.evaluate", tmp_path / "junk.pt", "--episodes", "1")
+    r = run_cli("trainer.learn.evaluate", tmp_path / "junk.pt", "--episodes", "1")
     assert r.returncode == 2 and "junk.pt" in r.stderr
 
 
 def test_random_baseline_in_worker_processes_matches_in_process(tmp_path):
-    from trainer.evaluate import evaluate_checkpoint
+    from trainer.learn.evaluate import evaluate_checkpoint
 
     kw = dict(task="pendulum_swingup", episodes=1, contexts=[{"m": 0.5}, {"m": 1.5}], seed=3, time_limit=30)
     a = evaluate_checkpoint(None, workers=0, **kw)
@@ -78,7 +78,7 @@ def test_random_baseline_in_worker_processes_matches_in_process(tmp_path):
 def test_through_ros_nodes(tmp_path):
     ck = tiny_checkpoint(tmp_path / "ck.pt")
     out = tmp_path / "ros.json"
-    r = run_cli("trainer.evaluate", ck, "--through-ros", "--ros-episodes", "2", "--episode-length", "10",
+    r = run_cli("trainer.learn.evaluate", ck, "--through-ros", "--ros-episodes", "2", "--episode-length", "10",
                 "--ros-dir", tmp_path / "ros", "--json", out, timeout=240)
     assert r.returncode == 0, r.stdout + r.stderr
     assert "through ROS" in r.stdout
@@ -90,7 +90,7 @@ def test_through_ros_nodes(tmp_path):
 
     # Without a total the bridge cycles through the split: every test context exactly once.
     out = tmp_path / "cycle.json"
-    r = run_cli("trainer.evaluate", ck, "--through-ros", "--episodes", "1", "--episode-length", "5",
+    r = run_cli("trainer.learn.evaluate", ck, "--through-ros", "--episodes", "1", "--episode-length", "5",
                 "--ros-dir", tmp_path / "ros_cycle", "--json", out, timeout=240)
     assert r.returncode == 0, r.stdout + r.stderr
     d = json.loads(out.read_text())["results"][0]

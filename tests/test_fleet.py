@@ -1,4 +1,4 @@
-"""A fleet through the Fast DDS Discovery Server (trainer/discovery.py): protocad-loop starts the
+"""A fleet through the Fast DDS Discovery Server (trainer/launch/discovery.py): protocad-loop starts the
 server on 127.0.0.1 as its first process, every node discovers through it (no multicast, no
 peer list), and training uses both actor groups' logs."""
 from __future__ import annotations
@@ -11,7 +11,7 @@ import pytest
 from conftest import wait_for
 from trainer_bags import TINY, check_robot_episodes, check_robots_recorded_and_trained, loop_failure, run_cli
 
-from trainer.discovery import free_port
+from trainer.launch.discovery import free_port
 
 ROBOTS = ["/protocad/robot0", "/protocad/robot1"]
 
@@ -34,7 +34,7 @@ def test_two_actor_groups_through_a_discovery_server(tmp_path, spawn):
     for w in (plain, super_client, control):
         wait_for(lambda w=w: "watching" in w.output() or not w.alive(), 60, f"{w.args} to start")
     run = tmp_path / "run"
-    r = run_cli("trainer.loop", "--task", "pendulum_swingup", *TINY, "--episode-length", "12", "--robots", "2",
+    r = run_cli("trainer.launch.loop", "--task", "pendulum_swingup", *TINY, "--episode-length", "12", "--robots", "2",
                 "--prefill-episodes", "2", "--cycles", "1", "--updates-per-episode", "2",
                 "--eval-episodes", "0", "--no-visualize", "--run-dir", run, "--start-discovery-server", server,
                 "--domain-id", os.environ["ROS_DOMAIN_ID"], "--no-progress", timeout=300)
@@ -58,7 +58,7 @@ def test_two_actor_groups_through_a_discovery_server(tmp_path, spawn):
 
 
 def test_bad_discovery_server_addresses_are_one_clear_line(capsys):
-    from trainer.loop import build_parser
+    from trainer.launch.loop import build_parser
 
     for args in (["--discovery-server", "localhost"], ["--discovery-server", "127.0.0.1:0"],
                  ["--discovery-server", ";"], ["--start-discovery-server", "somehost:11811"],
@@ -74,7 +74,7 @@ def test_bad_discovery_server_addresses_are_one_clear_line(capsys):
 
 
 def test_a_server_on_every_interface_is_warned_about():
-    from trainer.discovery import exposure_warning
+    from trainer.launch.discovery import exposure_warning
     for host in ("0.0.0.0", "::"):
         w = exposure_warning(host)
         assert w and host in w and "msgs_docs/security.md" in w and "actions" in w
@@ -87,9 +87,9 @@ def test_actor_groups_placed_like_on_other_machines(tmp_path, spawn):
     one actor group each, whose policy receives that checkpoint over ROS into its own file
     (no access to the learner's directory) and serves it before its bridge steps; the bag holds
     both robots' episodes and protocad-train learns from both."""
-    from protocad_ros.agents import make_agent
+    from protocad_ros.model.agents import make_agent
     from protocad_ros.checkpoint import save_checkpoint
-    from protocad_ros.config import make_config
+    from protocad_ros.model.config import make_config
 
     learner = tmp_path / "learner_ckpt" / "latest.pt"
     agent = make_agent(make_config("pendulum_swingup", "small"), 1)
@@ -99,14 +99,14 @@ def test_actor_groups_placed_like_on_other_machines(tmp_path, spawn):
     port = free_port()
     dom = ["--domain-id", os.environ["ROS_DOMAIN_ID"]]
     bag = tmp_path / "bags" / "session1"
-    a = spawn("machine_a", "-m", "trainer.fleet", "--start-discovery-server", str(port), "--robots", "2",
+    a = spawn("machine_a", "-m", "trainer.launch.fleet", "--start-discovery-server", str(port), "--robots", "2",
               "--no-actors", "--record", str(bag), "--log-dir", str(tmp_path / "logs_a"),
               "--publish-checkpoint", str(learner), "--checkpoint-topic", topic, *dom)
     wait_for(lambda: f"publishing {learner} on {topic}" in a.output() or not a.alive(), 90,
              "machine A's recorder and checkpoint publisher")
     assert a.alive(), a.output()
     own = {m: tmp_path / f"machine_{m}" / "policy.pt" for m in "bc"}
-    groups = [spawn(f"machine_{m}", "-m", "trainer.fleet", "--discovery-server", f"127.0.0.1:{port}",
+    groups = [spawn(f"machine_{m}", "-m", "trainer.launch.fleet", "--discovery-server", f"127.0.0.1:{port}",
                     "--robots", "1", "--first-robot", str(i), "--episodes", "1", "--episode-length", "12",
                     "--checkpoint", str(own[m]), "--checkpoint-topic", topic, "--wait-for-checkpoint",
                     "--log-dir", str(tmp_path / f"logs_{m}"), *dom) for i, m in enumerate("bc")]
@@ -120,7 +120,7 @@ def test_actor_groups_placed_like_on_other_machines(tmp_path, spawn):
     assert a.stop() == 0, a.output()
     assert "exit codes: recorder 0, checkpoint_publisher 0, discovery_server 0" in a.output(), a.output()
     check_robot_episodes(bag, ROBOTS, episode_length=12)
-    t = run_cli("trainer.train", "--logs", bag.parent, "--namespace", *ROBOTS, "--task", "pendulum_swingup",
+    t = run_cli("trainer.learn.train", "--logs", bag.parent, "--namespace", *ROBOTS, "--task", "pendulum_swingup",
                 *TINY, "--updates", "1", "--run-dir", tmp_path / "learner", "--cache-dir", tmp_path / "cache",
                 timeout=300)
     assert t.returncode == 0, t.stdout + t.stderr
@@ -130,12 +130,12 @@ def test_a_fleet_profile_allows_the_fleet_interface_beside_loopback(tmp_path):
     import subprocess
     import sys
 
-    from trainer.discovery import fleet_profile
+    from trainer.launch.discovery import fleet_profile
     text = fleet_profile(["10.0.0.5"])
     assert "<address>127.0.0.1</address><address>10.0.0.5</address>" in text
-    r = subprocess.run([sys.executable, "-m", "trainer.discovery", "--print-profile", "10.0.0.5"],
+    r = subprocess.run([sys.executable, "-m", "trainer.launch.discovery", "--print-profile", "10.0.0.5"],
                        capture_output=True, text=True, timeout=60)
     assert r.returncode == 0 and r.stdout == text
-    bad = subprocess.run([sys.executable, "-m", "trainer.discovery", "--print-profile", "eth0"],
+    bad = subprocess.run([sys.executable, "-m", "trainer.launch.discovery", "--print-profile", "eth0"],
                          capture_output=True, text=True, timeout=60)
     assert bad.returncode == 2 and len(bad.stderr.strip().splitlines()) == 1

@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 from sensor_msgs.msg import Image, JointState
 
 from ros_helpers import Probe, wait_until
-from sim_bridge import qos, topics
+from sim_bridge.contract import qos, topics
 
 NS = "/fuzz"
 FUZZ = settings(max_examples=150, deadline=None, suppress_health_check=list(HealthCheck),
@@ -98,7 +98,7 @@ def in_process(node):
 
 @pytest.fixture(scope="module")
 def policy_node(ros_context):
-    from protocad_ros.policy_node import PolicyNode
+    from protocad_ros.node.policy_node import PolicyNode
 
     yield from in_process(PolicyNode(namespace=NS, context=ros_context, parameter_overrides=overrides(
         task="pendulum_swingup", num_threads=1)))
@@ -106,7 +106,7 @@ def policy_node(ros_context):
 
 @pytest.fixture(scope="module")
 def bridge_node(ros_context):
-    from sim_bridge.node import SimBridgeNode
+    from sim_bridge.bridge.node import SimBridgeNode
 
     # min_subscribers: it never starts stepping; only its callbacks are driven here.
     yield from in_process(SimBridgeNode(namespace=NS, context=ros_context, parameter_overrides=overrides(
@@ -115,7 +115,7 @@ def bridge_node(ros_context):
 
 @pytest.fixture(scope="module")
 def recorder_node(ros_context, tmp_path_factory):
-    from trainer.recorder import RecorderNode
+    from trainer.nodes.recorder import RecorderNode
 
     node = RecorderNode(output=str(tmp_path_factory.mktemp("fuzzbag") / "bag"), namespace=NS,
                         context=ros_context)
@@ -220,7 +220,7 @@ def test_hostile_inputs_over_dds_leave_the_policy_process_up_and_counted(spawn):
     try:
         pub_image = probe.publisher(topics.IMAGE, Image, qos.observation_qos())
         pub_info = probe.publisher(topics.STEP_INFO, JointState, qos.observation_qos())
-        policy = spawn("policy", "-m", "protocad_ros.policy_node", "--ros-args", "-p", "task:=pendulum_swingup",
+        policy = spawn("policy", "-m", "protocad_ros.node.policy_node", "--ros-args", "-p", "task:=pendulum_swingup",
                        "-p", "diagnostics_period_s:=0.1", "-p", "num_threads:=1")
         wait_until(lambda: pub_image.get_subscription_count() >= 1 and pub_info.get_subscription_count() >= 1,
                    120, "the policy's subscriptions")
@@ -254,7 +254,7 @@ def test_a_flood_is_accounted_for_answered_plus_lost_equals_published(spawn):
         pub_image = probe.publisher(topics.IMAGE, Image, qos.observation_qos())
         pub_info = probe.publisher(topics.STEP_INFO, JointState, qos.observation_qos())
         answers = probe.record(topics.ACTION, JointState, qos.action_qos())
-        policy = spawn("policy", "-m", "protocad_ros.policy_node", "--ros-args", "-p", "task:=pendulum_swingup",
+        policy = spawn("policy", "-m", "protocad_ros.node.policy_node", "--ros-args", "-p", "task:=pendulum_swingup",
                        "-p", "diagnostics_period_s:=0.1", "-p", "num_threads:=1")
         wait_until(lambda: pub_image.get_subscription_count() >= 1 and pub_info.get_subscription_count() >= 1
                    and answers.matched() >= 1, 120, "the policy's subscriptions")

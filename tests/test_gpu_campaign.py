@@ -11,7 +11,7 @@ import sys
 import pytest
 
 from conftest import ROOT
-from trainer import results as R
+from trainer.research import results as R
 
 GPU_MACHINE_LACKS = ("rclpy,rosidl_runtime_py,rosidl_parser,ament_index_python,sensor_msgs,std_msgs,"
                      "rosgraph_msgs,builtin_interfaces,diagnostic_msgs,rerun,jsonschema")

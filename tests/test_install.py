@@ -176,8 +176,8 @@ def test_the_launch_file_is_installed_and_names_real_parameters():
     tree = ast.parse(LAUNCH_FILE.read_text())                         # valid Python without launch
     params = {k.value for node in ast.walk(tree) if isinstance(node, ast.Dict)
               for k in node.keys if isinstance(k, ast.Constant) and isinstance(k.value, str)}
-    from protocad_ros.policy_params import PARAMS as POLICY
-    from sim_bridge.bridge_params import PARAMS as BRIDGE
+    from protocad_ros.node.policy_params import PARAMS as POLICY
+    from sim_bridge.bridge.params import PARAMS as BRIDGE
     known = {p.name for p in BRIDGE} | {p.name for p in POLICY}
     node_params = params - {"task", "split", "checkpoint", "output", "record", "max_episodes", "namespace"}
     assert {"checkpoint", "task", "split", "max_episodes", "min_subscribers"} <= known

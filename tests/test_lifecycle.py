@@ -19,7 +19,7 @@ from lifecycle_msgs.srv import ChangeState, GetAvailableStates, GetAvailableTran
 from sensor_msgs.msg import Image, JointState
 
 from ros_helpers import Probe, Responder, wait_until
-from sim_bridge import qos, topics
+from sim_bridge.contract import qos, topics
 
 TASK = "pendulum_swingup"
 START = 120.0   # first start on a loaded 2-core machine (imports, EGL / torch, discovery)
@@ -141,7 +141,7 @@ def test_sim_bridge_steps_only_while_active(spawn, probe):
     diag = DiagLog(probe, "sim_bridge")
     responder = Responder(probe, lambda info: [0.5], names=["torque"])
     announced = probe.record(topics.BRIDGE_INFO, JointState, qos.announcement_qos())
-    bridge = spawn("bridge", "-m", "sim_bridge.node", "--ros-args", "-p", f"task:={TASK}",
+    bridge = spawn("bridge", "-m", "sim_bridge.bridge.node", "--ros-args", "-p", f"task:={TASK}",
                    "-p", "autostart:=false", "-p", "diagnostics_period_s:=0.1",
                    "-p", "episode_length:=1000")
     life.wait_services()
@@ -212,7 +212,7 @@ def test_sim_bridge_realtime_holds_still_while_inactive(spawn, probe):
     diag = DiagLog(probe, "sim_bridge")
     images = probe.record(topics.IMAGE, Image)
     infos = probe.record(topics.STEP_INFO, JointState)
-    spawn("bridge", "-m", "sim_bridge.node", "--ros-args", "-p", f"task:={TASK}",
+    spawn("bridge", "-m", "sim_bridge.bridge.node", "--ros-args", "-p", f"task:={TASK}",
           "-p", "mode:=realtime", "-p", "control_rate_hz:=50", "-p", "autostart:=false",
           "-p", "diagnostics_period_s:=0.1", "-p", "episode_length:=100000")
     life.wait_services()
@@ -237,7 +237,7 @@ def test_policy_answers_only_while_active(spawn, probe, tmp_path):
     life = Lifecycle(probe, "policy")
     diag = DiagLog(probe, "policy")
     feed = Feeder(probe)
-    policy = spawn("policy", "-m", "protocad_ros.policy_node", "--ros-args", "-p", f"task:={TASK}",
+    policy = spawn("policy", "-m", "protocad_ros.node.policy_node", "--ros-args", "-p", f"task:={TASK}",
                    "-p", f"checkpoint:={ckpt}", "-p", "autostart:=false",
                    "-p", "diagnostics_period_s:=0.1", "-p", "num_threads:=1")
     life.wait_services()
@@ -288,7 +288,7 @@ def test_a_transition_that_raises_is_an_error_transition_not_a_dead_node():
     releases what was built and returns the node to unconfigured; it can be configured again."""
     import rclpy
 
-    from sim_bridge.lifecycle import ERROR, SUCCESS, ManagedNode
+    from sim_bridge.nodekit.lifecycle import ERROR, SUCCESS, ManagedNode
 
     class Flaky(ManagedNode):
         def __init__(self, **kw):
@@ -328,7 +328,7 @@ def test_a_closed_control_plane_refuses_other_processes(spawn, probe):
     life = Lifecycle(probe, "sim_bridge")
     diag = DiagLog(probe, "sim_bridge")
     responder = Responder(probe, lambda info: [0.5], names=["torque"])
-    bridge = spawn("bridge", "-m", "sim_bridge.node", "--ros-args", "-p", f"task:={TASK}",
+    bridge = spawn("bridge", "-m", "sim_bridge.bridge.node", "--ros-args", "-p", f"task:={TASK}",
                    "-p", "remote_lifecycle:=false", "-p", "reset_service:=false",
                    "-p", "diagnostics_period_s:=0.1", "-p", "episode_length:=1000")
     life.wait_services()
@@ -354,8 +354,8 @@ def test_a_closed_control_plane_refuses_other_processes(spawn, probe):
 
 HANGING_NODE = """
 import sys, time
-from sim_bridge.rosbase import ProtocadNode
-from sim_bridge.rosnode import run_node
+from sim_bridge.nodekit.rosbase import ProtocadNode
+from sim_bridge.nodekit.rosnode import run_node
 
 class Hanging(ProtocadNode):
     # Stands in for a close that DDS holds up (a peer gone without a clean shutdown: a state

@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from protocad_ros.live_view import DEFAULT_URL, PARAMETERS, LiveView, check_mode
-from trainer.rerun_log import read_recording
+from trainer.viz.rerun_log import read_recording
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 STEP_PATHS = ["/policy/image", "/policy/features/u", "/policy/features/e", "/policy/assignment",
@@ -38,8 +38,8 @@ def tiny_policy():
     """A real (random-weight) ProtoCAD agent behind protocad_ros.policy.Policy."""
     import torch
 
-    from protocad_ros.agent import Agent
-    from protocad_ros.config import make_config
+    from protocad_ros.model.agent import Agent
+    from protocad_ros.model.config import make_config
     from protocad_ros.policy import Policy
 
     torch.set_num_threads(1)
@@ -98,8 +98,8 @@ def test_save_mode_writes_documented_paths_on_sim_time(tmp_path, tiny_policy):
 
 
 def test_on_act_takes_the_policy_nodes_act_event(tmp_path, tiny_policy):
-    from protocad_ros.policy_node import ActEvent
-    from sim_bridge.topics import StepInfo
+    from protocad_ros.node.policy_node import ActEvent
+    from sim_bridge.contract.topics import StepInfo
 
     path = tmp_path / "node.rrd"
     with LiveView.from_params(rerun_mode="save", rerun_url="", rerun_path=str(path)) as view:

@@ -11,7 +11,7 @@ from trainer_bags import TINY, check_robots_recorded_and_trained, loop_failure, 
 def test_two_collect_train_reload_cycles_through_ros(tmp_path):
     run = tmp_path / "run"
     C = 3
-    r = run_cli("trainer.loop", "--task", "pendulum_swingup", *TINY, "--episode-length", "16",
+    r = run_cli("trainer.launch.loop", "--task", "pendulum_swingup", *TINY, "--episode-length", "16",
                 "--prefill-episodes", "2", "--cycles", "2", "--updates-per-episode", str(C),
                 "--eval-episodes", "1", "--eval-max-contexts", "2", "--no-visualize", "--run-dir", run,
                 "--domain-id", os.environ["ROS_DOMAIN_ID"], "--log-every", "1", "--no-progress", timeout=400)
@@ -28,7 +28,7 @@ def test_two_collect_train_reload_cycles_through_ros(tmp_path):
     assert log.count("$ ") == 1 and f"serving checkpoint {run}/checkpoints/latest.pt (updates={C})" in log
     assert f"now serving checkpoint {run}/checkpoints/latest.pt (updates={2 * C})" in log
     # the recorded /diagnostics of the second cycle's bag say the same (the node's own report)
-    from trainer import mcap_io
+    from trainer.bag import mcap_io
 
     served = set()
     for m in mcap_io.BagReader(run / "bags" / "02_collect").messages(["/diagnostics"]):
@@ -58,7 +58,7 @@ def test_two_robots_in_one_loop(tmp_path):
     (own /clock each), one recorder for both; the episodes of both are in the bags under their
     namespaces and are what training counts and samples."""
     run = tmp_path / "run"
-    r = run_cli("trainer.loop", "--task", "pendulum_swingup", *TINY, "--episode-length", "12", "--robots", "2",
+    r = run_cli("trainer.launch.loop", "--task", "pendulum_swingup", *TINY, "--episode-length", "12", "--robots", "2",
                 "--prefill-episodes", "2", "--cycles", "1", "--updates-per-episode", "2",
                 "--eval-episodes", "0", "--no-visualize", "--run-dir", run,
                 "--domain-id", os.environ["ROS_DOMAIN_ID"], "--no-progress", timeout=400)
@@ -69,7 +69,7 @@ def test_two_robots_in_one_loop(tmp_path):
     for i in (0, 1):
         assert (run / "logs" / f"policy_robot{i}.log").exists()
     # offline: protocad-train reads both robots of the same bags
-    t = run_cli("trainer.train", "--logs", run / "bags", "--namespace", "/protocad/robot0", "/protocad/robot1",
+    t = run_cli("trainer.learn.train", "--logs", run / "bags", "--namespace", "/protocad/robot0", "/protocad/robot1",
                 "--task", "pendulum_swingup", *TINY, "--updates", "1", "--run-dir", tmp_path / "offline",
                 "--cache-dir", tmp_path / "cache", timeout=300)
     assert t.returncode == 0, t.stdout + t.stderr

@@ -1,5 +1,5 @@
 """Collection under a stalled recorder (SIGSTOP), through real processes: the bridge, a
-responder in this process standing in for the policy, and trainer.recorder.
+responder in this process standing in for the policy, and trainer.nodes.recorder.
 
 Lock-step: the bridge's observation writers keep every sample a reliable reader has not
 acknowledged (lossless, KEEP_ALL) and the recorder's readers refuse, rather than drop, what they
@@ -18,9 +18,9 @@ import yaml
 
 from conftest import wait_for
 from ros_helpers import Probe, Responder
-from sim_bridge import topics as T
-from sim_bridge.rosnode import flush_publishers
-from trainer import mcap_io as M
+from sim_bridge.contract import topics as T
+from sim_bridge.nodekit.rosnode import flush_publishers
+from trainer.bag import mcap_io as M
 
 TASK, NS = "pendulum_swingup", T.DEFAULT_NAMESPACE
 START = 90.0
@@ -35,10 +35,10 @@ def start(spawn, tmp_path, mode: list[str]):
     probe = Probe("lossless_probe")
     resp = Responder(probe, lambda info: [0.0], names=["torque"])
     bag = tmp_path / "bag"
-    rec = spawn("recorder", "-m", "trainer.recorder", "-o", str(bag), T.topic_name(NS, T.STEP_INFO),
+    rec = spawn("recorder", "-m", "trainer.nodes.recorder", "-o", str(bag), T.topic_name(NS, T.STEP_INFO),
                 T.topic_name(NS, T.IMAGE), T.topic_name(NS, T.ACTION))
     wait_for(lambda: "recording to" in rec.output(), START, "the recorder")
-    bridge = spawn("bridge", "-m", "sim_bridge.node", "--ros-args", "-p", f"task:={TASK}", "-p", "seed:=1",
+    bridge = spawn("bridge", "-m", "sim_bridge.bridge.node", "--ros-args", "-p", f"task:={TASK}", "-p", "seed:=1",
                    "-p", "min_subscribers:=2", "-p", "diagnostics_period_s:=0.2", *mode)
     return probe, resp, bag, rec, bridge
 
@@ -61,9 +61,9 @@ def test_lockstep_recorder_frozen_6s_records_every_message_of_every_topic(spawn,
     probe = Probe("frozen_probe")
     resp = Responder(probe, lambda info: [0.0], names=["torque"])
     bag = tmp_path / "bag"
-    rec = spawn("recorder", "-m", "trainer.recorder", "-o", str(bag))
+    rec = spawn("recorder", "-m", "trainer.nodes.recorder", "-o", str(bag))
     wait_for(lambda: "recording to" in rec.output(), START, "the recorder")
-    bridge = spawn("bridge", "-m", "sim_bridge.node", "--ros-args", "-p", f"task:={TASK}", "-p", "seed:=2",
+    bridge = spawn("bridge", "-m", "sim_bridge.bridge.node", "--ros-args", "-p", f"task:={TASK}", "-p", "seed:=2",
                    "-p", "min_subscribers:=2", "-p", "episode_length:=400")
     try:
         wait_for(lambda: len(resp.steps) >= 40, START, "40 lock-step steps")
@@ -100,7 +100,7 @@ def test_lockstep_recorder_frozen_6s_records_every_message_of_every_topic(spawn,
 
 
 def test_realtime_loss_is_counted_exactly_and_named_by_the_dataset(spawn, tmp_path):
-    from trainer.dataset import MCAPDataset
+    from trainer.data.dataset import MCAPDataset
 
     probe, resp, bag, rec, bridge = start(spawn, tmp_path, ["-p", "mode:=realtime", "-p", "control_rate_hz:=100.0"])
     try:
@@ -140,16 +140,16 @@ def test_a_lockstep_recording_stopped_by_a_full_disk_is_in_time_order_and_read_b
     from mcap.stream_reader import StreamReader
     from rosbags.rosbag2 import Reader
 
-    from trainer.recorder import EXIT_WRITE_FAILED
+    from trainer.nodes.recorder import EXIT_WRITE_FAILED
 
     disk = small_disk.path
     probe = Probe("fulldisk_probe")
     Responder(probe, lambda info: [0.0], names=["torque"])
     bag = disk / "bag"
-    rec = spawn("recorder", "-m", "trainer.recorder", "-o", str(bag), "--compression", "none",
+    rec = spawn("recorder", "-m", "trainer.nodes.recorder", "-o", str(bag), "--compression", "none",
                 "--ros-args", "-p", "flush_interval:=0.2")
     wait_for(lambda: "recording to" in rec.output(), START, "the recorder")
-    spawn("bridge", "-m", "sim_bridge.node", "--ros-args", "-p", f"task:={TASK}", "-p", "seed:=1",
+    spawn("bridge", "-m", "sim_bridge.bridge.node", "--ros-args", "-p", f"task:={TASK}", "-p", "seed:=1",
           "-p", "min_subscribers:=2")
     wait_for(lambda: not rec.alive(), 120, "the recorder to stop on the full disk")
     assert rec.p.returncode == EXIT_WRITE_FAILED, rec.output()[-2000:]

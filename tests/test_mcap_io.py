@@ -1,4 +1,4 @@
-"""trainer.mcap_io against independent readers/writers: the mcap library, rosbags, rerun's
+"""trainer.bag.mcap_io against independent readers/writers: the mcap library, rosbags, rerun's
 MCAP checker, rclpy's serializer. Real files, a real killed writer process."""
 from __future__ import annotations
 
@@ -13,9 +13,9 @@ import pytest
 import yaml
 
 from conftest import wait_for
-from sim_bridge import topics as T
-from trainer import bag_writer, rosmsg
-from trainer import mcap_io as M
+from sim_bridge.contract import topics as T
+from trainer.bag import writer as bag_writer, rosmsg
+from trainer.bag import mcap_io as M
 
 RERUN = shutil.which("rerun", path=str(Path(sys.executable).parent)) or shutil.which("rerun")
 IMAGE, JOINT = "sensor_msgs/msg/Image", "sensor_msgs/msg/JointState"
@@ -451,8 +451,8 @@ def test_foreign_and_garbage_files_are_reported(tmp_path):
 
 WRITER_SCRIPT = r"""
 import sys, time
-from trainer import mcap_io as M
-from sim_bridge import topics as T
+from trainer.bag import mcap_io as M
+from sim_bridge.contract import topics as T
 w = M.BagWriter(sys.argv[1], chunk_size=2048, compression="zstd")
 w.add_topic("/x", "sensor_msgs/msg/JointState")
 i = 0

@@ -17,7 +17,7 @@ ARGS = ["--task", "pendulum_swingup", *TINY, "--time-limit", "40", "--prefill-ep
 
 def test_online_runs_end_to_end_and_resumes(tmp_path):
     run = tmp_path / "run"
-    r = run_cli("trainer.online", *ARGS, "--env-steps", "160", "--num-envs", "2", "--run-dir", run,
+    r = run_cli("trainer.research.online", *ARGS, "--env-steps", "160", "--num-envs", "2", "--run-dir", run,
                 "--random-baseline", timeout=300)
     assert r.returncode == 0, r.stdout + r.stderr
     assert "finished: 160 env steps, 4 episodes" in r.stdout
@@ -37,7 +37,7 @@ def test_online_runs_end_to_end_and_resumes(tmp_path):
     assert list(seen["/protocad/step_info"].name)[:2] == ["reward", "discount"]
     assert "/protocad/action" in seen and "/protocad/context" in seen and "/clock" in seen
     # ... and the dataset rebuilds complete episodes from them, with no problem reported
-    from trainer.dataset import MCAPDataset
+    from trainer.data.dataset import MCAPDataset
 
     ds = MCAPDataset([run / "bags"], seq_len=8, cache_dir=tmp_path / "cache")
     assert ds.num_episodes == 4 and not ds.report.problems()
@@ -56,7 +56,7 @@ def test_online_runs_end_to_end_and_resumes(tmp_path):
     assert final["split"] == "test" and len(final["per_context"]) == 8     # final: every test context
     assert len(json.loads((run / "eval" / "random.json").read_text())["per_context"]) == 8
     # resume with a larger budget: continues the counters, appends bags
-    r = run_cli("trainer.online", "--run-dir", run, "--resume", "--env-steps", "200", "--no-progress",
+    r = run_cli("trainer.research.online", "--run-dir", run, "--resume", "--env-steps", "200", "--no-progress",
                 "--eval-workers", "0", timeout=300)
     assert r.returncode == 0, r.stdout + r.stderr
     assert "resuming" in r.stdout and "finished: 200 env steps" in r.stdout
@@ -73,7 +73,7 @@ def test_online_runs_end_to_end_and_resumes(tmp_path):
 
 def test_resume_keeps_the_original_options_unless_given_again(tmp_path):
     from trainer import runs
-    from trainer.online import build_parser
+    from trainer.research.online import build_parser
 
     run = tmp_path / "run"
     run.mkdir()
@@ -88,10 +88,10 @@ def test_defaults_quoted_in_help_are_the_configs():
     """'(default train.X = V)' in a command's --help is what the config tree holds."""
     import re
 
-    from protocad_ros.config import DEFAULT_CLI_PRESET, make_config
-    from trainer.loop import DEMO
-    from trainer.loop import build_parser as loop_parser
-    from trainer.online import build_parser as online_parser
+    from protocad_ros.model.config import DEFAULT_CLI_PRESET, make_config
+    from trainer.launch.loop import DEMO
+    from trainer.launch.loop import build_parser as loop_parser
+    from trainer.research.online import build_parser as online_parser
 
     cfg = make_config("pendulum_swingup", DEFAULT_CLI_PRESET, "protocad")
     quoted = 0
@@ -121,15 +121,15 @@ def test_sigkill_at_any_point_then_resume_completes_with_counters_from_the_data(
 
     from conftest import wait_for
     from protocad_ros.checkpoint import read_checkpoint
-    from trainer.dataset import MCAPDataset
-    from trainer.online import data_counts
+    from trainer.data.dataset import MCAPDataset
+    from trainer.research.online import data_counts
 
     run = tmp_path / "run"
-    args = ["-m", "trainer.online", "--task", "pendulum_swingup", *TINY, "--time-limit", "40",
+    args = ["-m", "trainer.research.online", "--task", "pendulum_swingup", *TINY, "--time-limit", "40",
             "--prefill-episodes", "2", "--updates-per-episode", "2", "--eval-every", "0",
             "--final-episodes", "1", "--final-max-contexts", "1", "--eval-workers", "0",
             "--log-every", "1", "--no-progress", "--env-steps", "1600", "--run-dir", str(run)]
-    resume = ["-m", "trainer.online", "--run-dir", str(run), "--resume", "--no-progress"]
+    resume = ["-m", "trainer.research.online", "--run-dir", str(run), "--resume", "--no-progress"]
     ckpt = run / "checkpoints" / "latest.pt"
 
     def kill_when(proc, ready, what):
@@ -183,7 +183,7 @@ def test_a_full_disk_is_one_line_with_the_cause_and_the_run_resumes_after_space_
             "--updates-per-episode", "2", "--eval-every", "0", "--final-episodes", "1",
             "--final-max-contexts", "1", "--eval-workers", "0", "--no-progress", "--env-steps", "240",
             "--run-dir", run, "--cache-dir", cache]
-    r = run_cli("trainer.online", *args, timeout=300)
+    r = run_cli("trainer.research.online", *args, timeout=300)
     assert r.returncode == 1, r.stdout + r.stderr
     errors = [line for line in r.stderr.splitlines() if line.startswith("protocad-online: error:")]
     assert len(errors) == 1 and "No space left on device" in errors[0], r.stderr
@@ -197,5 +197,5 @@ def test_a_full_disk_is_one_line_with_the_cause_and_the_run_resumes_after_space_
     if "the last good checkpoint there is intact" in r.stderr:
         assert ckpt.exists()
     grow()   # free space, then the same run to completion
-    r = run_cli("trainer.online", "--run-dir", run, "--resume", "--no-progress", timeout=300)
+    r = run_cli("trainer.research.online", "--run-dir", run, "--resume", "--no-progress", timeout=300)
     assert r.returncode == 0 and "finished: 240 env steps" in r.stdout, r.stdout + r.stderr

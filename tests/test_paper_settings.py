@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import pytest
 
-from protocad_ros.config import make_config
+from protocad_ros.model.config import make_config
 
 DREAMERPRO_DMC = {
     # dataset: {batch: 50, length: 51}
@@ -107,7 +107,7 @@ def test_reference_dreamerv2_is_dreamerv2s_dmc_vision_config():
 
 
 def test_reference_and_weight_init_are_checked():
-    from protocad_ros.config import ConfigError
+    from protocad_ros.model.config import ConfigError
     with pytest.raises(ConfigError, match="unknown reference"):
         make_config("walker_walk", "small", "dreamer", reference="dreamerv9")
     with pytest.raises(ConfigError, match="weight_init"):

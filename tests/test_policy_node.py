@@ -14,8 +14,8 @@ import pytest
 from sensor_msgs.msg import Image, JointState
 
 from ros_helpers import Probe, wait_until
-from sim_bridge import qos, topics
-from sim_bridge.contexts import TASKS
+from sim_bridge.contract import qos, topics
+from sim_bridge.contract.contexts import TASKS
 
 TASK = "pendulum_swingup"
 START = 120.0   # torch import + model build on a loaded 2-core machine
@@ -29,7 +29,7 @@ def probe():
 
 
 def policy_args(*params: str) -> list[str]:
-    args = ["-m", "protocad_ros.policy_node", "--ros-args", "-p", f"task:={TASK}",
+    args = ["-m", "protocad_ros.node.policy_node", "--ros-args", "-p", f"task:={TASK}",
             "-p", "diagnostics_period_s:=0.1", "-p", "num_threads:=1"]
     for p in params:
         args += ["-p", p]
@@ -169,9 +169,9 @@ def test_malformed_images_and_stamp_matching(spawn, probe):
 
 
 def _save(path, updates: int, seed: int = 0):
-    from protocad_ros.agent import Agent
+    from protocad_ros.model.agent import Agent
     from protocad_ros.checkpoint import save_checkpoint
-    from protocad_ros.config import make_config
+    from protocad_ros.model.config import make_config
 
     agent = Agent(make_config(TASK, "small", **{"train.seed": seed}), 1)
     agent.updates.fill_(updates)
@@ -244,7 +244,7 @@ def test_checkpoint_reload_between_episodes(spawn, probe, tmp_path):
 def test_docs_cover_every_parameter_and_counter():
     from pathlib import Path
 
-    from protocad_ros.policy_node import COUNTERS, PARAMS
+    from protocad_ros.node.policy_node import COUNTERS, PARAMS
 
     doc = (Path(__file__).resolve().parents[1] / "msgs_docs" / "policy.md").read_text()
     missing = [n for n in [p.name for p in PARAMS] + list(COUNTERS) if f"`{n}`" not in doc]
@@ -252,7 +252,7 @@ def test_docs_cover_every_parameter_and_counter():
 
 
 def test_live_rerun_stream_saved_by_the_node(spawn, probe, tmp_path):
-    from trainer.rerun_log import read_recording
+    from trainer.viz.rerun_log import read_recording
 
     rrd = tmp_path / "live.rrd"
     f = Feeder(probe)
@@ -299,7 +299,7 @@ def test_realtime_latest_only_skips_to_the_newest_observation(spawn, probe):
     actions = probe.record(topics.ACTION, JointState, qos.action_qos())
     policy = spawn("policy", *policy_args("latest_only:=true"))
     wait_until(lambda: actions.matched() >= 1, START, "the policy's action publisher")
-    bridge = spawn("bridge", "-m", "sim_bridge.node", "--ros-args", "-p", f"task:={TASK}",
+    bridge = spawn("bridge", "-m", "sim_bridge.bridge.node", "--ros-args", "-p", f"task:={TASK}",
                    "-p", "mode:=realtime", "-p", "control_rate_hz:=500", "-p", "episode_length:=1500",
                    "-p", "min_subscribers:=1", "-p", "diagnostics_period_s:=0.1")
     wait_until(lambda: len(actions) >= 200, START, "200 answers")
@@ -321,7 +321,7 @@ def test_a_checkpoint_for_another_task_is_refused_at_the_first_observation(spawn
     images = probe.record(topics.IMAGE, Image, qos.observation_qos())
     policy = spawn("policy", *policy_args())          # pendulum_swingup, random agent
     wait_until(lambda: actions.matched() >= 1, START, "the policy's action publisher")
-    bridge = spawn("bridge", "-m", "sim_bridge.node", "--ros-args", "-p", "task:=walker_walk",
+    bridge = spawn("bridge", "-m", "sim_bridge.bridge.node", "--ros-args", "-p", "task:=walker_walk",
                    "-p", "diagnostics_period_s:=0.1")
     wait_until(lambda: len(images) >= 1, START, "the walker bridge's first observation")
     t_first = time.monotonic()
@@ -339,9 +339,9 @@ def test_two_bridges_in_one_namespace_are_reported_by_both(spawn, probe):
     """...and by the policy that reads them: both announce themselves on bridge_info and
     publish image and step_info (the policy warns once per topic and counts on /diagnostics)."""
     policy = spawn("policy", *policy_args())
-    a = spawn("bridge_a", "-m", "sim_bridge.node", "--ros-args", "-p", f"task:={TASK}", "-p", "seed:=1",
+    a = spawn("bridge_a", "-m", "sim_bridge.bridge.node", "--ros-args", "-p", f"task:={TASK}", "-p", "seed:=1",
               "-p", "diagnostics_period_s:=0.1", "-r", "__node:=sim_bridge_a")
-    b = spawn("bridge_b", "-m", "sim_bridge.node", "--ros-args", "-p", f"task:={TASK}", "-p", "seed:=2",
+    b = spawn("bridge_b", "-m", "sim_bridge.bridge.node", "--ros-args", "-p", f"task:={TASK}", "-p", "seed:=2",
               "-p", "diagnostics_period_s:=0.1", "-r", "__node:=sim_bridge_b")
     for name in ("sim_bridge_a", "sim_bridge_b"):
         wait_until(lambda: "/protocad/image" in probe.node_diag(name).get("other_publishers", ""), START,

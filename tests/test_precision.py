@@ -8,7 +8,7 @@ import sys
 import pytest
 
 from conftest import ROOT
-from protocad_ros import precision as P
+from protocad_ros.model import precision as P
 
 
 @pytest.mark.parametrize("flags, expected", [

@@ -10,8 +10,8 @@ import pytest
 import torch
 import torch.nn.functional as F
 
-from protocad_ros.augment import random_shift, sample_shifts, shift_images
-from protocad_ros.prototypes import (ContextModule, same_episode_pairs, sinkhorn_knopp,
+from protocad_ros.model.augment import random_shift, sample_shifts, shift_images
+from protocad_ros.model.prototypes import (ContextModule, same_episode_pairs, sinkhorn_knopp,
                                      swav_cross_entropy, swav_loss, tc_swav_loss)
 
 

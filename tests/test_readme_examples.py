@@ -16,10 +16,10 @@ from sensor_msgs.msg import JointState
 
 from conftest import ROOT
 from ros_helpers import Probe, wait_until
-from sim_bridge import qos
-from sim_bridge import topics as T
+from sim_bridge.contract import qos
+from sim_bridge.contract import topics as T
 from test_evaluate import tiny_checkpoint
-from trainer import mcap_io as M
+from trainer.bag import mcap_io as M
 
 START = 240.0   # three nodes importing torch and EGL on 2 loaded cores
 NS = T.DEFAULT_NAMESPACE

@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from conftest import wait_for
-from sim_bridge import topics as T
-from trainer import mcap_io as M
+from sim_bridge.contract import topics as T
+from trainer.bag import mcap_io as M
 
 NS = T.DEFAULT_NAMESPACE
 STEPS = 150
@@ -40,7 +40,7 @@ def ros():
 def make_publishers(node):
     from rosgraph_msgs.msg import Clock
     from sensor_msgs.msg import Image, JointState
-    from sim_bridge import qos
+    from sim_bridge.contract import qos
     # The contract's reliability/durability; a history deep enough that a burst on a loaded
     # machine cannot overwrite samples the recorder's reader has not received yet (a KEEP_LAST
     # writer drops those: msgs_docs/recorder.md, "QoS, and why").
@@ -104,7 +104,7 @@ def check_recorded(reader: M.BagReader, steps: int) -> None:
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_recorder_records_every_message_and_closes_cleanly(tmp_path, spawn, ros, sig):
     bag = tmp_path / "run"
-    rec = spawn("recorder", "-m", "trainer.recorder", "-o", str(bag), "--chunk-size", "65536",
+    rec = spawn("recorder", "-m", "trainer.nodes.recorder", "-o", str(bag), "--chunk-size", "65536",
                 "-p", "100")
     pubs = make_publishers(ros)   # the recorder finds the topics when they appear
     wait_matched(pubs)
@@ -136,7 +136,7 @@ def test_recorder_records_every_message_and_closes_cleanly(tmp_path, spawn, ros,
 
 def test_recorder_killed_with_sigkill_keeps_flushed_chunks(tmp_path, spawn, ros):
     bag = tmp_path / "killed"
-    rec = spawn("recorder", "-m", "trainer.recorder", "-o", str(bag), "--chunk-size", "8192",
+    rec = spawn("recorder", "-m", "trainer.nodes.recorder", "-o", str(bag), "--chunk-size", "8192",
                 "--flush-interval", "0.2", "-p", "100")
     pubs = make_publishers(ros)
     wait_matched(pubs)
@@ -154,7 +154,7 @@ def test_recorder_killed_with_sigkill_keeps_flushed_chunks(tmp_path, spawn, ros)
 
 
 def test_recorder_help():
-    res = subprocess.run([sys.executable, "-m", "trainer.recorder", "--help"], capture_output=True,
+    res = subprocess.run([sys.executable, "-m", "trainer.nodes.recorder", "--help"], capture_output=True,
                          text=True, timeout=60)
     assert res.returncode == 0 and "--max-bag-size" in res.stdout and "--compression" in res.stdout
 
@@ -167,8 +167,8 @@ def test_recording_into_a_full_disk_stops_cleanly_with_a_readable_bag(ros, small
     from rosbags.rosbag2 import Reader
     from sensor_msgs.msg import Image
 
-    from sim_bridge import qos
-    from trainer.recorder import EXIT_WRITE_FAILED
+    from sim_bridge.contract import qos
+    from trainer.nodes.recorder import EXIT_WRITE_FAILED
 
     from sensor_msgs.msg import JointState
 
@@ -177,7 +177,7 @@ def test_recording_into_a_full_disk_stops_cleanly_with_a_readable_bag(ros, small
     obs.depth = 1000
     pub = ros.create_publisher(Image, T.IMAGE, obs)
     info_pub = ros.create_publisher(JointState, T.STEP_INFO, obs)   # two topics, two DDS readers
-    rec = subprocess.Popen([sys.executable, "-m", "trainer.recorder", "-o", str(bag), T.topic_name(NS, T.IMAGE),
+    rec = subprocess.Popen([sys.executable, "-m", "trainer.nodes.recorder", "-o", str(bag), T.topic_name(NS, T.IMAGE),
                             T.topic_name(NS, T.STEP_INFO), "--ros-args", "-p", "flush_interval:=0.2"],
                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
@@ -235,7 +235,7 @@ JAZZY_RECORD_OPTIONS = [
 
 
 def test_every_jazzy_record_option_is_known_with_its_meaning_or_refused_with_a_reason():
-    from trainer.recorder import UNSUPPORTED_OPTIONS, build_parser
+    from trainer.nodes.recorder import UNSUPPORTED_OPTIONS, build_parser
 
     ap = build_parser()
     known = {s for a in ap._actions for s in a.option_strings}
@@ -245,7 +245,7 @@ def test_every_jazzy_record_option_is_known_with_its_meaning_or_refused_with_a_r
         "^/a/", "skip", 4096, 30.0, "x")           # -e includes (it excluded here before)
     assert ap.parse_args(["-a"]).all_topics and ap.parse_args(["--all-topics"]).all_topics
     for opt in UNSUPPORTED_OPTIONS:
-        res = subprocess.run([sys.executable, "-m", "trainer.recorder", opt], capture_output=True, text=True,
+        res = subprocess.run([sys.executable, "-m", "trainer.nodes.recorder", opt], capture_output=True, text=True,
                              timeout=60) if opt == "--snapshot-mode" else None
         if res is not None:
             assert res.returncode == 2 and "snapshot mode is not supported" in res.stderr
@@ -256,7 +256,7 @@ def test_include_and_exclude_regex_select_topics_as_ros2_bag_record(ros, tmp_pat
 
     pubs = {t: ros.create_publisher(String, t, 10) for t in ("/a/keep", "/a/skip_me", "/a/drop", "/b/other")}
     bag = tmp_path / "sel"
-    rec = subprocess.Popen([sys.executable, "-m", "trainer.recorder", "-o", str(bag), "-e", "^/a/",
+    rec = subprocess.Popen([sys.executable, "-m", "trainer.nodes.recorder", "-o", str(bag), "-e", "^/a/",
                             "--exclude-regex", "skip", "--exclude-topics", "/a/drop", "-p", "50"],
                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
@@ -284,14 +284,14 @@ def test_loss_while_frozen_is_counted_exactly_and_shown_by_the_dataset(ros, tmp_
     import yaml
     from sensor_msgs.msg import JointState
 
-    from sim_bridge import qos
-    from trainer.dataset import MCAPDataset
+    from sim_bridge.contract import qos
+    from trainer.data.dataset import MCAPDataset
 
     q = qos.observation_qos()
     q.depth = 50
     pub = ros.create_publisher(JointState, T.STEP_INFO, q)
     bag = tmp_path / "frozen"
-    rec = subprocess.Popen([sys.executable, "-m", "trainer.recorder", "-o", str(bag), T.topic_name(NS, T.STEP_INFO),
+    rec = subprocess.Popen([sys.executable, "-m", "trainer.nodes.recorder", "-o", str(bag), T.topic_name(NS, T.STEP_INFO),
                             "-p", "100"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         wait_for(lambda: pub.get_subscription_count() >= 1, 60, "the recorder's subscription")
@@ -347,7 +347,7 @@ class ImportSpy:
 def test_graph_type_names_are_checked_before_anything_is_imported(type_name):
     """Any participant can advertise any type string on a recorded topic (or one `ros2 topic echo`
     reads): only pkg/msg/Type names of ament packages, identifiers without dots, are imported."""
-    from trainer.recorder import _import_message
+    from trainer.nodes.recorder import _import_message
     from trainer.ros2cli.msgyaml import interface_class
 
     with ImportSpy() as spy:
@@ -360,7 +360,7 @@ def test_graph_type_names_are_checked_before_anything_is_imported(type_name):
 
 
 def test_installed_message_types_still_import():
-    from trainer.recorder import _import_message
+    from trainer.nodes.recorder import _import_message
     from trainer.ros2cli.msgyaml import interface_class
 
     from sensor_msgs.msg import Image

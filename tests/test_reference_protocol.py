@@ -10,9 +10,9 @@ import pytest
 import torch
 import torch.nn as nn
 
-from protocad_ros.agent import Agent
-from protocad_ros.config import make_config
-from protocad_ros.networks import TanhNormal, TruncNormal
+from protocad_ros.model.agent import Agent
+from protocad_ros.model.config import make_config
+from protocad_ros.model.networks import TanhNormal, TruncNormal
 from protocad_ros.policy import Policy
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -118,9 +118,9 @@ def test_weights_start_glorot_uniform_with_zero_biases():
 
 
 def test_periodic_evaluation_subset_is_fixed_and_stratified():
-    from sim_bridge.contexts import get_task
-    from trainer.evaluate import select_contexts
-    from trainer.online import build_parser
+    from sim_bridge.contract.contexts import get_task
+    from trainer.learn.evaluate import select_contexts
+    from trainer.research.online import build_parser
 
     walker = get_task("walker_walk")
     for k in (8, 16):

@@ -40,7 +40,7 @@ def ros2_graph(*args: str) -> subprocess.CompletedProcess:
 def bridge(tmp_path_factory):
     """A real-time bridge that steps while something reads it (the probe's subscription)."""
     log = tmp_path_factory.mktemp("ros2cli") / "bridge.log"
-    proc = Proc([sys.executable, "-m", "sim_bridge.node", "--ros-args", "-p", f"task:={TASK}",
+    proc = Proc([sys.executable, "-m", "sim_bridge.bridge.node", "--ros-args", "-p", f"task:={TASK}",
                  "-p", "mode:=realtime", "-p", "control_rate_hz:=50.0", "-p", "seed:=3",
                  "-p", "diagnostics_period_s:=0.2"], log)
     probe = Probe("ros2cli_test_probe")
@@ -230,7 +230,7 @@ def test_lifecycle_nodes_get_list_set(bridge):
 def test_bag_info_prints_the_rosbag2_table(tmp_path):
     from sensor_msgs.msg import JointState
 
-    from trainer.mcap_io import BagWriter, encode
+    from trainer.bag.mcap_io import BagWriter, encode
 
     bag = tmp_path / "session"
     t0 = 1_700_000_000_123_456_789

@@ -17,7 +17,7 @@ from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
 from ros_helpers import wait_until
-from sim_bridge import topics
+from sim_bridge.contract import topics
 
 TASK = "pendulum_swingup"
 EPISODES, LENGTH = 4, 15
@@ -39,15 +39,15 @@ def final_counters(log: str) -> dict[str, int]:
 
 def test_three_nodes_lockstep_episodes_recorded_exactly_once(spawn, tmp_path):
     bag = tmp_path / "e2e_bag"
-    rec = spawn("recorder", "-m", "trainer.recorder", "-o", str(bag))
-    policy = spawn("policy", "-m", "protocad_ros.policy_node", "--ros-args",
+    rec = spawn("recorder", "-m", "trainer.nodes.recorder", "-o", str(bag))
+    policy = spawn("policy", "-m", "protocad_ros.node.policy_node", "--ros-args",
                    "-p", f"task:={TASK}", "-p", "preset:=small", "-p", "num_threads:=1")
     # The recorder subscribes when it sees a publisher; wait until it follows the policy's
     # topics, then start the bridge, which waits for 2 readers (policy + recorder).
     for topic in ("action", "context_features"):
         wait_until(lambda: f"subscribed to {NS}/{topic}" in rec.output(), START,
                    f"the recorder to subscribe to {topic}", interval=0.1)
-    bridge = spawn("bridge", "-m", "sim_bridge.node", "--ros-args", "-p", f"task:={TASK}",
+    bridge = spawn("bridge", "-m", "sim_bridge.bridge.node", "--ros-args", "-p", f"task:={TASK}",
                    "-p", "seed:=11", "-p", f"episode_length:={LENGTH}",
                    "-p", f"max_episodes:={EPISODES}", "-p", "min_subscribers:=2",
                    "-p", "lockstep_timeout_s:=30.0")

@@ -18,7 +18,7 @@ from sensor_msgs.msg import Image, JointState
 from std_srvs.srv import Trigger
 
 from ros_helpers import Probe, Responder, wait_until
-from sim_bridge import qos, topics
+from sim_bridge.contract import qos, topics
 
 TASK = "pendulum_swingup"
 START = 90.0   # generous: first start on a loaded 2-core machine (imports, EGL, discovery)
@@ -32,7 +32,7 @@ def probe():
 
 
 def bridge_args(*params: str, ns: str | None = None) -> list[str]:
-    args = ["-m", "sim_bridge.node", "--ros-args", "-p", f"task:={TASK}",
+    args = ["-m", "sim_bridge.bridge.node", "--ros-args", "-p", f"task:={TASK}",
             "-p", "diagnostics_period_s:=0.1"]
     for p in params:
         args += ["-p", p]
@@ -57,7 +57,7 @@ def digest(steps) -> list[tuple]:
 
 
 def test_help_and_configuration_errors(spawn):
-    h = spawn("help", "-m", "sim_bridge.node", "--help")
+    h = spawn("help", "-m", "sim_bridge.bridge.node", "--help")
     assert wait_exit(h, 60) == 0
     out = h.output()
     for name in ("task", "split", "seed", "mode", "control_rate_hz", "render_quality",
@@ -133,7 +133,7 @@ def test_lockstep_is_deterministic_given_the_seed(spawn, probe):
 
 
 def test_malformed_actions_timeouts_parameters_and_reset(spawn, probe):
-    from sim_bridge.envs import ContextDMCEnv
+    from sim_bridge.sim.envs import ContextDMCEnv
 
     r = Responder(probe, None, names=["torque"])          # answers only when told to
     clock = probe.record(topics.CLOCK, Clock, qos.clock_qos())
@@ -233,7 +233,7 @@ def test_malformed_actions_timeouts_parameters_and_reset(spawn, probe):
 
 
 def test_realtime_holds_the_latest_action(spawn, probe):
-    from sim_bridge.envs import ContextDMCEnv
+    from sim_bridge.sim.envs import ContextDMCEnv
 
     r = Responder(probe, None, names=["torque"])
     bridge = spawn("bridge_rt", *bridge_args("mode:=realtime", "control_rate_hz:=50",
@@ -277,7 +277,7 @@ def test_realtime_holds_the_latest_action(spawn, probe):
 def test_docs_cover_every_parameter_and_counter():
     from pathlib import Path
 
-    from sim_bridge.node import COUNTERS, PARAMS
+    from sim_bridge.bridge.node import COUNTERS, PARAMS
 
     doc = (Path(__file__).resolve().parents[1] / "msgs_docs" / "sim_bridge.md").read_text()
     missing = [n for n in [p.name for p in PARAMS] + list(COUNTERS) if f"`{n}`" not in doc]
@@ -285,7 +285,7 @@ def test_docs_cover_every_parameter_and_counter():
 
 
 def test_fixed_context_outside_the_split_is_a_configuration_error(spawn):
-    bad = spawn("bridge", "-m", "sim_bridge.node", "--ros-args", "-p", "task:=pendulum_swingup",
+    bad = spawn("bridge", "-m", "sim_bridge.bridge.node", "--ros-args", "-p", "task:=pendulum_swingup",
                 "-p", "split:=test", "-p", "context:=m=1.0")
     wait_until(lambda: not bad.alive(), 120, "the bridge to refuse m=1.0 on the test split")
     assert bad.p.returncode == 2
@@ -371,7 +371,7 @@ def test_a_full_lossless_history_is_waited_for_not_fatal():
     import threading
     from types import SimpleNamespace
 
-    from sim_bridge.node import RCLError, SimBridgeNode
+    from sim_bridge.bridge.node import RCLError, SimBridgeNode
 
     class FullThenFree:
         topic_name = "/protocad/image"
@@ -401,7 +401,7 @@ def test_a_full_lossless_history_is_waited_for_not_fatal():
 
 
 def test_the_first_publisher_lock_follows_one_writers_sequence_numbers():
-    from sim_bridge.publisher_watch import FirstPublisherLock
+    from sim_bridge.nodekit.publisher_watch import FirstPublisherLock
 
     lock = FirstPublisherLock()
     assert lock.admit(7, matched=2) is not None            # two before any sample: neither is first

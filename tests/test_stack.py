@@ -5,8 +5,8 @@ import signal
 import sys
 
 from conftest import wait_for
-from sim_bridge import topics as T
-from trainer import mcap_io as M
+from sim_bridge.contract import topics as T
+from trainer.bag import mcap_io as M
 
 
 def test_one_ctrl_c_three_clean_exits_and_every_step_has_its_action_from_stamp_0(spawn, tmp_path):
@@ -15,7 +15,7 @@ def test_one_ctrl_c_three_clean_exits_and_every_step_has_its_action_from_stamp_0
         "bridge: {task: pendulum_swingup, episode_length: 50}\n"
         "policy: {num_threads: 1}\n"
         f"recorder: {{output: {bag}}}\n")
-    stack = spawn("stack", "-m", "trainer.stack", str(tmp_path / "stack.yaml"))
+    stack = spawn("stack", "-m", "trainer.launch.stack", str(tmp_path / "stack.yaml"))
     wait_for(lambda: "episode 3 " in stack.output(), 240, "three episodes through the stack")
     assert stack.stop(signal.SIGINT, timeout=60) == 0, stack.output()[-3000:]
     out = stack.output()
@@ -39,16 +39,16 @@ def test_stack_file_mistakes_are_refused_with_the_reason(tmp_path):
 
     bad = tmp_path / "bad.yaml"
     bad.write_text("brigde: {task: walker_walk}\n")
-    r = subprocess.run([sys.executable, "-m", "trainer.stack", str(bad)], capture_output=True, text=True, timeout=120)
+    r = subprocess.run([sys.executable, "-m", "trainer.launch.stack", str(bad)], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "unknown key(s) ['brigde']" in r.stderr
 
 
 def test_a_checkpoint_of_another_task_is_refused_before_any_node_starts(tmp_path):
     import subprocess
 
-    from protocad_ros.agent import Agent
+    from protocad_ros.model.agent import Agent
     from protocad_ros.checkpoint import save_checkpoint
-    from protocad_ros.config import make_config
+    from protocad_ros.model.config import make_config
 
     cfg = make_config("pendulum_swingup", "small", "dreamer", **{
         "world_model.deter": 16, "world_model.hidden": 16, "world_model.stoch": 4,
@@ -58,12 +58,12 @@ def test_a_checkpoint_of_another_task_is_refused_before_any_node_starts(tmp_path
     stack = tmp_path / "stack.yaml"
     # the README's example: a walker bridge, and the only checkpoint a newcomer has (pendulum)
     stack.write_text(f"bridge: {{task: walker_walk}}\npolicy: {{checkpoint: {tmp_path / 'run'}}}\nrecorder: false\n")
-    r = subprocess.run([sys.executable, "-m", "trainer.stack", str(stack), "--log-dir", str(tmp_path / "logs")],
+    r = subprocess.run([sys.executable, "-m", "trainer.launch.stack", str(stack), "--log-dir", str(tmp_path / "logs")],
                        capture_output=True, text=True, timeout=120)
     assert r.returncode == 2, r.stdout + r.stderr
     assert "trained on pendulum_swingup but bridge.task is walker_walk" in r.stderr, r.stderr
     assert not (tmp_path / "logs").exists()             # nothing started
     # the same checkpoint with its own task passes the check
-    from trainer.stack import checkpoint_mismatch
+    from trainer.launch.stack import checkpoint_mismatch
     assert checkpoint_mismatch({"bridge": {"task": "pendulum_swingup"},
                                 "policy": {"checkpoint": str(tmp_path / "run")}}) is None

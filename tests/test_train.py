@@ -36,7 +36,7 @@ def test_log_from_another_tool_trains_and_evaluates(tmp_path):
     assert (bag / "metadata.yaml").exists()
     run_dir = tmp_path / "run"
     topic_args = [x for k, t in ROBOT.items() for x in ("--topic", f"{k}={t}")]
-    r = run_cli("trainer.train", "--logs", bag, *topic_args, "--task", "pendulum_swingup", *TINY,
+    r = run_cli("trainer.learn.train", "--logs", bag, *topic_args, "--task", "pendulum_swingup", *TINY,
                 "--updates", "3", "--run-dir", run_dir, "--cache-dir", tmp_path / "cache", "--log-every", "1")
     assert r.returncode == 0, r.stdout + r.stderr
     assert "2 episodes" in r.stdout and "/robot/camera as image x32" in r.stdout
@@ -54,20 +54,20 @@ def test_log_from_another_tool_trains_and_evaluates(tmp_path):
     assert (saved["world_model"]["deter"], saved["behavior"]["critic_units"], saved["context"]["proto_dim"]) == (32, 32, 8)
     # evaluate that checkpoint: one short episode of one test context
     out = tmp_path / "eval.json"
-    r = run_cli("trainer.evaluate", ck, "--episodes", "1", "--context", "m=0.4", "--time-limit", "20",
+    r = run_cli("trainer.learn.evaluate", ck, "--episodes", "1", "--context", "m=0.4", "--time-limit", "20",
                 "--json", out, "--workers", "0")
     assert r.returncode == 0, r.stdout + r.stderr
     assert "m=0.4" in r.stdout and "mean over contexts" in r.stdout
     res = json.loads(out.read_text())["results"][0]
     assert res["task"] == "pendulum_swingup" and res["per_context"][0]["episodes"] == 1
     # without the topic mapping the same log is rejected with the reason, exit code 2
-    r = run_cli("trainer.train", "--logs", bag, *TINY, "--updates", "1", "--run-dir", tmp_path / "r2",
+    r = run_cli("trainer.learn.train", "--logs", bag, *TINY, "--updates", "1", "--run-dir", tmp_path / "r2",
                 "--cache-dir", tmp_path / "cache")
     assert r.returncode == 2 and "--topic KEY=/name" in r.stdout + r.stderr
 
 
 def _train_proc(tmp_path: Path, bag: Path, run_dir: Path, *extra: str) -> subprocess.Popen:
-    args = [sys.executable, "-m", "trainer.train", "--logs", str(bag), *TINY, "--run-dir", str(run_dir),
+    args = [sys.executable, "-m", "trainer.learn.train", "--logs", str(bag), *TINY, "--run-dir", str(run_dir),
             "--cache-dir", str(tmp_path / "cache"), "--log-every", "1", "--seed", "5", *extra]
     return subprocess.Popen(args, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
                             start_new_session=True)
@@ -92,7 +92,7 @@ def test_resume_after_kill_continues_from_last_checkpoint(tmp_path):
     k = saved["agent_updates"]
     assert k >= 2 and k % 2 == 0 and saved["updates"] == k
     # resume: continues at k with the same counters and draws the same batches as `ref`
-    r = run_cli("trainer.train", "--run-dir", run_dir, "--resume", "--updates", str(N))
+    r = run_cli("trainer.learn.train", "--run-dir", run_dir, "--resume", "--updates", str(N))
     assert r.returncode == 0, r.stdout + r.stderr
     assert f"resuming {run_dir} at update {k}" in r.stdout
     got = {m["update"]: m for m in metrics(run_dir)}
@@ -118,35 +118,35 @@ def test_ctrl_c_saves_a_checkpoint_and_exits_0(tmp_path):
 
 
 def test_cli_help_and_errors(tmp_path):
-    r = run_cli("trainer.train", "--help")
+    r = run_cli("trainer.learn.train", "--help")
     assert r.returncode == 0
     for opt in ("--logs", "--task", "--variant", "--preset", "--config", "--set", "--updates", "--batch-size",
                 "--seq-len", "--seed", "--device", "--run-dir", "--checkpoint-every", "--resume", "--topic"):
         assert opt in r.stdout
-    r = run_cli("trainer.train", "--logs", tmp_path / "missing", "--run-dir", tmp_path / "x")
+    r = run_cli("trainer.learn.train", "--logs", tmp_path / "missing", "--run-dir", tmp_path / "x")
     assert r.returncode == 2 and "does not exist" in r.stderr
     bag = write_bag(tmp_path / "bag", make_steps(1, 4))
-    r = run_cli("trainer.train", "--logs", bag, *TINY, "--set", "world_model.nope=1", "--run-dir", tmp_path / "y")
+    r = run_cli("trainer.learn.train", "--logs", bag, *TINY, "--set", "world_model.nope=1", "--run-dir", tmp_path / "y")
     assert r.returncode == 2 and "nope" in r.stderr
-    r = run_cli("trainer.train", "--logs", bag, *TINY, "--run-dir", tmp_path / "z", "--cache-dir", tmp_path / "c")
+    r = run_cli("trainer.learn.train", "--logs", bag, *TINY, "--run-dir", tmp_path / "z", "--cache-dir", tmp_path / "c")
     assert r.returncode == 2 and "no window of 8 steps" in r.stderr
 
 
 def test_resume_and_new_run_dirs_are_checked_by_every_command(tmp_path):
     (tmp_path / "ckpt_only" / "checkpoints").mkdir(parents=True)
     (tmp_path / "ckpt_only" / "checkpoints" / "latest.pt").write_bytes(b"")
-    for module in ("trainer.train", "trainer.online", "trainer.loop"):
+    for module in ("trainer.learn.train", "trainer.research.online", "trainer.launch.loop"):
         r = run_cli(module, "--resume")
         assert r.returncode == 2 and "--resume needs --run-dir" in r.stderr, (module, r.stderr)
         r = run_cli(module, "--resume", "--run-dir", tmp_path / "nowhere")
         assert r.returncode == 2 and "is not a directory" in r.stderr, (module, r.stderr)
         assert "Traceback" not in r.stderr
     # online and loop need their run.json (the protocol); train can do without it.
-    for module in ("trainer.online", "trainer.loop"):
+    for module in ("trainer.research.online", "trainer.launch.loop"):
         r = run_cli(module, "--resume", "--run-dir", tmp_path / "ckpt_only")
         assert r.returncode == 2 and "run.json is missing" in r.stderr, (module, r.stderr)
     # A fresh run never overwrites one that is there.
-    r = run_cli("trainer.online", "--run-dir", tmp_path / "ckpt_only", *TINY)
+    r = run_cli("trainer.research.online", "--run-dir", tmp_path / "ckpt_only", *TINY)
     assert r.returncode == 2 and "already holds a run" in r.stderr, r.stderr
 
 
@@ -162,10 +162,10 @@ def _help_entry(text: str, option: str) -> str:
 def test_every_config_field_is_an_option_with_the_configs_help_and_the_presets_default():
     import dataclasses
 
-    from protocad_ros.config import make_config
+    from protocad_ros.model.config import make_config
     from trainer import runs
 
-    small, paper = run_cli("trainer.train", "--help"), run_cli("trainer.train", "--preset", "paper", "--help")
+    small, paper = run_cli("trainer.learn.train", "--help"), run_cli("trainer.learn.train", "--preset", "paper", "--help")
     assert small.returncode == paper.returncode == 0, small.stderr + paper.stderr
     cfg = make_config(preset="small")
     for section in (f for f in dataclasses.fields(cfg) if f.name not in runs.OWN_FLAG_FIELDS):
@@ -183,7 +183,7 @@ def test_every_config_field_is_an_option_with_the_configs_help_and_the_presets_d
 
 def test_config_options_set_what_set_and_the_file_set(tmp_path):
     from trainer import runs
-    from trainer.train import build_parser, config_from_args
+    from trainer.learn.train import build_parser, config_from_args
 
     def config(*argv):
         return config_from_args(runs.parse_cli(build_parser(), [str(x) for x in argv]))
@@ -219,7 +219,7 @@ def test_auto_threads_are_the_cores_shared_among_the_local_ranks(local_ranks):
 
 
 def record_with_a_second_image_publisher(tmp_path: Path, steps: list[dict]) -> Path:
-    """A bag recorded by trainer.recorder (its own process) from publishers in this process: the
+    """A bag recorded by trainer.nodes.recorder (its own process) from publishers in this process: the
     contract topics, plus a second, silent writer on /protocad/image (an impostor)."""
     import rclpy
     from rclpy.duration import Duration
@@ -227,11 +227,11 @@ def record_with_a_second_image_publisher(tmp_path: Path, steps: list[dict]) -> P
     from sensor_msgs.msg import Image, JointState
 
     from conftest import Proc
-    from sim_bridge import qos
-    from sim_bridge import topics as T
+    from sim_bridge.contract import qos
+    from sim_bridge.contract import topics as T
 
     bag = tmp_path / "impostor_bag"
-    rec = Proc([sys.executable, "-m", "trainer.recorder", "-o", str(bag), "-p", "100"], tmp_path / "recorder.log")
+    rec = Proc([sys.executable, "-m", "trainer.nodes.recorder", "-o", str(bag), "-p", "100"], tmp_path / "recorder.log")
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     node = Node("train_test_publisher", namespace="/protocad", context=ctx)
@@ -264,12 +264,12 @@ def test_a_bag_with_two_image_publishers_is_refused_unless_accepted(tmp_path):
     custom = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]["custom_data"]
     assert json.loads(custom["protocad_multiple_publishers"]) == {"/protocad/image": 2}
     args = ["--logs", bag, "--task", "pendulum_swingup", *TINY, "--updates", "1", "--cache-dir", tmp_path / "cache"]
-    r = run_cli("trainer.train", *args, "--run-dir", tmp_path / "refused")
+    r = run_cli("trainer.learn.train", *args, "--run-dir", tmp_path / "refused")
     assert r.returncode == 2, r.stdout + r.stderr
     line = [x for x in r.stderr.splitlines() if "error" in x]
     assert len(line) == 1 and str(bag) in line[0] and "/protocad/image had 2 publishers" in line[0] \
         and "--accept-multiple-publishers" in line[0], r.stderr
-    r = run_cli("trainer.train", *args, "--run-dir", tmp_path / "accepted", "--accept-multiple-publishers")
+    r = run_cli("trainer.learn.train", *args, "--run-dir", tmp_path / "accepted", "--accept-multiple-publishers")
     assert r.returncode == 0, r.stdout + r.stderr
     assert "finished at update 1" in r.stdout
     assert "the recorder reported multiple publishers" in r.stdout   # and the dataset report says why
@@ -278,9 +278,9 @@ def test_a_bag_with_two_image_publishers_is_refused_unless_accepted(tmp_path):
 def test_logs_with_test_split_episodes_are_refused_unless_accepted(tmp_path):
     bag = write_bag(tmp_path / "bag", make_steps(2, 12, split="test"))
     args = ["--logs", bag, "--task", "pendulum_swingup", *TINY, "--updates", "1", "--cache-dir", tmp_path / "cache"]
-    r = run_cli("trainer.train", *args, "--run-dir", tmp_path / "refused")
+    r = run_cli("trainer.learn.train", *args, "--run-dir", tmp_path / "refused")
     assert r.returncode == 2, r.stdout + r.stderr
     line = [x for x in r.stderr.splitlines() if "error" in x]
     assert len(line) == 1 and "2 episode(s) of the test split" in line[0] and "--accept-test-split" in line[0]
-    r = run_cli("trainer.train", *args, "--run-dir", tmp_path / "accepted", "--accept-test-split")
+    r = run_cli("trainer.learn.train", *args, "--run-dir", tmp_path / "accepted", "--accept-test-split")
     assert r.returncode == 0 and "WARNING: the logs hold 2 episode(s) of the test split" in r.stdout, r.stderr

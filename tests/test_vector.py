@@ -1,4 +1,4 @@
-"""sim_bridge.vector.VectorEnv with real worker processes (spawn), real physics and rendering."""
+"""sim_bridge.sim.vector.VectorEnv with real worker processes (spawn), real physics and rendering."""
 from __future__ import annotations
 
 import os
@@ -7,9 +7,9 @@ import signal
 import numpy as np
 import pytest
 
-from sim_bridge.contexts import get_task
-from sim_bridge.envs import ContextDMCEnv
-from sim_bridge.vector import VectorEnv, WorkerError
+from sim_bridge.contract.contexts import get_task
+from sim_bridge.sim.envs import ContextDMCEnv
+from sim_bridge.sim.vector import VectorEnv, WorkerError
 
 
 def reaped(pids: list[int]) -> bool:

@@ -1,4 +1,4 @@
-"""Rerun views of the latent contexts (trainer/visualize.py, trainer/rerun_log.py).
+"""Rerun views of the latent contexts (trainer/viz/visualize.py, trainer/viz/rerun_log.py).
 
 Real parts throughout: a real (tiny, random-weight) ProtoCAD agent, episodes rendered by the
 context-randomized DMC envs, a real MCAP bag, and the produced .rrd files read back with
@@ -13,9 +13,9 @@ import sys
 import numpy as np
 import pytest
 
-from sim_bridge.contexts import get_task
-from trainer import visualize as V
-from trainer.rerun_log import TrainingRecorder, normalize_eval, read_recording
+from sim_bridge.contract.contexts import get_task
+from trainer.viz import visualize as V
+from trainer.viz.rerun_log import TrainingRecorder, normalize_eval, read_recording
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 K = 6  # configured number of prototypes of the tiny agents (the paper's is 50/100)
@@ -24,8 +24,8 @@ K = 6  # configured number of prototypes of the tiny agents (the paper's is 50/1
 def tiny_agent(task: str, action_dim: int, variant: str = "protocad"):
     import torch
 
-    from protocad_ros.agent import Agent
-    from protocad_ros.config import make_config
+    from protocad_ros.model.agent import Agent
+    from protocad_ros.model.config import make_config
 
     torch.set_num_threads(1)
     cfg = make_config(task, "small", variant, **{
@@ -137,8 +137,8 @@ def test_cheetah_md_grid_every_context_colour_per_parameter(tmp_path):
 
 def _write_bag(bag_dir, episodes):
     """A rosbag2/MCAP bag with the topic contract's messages (as the recorder writes them)."""
-    from sim_bridge import topics as T
-    from trainer import mcap_io as M
+    from sim_bridge.contract import topics as T
+    from trainer.bag import mcap_io as M
 
     ns = T.DEFAULT_NAMESPACE
     with M.BagWriter(bag_dir) as w:
@@ -173,7 +173,7 @@ def test_mcap_logs_view_and_rerun_reads_the_mcap(tmp_path, pendulum_agent):
     assert conv.returncode == 0, conv.stderr
     bag_rec = read_recording(tmp_path / "bag.rrd")
     assert len(bag_rec["/protocad/image"]["columns"]["Image:buffer"]) == 30
-    # the context view from the logs (read with trainer.dataset)
+    # the context view from the logs (read with trainer.data.dataset)
     logged = V.load_log_episodes([tmp_path / "bag"])
     assert [(e.split, e.context) for e in logged] == [(e.split, e.context) for e in eps]
     np.testing.assert_array_equal(logged[0].image, eps[0].image)
@@ -232,7 +232,7 @@ def test_cli_writes_the_run_dirs_recording(tmp_path, pendulum_agent):
     ckpt = save_checkpoint(tmp_path / "run" / "checkpoints" / "latest.pt", pendulum_agent,
                            {"updates": 0})
     env = {**os.environ, "PYTHONPATH": ROOT}
-    cmd = [sys.executable, "-m", "trainer.visualize", "--checkpoint", str(tmp_path / "run"),
+    cmd = [sys.executable, "-m", "trainer.viz.visualize", "--checkpoint", str(tmp_path / "run"),
            "--steps-per-context", "3", "--skip-steps", "1", "--horizon", "0",
            "--png", str(tmp_path / "ctx.png"), "--no-progress"]
     out = subprocess.run(cmd, cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
@@ -252,7 +252,7 @@ def test_cli_writes_the_run_dirs_recording(tmp_path, pendulum_agent):
         V.main(["--checkpoint", str(tmp_path / "missing.pt")])
     with pytest.raises(SystemExit, match="unknown task"):
         V.main(["--checkpoint", str(ckpt), "--task", "cartpole_swingup"])
-    helped = subprocess.run([sys.executable, "-m", "trainer.visualize", "--help"], cwd=ROOT,
+    helped = subprocess.run([sys.executable, "-m", "trainer.viz.visualize", "--help"], cwd=ROOT,
                             env=env, capture_output=True, text=True, timeout=60)
     assert helped.returncode == 0 and "--projection" in helped.stdout
 
@@ -269,7 +269,7 @@ def test_training_recorder_series_on_the_update_timeline(tmp_path, pendulum_agen
         {"context": {"m": 1.0}, "split": "train", "mean_return": 400.0}])
     assert ("test", "m0.2", 150.0) in rows
     rec.log_eval(50, {"test m=0.2": 160.0, "test/m1.8": [60.0], "train m=1": 410.0})
-    from trainer.evaluate import ContextResult, EvalResult   # what evaluate_checkpoint returns
+    from trainer.learn.evaluate import ContextResult, EvalResult   # what evaluate_checkpoint returns
 
     res = EvalResult("pendulum_swingup", "test", "x", [ContextResult({"m": 0.4}, "test", [1.0, 3.0])])
     assert rec.log_eval(60, res) == [("test", "m0.4", 2.0)]
@@ -302,7 +302,7 @@ def test_training_recorder_series_on_the_update_timeline(tmp_path, pendulum_agen
 
 
 def test_metrics_callback_is_the_training_recorder(tmp_path):
-    from trainer.rerun_log import metrics_callback
+    from trainer.viz.rerun_log import metrics_callback
     from trainer.runs import MetricsLogger
 
     assert metrics_callback(None) is None

@@ -1,5 +1,5 @@
 """Helpers of the trainer tests: step sequences with known content, written as rosbag2 MCAP bags
-by this project's writer (trainer.mcap_io.BagWriter) or by another tool (the rosbags library).
+by this project's writer (trainer.bag.mcap_io.BagWriter) or by another tool (the rosbags library).
 
 Every step carries its identity in its data, so tests can check what the dataset made of it:
 image[..., 0] = step id % 256, image[..., 1] = episode id, image[..., 2] = 7;
@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sim_bridge import topics as T
+from sim_bridge.contract import topics as T
 
 DT_NS = 40_000_000  # pendulum: control_dt 0.02 s x action repeat 2
 
@@ -49,10 +49,10 @@ def make_steps(episodes: int, length: int, *, first_episode: int = 0, t0_ns: int
 def write_bag(bag_dir: Path, steps: list[dict], *, namespace: str = "/protocad", chunk_size: int = 1 << 20,
               extra_topics: dict[str, int] | None = None, duplicate_stamps: set[int] | None = None,
               compression: str = "zstd") -> Path:
-    """The ROS path's layout with trainer.mcap_io.BagWriter. A step without 'action' (None) is
+    """The ROS path's layout with trainer.bag.mcap_io.BagWriter. A step without 'action' (None) is
     left unanswered; stamps in duplicate_stamps are written twice (image + step_info);
     extra_topics {topic: count} adds std_msgs/String messages on foreign topics."""
-    from trainer import mcap_io
+    from trainer.bag import mcap_io
 
     names = {k: T.topic_name(namespace, k) for k in (T.IMAGE, T.STEP_INFO, T.CONTEXT, T.ACTION)}
     with mcap_io.BagWriter(bag_dir, chunk_size=chunk_size, compression=compression) as w:
@@ -138,7 +138,7 @@ def loop_failure(r, run: Path) -> str:
 def check_robot_episodes(bag: Path, namespaces: list[str], episode_length: int) -> None:
     """One episode of each robot in `bag`, under the robot's namespace with its own clock, and
     nothing under the shared namespace."""
-    from trainer import mcap_io
+    from trainer.bag import mcap_io
 
     reader = mcap_io.BagReader(bag)
     topics = reader.report.counts
@@ -160,7 +160,7 @@ def check_robots_recorded_and_trained(run: Path, namespaces: list[str], *, episo
     training windows, and the checkpoint counted them all."""
     import json
 
-    from trainer.dataset import MCAPDataset, TopicMap
+    from trainer.data.dataset import MCAPDataset, TopicMap
 
     got = json.loads((run / "phases.json").read_text())
     assert [(p["bag"], p["episodes"]) for p in got] == phases

@@ -6,7 +6,7 @@ No ROS import here; the training, evaluation, loop and in-process paths all use 
 Run directory layout (every CLI that trains writes the same one)::
 
     RUN_DIR/
-      config.yaml             the full training config (protocad_ros.config.Config)
+      config.yaml             the full training config (protocad_ros.model.config.Config)
       run.json                 how the run was started (argv, task, variant, seed, device, ...)
       metrics.jsonl            one JSON object per logged update: {"update", "wall_time", ...}
       checkpoints/latest.pt    newest checkpoint (atomic replace; what the policy node loads)
@@ -123,9 +123,9 @@ def build_config(task: str | None = None, variant: str | None = None, preset: st
     """Config from (in increasing priority): preset defaults for task/variant, a YAML file
     (full Config.save() output or a partial nested mapping), `--set` overrides.
 
-    Returns a protocad_ros.config.Config.
+    Returns a protocad_ros.model.config.Config.
     """
-    from protocad_ros.config import DEFAULT_CLI_PRESET, apply_overrides, make_config
+    from protocad_ros.model.config import DEFAULT_CLI_PRESET, apply_overrides, make_config
 
     file_dict: dict[str, Any] = {}
     if config_file:
@@ -184,7 +184,7 @@ def _config_options_class(cfg: Any) -> type:
 def apply_config_flags(cfg: Any, args: Sequence[str], prog: str) -> Any:
     """cfg with the config options in `args` applied: one option per field of the config tree
     (`--train.batch_size 8`, `--world_model.gru_norm` / `--world_model.no_gru_norm`), generated
-    from protocad_ros.config by tyro, with the field's comment as help and cfg's value as the
+    from protocad_ros.model.config by tyro, with the field's comment as help and cfg's value as the
     default shown. `--help` among them prints them and exits; an unknown one exits 2."""
     import dataclasses
 
@@ -192,7 +192,7 @@ def apply_config_flags(cfg: Any, args: Sequence[str], prog: str) -> Any:
 
     options = _config_options_class(cfg)
     parsed = tyro.cli(options, args=list(args), prog=prog, use_underscores=True,
-                      description="Config options (protocad_ros.config; defaults: the chosen "
+                      description="Config options (protocad_ros.model.config; defaults: the chosen "
                                   "--task / --variant / --preset, --config file and --set overrides).")
     cfg = dataclasses.replace(cfg, **{f.name: getattr(parsed, f.name) for f in dataclasses.fields(parsed)})
     cfg.validate()

@@ -13,6 +13,8 @@ Graph verbs create a short-lived hidden node (`_ros2cli_<pid>`) and wait `--spin
 discovery, as ros2cli does without its daemon. Anything else says that it needs a full ROS 2
 install. Where a real ros2cli exists (importable, or another `ros2` on PATH), every call is
 handed to it.
+
+May import: ROS, trainer.runs, trainer.bag, trainer.nodes
 """
 from __future__ import annotations
 
@@ -200,7 +202,7 @@ def main(argv: list[str] | None = None) -> None:
     elif command == "pkg":
         _pkg(rest, argv)
     elif command == "bag" and rest[:1] == ["record"]:
-        from trainer.recorder import main as record
+        from trainer.nodes.recorder import main as record
 
         sys.exit(record(rest[1:]))
     elif command in COMMANDS:

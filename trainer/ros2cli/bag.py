@@ -1,5 +1,5 @@
 """`ros2 bag info` (rosbag2's Jazzy table, from metadata.yaml or, for a bare or truncated .mcap,
-from the file itself) and `ros2 bag record` (the project's recorder, trainer/recorder.py)."""
+from the file itself) and `ros2 bag record` (the project's recorder, trainer/nodes/recorder.py)."""
 from __future__ import annotations
 
 import argparse
@@ -69,7 +69,7 @@ def format_bag_metadata(info: dict[str, Any], bag_size: int) -> str:
 
 def _metadata_from_files(path: Path) -> tuple[dict[str, Any], int, list[str]]:
     """What metadata.yaml would say, read from the .mcap file(s) themselves."""
-    from trainer.mcap_io import BagReader
+    from trainer.bag.mcap_io import BagReader
 
     reader = BagReader(path)
     first = last = None
@@ -102,7 +102,7 @@ def sub_bags(path: Path) -> list[Path]:
 
 def read_info(bag: str | Path) -> tuple[dict[str, Any], int, list[str]]:
     """(bag info mapping, bag size in bytes, notes for stderr) of a bag directory or .mcap file."""
-    from trainer.mcap_io import read_bag_metadata
+    from trainer.bag.mcap_io import read_bag_metadata
 
     path = Path(bag)
     if not path.exists():

@@ -153,7 +153,7 @@ def set_message_fields(msg: Any, values: dict | None) -> None:
 
 def interface_class(type_name: str, kind: str = "msg") -> Any:
     """`pkg/msg/Name` (or `pkg/Name`) -> the generated Python class; ValueError if unknown."""
-    from trainer.rosmsg import TypeSupportError, interface_module
+    from trainer.bag.rosmsg import TypeSupportError, interface_module
 
     try:   # a name from the graph or the command line: checked before anything is imported
         module, name = interface_module(type_name, kind)

@@ -1,6 +1,6 @@
 """`ros2 launch trainer protocad.launch.py`: the sim bridge, the policy node and the recorder,
 for users with a full ROS 2 install (launch, launch_ros). The same three nodes and parameters
-as `protocad-stack` (trainer/stack.py), which needs no launch system and also waits for each
+as `protocad-stack` (trainer/launch/stack.py), which needs no launch system and also waits for each
 node's state; here the bridge's own wait does the ordering: it steps only once
 `min_subscribers` (the policy and the recorder) read its observations, so the bag still holds
 every step from stamp 0.

@@ -1,0 +1,397 @@
+"""ProtoCAD's prototypical context module (paper sec. 4.2, Algorithm 1), pure PyTorch.
+
+No ROS imports: the agent, the trainer and the policy node all use this file.
+
+Notation (paper -> code), shapes in comments:
+    s^(1), s^(2)   posterior RSSM states of the two augmented views       s1, s2  (B, M, S)
+    f_theta        linear projector (trained)                            self.projector
+    f_thetabar     EMA copy of the projector (never trained)             self.target_projector
+    u, ubar        l2-normalized projections                             (B, M, D)
+    {c_k}          K trainable, l2-normalized prototypes                 self.prototypes (K, D)
+    w              softmax(u . c / T), eq. 3                              (B, M, K)
+    wbar           Sinkhorn-Knopp(ubar . c), the targets                  (B, M, K)
+    e_t            sum_k w_t,k c_k, aggregated prototype                  (..., D)
+    x_t            (s_t, u_t, e_t), the context feature (built by the agent)
+
+Training objective (eq. 5, written as a loss to minimise, i.e. the negative of J_TC-SwAV):
+    L = -1/2 [ sum_k wbar_(1),k log w_(2),k + sum_k wbar_(2),k log w_(1),k ]
+averaged over sequences and time, where (1)/(2) are the first/second half of the sequence.
+The "w/o temporal consistency" ablation pairs each step with itself: -sum_k wbar_t,k log w_t,k.
+
+Call order inside one world-model update (see ContextModule's docstring).
+"""
+from __future__ import annotations
+
+import copy
+import math
+
+import torch
+import torch.nn as nn
+import torch.nn.functional as F
+
+from protocad_ros.model.augment import random_shift  # noqa: F401  (re-export: API.md lists it with this module)
+
+__all__ = [
+    "sinkhorn_knopp",
+    "swav_cross_entropy",
+    "tc_swav_loss",
+    "swav_loss",
+    "same_episode_pairs",
+    "ContextModule",
+    "random_shift",
+]
+
+
+# --------------------------------------------------------------------------------------------
+# Sinkhorn-Knopp (online equipartition clustering, SwAV / DreamerPro)
+# --------------------------------------------------------------------------------------------
+@torch.no_grad()
+def sinkhorn_knopp(scores: torch.Tensor, num_iters: int = 3, eps: float = 0.05) -> torch.Tensor:
+    """Soft cluster assignments with equal cluster sizes, computed in log space (no grad).
+
+    scores: (N, K) similarities ubar_n . c_k (N samples = all B*M time steps flattened,
+            K prototypes).
+    returns Q: (N, K), Q = N * diag(a) exp(scores / eps) diag(b) with a, b chosen by
+            alternating normalisation so that every row is a distribution over prototypes
+            (rows sum to 1, exactly) and every prototype gets the same total mass
+            (column sums N/K, up to the tolerance `num_iters` iterations reach).
+
+    Each iteration is DreamerPro's (there the matrix is (K, N): "rows to 1/K, columns to 1/N"):
+        prototype marginals:  Q[:, k] <- Q[:, k] / sum_n Q[n, k] / K     (each cluster 1/K)
+        sample marginals:     Q[n, :] <- Q[n, :] / sum_k Q[n, k] / N     (each sample 1/N)
+    and finally Q <- N * Q so that each sample's row is a probability vector.  Ending on the
+    sample step is what makes the rows exact distributions (they are used as cross-entropy
+    targets); the equipartition constraint is the one left approximate.  Log space keeps
+    exp(scores / eps) from overflowing (|scores| <= 1, 1 / eps = 20 in the paper, but a
+    smaller eps such as DreamerPro's 0.0125 gives exp(80)).
+    """
+    if scores.dim() != 2:
+        raise ValueError(f"sinkhorn_knopp expects scores (N, K), got {tuple(scores.shape)}")
+    if num_iters < 1:
+        raise ValueError(f"num_iters must be >= 1, got {num_iters}")
+    if eps <= 0:
+        raise ValueError(f"eps must be > 0, got {eps}")
+    N, K = scores.shape
+    # (N, K) log of exp(scores / eps); at least float32 (half inputs), float64 kept.
+    log_q = scores.detach().to(torch.promote_types(scores.dtype, torch.float32)) / eps
+    log_q = log_q - torch.logsumexp(log_q.reshape(-1), dim=0)  # total mass 1 (conditioning)
+    for _ in range(num_iters):
+        # columns = prototypes: each cluster's total mass -> 1/K (equipartition).
+        log_q = log_q - torch.logsumexp(log_q, dim=0, keepdim=True) - math.log(K)
+        # rows = samples: each sample's total mass -> 1/N.
+        log_q = log_q - torch.logsumexp(log_q, dim=1, keepdim=True) - math.log(N)
+    return torch.exp(log_q + math.log(N)).to(scores.dtype)  # (N, K), rows sum to 1
+
+
+# --------------------------------------------------------------------------------------------
+# SwAV-style losses on sequences
+# --------------------------------------------------------------------------------------------
+def swav_cross_entropy(log_w: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+    """Cross-entropy of predictions against (Sinkhorn) targets, per sample.
+
+    log_w: (..., K) log-probabilities log w; targets: (..., K) wbar (rows sum to 1).
+    returns (...): -sum_k wbar_k log w_k.
+    """
+    return -(targets * log_w).sum(dim=-1)
+
+
+def tc_swav_loss(log_w: torch.Tensor, targets: torch.Tensor,
+                 pair_mask: torch.Tensor | None = None) -> torch.Tensor:
+    """Temporal-crossover SwAV loss (eq. 5), negated to be minimised.
+
+    log_w:   (B, M, K) log w from the online projector on view 1 (predictions).
+    targets: (B, M, K) wbar from the target projector on view 2 + Sinkhorn (no grad).
+    pair_mask: optional (B, M/2) bool; pair (j, j + M/2) counts only where True (e.g. both
+             steps in the same episode, see same_episode_pairs).
+    M must be even: the first half (1) = steps [0, M/2), the second half (2) = [M/2, M), and
+    step j of one half is paired with step j of the other (tau <-> tau + M/2, eq. 5).
+
+        L = mean_{b, j} 1/2 [ CE(wbar_(1)[b, j] -> log w_(2)[b, j])
+                            + CE(wbar_(2)[b, j] -> log w_(1)[b, j]) ]
+
+    i.e. the mean cross-entropy per prediction, on the same scale as swav_loss.
+    """
+    if log_w.shape != targets.shape or log_w.dim() != 3:
+        raise ValueError(f"expected log_w and targets (B, M, K) of the same shape, got "
+                         f"{tuple(log_w.shape)} and {tuple(targets.shape)}")
+    B, M, K = log_w.shape
+    if M % 2 != 0 or M == 0:
+        raise ValueError(f"TC-SwAV needs an even, non-zero sequence length M, got M={M}")
+    h = M // 2
+    # wbar_(1) . log w_(2): targets of the first half predict the second half.   (B, h)
+    ce_1_to_2 = swav_cross_entropy(log_w[:, h:], targets[:, :h])
+    # wbar_(2) . log w_(1): targets of the second half predict the first half.   (B, h)
+    ce_2_to_1 = swav_cross_entropy(log_w[:, :h], targets[:, h:])
+    per_pair = 0.5 * (ce_1_to_2 + ce_2_to_1)  # (B, h)
+    if pair_mask is None:
+        return per_pair.mean()
+    if pair_mask.shape != (B, h):
+        raise ValueError(f"pair_mask must be (B, M/2)=({B}, {h}), got {tuple(pair_mask.shape)}")
+    mask = pair_mask.to(per_pair.dtype)
+    # Mean over valid pairs; no valid pair -> 0 (and zero gradient), never NaN.
+    return (per_pair * mask).sum() / mask.sum().clamp(min=1.0)
+
+
+def swav_loss(log_w: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
+    """Ablation "w/o temporal consistency": each prediction against its own step's target.
+
+    log_w, targets: (B, M, K).  L = mean_{b, t} -sum_k wbar[b, t, k] log w[b, t, k].
+    """
+    if log_w.shape != targets.shape:
+        raise ValueError(f"log_w {tuple(log_w.shape)} and targets {tuple(targets.shape)} differ")
+    return swav_cross_entropy(log_w, targets).mean()
+
+
+def same_episode_pairs(is_first: torch.Tensor) -> torch.Tensor:
+    """(B, M) bool is_first -> (B, M/2) bool: pair (j, j + M/2) lies within one episode.
+
+    TC-SwAV assumes the context is constant over the sequence; a replay sequence that crosses
+    an episode reset (a new context is sampled there) must not pair steps across it.  A reset
+    at step t starts a new segment; steps j and j + M/2 are in one episode iff no reset in
+    (j, j + M/2].
+    """
+    B, M = is_first.shape
+    if M % 2 != 0:
+        raise ValueError(f"is_first needs an even length, got M={M}")
+    episode = torch.cumsum(is_first.long(), dim=1)  # (B, M) segment index per step
+    h = M // 2
+    return episode[:, :h] == episode[:, h:]
+
+
+def _entropy(p: torch.Tensor) -> torch.Tensor:
+    """(..., K) probabilities -> (...) entropy in nats."""
+    return -(p * torch.log(p.clamp_min(1e-12))).sum(-1)
+
+
+# --------------------------------------------------------------------------------------------
+# The module
+# --------------------------------------------------------------------------------------------
+class ContextModule(nn.Module):
+    """Projector f_theta, EMA target projector f_thetabar and K prototypes c_k (ProtoCAD).
+
+    Args (paper table / DreamerPro defaults):
+        state_dim: S, size of s = (h, z).
+        proj_dim: D, prototype dimension (32).
+        num_prototypes: K (task table: 100 or 50).
+        temperature: T of the prediction softmax, eq. 3 (0.1).
+        sinkhorn_iters / sinkhorn_eps: Sinkhorn-Knopp iterations / epsilon (3 / 0.05; the paper's
+            eps, DreamerPro uses 0.0125 on DMC).
+        ema: eta, fraction the target projector moves towards the online one per update (0.05).
+        freeze_prototypes_steps: prototypes get zero gradient for the first this many updates
+            (DreamerPro: 10k), so the early, meaningless projections do not drag them around.
+        temporal_consistency: True -> TC-SwAV (eq. 5); False -> in-place ablation.
+        drop_first_steps: leading time steps left out of the SwAV loss (DreamerPro drops 1:
+            the posterior at a sequence's first step has seen one frame and no transition, so
+            it carries no dynamics/context information). TC-SwAV then pairs tau with
+            tau + M/2 exactly (eq. 5, M = the sequence length), for every kept tau whose
+            partner is inside the sequence: M=50 pairs (1, 26) ... (24, 49), 24 pairs (step 25
+            has no partner); DreamerPro's M=51 pairs (1, 26) ... (25, 50). The ablation scores
+            every kept step in place, so the two variants differ only in the pairing.
+
+    Call order in one world-model update (the agent owns the optimizer):
+        ctx.normalize_prototypes()            # unit-norm c_k before any forward (idempotent)
+        u, w, e = ctx.features(s1)           # context features for the decoder (x = (s,u,e))
+        loss, metrics = ctx.loss(s1, s2, step, is_first)   # add to the world-model loss
+        total.backward()
+        ctx.mask_frozen_prototype_grad(step) # zero every prototype grad inside the freeze window
+        optimizer.step()
+        ctx.update_target()                  # EMA of the projector, AFTER the optimizer step
+        ctx.normalize_prototypes()           # so imagination / policy / checkpoints see unit c_k
+    `step` = number of world-model updates done before this one (0 on the first update).
+    """
+
+    def __init__(self, state_dim: int, proj_dim: int = 32, num_prototypes: int = 100,
+                 temperature: float = 0.1, sinkhorn_iters: int = 3, sinkhorn_eps: float = 0.05,
+                 ema: float = 0.05, freeze_prototypes_steps: int = 10000,
+                 temporal_consistency: bool = True, drop_first_steps: int = 1):
+        super().__init__()
+        if not 0.0 < ema <= 1.0:
+            raise ValueError(f"ema must be in (0, 1], got {ema}")
+        if temperature <= 0:
+            raise ValueError(f"temperature must be > 0, got {temperature}")
+        if drop_first_steps < 0:
+            raise ValueError(f"drop_first_steps must be >= 0, got {drop_first_steps}")
+        self.state_dim, self.proj_dim, self.num_prototypes = state_dim, proj_dim, num_prototypes
+        self.temperature = temperature
+        self.sinkhorn_iters, self.sinkhorn_eps = sinkhorn_iters, sinkhorn_eps
+        self.ema = ema
+        self.freeze_prototypes_steps = freeze_prototypes_steps
+        self.temporal_consistency = temporal_consistency
+        self.drop_first_steps = drop_first_steps
+
+        self.projector = nn.Linear(state_dim, proj_dim)  # f_theta
+        # f_thetabar: Algorithm 1 "Initialize thetabar = theta"; never receives gradients.
+        self.target_projector = copy.deepcopy(self.projector)
+        self.target_projector.requires_grad_(False)
+        # c_k: random directions on the unit sphere (K, D).
+        self.prototypes = nn.Parameter(F.normalize(torch.randn(num_prototypes, proj_dim), dim=-1))
+        # EMA updates done so far; a buffer so a resumed checkpoint does not re-copy.
+        self.register_buffer("ema_updates", torch.zeros((), dtype=torch.long))
+
+    @classmethod
+    def from_config(cls, ctx_cfg, state_dim: int, temporal_consistency: bool = True,
+                    num_prototypes: int | None = None) -> "ContextModule":
+        """Build from config.ContextConfig (duck-typed: proto_dim, freeze_prototypes_updates...)."""
+        return cls(state_dim=state_dim, proj_dim=ctx_cfg.proto_dim,
+                   num_prototypes=ctx_cfg.num_prototypes if num_prototypes is None
+                   else num_prototypes,
+                   temperature=ctx_cfg.temperature, sinkhorn_iters=ctx_cfg.sinkhorn_iters,
+                   sinkhorn_eps=ctx_cfg.sinkhorn_eps, ema=ctx_cfg.ema,
+                   freeze_prototypes_steps=ctx_cfg.freeze_prototypes_updates,
+                   temporal_consistency=temporal_consistency,
+                   drop_first_steps=ctx_cfg.drop_first_steps)
+
+    def extra_repr(self) -> str:
+        return (f"K={self.num_prototypes}, D={self.proj_dim}, T={self.temperature}, "
+                f"sinkhorn=({self.sinkhorn_iters}, {self.sinkhorn_eps}), ema={self.ema}, "
+                f"freeze={self.freeze_prototypes_steps}, tc={self.temporal_consistency}, "
+                f"drop_first={self.drop_first_steps}")
+
+    # ---- prototypes -------------------------------------------------------------------------
+    @torch.no_grad()
+    def normalize_prototypes(self) -> None:
+        """c_k <- c_k / ||c_k|| in place, outside autograd (DreamerPro does this every step).
+
+        Gradients then act on the raw parameter; the next call projects it back onto the sphere.
+        Must not be called between a forward that used the prototypes and its backward
+        (autograd would raise: the saved tensor was modified in place).
+        """
+        self.prototypes.copy_(F.normalize(self.prototypes, dim=-1))
+
+    def unit_prototypes(self) -> torch.Tensor:
+        """(K, D) detached unit-norm copy, for plots / Agent.prototypes()."""
+        return F.normalize(self.prototypes.detach(), dim=-1)
+
+    def prototypes_frozen(self, step: int) -> bool:
+        """True while `step` (updates done before this one) is inside the freeze window."""
+        return step < self.freeze_prototypes_steps
+
+    def mask_frozen_prototype_grad(self, step: int) -> bool:
+        """Inside the freeze window drop every gradient on c_k (call after backward).
+
+        Covers the gradients that reach c_k through e (decoder, actor/critic) as well, which
+        loss() alone cannot see.  grad = None makes Adam skip the parameter entirely, so its
+        moment estimates do not start from the frozen period.  Returns whether it masked.
+        """
+        if self.prototypes_frozen(step):
+            self.prototypes.grad = None
+            return True
+        return False
+
+    # ---- target projector -------------------------------------------------------------------
+    @torch.no_grad()
+    def update_target(self) -> None:
+        """thetabar <- (1 - eta) thetabar + eta theta; a full copy on the first update."""
+        if int(self.ema_updates) == 0:
+            for tgt, src in zip(self.target_projector.parameters(), self.projector.parameters()):
+                tgt.copy_(src)
+        else:
+            for tgt, src in zip(self.target_projector.parameters(), self.projector.parameters()):
+                tgt.mul_(1.0 - self.ema).add_(src, alpha=self.ema)
+        self.ema_updates += 1
+
+    # ---- features ---------------------------------------------------------------------------
+    def project(self, s: torch.Tensor) -> torch.Tensor:
+        """u = f_theta(s) / ||f_theta(s)||: (..., S) -> (..., D)."""
+        return F.normalize(self.projector(s), dim=-1)
+
+    def logits(self, u: torch.Tensor, prototypes: torch.Tensor | None = None) -> torch.Tensor:
+        """(u . c_k) / T: (..., D) -> (..., K)."""
+        c = self.prototypes if prototypes is None else prototypes
+        return u @ c.t() / self.temperature
+
+    def features(self, s: torch.Tensor, train_module: bool = True
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """Context features of states s (..., S) -> u (..., D), w (..., K), e (..., D).
+
+        u = normalize(f_theta(s)); w = softmax(u . c / T) (eq. 3); e = sum_k w_k c_k.
+        Differentiable: u in projector (and s), e in prototypes (directly and through w) and
+        projector, so decoder / actor / critic losses on x = (s, u, e) train both (Algorithm 1,
+        line 13). train_module=False: theta and c_k are constants here (gradients still reach
+        s through them), so only TC-SwAV trains the context module (the Fig. 1 caption's reading).
+        """
+        if train_module:
+            u, c = self.project(s), self.prototypes
+        else:
+            params = {k: v.detach() for k, v in self.projector.named_parameters()}
+            u = F.normalize(torch.func.functional_call(self.projector, params, (s,)), dim=-1)
+            c = self.prototypes.detach()
+        w = torch.softmax(self.logits(u, c), dim=-1)  # (..., K)
+        e = w @ c  # (..., D) = sum_k w_k c_k
+        return u, w, e
+
+    # ---- loss -------------------------------------------------------------------------------
+    def kept_steps(self, seq_len: int) -> slice:
+        """Time steps of a length-M sequence that enter the SwAV loss (see drop_first_steps)."""
+        start = min(self.drop_first_steps, seq_len)
+        if seq_len - start < 2:
+            raise ValueError(f"sequence length {seq_len} leaves {seq_len - start} steps after "
+                             f"dropping the first {self.drop_first_steps}; need >= 2")
+        return slice(start, seq_len)
+
+    def tc_pairs(self, seq_len: int) -> tuple[torch.Tensor, torch.Tensor]:
+        """(tau, tau + M/2) time indices TC-SwAV pairs in a length-M sequence (eq. 5)."""
+        h = seq_len // 2
+        first = torch.arange(min(self.drop_first_steps, seq_len), seq_len - h)
+        if first.numel() < 1:
+            raise ValueError(f"sequence length {seq_len} has no pair (tau, tau + {h}) after dropping "
+                             f"the first {self.drop_first_steps} step(s)")
+        return first, first + h
+
+    @torch.no_grad()
+    def targets(self, s2: torch.Tensor) -> torch.Tensor:
+        """wbar = Sinkhorn-Knopp(ubar . c): (B, M, S) -> (B, M, K), over all B*M samples."""
+        ubar = F.normalize(self.target_projector(s2), dim=-1)  # (B, M, D)
+        scores = ubar @ self.prototypes.t()  # (B, M, K), no temperature: eps plays that role
+        B, M, K = scores.shape
+        q = sinkhorn_knopp(scores.reshape(B * M, K), self.sinkhorn_iters, self.sinkhorn_eps)
+        return q.reshape(B, M, K)
+
+    def loss(self, s1: torch.Tensor, s2: torch.Tensor, step: int,
+             is_first: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
+        """TC-SwAV (or the in-place ablation) between view-1 predictions and view-2 targets.
+
+        s1, s2: (B, M, S) posterior states of views 1 and 2 (gradient flows into s1 only).
+        step: world-model updates done before this one (freeze window for the prototypes).
+        is_first: optional (B, M) bool; with TC, pairs that straddle an episode reset are
+            left out (a new context starts there).
+        returns (scalar loss to minimise, metrics: dict of detached 0-dim tensors).
+        """
+        if s1.shape != s2.shape or s1.dim() != 3:
+            raise ValueError(f"expected s1, s2 (B, M, S) of the same shape, got "
+                             f"{tuple(s1.shape)} and {tuple(s2.shape)}")
+        keep = self.kept_steps(s1.shape[1])
+        s1, s2 = s1[:, keep], s2[:, keep]  # (B, M', S), the steps after the warm-up
+
+        frozen = self.prototypes_frozen(step)
+        # Frozen: the loss still trains the projector, but c_k gets no gradient from it.
+        c = self.prototypes.detach() if frozen else self.prototypes  # (K, D)
+        u = self.project(s1)  # (B, M', D)
+        log_w = torch.log_softmax(self.logits(u, c), dim=-1)  # (B, M', K)
+        wbar = self.targets(s2)  # (B, M', K), no grad
+
+        if self.temporal_consistency:
+            first, second = self.tc_pairs(keep.stop)
+            # tc_swav_loss pairs step j of the first half with step j of the second half.
+            idx = (torch.cat([first, second]) - keep.start).to(log_w.device)
+            pair_mask = None
+            if is_first is not None:
+                # Segment ids from the full sequence, so resets in dropped steps still count.
+                episode = torch.cumsum(is_first.to(s1.device).long(), dim=1)
+                pair_mask = episode[:, first.to(s1.device)] == episode[:, second.to(s1.device)]
+            loss = tc_swav_loss(log_w[:, idx], wbar[:, idx], pair_mask)
+        else:
+            loss = swav_loss(log_w, wbar)
+
+        with torch.no_grad():
+            w = log_w.exp()
+            metrics = {
+                "swav_loss": loss.detach(),
+                "swav_target_entropy": _entropy(wbar).mean(),
+                "swav_pred_entropy": _entropy(w).mean(),
+                # exp(H(mean assignment)): how many prototypes are effectively in use (<= K).
+                "swav_target_perplexity": _entropy(wbar.reshape(-1, wbar.shape[-1]).mean(0)).exp(),
+                "swav_pred_perplexity": _entropy(w.reshape(-1, w.shape[-1]).mean(0)).exp(),
+                "prototypes_frozen": torch.tensor(float(frozen), device=loss.device),
+            }
+        return loss, metrics

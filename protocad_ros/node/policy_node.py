@@ -1,0 +1,564 @@
+"""The ProtoCAD policy node (msgs_docs/policy.md).
+
+    ros2 run protocad_ros policy --ros-args -p checkpoint:=runs/x   # a run directory or a file
+    ros2 run protocad_ros policy --ros-args -p task:=walker_walk        # random agent + WARNING
+
+Subscribes to image and step_info only (never the true context), pairs them by header stamp
+(they may arrive in any order), filters the RSSM state over the episode (reset on is_first),
+and answers EVERY observation with exactly one action stamped like it, plus the inferred
+context features u, w, e on context_features (same stamp). A newer checkpoint at the same path
+(or, with checkpoint_topic, a version received over ROS: protocad_ros/node/checkpoint_receiver.py)
+is loaded in a background thread and swapped in at the next is_first observation, so no step
+waits for a load and an episode is never served by two models.
+
+Extension point: `add_act_callback(fn)` calls fn(ActEvent) after each answered observation
+(e.g. protocad_ros.live_view for a rerun live stream); exceptions in callbacks are logged and
+counted, never propagated.
+"""
+from __future__ import annotations
+
+import collections
+import threading
+import time
+from dataclasses import dataclass
+from typing import Any, Callable
+
+import numpy as np
+from diagnostic_msgs.msg import DiagnosticArray
+from sensor_msgs.msg import Image, JointState
+
+from protocad_ros.atomic import file_sha256, file_signature, remove_stale_temporaries
+from protocad_ros.node.checkpoint_serving import CheckpointServing
+from protocad_ros.node.checkpoint_receiver import CheckpointReceiver
+from protocad_ros.live_view import LiveView
+from protocad_ros.node.policy_params import COUNTERS, PARAMS
+from sim_bridge.contract import qos, topics
+from sim_bridge.contract.contexts import task_actuators
+from sim_bridge.nodekit.lifecycle import ManagedNode
+from sim_bridge.nodekit.publisher_watch import PublisherWatch
+from sim_bridge.nodekit.rosnode import (ConfigError, KeyThrottle, Percentiles, declare_all,
+                                flush_publishers, install_parameter_guards, make_status, run_node)
+
+NODE_NAME = "policy"
+#: Seconds a closing policy gives its readers to acknowledge the last actions (see close()).
+ACTION_FLUSH_TIMEOUT_S = 30.0
+#: Observations whose image and step_info have not both arrived yet (oldest dropped beyond).
+MAX_UNPAIRED = 64
+__all__ = ["ActEvent", "COUNTERS", "PARAMS", "PolicyNode", "main"]
+
+
+@dataclass
+class ActEvent:
+    """What an act callback receives after each answered observation."""
+
+    stamp_ns: int
+    info: topics.StepInfo
+    image: np.ndarray          # (H, W, 3) uint8
+    action: np.ndarray         # (A,) float32 in [-1, 1]
+    features: Any              # protocad_ros.policy.ContextFeatures (u, w, e)
+    latency_s: float           # completing message received -> action published
+    checkpoint_updates: int    # -1 for a random agent
+
+
+class PolicyNode(CheckpointServing, ManagedNode):
+    """See the module docstring; parameters in PARAMS, counters in COUNTERS. A managed node
+    (sim_bridge/nodekit/lifecycle.py): configure loads the checkpoint (or builds the random agent) and
+    starts its file watcher, activate serves, deactivate stops answering, cleanup drops the
+    model."""
+
+    def __init__(self, *, namespace: str = topics.DEFAULT_NAMESPACE, **kw: Any):
+        super().__init__(NODE_NAME, namespace=namespace, **kw)
+        self.done = threading.Event()
+        self.exit_code = 0
+        p = self.params = declare_all(self, PARAMS)
+        self.executor_kind = p["executor"]
+        import torch
+
+        if p["num_threads"]:
+            torch.set_num_threads(p["num_threads"])
+        try:
+            dev = torch.device(p["device"])
+        except (RuntimeError, ValueError) as e:
+            raise ConfigError(f"device {p['device']!r}: {e}") from None
+        if dev.type == "cuda" and not torch.cuda.is_available():
+            raise ConfigError(f"device {p['device']!r} requested but CUDA is not available "
+                              "(torch.cuda.is_available() is False); use device:=cpu")
+        self._lock = threading.Lock()            # guards _pending_policy and counters
+        self._stop = threading.Event()           # set: the checkpoint watcher ends (cleanup)
+        self._wake = threading.Event()           # set: the watcher looks now (a received version)
+        self.receiver: CheckpointReceiver | None = None
+        self.counters = dict.fromkeys(COUNTERS, 0)
+        self.counters["unknown_parameters"] = len(self.unknown_parameters)
+        if not self.params["remote_lifecycle"]:
+            self.refuse_remote_transitions()
+        self._throttle = KeyThrottle(self.get_logger())
+        self.latency = Percentiles()             # completing message -> action published
+        self.act_time = Percentiles()            # model time (Policy.act)
+        self._act_callbacks: list[Callable[[ActEvent], None]] = []
+        self._release_model()
+
+        obs_qos, out_qos = qos.observation_qos(), qos.action_qos()
+        if p["latest_only"]:
+            obs_qos.depth = 1
+        # Profiles of their own: rclpy's QoS overriding changes the profile object it is given.
+        # Lifecycle publishers: no action goes out unless active.
+        self.pub_action = self.create_lifecycle_publisher(JointState, topics.ACTION, qos.action_qos(),
+                                                          qos_overriding_options=qos.overridable())
+        self.pub_features = self.create_lifecycle_publisher(JointState, topics.CONTEXT_FEATURES, out_qos)
+        self.pub_diag = self.create_publisher(DiagnosticArray, topics.DIAGNOSTICS,
+                                              qos.diagnostics_qos())
+        image_qos = qos.observation_qos()
+        image_qos.depth = obs_qos.depth
+        # One bridge per namespace: a second publisher of what the policy reads (a second
+        # bridge announcing itself, an impostor) is warned about once and counted.
+        self.publisher_watch = PublisherWatch(self._on_new_publisher)
+        watch = self.publisher_watch.callbacks
+        self.sub_image = self.create_subscription(Image, topics.IMAGE, self._on_image, image_qos,
+                                                  qos_overriding_options=qos.overridable(),
+                                                  event_callbacks=watch(self.resolve_topic_name(topics.IMAGE)))
+        self.sub_info = self.create_subscription(JointState, topics.STEP_INFO, self._on_info,
+                                                 obs_qos, event_callbacks=watch(self.resolve_topic_name(topics.STEP_INFO)))
+        self.bridge: topics.BridgeInfo | None = None
+        self._announcer_checked_at, self._announcer_present = -1e9, False
+        self.sub_bridge_info = self.create_subscription(JointState, topics.BRIDGE_INFO, self._on_bridge_info,
+                                                        qos.announcement_qos(),
+                                                        event_callbacks=watch(self.resolve_topic_name(topics.BRIDGE_INFO)))
+        self.diag_timer = self.create_timer(p["diagnostics_period_s"], self._publish_diagnostics)
+        install_parameter_guards(self, PARAMS, lambda name, value: None,
+                                 lambda reason: self._count("parameters_rejected",
+                                                            f"parameter change rejected: {reason}"))
+        self._diag_name = self.get_fully_qualified_name()
+        if p["autostart"]:
+            self.autostart()
+        else:
+            self.get_logger().info("autostart:=false: unconfigured, waiting for lifecycle "
+                                   f"transitions on {self._diag_name}/change_state")
+
+    def _release_model(self) -> None:
+        """No model, no per-episode state (unconfigured)."""
+        self.policy = None
+        self.ckpt_counters: dict[str, Any] = {}
+        self.agent_kind = "none"
+        self.task = self.params["task"]
+        self.action_dim, self.image_hw, self.action_names = 0, (0, 0), []
+        self.live_view: LiveView | None = None
+        self._watcher: threading.Thread | None = None
+        self._loaded_sig: tuple | None = None     # watch keys (checkpoint_serving._watch_key)
+        self._failed_sig: tuple | None = None
+        self._unsigned_since: tuple = (None, 0.0)   # (watch key, since): a file awaiting FILE.sig
+        self.ckpt_sha: str | None = None          # sha256 of the served checkpoint file
+        self.ckpt_seq = -1                        # its signed sequence number (-1: unsigned)
+        self.trusted = None                       # key id -> public key; None: unsigned accepted
+        with self._lock:
+            self._pending_policy: tuple | None = None   # (policy, counters, key, sha, seq) to swap in
+        self.mismatch: str | None = None
+        self._reset_filter()
+
+    def _reset_filter(self) -> None:
+        # Per-episode filter state (the RSSM state itself lives in self.policy).
+        self._prev_action = np.zeros(self.action_dim, np.float32)
+        self._unpaired: collections.OrderedDict[int, dict[str, Any]] = collections.OrderedDict()
+        self._last_stamp: int | None = None
+        self._last_answer: tuple[Any, Any] | None = None
+        self._episode = -1
+        self._episode_return: float | None = None
+        # (stamp, image + step_info, receive time) held until bridge_info arrives (_arrive)
+        self._held_for_bridge_info: tuple | None = None
+        self._step = -1
+
+    # ------------------------------------------------------------------ lifecycle
+    def configure_node(self) -> None:
+        """Load the checkpoint (or build the random agent), start the file watcher; a missing
+        or unloadable checkpoint is a ConfigError."""
+        p = self.params
+        if p["checkpoint"]:   # a file or a run directory, as everywhere else
+            from protocad_ros.checkpoint import checkpoint_file
+            p["checkpoint"] = str(checkpoint_file(p["checkpoint"]))
+        path, topic = p["checkpoint"], p["checkpoint_topic"]
+        if topic and not path:
+            raise ConfigError(f"checkpoint_topic:={topic} needs checkpoint:=FILE: where received "
+                              "versions are written (and served from after a restart)")
+        self._load_trust()
+        sig = file_signature(path) if path else None
+        if sig is not None:
+            try:
+                self.ckpt_sha = file_sha256(path)
+            except OSError as e:
+                raise ConfigError(f"cannot read checkpoint {path}: {e}") from None
+            self._configure_seq(path, self.ckpt_sha, sig[2])
+            try:
+                self.policy, self.ckpt_counters = self._load(path)
+            except Exception as e:  # CheckpointError and friends: a clear message, exit 2
+                raise ConfigError(f"cannot load checkpoint {path}: {e}") from None
+            self._loaded_sig = self._watch_key(path)
+            self.agent_kind = "checkpoint"
+        elif path and not (p["wait_for_checkpoint"] or topic):
+            raise ConfigError(f"checkpoint {path} does not exist (set wait_for_checkpoint:=true "
+                              "to serve a random agent until it appears)")
+        elif path and p["reload_poll_s"] <= 0 and not topic:
+            raise ConfigError(f"checkpoint {path} does not exist and reload_poll_s is 0: it "
+                              "would never be loaded")
+        else:
+            self.policy, self.ckpt_counters = self._random_policy(), {}
+            self.agent_kind = "random"
+            self.get_logger().warning(
+                ("checkpoint %s does not exist yet: " % path if path else "no checkpoint given: ")
+                + f"serving a RANDOMLY INITIALISED {p['variant']} agent ({p['preset']} preset, "
+                f"task {p['task']}); its actions are meaningless")
+        cfg = self.policy.agent.cfg
+        self.task = getattr(cfg, "task", p["task"])
+        self.action_dim = int(self.policy.agent.action_dim)
+        self.image_hw = (int(cfg.train.image_size),) * 2
+        try:
+            names = task_actuators(self.task)
+        except Exception:
+            names = []
+        self.action_names = names if len(names) == self.action_dim else [
+            f"a{i}" for i in range(self.action_dim)]
+        self.policy.reset()
+        self._reset_filter()
+        try:
+            self.live_view = LiveView.from_params(p["rerun_mode"], p["rerun_url"],
+                                                  p["rerun_path"], action_names=self.action_names)
+        except ValueError as e:
+            raise ConfigError(f"rerun: {e}") from None
+        if self.bridge is not None:   # announced before we could check it
+            self._check_bridge()
+        self._stop.clear()
+        if topic:
+            remove_stale_temporaries(path)   # what an install interrupted by a kill left
+            self.receiver = CheckpointReceiver(
+                self, topic, timeout_s=p["checkpoint_transfer_timeout_s"], wake=self._wake.set,
+                next_sha=self._next_sha, serving=self._describe_agent, count=self._count,
+                max_bytes=p["max_checkpoint_bytes"], trusted=self.trusted,
+                newest_seq=self._newest_seq, fits=self._announced_fits)
+        if path and (p["reload_poll_s"] > 0 or topic):
+            self._watcher = threading.Thread(target=self._watch, name="checkpoint_watcher",
+                                             daemon=True)
+            self._watcher.start()
+
+    def activate_node(self) -> None:
+        p = self.params
+        self.get_logger().info(
+            f"serving {self._describe_agent()} on {p['device']} ({p['mode']}, exploration "
+            f"noise {p['exploration_noise']}); {self.action_dim}-d actions {self.action_names}; "
+            f"expects {self.image_hw[0]}x{self.image_hw[1]} rgb8 on "
+            f"{self.resolve_topic_name(topics.IMAGE)}")
+
+    def deactivate_node(self) -> None:
+        # Halves of observations that arrived before: they will not be answered.
+        self._unpaired.clear()
+
+    def cleanup_node(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        if self.receiver is not None:
+            self.receiver.destroy()
+            self.receiver = None
+        if self._watcher is not None:
+            self._watcher.join(timeout=10.0)
+            if self._watcher.is_alive():
+                raise RuntimeError("the checkpoint watcher did not end within 10 s")
+        if self.live_view is not None:
+            self.live_view.close()
+        self._release_model()
+
+    # ------------------------------------------------------------------ callbacks
+    def add_act_callback(self, fn: Callable[[ActEvent], None]) -> None:
+        """Call fn(ActEvent) after each answered observation (in the executor thread: keep it
+        quick, e.g. hand over to a queue)."""
+        self._act_callbacks.append(fn)
+
+    def _count(self, key: str, why: str | None = None) -> None:
+        with self._lock:
+            self.counters[key] += 1
+            n = self.counters[key]
+        if why:
+            self._throttle.warning(key, f"{why} ({key}: {n} so far)")
+
+    def _on_new_publisher(self, topic: str, publishers: int, first_time: bool) -> None:
+        if first_time:
+            self.get_logger().warning(
+                f"{publishers} publishers on {topic}: a second sim bridge in {self.get_namespace()}, or "
+                "another node publishing there (an impostor?); their observations interleave "
+                "(multiple_publishers on /diagnostics)")
+
+    def _inactive(self) -> bool:
+        """Observations are answered only while active (counted, not kept, otherwise)."""
+        if self.is_active:
+            return False
+        self._count("observations_while_inactive")
+        return True
+
+    def _on_image(self, msg) -> None:
+        if self._inactive():
+            return
+        t = time.monotonic()
+        stamp = topics.stamp_to_ns(msg.header.stamp)
+        self._count("images_received")
+        reason = None
+        if msg.encoding != "rgb8":
+            reason = ("rejected_image_encoding",
+                      f"image encoding {msg.encoding!r}, expected 'rgb8'")
+        elif (int(msg.height), int(msg.width)) != self.image_hw:
+            reason = ("rejected_image_size", f"image is {msg.height}x{msg.width}, expected "
+                      f"{self.image_hw[0]}x{self.image_hw[1]}")
+        else:
+            try:
+                image = topics.read_image(msg, self.image_hw).copy()
+            except ValueError as e:
+                reason = ("rejected_image_data", str(e))
+        if reason is not None:
+            self._count("images_rejected")
+            self._count(reason[0], f"image rejected (stamp {topics.format_stamp(stamp)}): {reason[1]}")
+            return
+        self._arrive(stamp, "image", image, t)
+
+    def _on_info(self, msg) -> None:
+        if self._inactive():
+            return
+        t = time.monotonic()
+        stamp = topics.stamp_to_ns(msg.header.stamp)
+        self._count("step_info_received")
+        try:
+            info = topics.read_step_info(msg)
+        except (ValueError, TypeError, IndexError) as e:
+            return self._count("step_info_rejected", f"step_info rejected (stamp {topics.format_stamp(stamp)}): {e}")
+        self._arrive(stamp, "info", info, t)
+
+    def _on_bridge_info(self, msg) -> None:
+        """The bridge's announcement: refuse, with the reason, a bridge the checkpoint does not fit."""
+        try:
+            info = topics.read_bridge_info(msg)
+        except ValueError as e:
+            return self._count("bridge_info_rejected", f"bridge_info rejected: {e}")
+        self.bridge = info
+        if self.policy is not None:   # else configure checks it
+            self._check_bridge()
+        held, self._held_for_bridge_info = self._held_for_bridge_info, None
+        if held is not None and self.mismatch is None and self.policy is not None and self.is_active:
+            self._answer_paired(*held)
+
+    def _check_bridge(self) -> None:
+        info = self.bridge
+        why = []
+        if info.task != self.task:
+            why.append(f"the checkpoint is for {self.task}, the bridge runs {info.task}")
+        if len(info.action_names) != self.action_dim:
+            why.append(f"the checkpoint acts with {self.action_dim} value(s) {self.action_names}, the "
+                       f"bridge expects {len(info.action_names)} {info.action_names}")
+        if (info.image_size, info.image_size) != tuple(self.image_hw):
+            why.append(f"the checkpoint sees {self.image_hw[0]}x{self.image_hw[1]} images, the bridge "
+                       f"renders {info.image_size}x{info.image_size}")
+        self.mismatch = "; ".join(why) or None
+        if self.mismatch:
+            self.get_logger().error(f"not answering this sim bridge: {self.mismatch}. Start the bridge "
+                                    f"with -p task:={self.task}, or serve a checkpoint trained on {info.task}")
+        else:
+            self.get_logger().info(f"sim bridge runs {info.task} with actions {info.action_names}: matches")
+
+    def _announcing_bridge(self) -> bool:
+        """Whether a bridge that announces itself is in the graph (a graph query, so asked at
+        most once a second: a source without announcements, e.g. a robot driver, pays nothing
+        per observation)."""
+        now = time.monotonic()
+        if now - self._announcer_checked_at >= 1.0:
+            self._announcer_checked_at = now
+            self._announcer_present = self.count_publishers(self.sub_bridge_info.topic_name) > 0
+        return self._announcer_present
+
+    def _arrive(self, stamp: int, kind: str, value: Any, t: float) -> None:
+        entry = self._unpaired.get(stamp)
+        if entry is None:
+            entry = self._unpaired[stamp] = {}
+            while len(self._unpaired) > MAX_UNPAIRED:
+                old, _ = self._unpaired.popitem(last=False)
+                self._count("unpaired_dropped", f"observation {old} never got both image and "
+                            "step_info: dropped")
+        entry[kind] = value
+        if len(entry) < 2:
+            return
+        del self._unpaired[stamp]
+        if self.mismatch is not None:
+            return self._count("mismatched_observations", f"observation {topics.format_stamp(stamp)} not answered: {self.mismatch}")
+        if self.bridge is None and self._announcing_bridge():
+            # A bridge that announces itself is there but its announcement has not arrived yet:
+            # answering now could send it actions of the wrong size. Hold the newest such
+            # observation and answer it when the announcement comes (it usually follows within
+            # milliseconds; a lock-step bridge would otherwise wait its timeout to re-send).
+            self._held_for_bridge_info = (stamp, entry, t)
+            return self._count("awaiting_bridge_info", f"observation {topics.format_stamp(stamp)} held: waiting "
+                               "for the bridge's announcement")
+        self._answer_paired(stamp, entry, t)
+
+    def _answer_paired(self, stamp: int, entry: dict, t: float) -> None:
+        """An observation with both image and step_info, from a bridge that fits: answer it."""
+        if stamp == self._last_stamp and self._last_answer is not None:
+            # The bridge published it again (its lock-step timeout): answer it again, same
+            # action, without filtering it a second time.
+            self._count("duplicate_observations")
+            for pub, msg in zip((self.pub_action, self.pub_features), self._last_answer):
+                pub.publish(msg)
+            return
+        if self._last_stamp is not None and stamp < self._last_stamp:
+            if not entry["info"].is_first:
+                return self._count("stale_observations", f"observation {topics.format_stamp(stamp)} is older than "
+                                   f"the last answered one ({topics.format_stamp(self._last_stamp)}): not answered")
+            # Sim time went back at an episode start: a new bridge run (its clock starts at 0
+            # again), as in the collect-train-reload loop. Lone pieces of the old run could
+            # pair with the new run's equal stamps, so they go.
+            self._count("sim_time_restarts", f"sim time went back to {topics.format_stamp(stamp)} at an episode "
+                        f"start (last answered {topics.format_stamp(self._last_stamp)}): a new sim run")
+            self._unpaired.clear()
+            self._last_stamp = self._last_answer = None
+        self._answer(stamp, entry["image"], entry["info"], t)
+
+    def _answer(self, stamp: int, image: np.ndarray, info: topics.StepInfo, t_recv: float) -> None:
+        if info.is_first:
+            if self._last_stamp is not None:   # the latency while running, not only at exit
+                score = (f"return {self._episode_return:.1f}, " if self._episode_return is not None else "")
+                self.get_logger().info(
+                    f"episode {self._episode} answered ({self._step + 1} steps); {score}latency obs -> action "
+                    f"p50 {self.latency.percentile(50) * 1e3:.2f} ms, p99 {self.latency.percentile(99) * 1e3:.2f} ms "
+                    f"(model p50 {self.act_time.percentile(50) * 1e3:.2f} ms)")
+            self._swap_if_pending()
+            self._prev_action[:] = 0.0
+            self._count("episodes")
+        elif self._last_stamp is None:
+            self.get_logger().info(f"joined in the middle of episode {info.episode} (step "
+                                   f"{info.step}): filtering from a blank state")
+        else:
+            # Observations that never reached us whole (a DDS queue overwritten under load, a
+            # flood): the contract numbers the steps of an episode 0, 1, 2, ... A later episode
+            # shows its lost head; the lost tail of an earlier one is not knowable.
+            lost = info.step - self._step - 1 if info.episode == self._episode else info.step
+            if lost > 0 and self.params["latest_only"]:   # skipped on purpose: the newest wins
+                with self._lock:
+                    self.counters["observations_skipped"] += lost
+            elif lost > 0:
+                with self._lock:
+                    self.counters["observations_lost"] += lost
+                    n = self.counters["observations_lost"]
+                self._throttle.warning("observations_lost", f"{lost} observation(s) before episode "
+                                       f"{info.episode} step {info.step} never arrived whole "
+                                       f"(observations_lost: {n} so far)")
+        t0 = time.monotonic()
+        action, feats = self.policy.act(image, self._prev_action, bool(info.is_first))
+        self.act_time.add(time.monotonic() - t0)
+        action = np.asarray(action, np.float32).reshape(-1)
+        amsg = topics.fill_action(JointState(), action, self.action_names, stamp)
+        u, w, e = (np.asarray(getattr(feats, k, ()), np.float32).reshape(-1) for k in "uwe")
+        fmsg = topics.fill_context_features(JointState(), u, w, e, stamp)
+        self.pub_action.publish(amsg)
+        self.pub_features.publish(fmsg)
+        latency = time.monotonic() - t_recv
+        self.latency.add(latency)
+        self._prev_action = action.copy()
+        self._last_stamp, self._last_answer = stamp, (amsg, fmsg)
+        self._episode, self._step = info.episode, info.step
+        self._episode_return = info.episode_return   # the bridge's running return (optional)
+        stale = [s for s in self._unpaired if s < stamp]   # pieces that can no longer pair
+        for s in stale:
+            del self._unpaired[s]
+        if stale:
+            with self._lock:
+                self.counters["fragments_discarded"] += len(stale)
+        self._count("observations_answered")
+        callbacks = self._act_callbacks + (
+            [self.live_view.on_act] if self.live_view is not None and self.live_view.enabled else [])
+        if callbacks:
+            event = ActEvent(stamp, info, image, action, feats, latency, self.checkpoint_updates)
+            for fn in callbacks:
+                try:
+                    fn(event)
+                except Exception as exc:  # noqa: BLE001
+                    self._count("act_callback_errors", f"act callback {fn!r} failed: {exc}")
+
+    # ------------------------------------------------------------------ diagnostics
+    def _publish_diagnostics(self) -> None:
+        state = self.lifecycle_state
+        with self._lock:
+            c = dict(self.counters)
+            pending = self._pending_policy
+        values: dict[str, Any] = {
+            "agent": self.agent_kind, "checkpoint": self.params["checkpoint"],
+            "checkpoint_updates": self.checkpoint_updates,
+            "pending_checkpoint_updates": (pending[1].get("updates", -1) if pending else -1),
+            "checkpoint_sha256": self.ckpt_sha or "",
+            "checkpoint_announced": self.receiver.last_announced if self.receiver is not None else "",
+            "checkpoint_transfer": self.receiver.progress() if self.receiver is not None else "",
+            "checkpoint_buffered_bytes": self.receiver.buffered_bytes() if self.receiver is not None else 0,
+            "checkpoint_seq": self.ckpt_seq,
+            "checkpoint_trusted_keys": ",".join(sorted(self.trusted)) if self.trusted else "",
+            # The trainer's scalar counters only (env steps, episodes, ...): its sampler state
+            # and bag list would be kilobytes on every diagnostics message.
+            **{f"checkpoint/{k}": v for k, v in self.ckpt_counters.items()
+               if k != "updates" and isinstance(v, (int, float)) and not isinstance(v, bool)},
+            "task": self.task, "device": self.params["device"], "mode": self.params["mode"],
+            "latency_ms_p50": self.latency.percentile(50) * 1e3,
+            "latency_ms_p99": self.latency.percentile(99) * 1e3,
+            "act_ms_p50": self.act_time.percentile(50) * 1e3,
+            "act_ms_p99": self.act_time.percentile(99) * 1e3,
+            "episode": self._episode, "step": self._step, "callback_errors": self.callback_errors,
+            "lifecycle_state": state, "transition_errors": self.transition_errors,
+            **c,
+        }
+        bad = (c["images_rejected"] or c["step_info_rejected"] or c["checkpoint_load_errors"]
+               or c["checkpoint_transfers_rejected"]
+               or c["stale_observations"] or c["unpaired_dropped"] or c["observations_lost"]
+               or self.callback_errors)
+        unknown = self.unknown_parameters
+        values["bridge"] = (f"{self.bridge.task} {self.bridge.action_names}" if self.bridge else "")
+        several = self.publisher_watch.summary()
+        values["multiple_publishers"] = several
+        values["multiple_publishers_detected"] = self.publisher_watch.detected
+        level = ("ERROR" if self.mismatch else
+                 "WARN" if bad or unknown or several or self.agent_kind == "random" else "OK")
+        message = (f"not answering: {self.mismatch}" if self.mismatch else
+                   f"several publishers on {several} (a second bridge? an impostor?)" if several else
+                   f"unknown parameters ignored: {unknown}" if unknown else
+                   f"{state}: not answering" if state != "active" else
+                   "random agent" if self.agent_kind == "random" else
+                   "rejected inputs or checkpoint errors" if bad else "serving")
+        arr = DiagnosticArray()
+        arr.header.stamp = self.get_clock().now().to_msg()
+        arr.status = [make_status(self._diag_name, self.task, values, level, message)]
+        try:
+            self.pub_diag.publish(arr)
+        except Exception:
+            pass
+
+    def close(self) -> None:
+        """Last diagnostics (what was served), then the shutdown transition (the watcher
+        ends, the live view's recording is completed), then up to ACTION_FLUSH_TIMEOUT_S for
+        reliable readers to acknowledge every action and context_features sample: a recorder
+        that was stalled still has a backlog, which exiting at once would lose."""
+        try:
+            self._publish_diagnostics()
+        except Exception:
+            pass
+        self.shutdown_lifecycle()
+        try:
+            for topic in flush_publishers((self.pub_action, self.pub_features), ACTION_FLUSH_TIMEOUT_S):
+                self.get_logger().warning(f"{topic}: exiting with samples a reader has not acknowledged "
+                                          f"after {ACTION_FLUSH_TIMEOUT_S:g} s (a reader stalled or gone)")
+        except Exception as exc:  # noqa: BLE001  closing must go on; say why nothing was flushed
+            self.get_logger().warning(f"could not wait for the last actions to be acknowledged: {exc}")
+        c = self.counters
+        self.get_logger().info("stopped: " + ", ".join(f"{k}={c[k]}" for k in COUNTERS if c[k])
+                               + f"; latency p50 {self.latency.percentile(50) * 1e3:.2f} ms, "
+                               f"p99 {self.latency.percentile(99) * 1e3:.2f} ms")
+
+
+def main(argv: list[str] | None = None) -> None:
+    raise SystemExit(run_node(
+        PolicyNode, prog="policy", params=PARAMS, argv=argv,
+        description="ProtoCAD policy node: answers every observation (image + step_info, "
+                    "paired by stamp) with an action stamped like it, and publishes the "
+                    "inferred context features u, w, e. Contract: msgs_docs/policy.md.",
+        example="ros2 run protocad_ros policy --ros-args -p checkpoint:=runs/x "
+                "-p reload_poll_s:=5.0 -p mode:=deterministic"))
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,78 @@
+"""The policy node's parameter table and counters (msgs_docs/policy.md), apart from the node
+so that --help, docs and tests read them without importing rclpy or torch."""
+from __future__ import annotations
+
+from protocad_ros.model.config import DEFAULT_CLI_PRESET, PRESETS, VARIANTS
+from sim_bridge.contract.contexts import TASKS
+from sim_bridge.nodekit.rosnode import (Param, autostart_param, executor_param, remote_lifecycle_param,
+                                strict_param)
+
+PARAMS: tuple[Param, ...] = (
+    Param("checkpoint", "", "Checkpoint file (protocad_ros.checkpoint). Empty: a randomly "
+          "initialised agent (task, preset, variant below) with a WARNING. With "
+          "checkpoint_topic: this node's own copy, where received versions are written."),
+    Param("wait_for_checkpoint", False, "If the checkpoint file does not exist yet: serve a "
+          "random agent and load the file once it appears (collect-train-reload loop) "
+          "instead of exiting with an error."),
+    Param("reload_poll_s", 2.0, "How often the checkpoint file is checked for a newer version "
+          "(mtime/inode/size); a newer one is loaded in the background and served from the "
+          "next is_first observation. 0 = never reload.", range=(0.0, 3600.0), units="s"),
+    Param("checkpoint_topic", "", "Receive checkpoints over ROS from a checkpoint publisher "
+          "(trainer/nodes/checkpoint_publisher.py) announcing on this topic, e.g. checkpoint; each "
+          "verified version is written to `checkpoint` (required then) and served from the next "
+          "is_first observation. Empty: off (the file alone)."),
+    Param("trusted_keys", "", "Ed25519 public key file(s), comma-separated (protocad-keygen "
+          "NAME writes NAME.pub): only checkpoints signed by one of them are served, received "
+          "over checkpoint_topic (signed announcement) or loaded from the checkpoint file "
+          "(detached signature FILE.sig), and each version's sequence number must grow. Empty: "
+          "unsigned checkpoints are accepted (a WARNING at start)."),
+    Param("max_checkpoint_bytes", 512 << 20, "Largest checkpoint accepted over checkpoint_topic: "
+          "a bigger announced version is refused before any chunk is kept.",
+          range=(4096, 1 << 40), units="bytes"),
+    Param("checkpoint_transfer_timeout_s", 60.0, "A version announced on checkpoint_topic from "
+          "which no new chunk arrived for this long (and not all of them arrived) is rejected as "
+          "incomplete.", range=(0.1, 3600.0), units="s"),
+    Param("task", "pendulum_swingup", "Task of the random agent (action size, K prototypes); "
+          "with a checkpoint its config's task is used.", choices=tuple(sorted(TASKS))),
+    Param("preset", DEFAULT_CLI_PRESET, "Model size preset of the random agent.", choices=PRESETS),
+    Param("variant", "protocad", "Model variant of the random agent.", choices=VARIANTS),
+    Param("device", "cpu", "Torch device of the model, e.g. cpu, cuda, cuda:0."),
+    Param("mode", "deterministic", "deterministic: the actor's mode (tanh_normal: the most "
+          "likely of 100 samples, as DreamerPro); sample: a sample of the actor's distribution.",
+          choices=("deterministic", "sample")),
+    Param("state_mean", False, "Filter with the posterior's mean instead of a sample of it "
+          "(DreamerV2's eval_state_mean; false, as DreamerV2 and DreamerPro evaluate)."),
+    Param("latest_only", False, "Real time: subscribe to observations with KEEP_LAST(1), so a "
+          "policy that falls behind skips to the newest observation instead of answering every "
+          "queued one in turn (the skipped ones are counted in observations_skipped). Off for "
+          "lock-step, where every observation waits for its answer."),
+    Param("exploration_noise", 0.0, "Std of Gaussian noise added to the action (then clipped "
+          "to [-1, 1]).", range=(0.0, 10.0)),
+    Param("seed", 0, "Seeds the random agent's weights and the action sampling/noise.",
+          range=(0, 2**31 - 1)),
+    Param("num_threads", 0, "torch intra-op threads (0 = torch's default).", range=(0, 1024)),
+    Param("diagnostics_period_s", 1.0, "Period of /diagnostics.", range=(0.05, 3600.0),
+          units="s"),
+    Param("rerun_mode", "off", "Live rerun stream of image, u/w/e, assignment, action and "
+          "reward on the sim_time timeline: off, spawn (local viewer), connect (to rerun_url), "
+          "save (to rerun_path).", choices=("off", "spawn", "connect", "save")),
+    Param("rerun_url", "", "connect mode: gRPC url of a running viewer ('' = "
+          "rerun+http://127.0.0.1:9876/proxy, what a plain `rerun` listens on)."),
+    Param("rerun_path", "", "save mode: the .rrd file to write (completed at shutdown)."),
+    autostart_param(),
+    remote_lifecycle_param(),
+    strict_param(),
+    executor_param(),
+)
+
+COUNTERS = ("observations_answered", "episodes", "images_received", "images_rejected",
+            "rejected_image_encoding", "rejected_image_size", "rejected_image_data",
+            "step_info_rejected", "duplicate_observations", "stale_observations", "sim_time_restarts",
+            "unpaired_dropped", "checkpoint_reloads", "checkpoint_load_errors",
+            "act_callback_errors", "unknown_parameters", "parameters_rejected",
+            "observations_lost", "observations_skipped", "fragments_discarded", "step_info_received",
+            "mismatched_observations", "awaiting_bridge_info", "bridge_info_rejected",
+            "observations_while_inactive", "checkpoint_transfers", "checkpoint_transfers_rejected",
+            "checkpoint_signatures_rejected", "checkpoint_rollbacks_rejected",
+            "checkpoint_limits_rejected", "checkpoint_mismatches", "checkpoint_chunks_dropped",
+            "remote_transitions_refused")

@@ -1,0 +1,171 @@
+"""`protocad-fleet`: one machine's share of a fleet, discovering through a Fast DDS
+Discovery Server: M actor groups (a sim bridge and an actor each, in /protocad/robotK), and/or
+one recorder for the fleet's namespaces, and/or the server itself.
+
+    # machine A (server, recorder, the learner's checkpoints on /protocad/checkpoint)
+    protocad-fleet --start-discovery-server 0.0.0.0:11811 --robots 4 --no-actors \\
+        --record runs/fleet/bags/session1 --publish-checkpoint runs/fleet/checkpoints/latest.pt
+    # machines B and C: two actor groups each, robot0-1 and robot2-3, fed over ROS
+    protocad-fleet --discovery-server A:11811 --robots 2 --first-robot 0 --task walker_walk \\
+        --checkpoint policy/latest.pt --checkpoint-topic /protocad/checkpoint
+    protocad-fleet --discovery-server A:11811 --robots 2 --first-robot 2 --task walker_walk \\
+        --checkpoint policy/latest.pt --checkpoint-topic /protocad/checkpoint
+    # A again: train on every robot's episodes
+    protocad-train --logs runs/fleet/bags --namespace /protocad/robot0 /protocad/robot1 ...
+
+Every machine uses the same ROS_DOMAIN_ID (--domain-id, default $ROS_DOMAIN_ID) and the same
+server; robot names must not repeat across machines (--first-robot). The actor is a policy node
+on --checkpoint (it waits for the file and reloads it whenever it changes: a shared file system;
+or, with --checkpoint-topic, it receives every new version a checkpoint publisher announces,
+which the learner's machine runs with --publish-checkpoint) or, without one, uniform random
+actions. Each bridge runs lock-step and waits for --min-subscribers readers (default 2: its actor and a recorder, on whichever
+machine) before its first step, so the bag misses nothing: start the recorder first. Ctrl-C
+stops every process (the recorder last, the server after it); with --episodes N the actor groups
+end by themselves after N episodes per robot. Node logs in --log-dir.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+from pathlib import Path
+from typing import Sequence
+
+from sim_bridge.contract import topics as T
+from trainer.launch import discovery
+
+
+from trainer import runs
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(prog="protocad-fleet", description=__doc__.split("\n\n")[0],
+                                 epilog=__doc__.split("\n\n", 1)[1], formatter_class=argparse.RawDescriptionHelpFormatter)
+    discovery.add_args(ap)
+    ap.add_argument("--robots", type=runs.positive_int, default=1, help="robots (actor groups / recorded namespaces) on this machine")
+    ap.add_argument("--first-robot", type=runs.non_negative_int, default=0,
+                    help="number of the first robot: /protocad/robotFIRST ... (distinct per machine)")
+    ap.add_argument("--no-actors", action="store_true", help="start no actor group (e.g. only the recorder)")
+    ap.add_argument("--record", default=None, metavar="BAG", help="also record the robots' topics into this bag")
+    ap.add_argument("--task", default="pendulum_swingup")
+    ap.add_argument("--checkpoint", default=None, help="the policy nodes' checkpoint (default: random actions); "
+                                                       "with --checkpoint-topic their own copy of what they receive")
+    ap.add_argument("--checkpoint-topic", default=None, metavar="TOPIC",
+                    help="the policy nodes receive checkpoints over ROS from a checkpoint publisher announcing "
+                         "on TOPIC (e.g. /protocad/checkpoint, absolute so that every robot hears the one "
+                         "publisher), written to --checkpoint and served from the next episode")
+    ap.add_argument("--wait-for-checkpoint", action="store_true",
+                    help="with --checkpoint-topic: each bridge starts only once its policy serves a received "
+                         "checkpoint (no episode of the random agent it starts with)")
+    ap.add_argument("--publish-checkpoint", default=None, metavar="FILE",
+                    help="also run the checkpoint publisher on the learner's FILE, announcing on "
+                         "--checkpoint-topic (default /protocad/checkpoint)")
+    ap.add_argument("--exploration-noise", type=float, default=0.0, help="policy nodes' exploration noise")
+    ap.add_argument("--episodes", type=runs.non_negative_int, default=0,
+                    help="episodes per robot, then the groups end (0: until Ctrl-C)")
+    ap.add_argument("--episode-length", type=runs.positive_int, default=500, help="agent steps per episode")
+    ap.add_argument("--action-repeat", type=runs.positive_int, default=2)
+    ap.add_argument("--min-subscribers", type=runs.positive_int, default=2,
+                    help="readers each bridge waits for before stepping (its actor + a recorder)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID, the same on every machine "
+                                                                "(default $ROS_DOMAIN_ID)")
+    ap.add_argument("--log-dir", default=None, help="node logs (default runs/fleet-STAMP/logs)")
+    ap.add_argument("--ready-timeout", type=float, default=120.0, help="seconds each node may take to start")
+    ap.add_argument("--open-control-plane", action="store_true",
+                    help="let other processes reset episodes and change the nodes' lifecycle states "
+                         "(closed by default here: anyone on the fleet's network reaches the domain; "
+                         "reset_service:=false, remote_lifecycle:=false)")
+    return ap
+
+
+def run(a: argparse.Namespace) -> int:
+    from trainer.launch.rosprocs import NodeFailed, RosStack, robot_namespaces
+
+    from trainer.launch.stack import checkpoint_mismatch
+
+    mismatch = checkpoint_mismatch({"bridge": {"task": a.task}, "policy": {"checkpoint": a.checkpoint}})
+    if mismatch:   # before any node: its policies would refuse every bridge
+        print(f"protocad-fleet: error: {mismatch.replace('bridge.task', '--task')}", file=sys.stderr)
+        return 2
+    namespaces = robot_namespaces(T.DEFAULT_NAMESPACE, a.robots, first=a.first_robot)
+    log_dir = Path(a.log_dir or time.strftime("runs/fleet-%Y%m%d-%H%M%S/logs"))
+    server, start_server = discovery.from_args(a)
+    stack = RosStack(log_dir, domain_id=a.domain_id, discovery_server=server, start_discovery_server=start_server,
+                     ready_timeout=a.ready_timeout)
+    print(f"[fleet] ROS_DOMAIN_ID={stack.domain_id}; {stack.describe_discovery()}; robots "
+          f"{', '.join(namespaces)}; logs in {log_dir}", flush=True)
+    bridges = []
+    with runs.StopFlag() as stop:
+        try:
+            if a.record:
+                stack.start_recorder(a.record, namespaces=namespaces, ready_timeout=a.ready_timeout)
+                print(f"[fleet] recording {len(namespaces)} robot(s) into {a.record}", flush=True)
+            if a.publish_checkpoint:
+                topic = a.checkpoint_topic or "/" + T.DEFAULT_NAMESPACE.strip("/") + "/" + T.CHECKPOINT
+                stack.start_checkpoint_publisher(a.publish_checkpoint, topic=topic, ready_timeout=a.ready_timeout)
+                print(f"[fleet] publishing {a.publish_checkpoint} on {topic}", flush=True)
+            for i, ns in enumerate([] if a.no_actors else namespaces):
+                seed = a.seed + a.first_robot + i
+                if a.checkpoint:
+                    policy = stack.start_policy(
+                        checkpoint=a.checkpoint, task=a.task, wait_for_checkpoint=True, reload_poll_s=1.0,
+                        mode="sample", exploration_noise=a.exploration_noise, seed=seed,
+                        ready_timeout=a.ready_timeout, ns=ns, checkpoint_topic=a.checkpoint_topic,
+                        closed_control=not a.open_control_plane)
+                    if a.wait_for_checkpoint:
+                        stack.wait_checkpoint_loaded(policy, a.ready_timeout, ns=ns)
+                else:
+                    stack.start_random_actor(task=a.task, seed=seed, ready_timeout=a.ready_timeout, ns=ns)
+                bridges.append(stack.start_bridge(task=a.task, seed=1000 * a.seed + a.first_robot + i,
+                                                  max_episodes=a.episodes, episode_length=a.episode_length,
+                                                  action_repeat=a.action_repeat, min_subscribers=a.min_subscribers,
+                                                  ns=ns, closed_control=not a.open_control_plane))
+            print(f"[fleet] running {len(bridges)} actor group(s)" + (f", {a.episodes} episode(s) each" if
+                  a.episodes and bridges else "") + ": Ctrl-C stops every node", flush=True)
+            while not stop.stop:
+                if bridges and all(b.p.poll() == 0 for b in bridges):
+                    print("[fleet] every bridge finished", flush=True)
+                    break
+                dead = [n for n, p in stack.procs.items() if not p.alive() and p.p.returncode != 0]
+                if dead:
+                    raise NodeFailed(", ".join(f"{n} exited with code {stack.procs[n].p.returncode}; log "
+                                               f"{stack.procs[n].log_path}" for n in dead))
+                time.sleep(0.2)
+        except NodeFailed as exc:
+            print(f"[fleet] {exc}", file=sys.stderr, flush=True)
+            failed = True
+        else:
+            failed = False
+        finally:
+            codes = stack.stop_all()
+    print("[fleet] exit codes: " + ", ".join(f"{n} {c}" for n, c in codes.items()), flush=True)
+    return 1 if failed else 0
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    a = build_parser().parse_args(argv)
+    if (a.checkpoint_topic or a.wait_for_checkpoint) and not a.checkpoint and not a.no_actors:
+        print("protocad-fleet: error: --checkpoint-topic / --wait-for-checkpoint need --checkpoint (the policy "
+              "nodes' own copy of what they receive)", file=sys.stderr)
+        return 2
+    if a.no_actors and not a.record and not a.start_discovery_server and not a.publish_checkpoint:
+        print("protocad-fleet: error: --no-actors without --record or --start-discovery-server "
+              "starts nothing", file=sys.stderr)
+        return 2
+    if a.domain_id is None:
+        if not os.environ.get("ROS_DOMAIN_ID", "").isdigit():
+            print("protocad-fleet: error: give --domain-id (the same on every machine of the fleet) "
+                  "or set ROS_DOMAIN_ID", file=sys.stderr)
+            return 2
+        a.domain_id = int(os.environ["ROS_DOMAIN_ID"])
+    from trainer.launch.rosprocs import NodeFailed
+
+    try:
+        return run(a)
+    except (NodeFailed, FileNotFoundError) as exc:   # e.g. the discovery server did not start
+        print(f"protocad-fleet: error: {exc}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

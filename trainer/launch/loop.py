@@ -1,0 +1,496 @@
+"""`protocad-loop` (`ros2 run trainer loop`): the collect-train-reload loop through the ROS nodes.
+
+    protocad-loop --demo                         # README main command (Pendulum Swingup, small)
+    protocad-loop --task walker_walk --preset paper --cycles 100 --run-dir runs/ww
+    protocad-loop --run-dir runs/ww --resume     # continue after Ctrl-C / a crash
+    protocad-loop --robots 2 --start-discovery-server   # a Fast DDS Discovery Server, no multicast
+
+Processes (trainer/launch/rosprocs.py; logs in RUN_DIR/logs/, one ROS_DOMAIN_ID per run, a fresh
+one unless --domain-id):
+
+1. prefill: sim bridge (lock-step, training contexts, max_episodes=N) + trainer.nodes.random_actor
+   (uniform random actions) + recorder -> RUN_DIR/bags/00_prefill/;
+2. train C updates (Algorithm 1: before the first collected episode) from every bag so far,
+   checkpoint RUN_DIR/checkpoints/latest.pt (atomic);
+3. the policy node starts on that checkpoint (mode sample: DreamerV2 collects with sampled
+   actions) and stays up; each cycle: recorder -> bags/NN_collect/, a sim bridge run of
+   E episodes, then C x E updates and a new checkpoint, which the policy node reloads (its
+   file watcher loads it in the background and serves it from the next is_first); the loop
+   waits until the node has loaded the newest checkpoint before the next cycle starts, and
+   reads from the node's /diagnostics which checkpoint (update counter) served each cycle
+   (readiness and these reads are ROS state, lifecycle and diagnostics, never log text);
+4. the end: an evaluation table on the test contexts (in-process, deterministic), JSON in
+   RUN_DIR/eval/, and a rerun recording of the context view (trainer.viz.visualize).
+
+The recorder also records /diagnostics, so every bag says which checkpoint the policy node
+served (its `checkpoint_updates` value). Ctrl-C stops the nodes in order (the recorder last:
+its bag is closed cleanly) or saves a checkpoint when it comes during training; exit code 0.
+`--resume` rebuilds the state from the run directory: the bags (prefill / collect phases,
+episodes, env steps) and the checkpoint (weights, optimizers, counters, sampler state).
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+from typing import Any, Sequence
+
+from sim_bridge.contract import topics as T
+from trainer.launch import discovery
+from trainer import runs
+from trainer.data.dataset import MCAPDataset, TopicMap
+from trainer.learn.train import Trainer, add_common_model_args, config_from_args
+
+DEMO = dict(task="pendulum_swingup", preset="small", cycles=3, episodes_per_cycle=1, prefill=2,
+            updates_per_episode=25, eval_episodes=1)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="protocad-loop",
+        description="Collect-train-reload loop through the ROS 2 nodes: prefill with random "
+                    "actions on the training contexts, then alternate collection (policy node "
+                    "-> sim bridge, recorded to a new MCAP bag per cycle) and training (C "
+                    "updates per collected episode from all bags); the policy node reloads each "
+                    "new checkpoint. Ends with an evaluation table on the test contexts.",
+        formatter_class=runs.HelpFormatter)
+    ap.add_argument("--demo", action="store_true",
+                    help=f"the README's main command: {DEMO['task']}, {DEMO['preset']} preset, "
+                         f"{DEMO['cycles']} cycles of {DEMO['episodes_per_cycle']} episode, C="
+                         f"{DEMO['updates_per_episode']}, then the test-context table and a rerun "
+                         "recording (a few minutes on 2 CPU cores)")
+    add_common_model_args(ap)
+    g = ap.add_argument_group("loop")
+    g.add_argument("--cycles", type=int, default=None, help="collection cycles after the prefill (default 10; demo 3)")
+    g.add_argument("--episodes-per-cycle", type=int, default=None, help="E episodes recorded per cycle (default 1)")
+    g.add_argument("--prefill-episodes", type=int, default=None, help="N random episodes (default train.prefill_episodes = 2)")
+    g.add_argument("--updates-per-episode", type=int, default=None,
+                   help="C updates per collected episode, also done once after the prefill "
+                        f"(default train.collect_interval = 100, the paper's; demo {DEMO['updates_per_episode']})")
+    g.add_argument("--episode-length", type=int, default=None,
+                   help="agent steps per episode (default train.time_limit / action_repeat = 500)")
+    g.add_argument("--exploration-noise", type=float, default=None,
+                   help="policy node exploration noise (default train.expl_noise)")
+    g.add_argument("--eval-episodes", type=int, default=None,
+                   help="final evaluation: episodes per test context (0: none; default 5, demo 1)")
+    g.add_argument("--eval-max-contexts", type=int, default=0, help="final evaluation: at most K test contexts (0: all)")
+    g.add_argument("--no-visualize", action="store_true", help="skip the rerun context recording at the end")
+    g.add_argument("--robots", type=runs.positive_int, default=None,
+                   help="N robots collecting at once: a bridge and a policy node each in /protocad/robotI "
+                        "(own /clock), one recorder recording all of them, training on every robot's "
+                        "episodes; each records --episodes-per-cycle episodes per cycle (default 1)")
+    g = ap.add_argument_group("run")
+    g.add_argument("--run-dir", default=None, help="output directory (default runs/loop-TASK-VARIANT-TIME)")
+    g.add_argument("--resume", action="store_true", help="continue RUN_DIR (bags + checkpoint + counters)")
+    g.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID of the nodes (default: a fresh one)")
+    discovery.add_args(g)
+    g.add_argument("--checkpoint-every", type=int, default=500, help="updates between checkpoints within a training phase")
+    g.add_argument("--log-every", type=int, default=10, help="updates per metrics line")
+    g.add_argument("--cache-dir", default=None, help="dataset cache (default RUN_DIR/cache)")
+    g.add_argument("--rerun", nargs="?", const="", default=None, metavar="RRD",
+                   help="log training scalars to a rerun recording (default RUN_DIR/metrics.rrd)")
+    g.add_argument("--phase-timeout", type=float, default=3600.0, help="seconds a collection phase may take")
+    g.add_argument("--no-progress", action="store_true")
+    return ap
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    a = runs.parse_cli(build_parser(), argv)
+    if a.resume:   # the original command's options, unless given again
+        a = runs.resumed_cli(build_parser, a)
+    from trainer.launch.rosprocs import NodeFailed
+
+    try:
+        return Loop(a).run()
+    except NodeFailed as exc:
+        print(f"protocad-loop: a node failed: {exc}", file=sys.stderr)
+        return 1
+    except ValueError as exc:
+        print(f"protocad-loop: error: {exc}", file=sys.stderr)
+        return 2
+
+
+class Loop:
+    def __init__(self, a: argparse.Namespace):
+        self.a = a
+        if a.demo:
+            a.task = a.task or DEMO["task"]
+            a.preset = a.preset or DEMO["preset"]
+            for k, v in (("cycles", "cycles"), ("episodes_per_cycle", "episodes_per_cycle"),
+                         ("prefill_episodes", "prefill"), ("updates_per_episode", "updates_per_episode"),
+                         ("eval_episodes", "eval_episodes")):
+                if getattr(a, k) is None:
+                    setattr(a, k, DEMO[v])
+        self.device = runs.resolve_device(a.device)
+        runs.set_threads(a.threads)
+
+    # ------------------------------------------------------------------ setup
+    def _setup(self) -> None:
+        a = self.a
+        if a.resume:
+            # A loop stopped during its prefill has bags but no checkpoint yet: still resumable.
+            self.run_dir, state = runs.resume_run_dir(a.run_dir, need_checkpoint=False)
+            from protocad_ros.model.config import Config
+
+            self.cfg = Config.load(self.run_dir / "config.yaml")
+            p = state["protocol"]
+            for k in ("cycles", "episodes_per_cycle", "prefill_episodes", "updates_per_episode", "episode_length",
+                      "exploration_noise", "eval_episodes", "robots"):
+                if getattr(a, k) is None:
+                    setattr(a, k, p.get(k, 1 if k == "robots" else None))
+            self.run_json = state
+        else:
+            self.cfg = config_from_args(a)
+            self.cfg.train.device = self.device
+            self.run_dir = runs.new_run_dir(a.run_dir, "loop", self.cfg.task, self.cfg.variant)
+            self.run_dir.mkdir(parents=True, exist_ok=True)
+            self.cfg.save(self.run_dir / "config.yaml")
+            self.run_json = {}
+        tr = self.cfg.train
+        a.cycles = 10 if a.cycles is None else a.cycles
+        a.episodes_per_cycle = a.episodes_per_cycle or 1
+        a.prefill_episodes = tr.prefill_episodes if a.prefill_episodes is None else a.prefill_episodes
+        a.updates_per_episode = tr.collect_interval if a.updates_per_episode is None else a.updates_per_episode
+        a.episode_length = a.episode_length or max(1, tr.time_limit // tr.action_repeat)
+        a.exploration_noise = tr.expl_noise if a.exploration_noise is None else a.exploration_noise
+        a.eval_episodes = 5 if a.eval_episodes is None else a.eval_episodes
+        a.robots = a.robots or 1
+        from trainer.launch.rosprocs import robot_namespaces
+
+        self.namespaces = robot_namespaces(T.DEFAULT_NAMESPACE, a.robots)
+        runs.record_invocation(self.run_json, a)
+        self.run_json.update(kind="loop", task=self.cfg.task, variant=self.cfg.variant,
+                             preset=self.cfg.preset, seed=tr.seed, device=self.device, protocol={
+                                 k: getattr(a, k) for k in ("cycles", "episodes_per_cycle", "prefill_episodes",
+                                                            "updates_per_episode", "episode_length",
+                                                            "exploration_noise", "eval_episodes", "robots")})
+        runs.atomic_write_json(self.run_dir / "run.json", self.run_json)
+        self.bags_dir = self.run_dir / "bags"
+        self.bags_dir.mkdir(exist_ok=True)
+        self.ds = MCAPDataset([], topics=TopicMap(), seq_len=tr.seq_len, seed=tr.seed,
+                              cache_dir=a.cache_dir or self.run_dir / "cache")
+        self.phases: list[dict[str, Any]] = []
+        for bag in sorted(p for p in self.bags_dir.iterdir() if p.is_dir()):
+            self._add_bag(bag, resumed=True)
+
+    def _bag_stats(self, bag: Path) -> dict[str, Any]:
+        """The bag's episodes, over every robot namespace it recorded."""
+        stores = [s for s in self.ds.stores if Path(s.report.path).resolve() == bag.resolve()]
+        eps = [e for s in stores for e in s.episodes]
+        complete = [e for e in eps if e["has_first"] and e["has_last"]]
+        R = self.cfg.train.action_repeat
+        steps = sum(max(e["length"] - 1, 0) for e in eps)
+        return {"bag": bag.name, "kind": "prefill" if bag.name.endswith("prefill") else "collect",
+                "episodes": len(complete), "partial_episodes": len(eps) - len(complete),
+                "env_steps": steps * R, "returns": [round(e["return"], 2) for e in complete],
+                "contexts": [e["context"] for e in complete],
+                "problems": [p for s in stores for p in s.report.problems()]}
+
+    def _add_bag(self, bag: Path, resumed: bool = False) -> dict[str, Any]:
+        for ns in self.namespaces:   # a bag of several robots: each namespace's episodes
+            self.ds.add([bag], topics=TopicMap.for_namespace(ns))
+        st = self._bag_stats(bag)
+        self.phases.append(st)
+        if resumed:
+            print(f"[loop] found {bag.name}: {st['episodes']} complete episode(s)"
+                  + (f", {st['partial_episodes']} partial" if st["partial_episodes"] else ""), flush=True)
+        return st
+
+    # ------------------------------------------------------------------ counters
+    @property
+    def prefill_episodes_done(self) -> int:
+        return sum(p["episodes"] for p in self.phases if p["kind"] == "prefill")
+
+    @property
+    def collect_phases(self) -> int:
+        return sum(p["kind"] == "collect" for p in self.phases)
+
+    @property
+    def collected_episodes(self) -> int:
+        return sum(p["episodes"] for p in self.phases if p["kind"] == "collect")
+
+    def target_updates(self) -> int:
+        C = self.a.updates_per_episode
+        return C + C * self.collected_episodes
+
+    def _counters(self) -> None:
+        c = self.trainer.counters
+        c.update(env_steps=sum(p["env_steps"] for p in self.phases),
+                 episodes=sum(p["episodes"] for p in self.phases),
+                 collect_phases=self.collect_phases, prefill_episodes=self.prefill_episodes_done)
+
+    # ------------------------------------------------------------------ phases
+    def _next_bag(self, kind: str) -> Path:
+        return self.bags_dir / f"{len(self.phases):02d}_{kind}"
+
+    def _collect(self, kind: str, episodes: int, stop: runs.StopFlag) -> dict[str, Any] | None:
+        """One recorded run of every robot's bridge, `episodes` episodes each; returns the phase
+        stats (None when interrupted before the bag holds anything)."""
+        a, tr = self.a, self.cfg.train
+        bag = self._next_bag(kind)
+        stack = self.stack
+        actor = "actor" if kind == "prefill" else "policy"
+        stack.start_recorder(bag, log_name=f"recorder_{bag.name}", namespaces=self.namespaces,
+                             wait_topics=[T.topic_name(ns, T.ACTION) for ns in self.namespaces])
+        t0 = time.monotonic()
+        bridges = []
+        for i, ns in enumerate(self.namespaces):
+            seed = tr.seed * 1000 + len(self.phases) * len(self.namespaces) + i
+            bridges.append(stack.start_bridge(
+                task=self.cfg.task, split="train", seed=seed, max_episodes=episodes,
+                episode_length=a.episode_length, action_repeat=tr.action_repeat, min_subscribers=2,
+                log_name=f"bridge_{bag.name}" + (f"_robot{i}" if len(self.namespaces) > 1 else ""), ns=ns))
+        print(f"[loop] {bag.name}: {episodes} episode(s) of {a.episode_length} steps on training contexts "
+              f"({'random actions' if kind == 'prefill' else 'policy node'}"
+              + (f"; {len(bridges)} robots" if len(bridges) > 1 else "")
+              + f"; bridge pid {', '.join(str(b.pid) for b in bridges)})", flush=True)
+        code = 0
+        for b in bridges:
+            code = stack.wait_exit(b, a.phase_timeout, watch=(actor, "recorder"), stop=stop) or code
+        for ns in self.namespaces:
+            stack.stop(stack.key("bridge", ns))
+        stack.stop("recorder")
+        if kind == "prefill":
+            for ns in self.namespaces:
+                stack.stop(stack.key("actor", ns))
+        if not any(bag.glob("*.mcap")):
+            return None
+        st = self._add_bag(bag)
+        st["seconds"] = round(time.monotonic() - t0, 1)
+        st["interrupted"] = code != 0
+        if kind == "collect":
+            st["served_updates"] = self._served_updates()
+        rets = ", ".join(f"{r:.0f}" for r in st["returns"])
+        print(f"[loop] {bag.name}: {st['episodes']} episode(s) in {st['seconds']}s, returns [{rets}]"
+              + (f", policy node served checkpoint updates={st.get('served_updates')}" if kind == "collect" else ""),
+              flush=True)
+        return st
+
+    def _start_policies(self) -> None:
+        a, cfg = self.a, self.cfg
+        for i, ns in enumerate(self.namespaces):
+            proc = self.stack.procs.get(self.stack.key("policy", ns))
+            if proc is None or not proc.alive():
+                self.stack.start_policy(checkpoint=runs.checkpoint_path(self.run_dir), task=cfg.task,
+                                        wait_for_checkpoint=True, reload_poll_s=0.5, mode="sample",
+                                        exploration_noise=a.exploration_noise, seed=cfg.train.seed + i,
+                                        device=self.device, ns=ns)
+
+    def _policy_diagnostics(self, newer_than: float | None = None, timeout: float = 5.0,
+                            ns: str | None = None) -> dict[str, str]:
+        """A policy node's latest /diagnostics values (stamped after `newer_than`, if given and
+        one comes within `timeout`); the first robot's unless `ns`."""
+        graph, fqn = self.stack.graph, self.stack.node_fqn("policy", ns or self.namespaces[0])
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            values = graph.diagnostics(fqn, newer_than)
+            if values is not None:
+                return values
+            graph.spin(0.1)
+        return graph.diagnostics(fqn) or {}
+
+    def _served_updates(self) -> int | None:
+        """The update counter of the checkpoint the (first) policy node serves now (its
+        diagnostics' checkpoint_updates, from a report made after the phase ended)."""
+        value = self._policy_diagnostics(newer_than=time.time()).get("checkpoint_updates")
+        return int(value) if value is not None and int(value) >= 0 else None
+
+    def _wait_policy_loaded(self, updates: int, stop, timeout: float = 120.0) -> None:
+        """Block until every policy node has loaded the checkpoint with this update counter:
+        its diagnostics say checkpoint_updates=N (serving it) or pending_checkpoint_updates=N
+        (its watcher loaded it; served from the next is_first)."""
+        graph, want = self.stack.graph, str(updates)
+        for ns in self.namespaces:
+            fqn = self.stack.node_fqn("policy", ns)
+
+            def loaded(fqn: str = fqn) -> bool:
+                values = graph.diagnostics(fqn) or {}
+                return want in (values.get("checkpoint_updates"), values.get("pending_checkpoint_updates"))
+
+            self.stack.wait_until(self.stack.procs[self.stack.key("policy", ns)], loaded,
+                                  f"{fqn} diagnostics with checkpoint updates={updates}", timeout, stop)
+
+    def _train(self, stop: runs.StopFlag) -> bool:
+        target = self.target_updates()
+        if self.trainer.updates >= target or not self.ds.num_windows:
+            if not self.ds.num_windows:
+                print(f"[loop] no training window of {self.cfg.train.seq_len} steps yet:\n{self.ds.report}", flush=True)
+            return True
+        self._counters()
+        n = target - self.trainer.updates
+        print(f"[loop] training {n} updates ({self.trainer.updates} -> {target}) on {self.ds.num_steps} steps "
+              f"from {len(self.ds.stores)} bag(s)", flush=True)
+        t0 = time.monotonic()
+        bar = runs.progress(target, initial=self.trainer.updates, desc="train",
+                            disable=True if self.a.no_progress else None, unit="upd")
+        try:
+            done = self.trainer.train(target, stop=stop, checkpoint_every=self.a.checkpoint_every, bar=bar,
+                                      save=False)
+            self._counters()
+            self.trainer.save()
+        finally:
+            bar.close()
+        m = self.trainer.last_metrics
+        print(f"[loop] trained to update {self.trainer.updates} in {runs.fmt_seconds(time.monotonic() - t0)}"
+              + (f" (wm_loss {m.get('wm_loss', float('nan')):.3g}, reward_loss {m.get('reward_loss', float('nan')):.3g})" if m else "")
+              + f"; checkpoint {self.trainer.checkpoint_path}", flush=True)
+        return done
+
+    # ------------------------------------------------------------------ main
+    def run(self) -> int:
+        from trainer.launch.rosprocs import RosStack
+
+        self._setup()
+        a, cfg = self.a, self.cfg
+        t_start = time.monotonic()
+        callbacks = []
+        if a.rerun is not None:
+            from trainer.viz.rerun_log import metrics_callback
+
+            callbacks.append(metrics_callback(a.rerun or self.run_dir / "metrics.rrd", application="protocad-loop"))
+        ckpt = runs.checkpoint_path(self.run_dir)
+        if a.resume and ckpt.exists():
+            self.trainer = Trainer.from_checkpoint(ckpt, self.run_dir, self.ds, device=self.device,
+                                                   callbacks=callbacks, log_every=a.log_every)
+        else:
+            from sim_bridge.contract.contexts import task_actuators
+
+            self.trainer = Trainer(cfg, self.run_dir, self.ds, device=self.device, callbacks=callbacks,
+                                   log_every=a.log_every, action_dim=len(task_actuators(cfg.task)))
+        server, start_server = discovery.from_args(a)
+        self.stack = RosStack(self.run_dir / "logs", domain_id=a.domain_id, discovery_server=server,
+                              start_discovery_server=start_server)
+        print(f"[loop] {cfg.task} / {cfg.variant} / {cfg.preset} on {self.device}; run dir {self.run_dir}; "
+              f"ROS_DOMAIN_ID={self.stack.domain_id}; {self.stack.describe_discovery()}; "
+              f"node logs in {self.stack.log_dir}", flush=True)
+        print(f"[loop] plan: prefill {a.prefill_episodes} random episode(s), then {a.cycles} cycle(s) of "
+              f"{a.episodes_per_cycle} episode(s) with C={a.updates_per_episode} updates per episode"
+              + (f" (resuming: {self.collect_phases} cycle(s), {self.trainer.updates} updates done)" if a.resume else ""),
+              flush=True)
+        status = "finished"
+        with runs.StopFlag() as stop:
+            try:
+                # 1. prefill
+                while self.prefill_episodes_done < a.prefill_episodes and not stop.stop:
+                    for i, ns in enumerate(self.namespaces):
+                        self.stack.start_random_actor(task=cfg.task, seed=cfg.train.seed + len(self.phases) + 100 * i,
+                                                      ns=ns)
+                    left = a.prefill_episodes - self.prefill_episodes_done
+                    st = self._collect("prefill", -(-left // len(self.namespaces)), stop)
+                    if st is None or (st["episodes"] == 0 and not stop.stop):
+                        raise RuntimeError("the prefill phase recorded no complete episode; see "
+                                           f"{self.stack.log_dir}")
+                # 2. train + collect cycles
+                while not stop.stop:
+                    if not self._train(stop):
+                        break
+                    if not ckpt.exists() or self.trainer.counters.get("updates") != self.trainer.updates:
+                        self._counters()
+                        self.trainer.save()
+                    if self.collect_phases >= a.cycles or stop.stop:
+                        break
+                    self._start_policies()
+                    self._wait_policy_loaded(self.trainer.updates, stop)
+                    if stop.stop:
+                        break
+                    st = self._collect("collect", a.episodes_per_cycle, stop)
+                    if st is None:
+                        break
+                    self.trainer.metrics.log(self.trainer.updates, {
+                        "collect_return": (sum(st["returns"]) / len(st["returns"])) if st["returns"] else float("nan")},
+                        kind="collect", bag=st["bag"], env_steps=sum(p["env_steps"] for p in self.phases),
+                        served_updates=st.get("served_updates"))
+                if stop.stop:
+                    status = "interrupted"
+            finally:
+                self.stack.stop_all()
+                self._counters()
+                if self.trainer.updates:
+                    self.trainer.save()
+                self.trainer.close()
+                runs.atomic_write_json(self.run_dir / "phases.json", self.phases)
+            eval_json = rrd = None
+            if status == "finished" and a.eval_episodes and self.trainer.updates and not stop.stop:
+                eval_json = self._final_eval(stop)
+                if not a.no_visualize and not stop.stop:
+                    rrd = self._visualize()
+        self._report(status, t_start, eval_json, rrd)
+        return 0
+
+    def _final_eval(self, stop) -> Path | None:
+        from trainer.learn.evaluate import evaluate_checkpoint, format_table
+
+        ckpt = runs.checkpoint_path(self.run_dir)
+        print(f"[loop] evaluating {ckpt} on the test contexts ({self.a.eval_episodes} episode(s) each, "
+              "in-process, deterministic)", flush=True)
+        res = evaluate_checkpoint(ckpt, episodes=self.a.eval_episodes, max_contexts=self.a.eval_max_contexts,
+                                  seed=self.cfg.train.seed + 7, device=self.device,
+                                  time_limit=self.a.episode_length * self.cfg.train.action_repeat,
+                                  progress=False if self.a.no_progress else None, stop=stop)
+        if stop.stop:
+            return None
+        # The uniform random policy on the same contexts, episodes and seeds: the reference
+        # point a score needs (the demo's few hundred updates stay close to it).
+        rnd = evaluate_checkpoint(None, task=self.cfg.task, episodes=self.a.eval_episodes,
+                                  contexts=[r.context for r in res.per_context],
+                                  seed=self.cfg.train.seed + 7,
+                                  time_limit=self.a.episode_length * self.cfg.train.action_repeat,
+                                  progress=False if self.a.no_progress else None, stop=stop)
+        if stop.stop:
+            return None
+        print(format_table(res, rnd), flush=True)
+        if self.a.demo:
+            print("[loop] what to expect: the demo trains a few hundred updates, far from the "
+                  "~6k Pendulum Swingup needs before DreamerV2's own seeds show learning, so its "
+                  "policy scores near the random one; a policy that learned: README 'Results'.",
+                  flush=True)
+        out = self.run_dir / "eval" / f"test_{self.trainer.updates:06d}.json"
+        runs.atomic_write_json(out, {**res.to_dict(), "random": rnd.to_dict()})
+        return out
+
+    def _visualize(self) -> Path | None:
+        out = self.run_dir / "contexts.rrd"
+        try:
+            from trainer.viz.visualize import write_context_recording
+        except ImportError as exc:
+            print(f"[loop] no rerun context recording: trainer.viz.visualize is not available ({exc})", flush=True)
+            return None
+        import os
+
+        old_cache = os.environ.get("PROTOCAD_CACHE_DIR")
+        os.environ["PROTOCAD_CACHE_DIR"] = str(self.ds.cache_dir)  # reuse this run's dataset cache
+        print(f"[loop] writing the rerun context recording {out}", flush=True)
+        try:
+            write_context_recording(runs.checkpoint_path(self.run_dir), logs=[self.bags_dir], out_rrd=out,
+                                    device=self.device, progress=False)
+        except Exception as exc:  # noqa: BLE001 - the run's results stand without the picture
+            print(f"[loop] rerun context recording failed: {type(exc).__name__}: {exc}", flush=True)
+            return None
+        finally:
+            if old_cache is None:
+                os.environ.pop("PROTOCAD_CACHE_DIR", None)
+            else:
+                os.environ["PROTOCAD_CACHE_DIR"] = old_cache
+        return out
+
+    def _report(self, status: str, t_start: float, eval_json: Path | None, rrd: Path | None) -> None:
+        c = self.trainer.counters
+        print(f"[loop] {status} in {runs.fmt_seconds(time.monotonic() - t_start)}: "
+              f"{c.get('episodes', 0)} episodes ({c.get('env_steps', 0)} env steps) in {len(self.phases)} bag(s), "
+              f"{self.trainer.updates} updates", flush=True)
+        lines = [("run dir", self.run_dir), ("bags (MCAP)", self.bags_dir), ("checkpoint", runs.checkpoint_path(self.run_dir)),
+                 ("config", self.run_dir / "config.yaml"), ("metrics", self.run_dir / "metrics.jsonl"),
+                 ("phases", self.run_dir / "phases.json"), ("node logs", self.run_dir / "logs")]
+        if eval_json:
+            lines.append(("evaluation", eval_json))
+        if rrd:
+            lines.append(("rerun recording", f"{rrd}   (view: rerun {rrd})"))
+        for k, v in lines:
+            print(f"[loop]   {k + ':':<17}{v}", flush=True)
+        if status != "finished":
+            print(f"[loop] resume with: protocad-loop --run-dir {self.run_dir} --resume", flush=True)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,143 @@
+"""The launchers' view of their nodes over ROS (trainer/launch/rosprocs.py, loop, stack, evaluation):
+lifecycle states of the managed nodes, the ROS graph for the unmanaged ones, /diagnostics.
+
+Readiness is decided from what the nodes expose over ROS, never from their log text (the logs
+are for people):
+
+- a managed node (sim bridge, policy) is ready when `<node>/get_state` answers `active`;
+- an unmanaged node (recorder, random actor) is ready when the graph shows the endpoints it
+  must have (e.g. the recorder's subscription to `action`), endpoints of an earlier process
+  of the same name not counted (their graph entries may outlive it for a moment);
+- what a node serves (the policy's checkpoint update counter) is read from its /diagnostics.
+
+`RosGraph` is one rclpy node in its own Context, in the launcher's process, on the stack's
+domain (DDS on this machine only). It spins only inside its calls, so a launcher that trains
+between calls runs no ROS thread.
+"""
+from __future__ import annotations
+
+import os
+from typing import Callable, Iterable
+
+from sim_bridge.contract import topics as T
+from trainer.runs import wait_until
+
+#: How long one get_state call may take before it is asked again.
+GET_STATE_TIMEOUT_S = 2.0
+
+
+class RosGraph:
+    def __init__(self, domain_id: int, *, name: str = "protocad_launcher", discovery_server: str | None = None):
+        from trainer.launch import discovery
+
+        # Before rclpy.init: this process's own participant stays on this machine, like the
+        # nodes it starts (rosprocs.ros_env), whatever the caller's environment says. With a
+        # Discovery Server it is a super client: a plain client would never hear of endpoints
+        # on topics it does not use itself (the recorder's subscriptions it waits for).
+        os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+        os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
+        discovery.apply_env(os.environ, discovery_server or os.environ.get(discovery.SERVER_ENV),
+                            super_client=True)
+        import rclpy
+        from diagnostic_msgs.msg import DiagnosticArray
+        from rclpy.executors import SingleThreadedExecutor
+        from rclpy.node import Node
+        from rclpy.signals import SignalHandlerOptions
+
+        from sim_bridge.contract import qos
+
+        self.ctx = rclpy.Context()
+        # NO signal handlers: Ctrl-C belongs to the launcher (runs.StopFlag).
+        rclpy.init(context=self.ctx, domain_id=domain_id,
+                   signal_handler_options=SignalHandlerOptions.NO)
+        self.node = Node(name, context=self.ctx, start_parameter_services=False)
+        self.executor = SingleThreadedExecutor(context=self.ctx)
+        self.executor.add_node(self.node)
+        self._clients: dict[str, object] = {}
+        self._diag: dict[str, tuple[float, dict[str, str]]] = {}   # name -> (stamp s, values)
+        self._diag_status: dict[str, tuple[int, str]] = {}          # name -> (level, message)
+        self.node.create_subscription(DiagnosticArray, T.DIAGNOSTICS, self._on_diag,
+                                      qos.diagnostics_qos())
+
+    def close(self) -> None:
+        import rclpy
+
+        try:
+            self.executor.shutdown(timeout_sec=1.0)
+            self.node.destroy_node()
+        finally:
+            rclpy.try_shutdown(context=self.ctx)
+
+    def spin(self, seconds: float = 0.05) -> None:
+        """Handle what arrived (diagnostics, service answers) for up to `seconds`."""
+        self.executor.spin_once(timeout_sec=seconds)
+
+    # ------------------------------------------------------------------ lifecycle
+    def lifecycle_state(self, node_fqn: str, timeout: float = GET_STATE_TIMEOUT_S) -> str | None:
+        """The label of `node_fqn`'s current state from its get_state service; None when the
+        service is not there (yet) or did not answer in time."""
+        from lifecycle_msgs.srv import GetState
+
+        client = self._clients.get(node_fqn)
+        if client is None:
+            client = self._clients[node_fqn] = self.node.create_client(GetState, f"{node_fqn}/get_state")
+        if not client.service_is_ready():
+            self.spin()
+            return None
+        future = client.call_async(GetState.Request())
+        self.executor.spin_until_future_complete(future, timeout_sec=timeout)
+        if not future.done():
+            client.remove_pending_request(future)
+            return None
+        result = future.result()
+        return result.current_state.label if result is not None else None
+
+    # ------------------------------------------------------------------ graph
+    def endpoints(self, topic: str, kind: str) -> list:
+        """TopicEndpointInfo of the publishers (kind 'pub') or subscriptions ('sub') of topic."""
+        get = (self.node.get_publishers_info_by_topic if kind == "pub"
+               else self.node.get_subscriptions_info_by_topic)
+        return list(get(topic))
+
+    def gids(self, node_name: str, node_ns: str, topic: str, kind: str) -> set[tuple[int, ...]]:
+        return {tuple(e.endpoint_gid) for e in self.endpoints(topic, kind)
+                if e.node_name == node_name and e.node_namespace == node_ns}
+
+    def snapshot(self, node_name: str, node_ns: str, wants: Iterable[tuple[str, str]]) -> set:
+        """The endpoints a node of this name has now (an earlier process's, about to go)."""
+        return {g for topic, kind in wants for g in self.gids(node_name, node_ns, topic, kind)}
+
+    def has_endpoints(self, node_name: str, node_ns: str, wants: Iterable[tuple[str, str]],
+                      old: set = frozenset()) -> bool:
+        """The node has a new endpoint (not in `old`) of every (topic, kind) in `wants`."""
+        return all(self.gids(node_name, node_ns, topic, kind) - old for topic, kind in wants)
+
+    # ------------------------------------------------------------------ diagnostics
+    def _on_diag(self, msg) -> None:
+        stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
+        for st in msg.status:
+            self._diag[st.name] = (stamp, {kv.key: kv.value for kv in st.values})
+            level = st.level[0] if isinstance(st.level, (bytes, bytearray)) else int(st.level)
+            self._diag_status[st.name] = (level, st.message)
+
+    def diagnostics(self, node_fqn: str, newer_than: float | None = None) -> dict[str, str] | None:
+        """The latest diagnostics values of `node_fqn` (stamped after `newer_than`, wall-clock
+        seconds, if given) among those received so far; None if there is none."""
+        self.spin(0.0)
+        got = self._diag.get(node_fqn)
+        if got is None or (newer_than is not None and got[0] < newer_than):
+            return None
+        return got[1]
+
+    def diagnostic_status(self, node_fqn: str) -> tuple[int, str] | None:
+        """(level, message) of `node_fqn`'s latest diagnostics (level 2 = ERROR), or None."""
+        self.spin(0.0)
+        return self._diag_status.get(node_fqn)
+
+    # ------------------------------------------------------------------ waiting
+    def wait(self, ready: Callable[[], bool], *, what: str, timeout: float,
+             alive: Callable[[], str | None] = lambda: None, stop=None) -> bool:
+        """Spin until `ready()`; TimeoutError naming `what`; `alive()` returns why the node is
+        gone (its exit and log tail) to raise at once; False when `stop.stop` is raised."""
+        return wait_until(ready, what=what, timeout=timeout, alive=alive, stop=stop,
+                          pause=lambda: self.spin(0.05))

@@ -1,0 +1,459 @@
+"""`protocad-evaluate` (`ros2 run trainer evaluate`): returns of a checkpoint on a split's contexts.
+
+    protocad-evaluate runs/x/checkpoints/latest.pt                       # test contexts, 5 eps each
+    protocad-evaluate runs/a/checkpoints/latest.pt runs/b/... --json out.json  # several tasks
+    protocad-evaluate --random --task pendulum_swingup --episodes 5        # random-policy baseline
+    protocad-evaluate CKPT --through-ros --episodes 2                      # via the ROS nodes
+
+Paper protocol (ProtoCAD, ICLR 2023, "Evaluation protocol"): train on C_train, evaluate on
+C_test; the return of each test context is averaged over its episodes, a task's score is the
+mean over its test contexts, and several tasks are summarised by the mean and the median of
+their scores. Episodes act with the actor's mode on a sampled posterior, as DreamerV2 and
+DreamerPro evaluate (protocad_ros.policy; seeded, so a run repeats itself).
+
+Contexts: every context of the split by default (pendulum, finger, hopper: 4-8; cheetah and
+walker: the 8 x 8 = 64 (m, d) grid). `--max-contexts K` takes the fixed stratified subset of
+K (every value of m and of d equally often: TaskSpec.stratified); `--context m=0.2,d=1.5`
+(repeatable) picks exact ones.
+
+In-process (default): ContextDMCEnv copies with the context fixed per episode, stepped in this
+process (`--workers 0`) or in worker processes (`--workers N`), the policy batched over them.
+Through ROS (`--through-ros`): a sim-bridge node (lock-step, the split's contexts drawn at each
+reset: the bridge has no parameter to fix a context), the policy node serving the checkpoint,
+and a recorder; the returns are read back from the recorded bag and grouped by the recorded
+true context, so the per-context episode counts follow the bridge's draws.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from sim_bridge.contract.contexts import context_label
+from sim_bridge.sim.vector import VectorEnv
+from trainer import runs
+from sim_bridge.sim.rollout import RandomPolicy, rollout
+
+DEFAULT_EPISODES = 5
+
+
+# ----------------------------------------------------------------------------- results
+@dataclass
+class ContextResult:
+    context: dict[str, float]
+    split: str
+    returns: list[float] = field(default_factory=list)
+
+    @property
+    def mean(self) -> float:
+        return float(np.mean(self.returns)) if self.returns else float("nan")
+
+    @property
+    def std(self) -> float:
+        return float(np.std(self.returns)) if self.returns else float("nan")
+
+    def to_dict(self) -> dict:
+        return {"context": self.context, "split": self.split, "episodes": len(self.returns),
+                "returns": [round(r, 4) for r in self.returns], "mean_return": self.mean,
+                "std_return": self.std}
+
+
+@dataclass
+class EvalResult:
+    task: str
+    split: str
+    policy: str                       # checkpoint path or 'random'
+    per_context: list[ContextResult]
+    variant: str | None = None
+    updates: int | None = None
+    env_steps: int | None = None      # the checkpoint's training env steps, if known
+    seconds: float = 0.0
+    mode: str = "in-process"
+
+    @property
+    def mean(self) -> float:
+        vals = [c.mean for c in self.per_context if c.returns]
+        return float(np.mean(vals)) if vals else float("nan")
+
+    @property
+    def median(self) -> float:
+        vals = [c.mean for c in self.per_context if c.returns]
+        return float(np.median(vals)) if vals else float("nan")
+
+    def to_dict(self) -> dict:
+        return {"task": self.task, "split": self.split, "policy": self.policy, "variant": self.variant,
+                "updates": self.updates, "env_steps": self.env_steps, "mode": self.mode,
+                "seconds": round(self.seconds, 2), "mean_return": self.mean,
+                "median_over_contexts": self.median,
+                "episodes": sum(len(c.returns) for c in self.per_context),
+                "per_context": [c.to_dict() for c in self.per_context]}
+
+
+def format_table(result: EvalResult, baseline: EvalResult | None = None) -> str:
+    """Plain aligned text: one row per context with episodes, mean, std (and the baseline)."""
+    head = ["context", "episodes", "mean return", "std"]
+    if baseline is not None:
+        head += [f"{baseline.policy} mean", "diff"]
+    base = {context_label(c.context): c for c in baseline.per_context} if baseline else {}
+    rows = []
+    for c in result.per_context:
+        r = [context_label(c.context), str(len(c.returns)), f"{c.mean:.1f}", f"{c.std:.1f}"]
+        if baseline is not None:
+            b = base.get(context_label(c.context))
+            r += [f"{b.mean:.1f}" if b else "-", f"{c.mean - b.mean:+.1f}" if b else "-"]
+        rows.append(r)
+    total = ["mean over contexts", str(sum(len(c.returns) for c in result.per_context)),
+             f"{result.mean:.1f}", ""]
+    if baseline is not None:
+        total += [f"{baseline.mean:.1f}", f"{result.mean - baseline.mean:+.1f}"]
+    rows.append(total)
+    title = (f"{result.task} on {result.split} contexts: {result.policy}"
+             + (f" ({result.variant}, {result.updates} updates" if result.variant else "")
+             + (f", {result.env_steps} env steps" if result.env_steps is not None and result.variant else "")
+             + (")" if result.variant else "") + f" [{result.mode}, {result.seconds:.0f}s]")
+    return title + "\n" + _align(head, rows)
+
+
+def format_summary(results: Sequence[EvalResult]) -> str:
+    """Per-task scores (mean over its contexts; several checkpoints of a task averaged) and the
+    mean / median over tasks."""
+    by_task: dict[str, list[EvalResult]] = {}
+    for r in results:
+        by_task.setdefault(r.task, []).append(r)
+    rows, scores = [], []
+    for task, rs in by_task.items():
+        s = float(np.mean([r.mean for r in rs]))
+        scores.append(s)
+        rows.append([task, str(len(rs)), ", ".join(r.variant or r.policy for r in rs), f"{s:.1f}"])
+    rows.append(["mean over tasks", "", "", f"{np.mean(scores):.1f}"])
+    rows.append(["median over tasks", "", "", f"{np.median(scores):.1f}"])
+    return "Summary (score = mean return over the split's contexts)\n" + _align(
+        ["task", "runs", "policies", "score"], rows)
+
+
+def summary_dict(results: Sequence[EvalResult]) -> dict:
+    by_task: dict[str, list[float]] = {}
+    for r in results:
+        by_task.setdefault(r.task, []).append(r.mean)
+    scores = {t: float(np.mean(v)) for t, v in by_task.items()}
+    return {"per_task": scores, "mean_over_tasks": float(np.mean(list(scores.values()))),
+            "median_over_tasks": float(np.median(list(scores.values())))}
+
+
+def _align(head: list[str], rows: list[list[str]]) -> str:
+    widths = [max(len(h), *(len(r[i]) for r in rows)) for i, h in enumerate(head)]
+    line = lambda r: "  ".join(c.ljust(w) if i == 0 else c.rjust(w) for i, (c, w) in enumerate(zip(r, widths)))  # noqa: E731
+    sep = "  ".join("-" * w for w in widths)
+    out = [line(head), sep] + [line(r) for r in rows[:-1]] + [sep, line(rows[-1])]
+    return "\n".join(out)
+
+
+# ----------------------------------------------------------------------------- contexts
+def parse_context(text: str) -> dict[str, float]:
+    out = {}
+    for part in text.replace(";", ",").split(","):
+        if not part.strip():
+            continue
+        k, sep, v = part.partition("=")
+        if not sep:
+            raise ValueError(f"--context expects k=v[,k=v], e.g. m=0.2,d=1.5; got {text!r}")
+        out[k.strip()] = float(v)
+    return out
+
+
+def select_contexts(task: str, split: str = "test", contexts: Sequence[Mapping[str, float]] | None = None,
+                    max_contexts: int = 0) -> list[dict[str, float]]:
+    """The split's contexts (validated), a given subset, or the fixed stratified subset of
+    K (TaskSpec.stratified: every value of m and of d equally often; 0 = all)."""
+    from sim_bridge.contract.contexts import get_task
+
+    spec = get_task(task)
+    if contexts:
+        return [spec.validate(c, split) for c in contexts]
+    return spec.stratified(split, max_contexts)
+
+
+def run_episodes(task: str, policy: Any, contexts: Sequence[Mapping[str, float]], episodes: int = 1, *,
+                 split: str = "test", seed: int = 0, workers: int = 0, batch: int = 0,
+                 action_repeat: int = 2, time_limit: int = 1000, render_quality: str = "fast",
+                 progress: bool | None = None, stop: runs.StopFlag | None = None,
+                 desc: str = "eval") -> list[ContextResult]:
+    """`episodes` episodes of every context with `policy` (protocad_ros.policy.Policy or
+    RandomPolicy; batched over up to `batch` envs). workers > 0: envs in worker processes."""
+    jobs = [(ci, e) for ci in range(len(contexts)) for e in range(episodes)]
+    results = [ContextResult(dict(c), split) for c in contexts]
+    if not jobs:
+        return results
+    n = min(len(jobs), batch or (workers if workers > 0 else 8))   # one env per worker process
+    steps_per_ep = math.ceil(time_limit / action_repeat)
+    bar = runs.progress(len(jobs) * steps_per_ep, desc=desc, disable=True if progress is False else None, unit="step")
+    # Seeds as evaluation always drew them (an int from each child of SeedSequence(seed)), so
+    # earlier results reproduce.
+    env_seeds = [int(s.generate_state(1)[0]) for s in np.random.SeedSequence(seed).spawn(n)]
+    with VectorEnv(task, n, split, seed, in_process=workers <= 0, env_seeds=env_seeds,
+                   action_repeat=action_repeat, time_limit=time_limit, render_quality=render_quality) as pool:
+        for w0 in range(0, len(jobs), n):
+            if stop is not None and stop.stop:
+                break
+            wave = jobs[w0:w0 + n]
+            done = rollout(pool, policy, [contexts[ci] for ci, _ in wave], on_step=bar.update)
+            for (ci, _), t in zip(wave, done):
+                results[ci].returns.append(t.ret)
+    bar.close()
+    return results
+
+
+def evaluate_checkpoint(checkpoint: str | Path | None, *, task: str | None = None, split: str = "test",
+                        episodes: int = DEFAULT_EPISODES, contexts: Sequence[Mapping[str, float]] | None = None,
+                        max_contexts: int = 0, seed: int = 0, device: str = "cpu", workers: int = 0,
+                        batch: int = 0, time_limit: int | None = None, agent: Any = None,
+                        counters: Mapping[str, Any] | None = None, progress: bool | None = None,
+                        stop: runs.StopFlag | None = None) -> EvalResult:
+    """Evaluate a checkpoint (or an in-memory `agent`, or the random policy when both are None)."""
+    from protocad_ros.policy import Policy
+
+    t0 = time.monotonic()
+    cfg = None
+    if agent is None and checkpoint is not None:
+        from protocad_ros.checkpoint import load_checkpoint
+
+        agent, counters = load_checkpoint(checkpoint, device=device)
+    if agent is not None:
+        cfg = agent.cfg
+        task = task or cfg.task
+        if task != cfg.task:
+            raise ValueError(f"checkpoint is for {cfg.task}, not {task}")
+        policy = Policy(agent, device=device, mode="deterministic", seed=seed)
+        repeat, quality = cfg.train.action_repeat, cfg.train.render_quality
+        limit = time_limit or cfg.train.time_limit
+    else:
+        if not task:
+            raise ValueError("--random needs --task")
+        from sim_bridge.contract.contexts import get_task
+
+        get_task(task)
+        policy = None
+        repeat, limit, quality = 2, time_limit or 1000, "fast"
+    ctxs = select_contexts(task, split, contexts, max_contexts)
+    if policy is None:
+        from sim_bridge.contract.contexts import task_actuators
+
+        policy = RandomPolicy(len(task_actuators(task)), seed)
+    per = run_episodes(task, policy, ctxs, episodes, split=split, seed=seed, workers=workers, batch=batch,
+                       action_repeat=repeat, time_limit=limit, render_quality=quality,
+                       progress=progress, stop=stop, desc=f"eval {task}")
+    counters = dict(counters or {})
+    updates = int(agent.counters()["updates"]) if agent is not None else None
+    env_steps = counters.get("env_steps")
+    return EvalResult(task=task, split=split, policy=str(checkpoint) if checkpoint else
+                      ("agent" if agent is not None else "random"), per_context=per,
+                      variant=cfg.variant if cfg else None, updates=updates,
+                      env_steps=int(env_steps) if env_steps is not None else None,
+                      seconds=time.monotonic() - t0)
+
+
+# ----------------------------------------------------------------------------- through ROS
+def evaluate_through_ros(checkpoint: str | None, *, task: str | None, split: str = "test", episodes: int = 1,
+                         total_episodes: int = 0, seed: int = 0, out_dir: Path, domain_id: int | None = None,
+                         episode_length: int | None = None, device: str = "cpu",
+                         timeout_s: float = 3600.0) -> EvalResult:
+    """Run the episodes through real ROS processes (bridge + policy node or random actor +
+    recorder), then read the returns from the recorded bag (grouped by the true context).
+    Without `total_episodes` the bridge cycles through the split's contexts, so each gets
+    exactly `episodes` episodes; with it, contexts are drawn uniformly."""
+    from trainer.launch import rosprocs
+    from trainer.data.dataset import MCAPDataset
+
+    t0 = time.monotonic()
+    cfg = None
+    updates = env_steps = None
+    if checkpoint:
+        from protocad_ros.checkpoint import read_checkpoint
+        from protocad_ros.model.config import Config
+
+        payload = read_checkpoint(checkpoint)
+        cfg = Config.from_dict(payload["config"])
+        task = task or cfg.task
+        updates = int(payload["modules"]["updates"]) if "updates" in payload["modules"] else None
+        env_steps = payload.get("counters", {}).get("env_steps")
+    if not task:
+        raise ValueError("give a checkpoint or --task")
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    bag = out_dir / f"eval_{split}_{time.strftime('%Y%m%d-%H%M%S')}"
+    stack = rosprocs.RosStack(out_dir / "logs", domain_id=domain_id)
+    ep_len = episode_length or ((cfg.train.time_limit // cfg.train.action_repeat) if cfg else 500)
+    from sim_bridge.contract.contexts import get_task
+
+    total = total_episodes or episodes * len(get_task(task).contexts(split))
+    try:
+        if checkpoint:
+            stack.start_policy(checkpoint=checkpoint, task=task, seed=seed, device=device, mode="deterministic",
+                               reload_poll_s=0.0)
+        else:  # the random baseline: uniform random actions
+            stack.start_random_actor(task=task, seed=seed)
+        stack.start_recorder(bag, wait_topics=[f"{stack.namespace}/action"])
+        bridge = stack.start_bridge(task=task, split=split, seed=seed, max_episodes=total,
+                                    context_schedule="sample" if total_episodes else "cycle",
+                                    episode_length=ep_len, action_repeat=cfg.train.action_repeat if cfg else 2)
+        stack.wait_exit(bridge, timeout_s)
+    finally:
+        stack.stop_all()
+    ds = MCAPDataset([bag], seq_len=1, cache_dir=out_dir / "cache")
+    per: dict[str, ContextResult] = {}
+    for e in ds.episodes():
+        if not (e["has_first"] and e["has_last"]) or e["context"] is None:
+            continue
+        key = context_label(e["context"])
+        print(f"[evaluate] episode {e['episode']} ({e['split'] or split} context {key}): "
+              f"return {e['return']:.1f} over {e['length'] - 1} steps", flush=True)
+        per.setdefault(key, ContextResult(e["context"], e["split"] or split)).returns.append(e["return"])
+    ordered = sorted(per.values(), key=lambda c: tuple(c.context.values()))
+    return EvalResult(task=task, split=split, policy=str(checkpoint) if checkpoint else "random",
+                      per_context=ordered, variant=cfg.variant if cfg else None, updates=updates,
+                      env_steps=env_steps, seconds=time.monotonic() - t0, mode="through ROS")
+
+
+# ----------------------------------------------------------------------------- CLI
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="protocad-evaluate",
+        description="Evaluate checkpoints (or the random policy) on a split's contexts: E "
+                    "episodes per context, a per-context table with the mean, and the mean / "
+                    "median over tasks when several are given. Paper protocol: test split, "
+                    "5 episodes per context, deterministic actions.",
+        formatter_class=runs.HelpFormatter)
+    ap.add_argument("checkpoints", nargs="*", metavar="CHECKPOINT",
+                    help="checkpoint files (or run directories holding checkpoints/latest.pt)")
+    ap.add_argument("--random", action="store_true",
+                    help="evaluate the uniform random policy (needs --task; with checkpoints: "
+                         "also shown beside each as a baseline)")
+    ap.add_argument("--task", action="append", default=[],
+                    help="task(s) for --random (default: the checkpoints' tasks)")
+    ap.add_argument("--split", choices=("train", "test"), default="test")
+    ap.add_argument("--episodes", type=int, default=DEFAULT_EPISODES, help="episodes per context")
+    ap.add_argument("--context", action="append", default=[], metavar="k=v[,k=v]",
+                    help="evaluate only these contexts (repeatable), e.g. --context m=0.2,d=1.5")
+    ap.add_argument("--max-contexts", type=int, default=0,
+                    help="the fixed stratified subset of K contexts (every m and d equally often; "
+                         "0 = all; the (m, d) tasks have 64 test contexts)")
+    ap.add_argument("--time-limit", type=int, default=None,
+                    help="env steps per episode (default: the checkpoint's train.time_limit, 1000)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto")
+    ap.add_argument("--workers", type=int, default=-1,
+                    help="env worker processes (0: envs in this process; -1: auto = 0 on <= 2 "
+                         "cores, else cores - 1)")
+    ap.add_argument("--batch", type=int, default=0, help="episodes run side by side (0: auto)")
+    ap.add_argument("--through-ros", action="store_true",
+                    help="run through the ROS nodes (sim bridge + policy node + recorder): the "
+                         "bridge cycles through the split's contexts, --episodes each (or "
+                         "--ros-episodes in all, contexts drawn uniformly); each episode's return "
+                         "is in the bridge's log")
+    ap.add_argument("--ros-episodes", type=int, default=0,
+                    help="--through-ros: total episodes, contexts drawn uniformly (default: the "
+                         "bridge cycles through the split's contexts, --episodes each)")
+    ap.add_argument("--episode-length", type=int, default=None,
+                    help="--through-ros: agent steps per episode (default: the checkpoint's "
+                         "time_limit / action_repeat)")
+    ap.add_argument("--ros-dir", default=None, help="--through-ros: where bags and node logs go")
+    ap.add_argument("--domain-id", type=int, default=None, help="--through-ros: ROS_DOMAIN_ID (default: a fresh one)")
+    ap.add_argument("--json", default=None, metavar="FILE", help="write the results as JSON")
+    ap.add_argument("--threads", type=int, default=0,
+                    help=runs.THREADS_HELP)
+    ap.add_argument("--no-progress", action="store_true")
+    return ap
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    a = build_parser().parse_args(argv)
+    from protocad_ros.checkpoint import CheckpointError
+
+    try:
+        return _main(a)
+    except (ValueError, CheckpointError) as exc:
+        print(f"protocad-evaluate: error: {exc}", file=sys.stderr)
+        return 2
+
+
+def _main(a: argparse.Namespace) -> int:
+    runs.set_threads(a.threads)
+    device = runs.resolve_device(a.device)
+    if not a.checkpoints and not a.random:
+        raise ValueError("give CHECKPOINT(s) or --random --task TASK")
+    if a.episodes < 1:
+        raise ValueError("--episodes must be >= 1")
+    workers = a.workers if a.workers >= 0 else (0 if (os.cpu_count() or 1) <= 2 else (os.cpu_count() or 2) - 1)
+    from protocad_ros.checkpoint import existing_checkpoint_file
+
+    ckpts = [existing_checkpoint_file(c) for c in a.checkpoints]
+    contexts = [parse_context(c) for c in a.context]
+    progress = False if a.no_progress else None
+    results: list[EvalResult] = []
+    baselines: dict[str, EvalResult] = {}
+    out: dict[str, Any] = {"split": a.split, "episodes_per_context": a.episodes, "seed": a.seed, "results": []}
+    with runs.StopFlag() as stop:
+        random_tasks = list(a.task)
+        for ck in ckpts:
+            if a.through_ros:
+                r = evaluate_through_ros(str(ck), task=None, split=a.split, episodes=a.episodes,
+                                         total_episodes=a.ros_episodes, seed=a.seed,
+                                         out_dir=Path(a.ros_dir or ck.parent.parent / "eval_ros"),
+                                         domain_id=a.domain_id, device=device,
+                                         episode_length=a.episode_length)
+            else:
+                r = evaluate_checkpoint(ck, split=a.split, episodes=a.episodes, contexts=contexts,
+                                        max_contexts=a.max_contexts, seed=a.seed, device=device,
+                                        workers=workers, batch=a.batch, time_limit=a.time_limit,
+                                        progress=progress, stop=stop)
+            results.append(r)
+            if a.random and r.task not in random_tasks:
+                random_tasks.append(r.task)
+        if a.random:
+            if not random_tasks:
+                raise ValueError("--random needs --task TASK (or checkpoints to take tasks from)")
+            for t in random_tasks:
+                if a.through_ros:
+                    r = evaluate_through_ros(None, task=t, split=a.split, episodes=a.episodes,
+                                             total_episodes=a.ros_episodes, seed=a.seed,
+                                             out_dir=Path(a.ros_dir or "runs/eval_ros"), domain_id=a.domain_id,
+                                             episode_length=a.episode_length)
+                else:
+                    r = evaluate_checkpoint(None, task=t, split=a.split, episodes=a.episodes, contexts=contexts,
+                                            max_contexts=a.max_contexts, seed=a.seed, workers=workers,
+                                            batch=a.batch, time_limit=a.time_limit, progress=progress, stop=stop)
+                baselines[t] = r
+        interrupted = stop.stop
+    for r in results:
+        print(format_table(r, baselines.get(r.task)))
+        print()
+    if not results:
+        for r in baselines.values():
+            print(format_table(r))
+            print()
+    scored = results or list(baselines.values())
+    if len({r.task for r in scored}) > 1 or len(scored) > 1:
+        print(format_summary(scored))
+        print()
+    out["results"] = [r.to_dict() for r in results]
+    out["random"] = [r.to_dict() for r in baselines.values()]
+    out["summary"] = summary_dict(scored)
+    if baselines:
+        out["random_summary"] = summary_dict(list(baselines.values()))
+    if a.json:
+        runs.atomic_write_json(Path(a.json), out)
+        print(f"[evaluate] results: {a.json}")
+    if interrupted:
+        print("[evaluate] interrupted: results cover the episodes finished before Ctrl-C", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,550 @@
+"""`protocad-train` (`ros2 run trainer train`): train an agent from MCAP logs.
+
+    protocad-train --logs runs/loop/bags --task pendulum_swingup --variant protocad \\
+        --preset small --updates 5000 --run-dir runs/offline-1
+    protocad-train --logs foreign_bag/ --topic image=/robot/camera --topic action=/robot/cmd ...
+    protocad-train --run-dir runs/offline-1 --resume            # continue exactly
+    torchrun --nproc_per_node 2 --no-python protocad-train --bags runs/loop/bags ...  # 2 ranks
+
+The :class:`Trainer` here is shared by the loop (trainer/launch/loop.py) and the in-process path
+(trainer/research/online.py): it owns the agent, the dataset sampler, the metrics log and the
+checkpoints. A checkpoint (protocad_ros.checkpoint, written atomically) carries the weights,
+optimizer states, the torch RNG state, the agent's update counter and the trainer's counters,
+including the dataset sampler's RNG state, so `--resume` continues from the last checkpoint
+with the same counters and draws the same next batch an uninterrupted run would have drawn.
+
+Under torchrun (trainer/learn/distributed.py) every rank trains on its share of the global batch
+(train.batch_size / N sequences, drawn by its own sampler seeded by its rank) and gradients are
+averaged; rank 0 writes the metrics and the checkpoint, which carries every rank's sampler and
+RNG state, so a resume with the same N continues exactly, and one with another N continues
+with fresh per-rank seeds.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+import zlib
+from pathlib import Path
+from typing import Any, Callable, Iterable, Mapping, Sequence
+
+import numpy as np
+
+from trainer.learn import distributed
+
+from trainer import runs
+from trainer.data.dataset import DatasetError, MCAPDataset, TopicMap
+
+DEFAULT_LOG_EVERY = 10
+
+
+class Trainer:
+    """Agent + dataset + run directory: updates, metrics (JSON lines + callbacks), checkpoints.
+
+    counters: free-form numbers/strings saved with every checkpoint (the loop and the online
+    path keep env_steps, episodes, phase, ... there); `updates` always mirrors the agent's own
+    update counter.
+    """
+
+    def __init__(self, cfg, run_dir: str | Path, dataset: MCAPDataset | None, *, device: str = "cpu",
+                 agent=None, counters: Mapping[str, Any] | None = None,
+                 callbacks: Iterable[runs.MetricsCallback] = (), log_every: int = DEFAULT_LOG_EVERY,
+                 action_dim: int | None = None, resumed: bool = False,
+                 dist_ctx: distributed.DistContext | None = None):
+        from protocad_ros.model.agents import make_agent
+
+        self.cfg = cfg
+        self.dist = dist_ctx or distributed.DistContext()
+        if cfg.train.batch_size % self.dist.world_size:
+            raise ValueError(f"train.batch_size={cfg.train.batch_size} (the global batch) does not "
+                             f"split over {self.dist.world_size} ranks")
+        self.local_batch = cfg.train.batch_size // self.dist.world_size
+        self.run_dir = Path(run_dir)
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        from protocad_ros.atomic import remove_stale_temporaries
+
+        if self.dist.is_main:
+            for path in (self.checkpoint_path, self.checkpoint_path.with_name("config.yaml"),
+                         self.run_dir / "config.yaml", self.run_dir / "run.json"):
+                for tmp in remove_stale_temporaries(path):
+                    print(f"[train] removed {tmp}, left by an interrupted write", flush=True)
+        self.dataset = dataset
+        self.device = device
+        if agent is None:
+            adim = action_dim or (dataset.action_dim if dataset is not None else None)
+            if not adim:
+                raise ValueError("the action size is unknown: no dataset with actions and no action_dim")
+            runs.seed_everything(cfg.train.seed)
+            agent = make_agent(cfg, int(adim), device=device)
+            if self.dist.enabled:   # the same weights (rank 0's), each rank its own draws
+                runs.seed_everything(distributed.rank_seed(cfg.train.seed, self.dist.rank))
+                if dataset is not None:
+                    dataset.rng = np.random.default_rng(distributed.rank_seed(cfg.train.seed, self.dist.rank))
+        distributed.attach(agent, self.dist)
+        self.agent = agent
+        self.counters: dict[str, Any] = dict(counters or {})
+        for key in ("dataset_state", "rank_states", "world_size"):   # rewritten at every save
+            self.counters.pop(key, None)
+        self.rank_fingerprints: list[dict[str, str]] = []
+        self.counters["updates"] = int(agent.counters()["updates"])
+        self._last_saved: int | None = None
+        self.log_every = max(1, int(log_every))
+        if resumed and self.dist.is_main:  # lines logged after the checkpoint will be logged again
+            runs.truncate_metrics(self.run_dir / "metrics.jsonl", self.counters["updates"])
+        self.metrics = runs.MetricsLogger(self.run_dir / "metrics.jsonl" if self.dist.is_main else None,
+                                          callbacks if self.dist.is_main else (),
+                                          wall_offset=float(self.counters.get("wall_time", 0.0)))
+        self._mean = runs.RunningMean()
+        self._last_log_t = time.monotonic()
+        self._last_log_u = self.updates
+        self.last_metrics: dict[str, float] = {}
+
+    # ------------------------------------------------------------------ construction helpers
+    @classmethod
+    def from_checkpoint(cls, path: str | Path, run_dir: str | Path, dataset: MCAPDataset | None, *,
+                        device: str = "cpu", **kw) -> "Trainer":
+        """Rebuild from a checkpoint: weights, optimizers, torch RNG, counters, sampler state."""
+        from protocad_ros.checkpoint import load_checkpoint
+
+        import torch
+
+        agent, counters = load_checkpoint(path, device=device)
+        ctx = kw.get("dist_ctx") or distributed.DistContext()
+        ranks = json.loads(counters.get("rank_states") or "[]")
+        state = counters.get("dataset_state")
+        if len(ranks) == ctx.world_size and ctx.enabled:     # the same N: exactly where it was
+            state = ranks[ctx.rank]["dataset"]
+            torch.set_rng_state(distributed.unpack_rng(ranks[ctx.rank]["torch_rng"]))
+        elif ctx.enabled:   # another N: fresh per-rank draws (rank 0's weights go everywhere)
+            seed = distributed.rank_seed(agent.cfg.train.seed, ctx.rank, int(agent.updates))
+            torch.manual_seed(seed)
+            state = None
+            if dataset is not None:
+                dataset.rng = np.random.default_rng(seed)
+        if dataset is not None and state:
+            dataset.load_state_dict(json.loads(state) if isinstance(state, str) else state)
+        return cls(agent.cfg, run_dir, dataset, device=device, agent=agent, counters=counters,
+                   resumed=True, **kw)
+
+    # ------------------------------------------------------------------ properties
+    @property
+    def updates(self) -> int:
+        return int(self.agent.counters()["updates"])
+
+    @property
+    def checkpoint_path(self) -> Path:
+        return runs.checkpoint_path(self.run_dir)
+
+    # ------------------------------------------------------------------ training
+    def update(self) -> dict[str, float]:
+        """One update on a freshly sampled batch."""
+        if self.dataset is None:
+            raise RuntimeError("no dataset to train on")
+        index = self.dataset.sample_index(self.local_batch)
+        batch = self.dataset.gather(index)
+        m = self.agent.train_step(MCAPDataset.training_batch(batch))
+        m["batch_crc"] = float(zlib.crc32(np.asarray(index, np.int64).tobytes()))
+        self.counters["updates"] = self.updates
+        self._mean.add({k: v for k, v in m.items() if k not in ("batch_crc", "updates")})
+        self.last_metrics = m
+        if self.updates % self.log_every == 0:
+            self.log_now(batch_crc=int(m["batch_crc"]))
+        return m
+
+    def log_now(self, **extra: Any) -> dict | None:
+        means = self._mean.pop()
+        if not means and not extra:
+            return None
+        now = time.monotonic()
+        du = self.updates - self._last_log_u
+        rate = du / (now - self._last_log_t) if now > self._last_log_t and du > 0 else None
+        self._last_log_t, self._last_log_u = now, self.updates
+        row_extra = {k: v for k, v in extra.items()}
+        if rate is not None:
+            row_extra["updates_per_s"] = round(rate, 3)
+        for k in ("env_steps", "episodes"):
+            if k in self.counters:
+                row_extra.setdefault(k, self.counters[k])
+        return self.metrics.log(self.updates, means, kind="train", **row_extra)
+
+    def train(self, target_updates: int, *, stop: runs.StopFlag | None = None, checkpoint_every: int = 0,
+              bar=None, on_update: Callable[[int, dict], None] | None = None, save: bool = True) -> bool:
+        """Update until the agent's counter reaches target_updates (a total, not a delta).
+        Checkpoints every `checkpoint_every` updates and at the end (unless save=False and not
+        stopped). Returns False when stopped early by `stop` (a checkpoint is written then)."""
+        completed = True
+        while self.updates < target_updates:
+            # Ranks stop together (one would wait forever for the others' gradients).
+            if distributed.any_rank(stop is not None and stop.stop, self.dist):
+                completed = False
+                break
+            m = self.update()
+            if bar is not None:
+                bar.update(1)
+                if self.updates % 5 == 0:
+                    bar.set_postfix({k: f"{m[k]:.3g}" for k in ("wm_loss", "image_loss", "reward_loss", "actor_loss")
+                                     if k in m}, refresh=False)
+            if on_update is not None:
+                on_update(self.updates, m)
+            if checkpoint_every and self.updates % checkpoint_every == 0 and self.updates < target_updates:
+                self.save()
+        if save or not completed:
+            self.save()
+        return completed
+
+    # ------------------------------------------------------------------ checkpoints
+    def save(self, path: str | Path | None = None) -> Path:
+        """Atomic checkpoint (weights, optimizers, torch RNG, counters, sampler state)."""
+        from protocad_ros.checkpoint import save_checkpoint
+
+        import torch
+
+        self.log_now()
+        self.counters["updates"] = self.updates
+        self.counters["wall_time"] = round(self.metrics.wall_time, 3)
+        counters = dict(self.counters)
+        if self.dataset is not None:
+            counters["dataset_state"] = json.dumps(self.dataset.state_dict())
+        if self.dist.enabled:   # collective: every rank's sampler and RNG, and a weight check
+            mine = {"dataset": counters.get("dataset_state"),
+                    "torch_rng": distributed.pack_rng(torch.get_rng_state()),
+                    "fingerprints": distributed.fingerprints(self.agent)}
+            ranks = distributed.gather_objects(mine, self.dist)
+            if not self.dist.is_main:
+                return Path(path or self.checkpoint_path)
+            counters["rank_states"] = json.dumps([{k: r[k] for k in ("dataset", "torch_rng")}
+                                                  for r in ranks])
+            differ = sorted(k for k in ranks[0]["fingerprints"]
+                            if len({r["fingerprints"][k] for r in ranks}) > 1)
+            counters["world_size"] = self.dist.world_size
+            self.rank_fingerprints = [r["fingerprints"] for r in ranks]
+            counters["rank_fingerprints"] = json.dumps(self.rank_fingerprints)
+            if differ:
+                raise RanksDiverged(f"data-parallel ranks diverged at update {self.updates}: {differ} "
+                                   "differ between ranks")
+        target = Path(path or self.checkpoint_path)
+        try:
+            out = save_checkpoint(target, self.agent, counters, rng_state=True)
+            self._last_saved = self.updates
+            return out
+        except OSError as exc:   # disk full, quota, permission: the previous file is untouched
+            if target.exists():
+                state = "the last good checkpoint there is intact" + (
+                    f" (update {self._last_saved})" if self._last_saved is not None else "")
+            else:
+                state = "there is no earlier checkpoint there (the run resumes from its bags)"
+            raise CheckpointWriteError(
+                f"writing the checkpoint {target} at update {self.updates} failed: "
+                f"{exc.strerror or exc}; {state}") from exc
+
+    def close(self) -> None:
+        self.metrics.close()
+
+
+class CheckpointWriteError(RuntimeError):
+    """A checkpoint could not be written (the message says why and what is still on disk)."""
+
+
+class RanksDiverged(RuntimeError):
+    """Data-parallel ranks hold different weights (nothing is written: the last checkpoint stays)."""
+
+
+# ---------------------------------------------------------------------- CLI
+def add_common_model_args(ap: argparse.ArgumentParser, *, defaults_from_config: bool = True) -> None:
+    from protocad_ros.model.config import DEFAULT_CLI_PRESET, PRESETS, VARIANTS
+    from sim_bridge.contract.contexts import TASKS
+
+    g = ap.add_argument_group("model / config")
+    g.add_argument("--task", choices=sorted(TASKS), default=None,
+                   help="task (default: from --config, else pendulum_swingup)")
+    g.add_argument("--variant", choices=VARIANTS, default=None,
+                   help="agent variant (default: from --config, else protocad)")
+    g.add_argument("--preset", choices=PRESETS, default=None,
+                   help=f"model size preset (default: from --config, else {DEFAULT_CLI_PRESET})")
+    g.add_argument("--config", default=None, metavar="FILE",
+                   help="YAML config (a saved config.yaml or a partial nested mapping)")
+    g.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="config override, e.g. --set world_model.deter=64 --set train.batch_size=8 (repeatable); "
+                        "every field is also an option of its own, listed under 'Config options' below")
+    g.add_argument("--batch-size", type=int, default=None, help="B (train.batch_size)")
+    g.add_argument("--seq-len", type=int, default=None, help="M (train.seq_len)")
+    g.add_argument("--seed", type=int, default=0, help="seeds model init, sampling and augmentation")
+    g.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (cuda when available)")
+    g.add_argument("--threads", type=int, default=0, help=runs.THREADS_HELP)
+    g.add_argument("--precision", choices=("auto", "float32", "bfloat16"), default=None,
+                   help="train.precision; auto = bfloat16 where the device has bf16 arithmetic "
+                        "(AVX512-BF16/AMX CPUs, Ampere+ GPUs), else float32; unset: the config's train.precision")
+
+
+def config_from_args(a: argparse.Namespace):
+    overrides = runs.parse_set(a.set)
+    if a.batch_size is not None:
+        overrides["train.batch_size"] = a.batch_size
+    if a.seq_len is not None:
+        overrides["train.seq_len"] = a.seq_len
+    overrides["train.seed"] = a.seed
+    if getattr(a, "precision", None):
+        from protocad_ros.model.precision import resolve_precision
+
+        choice = resolve_precision(a.precision, runs.resolve_device(a.device))
+        overrides["train.precision"] = choice.precision
+        print(f"[config] {choice.describe()}", flush=True)
+    from protocad_ros.model.config import check_train_memory
+
+    cfg = runs.build_config(a.task, a.variant, a.preset, a.config, overrides)
+    flags, prog = getattr(a, "config_args", []), getattr(a, "prog", "protocad")
+    if flags:
+        flagged = runs.apply_config_flags(cfg, flags, prog)
+        chosen = {k: getattr(flagged, k) for k in runs.SELECTOR_FIELDS}
+        if chosen != {k: getattr(cfg, k) for k in runs.SELECTOR_FIELDS}:
+            # --reference / --no_own_settings pick other defaults: rebuild on them, flags on top
+            cfg = runs.build_config(a.task, a.variant, a.preset, a.config, {**overrides, **chosen})
+            flagged = runs.apply_config_flags(cfg, flags, prog)
+        cfg = flagged
+    check_train_memory(cfg)   # before anything is built (ConfigError: one line, exit 2)
+    return cfg
+
+
+def add_topic_args(ap: argparse.ArgumentParser) -> None:
+    g = ap.add_argument_group("logs")
+    g.add_argument("--topic", action="append", default=[], metavar="KEY=/TOPIC",
+                   help="read KEY (image, step_info, action, context) from /TOPIC, for logs "
+                        "recorded under other names (e.g. --topic image=/cam/rgb; context=none)")
+    g.add_argument("--namespace", nargs="+", default=None, metavar="NS",
+                   help="namespace(s) of the contract topics in the logs (default /protocad); several = "
+                        "one robot each, e.g. the bags of `protocad-loop --robots 2`: --namespace "
+                        "/protocad/robot0 /protocad/robot1")
+    g.add_argument("--cache-dir", default=None,
+                   help="dataset cache (default $PROTOCAD_CACHE_DIR or ~/.cache/protocad-ros/dataset)")
+    g.add_argument("--cache-budget-gb", type=float, default=None,
+                   help="size budget of the dataset cache: least recently used bags are evicted (and "
+                        "re-indexed from their logs if used again); bags in use never are; 0 = no "
+                        "limit (default $PROTOCAD_CACHE_BUDGET_GB or 4)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="protocad-train",
+        description="Train a ProtoCAD agent (or a baseline/ablation variant) from MCAP logs "
+                    "(rosbag2 layout; bag directories, .mcap files or folders of bags). "
+                    "Writes RUN_DIR/config.yaml, metrics.jsonl, checkpoints/latest.pt (atomic, "
+                    "every --checkpoint-every updates and at the end). Ctrl-C saves a final "
+                    "checkpoint and exits 0; --resume continues exactly from the last one.",
+        formatter_class=runs.HelpFormatter)
+    ap.add_argument("--logs", "--bags", nargs="+", default=None, metavar="PATH", dest="logs",
+                    help="bag directories / .mcap files / folders of bags (with --resume: "
+                         "default = the run's logs). Under torchrun write --bags: torchrun takes "
+                         "--logs as its own --logs-specs")
+    add_topic_args(ap)
+    add_common_model_args(ap)
+    g = ap.add_argument_group("run")
+    g.add_argument("--updates", type=int, default=None,
+                   help="train until the update counter reaches N (a total; default 1000, or "
+                        "the resumed run's target)")
+    g.add_argument("--run-dir", default=None, help="output directory (default runs/train-TASK-VARIANT-TIME)")
+    g.add_argument("--checkpoint-every", type=int, default=None,
+                   help="updates between checkpoints (default 500, or the resumed run's)")
+    g.add_argument("--log-every", type=int, default=None,
+                   help=f"updates per metrics line (default {DEFAULT_LOG_EVERY}, or the resumed run's)")
+    g.add_argument("--resume", action="store_true",
+                   help="continue RUN_DIR from its checkpoint (config, counters, sampler state)")
+    g.add_argument("--rerun", nargs="?", const="", default=None, metavar="RRD",
+                   help="also log the scalars to a rerun recording (default RUN_DIR/metrics.rrd)")
+    g.add_argument("--no-progress", action="store_true", help="no progress bar")
+    g.add_argument("--accept-test-split", action="store_true",
+                   help="train on episodes recorded on the test split's contexts (refused by default: "
+                        "the evaluation keeps them unseen)")
+    g.add_argument("--accept-multiple-publishers", action="store_true",
+                   help="train on bags whose recorder saw several publishers on a topic read here "
+                        "(a second bridge or an impostor interleaved its messages); refused by "
+                        "default, naming the bag and topic")
+    return ap
+
+
+def refuse_test_split(ds: MCAPDataset, accept: bool, say: Callable[..., None] = print) -> None:
+    """ValueError (one line) when the logs hold episodes of the test split: contexts the
+    evaluation keeps unseen (the paper's protocol), which training would then have seen. With
+    `accept`, a warning instead."""
+    test = {}
+    for e in ds.episodes():
+        if e.get("split") == "test":
+            test[e["source"]] = test.get(e["source"], 0) + 1
+    if not test:
+        return
+    n, bags = sum(test.values()), sorted(test)
+    where = f"{bags[0]}" + (f" and {len(bags) - 1} more bag(s)" if len(bags) > 1 else "")
+    text = (f"the logs hold {n} episode(s) of the test split (unseen contexts) in {where}: training "
+            "on them leaks the evaluation")
+    if not accept:
+        raise ValueError(f"{text}; record training data with split:=train, or pass "
+                         "--accept-test-split to train on them anyway")
+    say(f"[train] WARNING: {text} (--accept-test-split)", flush=True)
+
+
+def refuse_multiple_publishers(logs: Sequence[str | Path], topic_maps: Sequence[TopicMap]) -> None:
+    """ValueError (one line, naming the bag and topic) when a bag's recorder marked a topic these
+    maps read as having had several publishers: their messages interleave in it (an impostor's
+    actions, a second bridge's observations) and nothing in the bag tells whose is whose."""
+    from trainer.data.store import find_sources, multiple_publishers
+
+    used = {t for m in topic_maps for t in m.as_dict().values() if t}
+    marked = [(src, found) for src in find_sources(logs) if (found := multiple_publishers(src, used))]
+    if not marked:
+        return
+    src, found = marked[0]
+    more = f" (and {len(marked) - 1} more bag(s))" if len(marked) > 1 else ""
+    raise ValueError(f"bag {src}: " + ", ".join(f"{t} had {n} publishers" for t, n in sorted(found.items()))
+                     + f" while it was recorded (a second bridge or an impostor: their messages interleave)"
+                     f"{more}; refusing it (--accept-multiple-publishers trains on it anyway)")
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    a = runs.parse_cli(build_parser(), argv)
+    try:
+        return _main(a)
+    except (DatasetError, ValueError) as exc:
+        print(f"protocad-train: error: {exc}", file=sys.stderr)
+        return 2
+    except (CheckpointWriteError, RanksDiverged) as exc:
+        print(f"protocad-train: error: {exc}", file=sys.stderr)
+        return 1
+
+
+def _main(a: argparse.Namespace) -> int:
+    return distributed.run_entry_point(a, _train)
+
+
+def _train(a: argparse.Namespace, ctx: distributed.DistContext, device: str) -> int:
+    from protocad_ros.checkpoint import CheckpointError
+
+    say = print if ctx.is_main else (lambda *args, **kw: None)
+    run_json: dict[str, Any] = {}
+    if a.resume:
+        run_dir, run_json = runs.resume_run_dir(a.run_dir, need_state=False)
+    else:
+        cfg = config_from_args(a)
+        # One directory for every rank (the default name has a time stamp): rank 0's.
+        run_dir = distributed.gather_objects(
+            str(runs.new_run_dir(a.run_dir, "train", cfg.task, cfg.variant)) if ctx.is_main else None, ctx)[0]
+        run_dir = Path(run_dir)
+    a.checkpoint_every = a.checkpoint_every or run_json.get("checkpoint_every") or 500
+    a.log_every = a.log_every or run_json.get("log_every") or DEFAULT_LOG_EVERY
+    logs = a.logs or run_json.get("logs")
+    if not logs:
+        raise ValueError("give --logs PATH... (bag directories, .mcap files or folders of bags)")
+    topic_args = a.topic or run_json.get("topics_args", [])
+    namespaces = a.namespace or run_json.get("namespace") or [None]
+    namespaces = [namespaces] if isinstance(namespaces, str) else list(namespaces)   # older run.json: one
+    topics = TopicMap.parse(topic_args, namespaces[0])
+    cache_dir = a.cache_dir or run_json.get("cache_dir")
+    accept_several = bool(a.accept_multiple_publishers or run_json.get("accept_multiple_publishers"))
+    if not accept_several:
+        refuse_multiple_publishers(logs, [TopicMap.parse(topic_args, ns) for ns in namespaces])
+
+    say(f"[train] reading logs: {', '.join(map(str, logs))}", flush=True)
+    from trainer.data.dataset import default_cache_dir
+
+    where = "--cache-dir" if a.cache_dir else "the run's" if cache_dir else (
+        "$PROTOCAD_CACHE_DIR" if os.environ.get("PROTOCAD_CACHE_DIR") else "default, outside the project")
+    say(f"[train] dataset cache (decoded frames, reused across runs): "
+          f"{Path(cache_dir) if cache_dir else default_cache_dir()} ({where}; LRU budget: --cache-budget-gb)", flush=True)
+    if a.resume:
+        try:
+            from protocad_ros.model.config import Config
+
+            cfg = Config.load(run_dir / "config.yaml")
+        except Exception as exc:  # noqa: BLE001
+            raise ValueError(f"--resume: cannot read {run_dir / 'config.yaml'}: {exc}") from None
+    if not ctx.is_main:
+        distributed.barrier_if(ctx)   # rank 0 fills the dataset cache first; the others then reuse it
+    ds = MCAPDataset(logs, topics=topics, seq_len=cfg.train.seq_len, seed=cfg.train.seed,
+                     cache_dir=cache_dir, verbose=ctx.is_main, cache_budget_gb=a.cache_budget_gb)
+    for ns in namespaces[1:]:   # the same logs, read once more per robot namespace
+        ds.add(logs, topics=TopicMap.parse(topic_args, ns))
+    if ctx.is_main:
+        distributed.barrier_if(ctx)
+    say(ds.report.summary(), flush=True)
+    if ds.num_windows == 0:
+        raise DatasetError(f"nothing to train on: no window of {cfg.train.seq_len} steps in the logs "
+                           "(see the report above)")
+
+    accept_test = bool(a.accept_test_split or run_json.get("accept_test_split"))
+    refuse_test_split(ds, accept_test, say)
+    from sim_bridge.contract.contexts import task_actuators
+
+    n_act = len(task_actuators(cfg.task))
+    if ds.action_dim != n_act:
+        raise ValueError(f"the logs carry {ds.action_dim}-d actions {ds.action_names} but {cfg.task} has "
+                         f"{n_act} actuators: wrong --task, or the action topic maps something else")
+    callbacks = []
+    rrd = None
+    if a.rerun is not None or run_json.get("rerun"):
+        rrd = a.rerun or run_json.get("rerun") or str(run_dir / "metrics.rrd")
+        from trainer.viz.rerun_log import metrics_callback
+
+        callbacks.append(metrics_callback(rrd, application="protocad-train"))
+    if a.resume:
+        try:
+            trainer = Trainer.from_checkpoint(runs.checkpoint_path(run_dir), run_dir, ds, device=device,
+                                              callbacks=callbacks, log_every=a.log_every, dist_ctx=ctx)
+        except CheckpointError as exc:
+            raise ValueError(str(exc)) from None
+        target = a.updates or int(run_json.get("updates", 1000))
+        say(f"[train] resuming {run_dir} at update {trainer.updates} (target {target})", flush=True)
+    else:
+        cfg.train.device = device
+        if ctx.is_main:
+            (run_dir / "metrics.jsonl").unlink(missing_ok=True)   # a fresh run (no checkpoint yet)
+        trainer = Trainer(cfg, run_dir, ds, device=device, callbacks=callbacks, log_every=a.log_every,
+                          dist_ctx=ctx)
+        target = a.updates or 1000
+        if ctx.is_main:
+            cfg.save(run_dir / "config.yaml")
+    if trainer.data.dataset.action_dim != trainer.agent.action_dim:
+        raise ValueError(f"the logs have {trainer.data.dataset.action_dim}-d actions but the agent "
+                         f"{trainer.agent.action_dim}-d")
+    run_json.update(kind="train", argv=sys.argv, logs=[str(Path(p).resolve()) for p in logs],
+                    topics_args=list(topic_args), namespace=[n for n in namespaces if n] or None,
+                    cache_dir=str(Path(cache_dir).resolve()) if cache_dir else None, task=cfg.task,
+                    variant=cfg.variant, preset=cfg.preset, seed=cfg.train.seed, device=device, updates=target,
+                    checkpoint_every=a.checkpoint_every, log_every=a.log_every,
+                    rerun=str(rrd) if rrd else None, topics=topics.as_dict(), world_size=ctx.world_size,
+                    accept_multiple_publishers=accept_several, accept_test_split=accept_test)
+    if ctx.is_main:
+        runs.atomic_write_json(run_dir / "run.json", run_json)
+
+    ranks = (f" ({ctx.world_size} ranks over {ctx.backend}, {trainer.local_batch} sequences each)"
+             if ctx.enabled else "")
+    say(f"[train] {cfg.task} / {cfg.variant} / {cfg.preset} on {device}: batch "
+          f"{cfg.train.batch_size} x {cfg.train.seq_len}{ranks}, {trainer.updates} -> {target} updates; "
+          f"run dir {run_dir}", flush=True)
+    t0 = time.monotonic()
+    start = trainer.updates
+    with runs.StopFlag() as stop:
+        bar = runs.progress(target, initial=trainer.updates, desc="train",
+                            disable=True if a.no_progress or not ctx.is_main else None, unit="upd")
+        try:
+            done = trainer.learn.train(target, stop=stop, checkpoint_every=a.checkpoint_every, bar=bar)
+        finally:
+            bar.close()
+            trainer.close()
+    dt = time.monotonic() - t0
+    n = trainer.updates - start
+    status = "finished" if done else "interrupted"
+    say(f"[train] {status} at update {trainer.updates} ({n} updates in {runs.fmt_seconds(dt)}"
+          f"{f', {n / dt:.2f}/s' if dt > 0 and n else ''})", flush=True)
+    say(f"[train] checkpoint: {trainer.checkpoint_path}", flush=True)
+    say(f"[train] metrics:    {run_dir / 'metrics.jsonl'}", flush=True)
+    say(f"[train] config:     {run_dir / 'config.yaml'}", flush=True)
+    if trainer.rank_fingerprints:
+        say(f"[train] {ctx.world_size} ranks hold identical weights at update {trainer.updates}: "
+            + " ".join(f"{k}={v}" for k, v in trainer.rank_fingerprints[0].items()), flush=True)
+    if not done:
+        say(f"[train] resume with: protocad-train --run-dir {run_dir} --resume", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,619 @@
+"""`ros2 run trainer record`: record ROS 2 topics into a rosbag2-compatible MCAP bag.
+
+A minimal `ros2 bag record --storage mcap` for environments without rosbag2 (msgs_docs/
+recorder.md): it subscribes with raw=True (the CDR bytes go to the bag untouched), takes
+log_time = reception time (never going back within the bag) and publish_time = source time
+from the rmw message info, waits for
+topics that appear late (graph polling), stores the publishers' offered QoS and type hash in the
+channel metadata, and closes the bag cleanly (footer, summary, metadata.yaml) on SIGINT/SIGTERM.
+After a SIGKILL every chunk already written (chunk_size bytes, or flush_interval seconds) can be
+read back with trainer.bag.mcap_io.BagReader.
+
+Usage: python -m trainer.nodes.recorder -o BAG [--topics T ...] [--namespace /protocad] ...
+       ros2 run trainer record --ros-args -p output:=BAG -p compression:=lz4
+"""
+from __future__ import annotations
+
+import argparse
+import functools
+import importlib
+import re
+import sys
+import threading
+import time
+from datetime import datetime
+from typing import Any, Mapping, Sequence
+
+from sim_bridge.nodekit.publisher_watch import PublisherWatch
+from sim_bridge.nodekit.rosbase import ProtocadNode
+from sim_bridge.nodekit.rosnode import ConfigError, KeyThrottle, run_node
+
+from sim_bridge.contract import topics as T
+from trainer.bag import mcap_io
+from trainer.data.records import MULTIPLE_PUBLISHERS_KEY
+
+#: Relative contract topics recorded by default (resolved in --namespace), plus the bridge's
+#: clock there (topics.clock_topic: /clock in the default namespace).
+DEFAULT_RELATIVE_TOPICS = (T.IMAGE, T.STEP_INFO, T.CONTEXT, T.ACTION, T.CONTEXT_FEATURES, T.BRIDGE_INFO)
+#: Topics that have one publisher per node by design: never marked as having several.
+MANY_PUBLISHERS_BY_DESIGN = frozenset({T.DIAGNOSTICS, "/rosout", "/parameter_events"})
+#: Longest drain at close (s): a KEEP_ALL backlog of 5000 samples on each of five topics takes a
+#: few seconds to write; the processes that stop the recorder give it 20 s.
+DRAIN_LIMIT_S = 10.0
+#: 0 = KEEP_ALL subscriptions (lossless against KEEP_ALL writers); N > 0 = KEEP_LAST(N).
+DEFAULT_QUEUE_DEPTH = 0
+#: rclpy wants a depth even for KEEP_ALL; Fast DDS ignores it there.
+KEEP_ALL_DEPTH = 1000
+
+
+def default_topics(namespace: str = T.DEFAULT_NAMESPACE) -> list[str]:
+    return [T.topic_name(namespace, t) for t in DEFAULT_RELATIVE_TOPICS] + [T.clock_topic(namespace)]
+
+
+def default_output() -> str:
+    """rosbag2's default bag name: rosbag2_YYYY_MM_DD-HH_MM_SS."""
+    return datetime.now().strftime("rosbag2_%Y_%m_%d-%H_%M_%S")
+
+
+def qos_profile_to_dict(qos: Any) -> dict[str, Any]:
+    """An rclpy QoSProfile as rosbag2 (metadata v9) serializes it."""
+    def name(policy: Any) -> str:
+        return policy.name.lower()   # keep_last, reliable, transient_local, automatic, unknown...
+
+    return mcap_io.qos_profile(
+        history=name(qos.history), depth=int(qos.depth), reliability=name(qos.reliability),
+        durability=name(qos.durability), deadline_ns=qos.deadline.nanoseconds,
+        lifespan_ns=qos.lifespan.nanoseconds, liveliness=name(qos.liveliness),
+        liveliness_lease_duration_ns=qos.liveliness_lease_duration.nanoseconds,
+        avoid_ros_namespace_conventions=bool(qos.avoid_ros_namespace_conventions))
+
+
+def apply_qos_override(qos: Any, override: Mapping[str, Any] | None):
+    """A --qos-profile-overrides-path entry ({reliability, durability, history, depth}) on top of
+    the adapted profile (ValueError naming a bad value)."""
+    if not override:
+        return qos
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, ReliabilityPolicy
+
+    for key, enum in (("reliability", ReliabilityPolicy), ("durability", DurabilityPolicy),
+                      ("history", HistoryPolicy)):
+        if key in override:
+            try:
+                setattr(qos, key, enum[str(override[key]).upper()])
+            except KeyError:
+                raise ValueError(f"QoS override {key}={override[key]!r}; valid: "
+                                 f"{[e.name.lower() for e in enum]}") from None
+    if "depth" in override:
+        qos.depth = int(override["depth"])
+    return qos
+
+
+def subscription_qos(offered: Sequence[Any], depth: int):
+    """The QoS the recorder requests, adapted to the publishers' offers like rosbag2
+    (Rosbag2QoS::adapt_request_to_offers), with the history the contract needs:
+
+    * RELIABLE when every publisher is reliable (the protocad contract: a reliable reader never
+      loses a sample the writer still holds), else BEST_EFFORT (a reliable reader would not
+      match a best-effort writer at all);
+    * TRANSIENT_LOCAL when every publisher offers it (latched data is recorded), else VOLATILE;
+    * KEEP_ALL when depth <= 0 (the default): the reader never drops a sample it accepted and
+      refuses (does not acknowledge) what it has no room for, so a KEEP_ALL writer (the lock-step
+      bridge, every action publisher) keeps it and sends it again: a backlog of any size, e.g.
+      after a stall, costs the writer time and memory, never a sample. A KEEP_LAST writer (a
+      real-time bridge) is not held back: it overwrites, and the gap is counted. depth > 0:
+      KEEP_LAST(depth), which drops the oldest samples of a backlog deeper than that.
+    """
+    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+    reliable = bool(offered) and all(q.reliability == ReliabilityPolicy.RELIABLE for q in offered)
+    latched = bool(offered) and all(q.durability == DurabilityPolicy.TRANSIENT_LOCAL
+                                    for q in offered)
+    keep_all = int(depth) <= 0
+    return QoSProfile(
+        history=HistoryPolicy.KEEP_ALL if keep_all else HistoryPolicy.KEEP_LAST,
+        depth=KEEP_ALL_DEPTH if keep_all else int(depth),
+        reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
+        durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
+
+
+def history_name(depth: int) -> str:
+    """The history a `queue_depth` asks for, for logs: KEEP_ALL or KEEP_LAST(N)."""
+    return "KEEP_ALL" if int(depth) <= 0 else f"KEEP_LAST({int(depth)})"
+
+
+def _import_message(msgtype: str) -> Any:
+    """The rclpy class of a type a remote participant advertises: checked before anything is
+    imported (trainer.bag.rosmsg.interface_module: identifiers, an interface kind, an ament package)."""
+    from trainer.bag.rosmsg import interface_module
+
+    module, name = interface_module(msgtype)
+    return getattr(importlib.import_module(module), name)
+
+
+class RecorderNode(ProtocadNode):
+    """Records topics into a BagWriter. Every constructor argument is also a ROS parameter of
+    the same name (a --ros-args -p override wins): output, topics, namespace, all_topics,
+    regex (include), exclude_regex, exclude_topics, include_hidden_topics, no_discovery,
+    compression, chunk_size, max_bagfile_size, max_bagfile_duration, flush_interval,
+    queue_depth, discovery_interval, status_interval. `qos_overrides` ({topic: policies}) and
+    `custom_data` are constructor-only (the command line's YAML file and KEY=VALUE list)."""
+
+    #: run_node's bound on the close: the drain of a backlog, then closing the bag.
+    shutdown_budget_s = DRAIN_LIMIT_S + 10.0
+
+    def __init__(self, output: str | None = None, topics: Sequence[str] = (),
+                 namespace: str = T.DEFAULT_NAMESPACE, all_topics: bool = False,
+                 exclude_regex: str = "", compression: str = "zstd", regex: str = "",
+                 exclude_topics: Sequence[str] = (), include_hidden_topics: bool = False,
+                 no_discovery: bool = False, qos_overrides: Mapping[str, Mapping[str, Any]] | None = None,
+                 custom_data: Mapping[str, str] | None = None,
+                 chunk_size: int = mcap_io.DEFAULT_CHUNK_SIZE, max_bagfile_size: int = 0,
+                 max_bagfile_duration: float = 0.0, flush_interval: float = 1.0,
+                 queue_depth: int = DEFAULT_QUEUE_DEPTH, discovery_interval: float = 0.2,
+                 status_interval: float = 0.0, node_name: str = "recorder", **node_kwargs: Any):
+        super().__init__(node_name, **node_kwargs)
+        from rcl_interfaces.msg import ParameterDescriptor, ParameterType
+        p = {}
+        for key, default in (("output", output or default_output()), ("namespace", namespace),
+                             ("all_topics", bool(all_topics)), ("exclude_regex", exclude_regex),
+                             ("regex", regex), ("include_hidden_topics", bool(include_hidden_topics)),
+                             ("no_discovery", bool(no_discovery)),
+                             ("compression", compression), ("chunk_size", int(chunk_size)),
+                             ("max_bagfile_size", int(max_bagfile_size)),
+                             ("max_bagfile_duration", float(max_bagfile_duration)),
+                             ("flush_interval", float(flush_interval)),
+                             ("queue_depth", int(queue_depth)),
+                             ("discovery_interval", float(discovery_interval)),
+                             ("status_interval", float(status_interval))):
+            p[key] = self.declare_parameter(key, default).value
+        p["topics"] = list(self.declare_parameter(
+            "topics", list(topics), ParameterDescriptor(
+                type=ParameterType.PARAMETER_STRING_ARRAY,
+                description="topics to record (empty: the contract topics in `namespace` "
+                            "and /clock)")).value or [])
+        p["exclude_topics"] = list(self.declare_parameter(
+            "exclude_topics", list(exclude_topics), ParameterDescriptor(
+                type=ParameterType.PARAMETER_STRING_ARRAY,
+                description="topics not to record")).value or [])
+        self.params = p
+        # As ros2 bag record: -a overrides -e; topics and -e add up; excludes apply on top.
+        explicit = [self.resolve_topic_name(t) for t in p["topics"]]
+        self.wanted: list[str] = ([] if p["all_topics"] else explicit
+                                  or ([] if p["regex"] else default_topics(p["namespace"])))
+        try:
+            self._include = re.compile(p["regex"]) if p["regex"] and not p["all_topics"] else None
+            self._exclude = re.compile(p["exclude_regex"]) if p["exclude_regex"] else None
+        except re.error as exc:
+            raise ValueError(f"bad regular expression: {exc}") from None
+        self._excluded = {self.resolve_topic_name(t) for t in p["exclude_topics"]}
+        self._qos_overrides = {self.resolve_topic_name(t): dict(v) for t, v in (qos_overrides or {}).items()}
+        self.writer = mcap_io.BagWriter(
+            p["output"], compression=p["compression"], chunk_size=p["chunk_size"],
+            max_bagfile_size=p["max_bagfile_size"],
+            max_bagfile_duration_s=p["max_bagfile_duration"],
+            flush_interval_s=p["flush_interval"], custom_data=custom_data)
+        self.received = 0
+        self._last_log_time = 0   # ns; the newest log time written (see _on_message)
+        self.errors = 0
+        self.done = threading.Event()    # set when recording cannot go on (write failure)
+        self.exit_code = 0
+        # Loss accounting from each writer's publication sequence numbers (1, 2, 3, ... per
+        # publisher): a jump is messages the middleware dropped before we took them (a stalled
+        # recorder, a KEEP_LAST writer overwriting what it held); a first number above 1 is what
+        # was published before we subscribed. Exact for a topic with one publisher; a topic with
+        # several is not tracked (their numbers interleave), and says so.
+        self.lost: dict[str, int] = {}
+        self.missed_before_subscribing: dict[str, int] = {}
+        self.untracked: set[str] = set()
+        self._last_seq: dict[str, int] = {}
+        self._subs: dict[str, Any] = {}
+        # A recorded topic with several writers mixes their samples in the bag (an impostor, a
+        # second bridge): marked in the bag's metadata as soon as it is seen.
+        self.publisher_watch = PublisherWatch(self._on_new_publisher)
+        self._warned: set[str] = set()
+        self._throttle = KeyThrottle(self.get_logger())
+        self._lock = threading.Lock()
+        self._discover()
+        if not p["no_discovery"]:
+            self._discovery_timer = self.create_timer(p["discovery_interval"], self._discover)
+        if p["flush_interval"] > 0:
+            self._flush_timer = self.create_timer(p["flush_interval"], self._flush_if_due)
+        if p["status_interval"] > 0:
+            self._status_timer = self.create_timer(p["status_interval"], self._status)
+        what = ("all topics" if p["all_topics"] else ", ".join(
+            self.wanted + ([f"topics matching {p['regex']!r}"] if self._include else [])))
+        self.get_logger().info(
+            f"recording {what} to {self.writer.bag_dir} (compression {p['compression']}, "
+            f"chunk {p['chunk_size']} B, split size {p['max_bagfile_size']} B / duration "
+            f"{p['max_bagfile_duration']} s, {history_name(p['queue_depth'])})")
+
+    # -- discovery -----------------------------------------------------------------------------
+    def _want(self, topic: str) -> bool:
+        if topic in self._excluded or (self._exclude is not None and self._exclude.search(topic)):
+            return False
+        if topic in self.wanted:
+            return True
+        if self.params["all_topics"] or (self._include is not None and self._include.search(topic)):
+            from rclpy.topic_or_service_is_hidden import topic_or_service_is_hidden
+            return self.params["include_hidden_topics"] or not topic_or_service_is_hidden(topic)
+        return False
+
+    def _warn_once(self, key: str, text: str) -> None:
+        if key not in self._warned:
+            self._warned.add(key)
+            self.get_logger().warning(text)
+
+    def _discover(self) -> None:
+        if self.writer.closed:
+            return
+        for topic, types in self.get_topic_names_and_types():
+            if topic in self._subs or not self._want(topic):
+                continue
+            if len(types) != 1:
+                self._warn_once(f"types:{topic}", f"topic {topic} has several types {types}; "
+                                "not recorded (as rosbag2)")
+                continue
+            pubs = self.get_publishers_info_by_topic(topic)
+            if not pubs:
+                continue  # wait for a publisher: its offered QoS decides ours
+            try:
+                self._subscribe(topic, types[0], pubs)
+            except Exception as exc:  # unknown type, import error...
+                self._warn_once(f"sub:{topic}", f"cannot record {topic} [{types[0]}]: {exc}")
+
+    def _subscribe(self, topic: str, msgtype: str, pubs: Sequence[Any]) -> None:
+        msg_class = _import_message(msgtype)
+        offered = [e.qos_profile for e in pubs]
+        hashes = {str(e.topic_type_hash) for e in pubs} - {"INVALID"}
+        type_hash = sorted(hashes)[0] if hashes else None
+        self.writer.add_topic(topic, msgtype, [qos_profile_to_dict(q) for q in offered],
+                              type_hash=type_hash)
+        qos = apply_qos_override(subscription_qos(offered, self.params["queue_depth"]),
+                                 self._qos_overrides.get(topic))
+        self._subs[topic] = self.create_subscription(
+            msg_class, topic, functools.partial(self._on_message, topic), qos, raw=True,
+            event_callbacks=None if topic in MANY_PUBLISHERS_BY_DESIGN else self.publisher_watch.callbacks(topic))
+        from sim_bridge.contract.qos import describe
+
+        self.get_logger().info(f"subscribed to {topic} [{msgtype}] ({describe(qos)})")
+
+    def _on_new_publisher(self, topic: str, publishers: int, first_time: bool) -> None:
+        with self._lock:
+            self.writer.custom_data = {**(self.writer.custom_data or {}), **self.publishers_summary()}
+        if first_time:
+            self.get_logger().warning(
+                f"{topic}: {publishers} publishers: their messages interleave in the bag (a second "
+                f"bridge, an impostor?); marked in its metadata ({MULTIPLE_PUBLISHERS_KEY}), and "
+                "protocad-train refuses it unless given --accept-multiple-publishers")
+
+    def publishers_summary(self) -> dict[str, str]:
+        """The topics that had several publishers, as metadata.yaml custom_data."""
+        import json
+
+        ever = self.publisher_watch.ever
+        return {MULTIPLE_PUBLISHERS_KEY: json.dumps(ever, sort_keys=True)} if ever else {}
+
+    # -- recording -----------------------------------------------------------------------------
+    def _on_message(self, topic: str, data: bytes, info: Any) -> None:
+        """raw=True + two-argument callback: CDR bytes and the rmw message info."""
+        if isinstance(info, dict):
+            recv, src = info.get("received_timestamp"), info.get("source_timestamp")
+            seq = info.get("publication_sequence_number") or 0
+        else:
+            recv = getattr(info, "received_timestamp", None)
+            src = getattr(info, "source_timestamp", None)
+            seq = getattr(info, "publication_sequence_number", 0) or 0
+        if not recv:
+            recv = time.time_ns()
+        with self._lock:
+            if self.writer.closed:
+                return
+            self._account(topic, int(seq) if isinstance(seq, int) else 0)
+            # Reception times of different topics come from different DDS readers and can run
+            # a little behind the order the callbacks write in. Log time never goes back in the
+            # bag, so a file cut short (no index: a full disk, a kill) is still in time order
+            # as written, which streaming readers such as rosbags require.
+            recv = self._last_log_time = max(int(recv), self._last_log_time)
+            try:
+                self.writer.write(topic, data, recv, src if src else recv, sequence=seq)
+                self.received += 1
+            except Exception as exc:
+                self.errors += 1
+                self._warn_once(f"write:{type(exc).__name__}", f"write to bag failed: {exc}")
+                self._check_failure()
+
+    def _account(self, topic: str, seq: int) -> None:
+        if seq <= 0 or topic in self.untracked:
+            return
+        last = self._last_seq.get(topic)
+        if last is None or seq <= last:
+            if last is not None or self.count_publishers(topic) > 1:
+                # several writers (or one restarted): their numbers say nothing about loss
+                self.untracked.add(topic)
+                self._warn_once(f"untracked:{topic}", f"{topic} has several publishers: its losses "
+                                "cannot be counted from sequence numbers")
+                return
+            if seq > 1:
+                self.missed_before_subscribing[topic] = seq - 1
+                self.get_logger().warning(f"{topic}: {seq - 1} message(s) were published before the "
+                                          "recorder subscribed (start the recorder first)")
+        elif seq > last + 1:
+            n = seq - last - 1
+            self.lost[topic] = self.lost.get(topic, 0) + n
+            self._throttle.warning(f"lost:{topic}", f"{topic}: {n} message(s) lost before the recorder took "
+                                   f"them (sequence {last} -> {seq}; {self.lost[topic]} on this topic so far)")
+        self._last_seq[topic] = seq
+
+    def loss_summary(self) -> dict[str, str]:
+        """The loss as metadata.yaml custom_data (rosbag2 keeps str -> str)."""
+        import json
+
+        out = {}
+        if self.lost:
+            out["protocad_lost_messages"] = json.dumps(self.lost, sort_keys=True)
+        if self.missed_before_subscribing:
+            out["protocad_missed_before_subscribing"] = json.dumps(self.missed_before_subscribing, sort_keys=True)
+        if self.untracked:
+            out["protocad_loss_untracked_topics"] = json.dumps(sorted(self.untracked))
+        return out
+
+    def _flush_if_due(self) -> None:
+        with self._lock:
+            try:
+                self.writer.flush_if_due()
+            except mcap_io.BagWriteError as exc:
+                self._warn_once("flush", f"flushing the bag failed: {exc}")
+                self._check_failure()
+
+    def _check_failure(self) -> None:
+        """A write error (disk full, file too large, permission lost, file removed) ends the
+        recording: the bag is closed with what it holds and the recorder exits with
+        EXIT_WRITE_FAILED."""
+        if self.writer.failure is not None and not self.done.is_set():
+            self.get_logger().error(f"recording stopped: {self.writer.failure}; closing the bag with the "
+                                    f"{self.writer.message_count} messages written")
+            self.exit_code = EXIT_WRITE_FAILED
+            self.done.set()
+
+    def _status(self) -> None:
+        counts = ", ".join(f"{t}: {n}" for t, n in self.writer.topic_counts.items())
+        self.get_logger().info(f"{self.writer.message_count} messages ({counts})")
+
+    def drain(self, executor: Any, quiet_s: float = 0.3, limit_s: float = DRAIN_LIMIT_S) -> None:
+        """Take what the middleware already holds before closing (used after SIGINT/SIGTERM):
+        a KEEP_ALL reader may hold thousands of samples its writers already count as delivered
+        (a backlog after a stall), which closing without taking them would lose."""
+        deadline = time.monotonic() + limit_s
+        last, quiet_since = self.received, time.monotonic()
+        while time.monotonic() < deadline:
+            executor.spin_once(timeout_sec=0.05)
+            if self.received != last:
+                last, quiet_since = self.received, time.monotonic()
+            elif time.monotonic() - quiet_since >= quiet_s:
+                break
+
+    def close(self) -> dict[str, int]:
+        """Take what the middleware still holds (when stopped by a signal, not by a write
+        failure), close the bag (footer, summary, metadata.yaml with the loss), print the
+        summary; returns the per-topic counts."""
+        executor = self.executor
+        if executor is not None and not self.done.is_set() and self.context.ok():
+            self.drain(executor)
+        with self._lock:
+            marks = {**self.loss_summary(), **self.publishers_summary()}
+            if marks:
+                self.writer.custom_data = {**(self.writer.custom_data or {}), **marks}
+            self.writer.close()
+        print(self.summary(), flush=True)
+        return self.writer.topic_counts
+
+    def summary(self) -> str:
+        """What was recorded and what was lost, for the exit message."""
+        w, counts = self.writer, self.writer.topic_counts
+        lines = [f"recorder: recorded {sum(counts.values())} messages to {w.bag_dir} ({len(w.files)} file(s))"]
+        lines += [f"  {t}: {n}" for t, n in counts.items()]
+        if self.errors:
+            lines.append(f"  write errors: {self.errors}")
+        if self.lost:
+            lines.append(f"  LOST before the recorder took them (sequence gaps): {sum(self.lost.values())} "
+                         f"({', '.join(f'{t}: {n}' for t, n in sorted(self.lost.items()))})")
+        if self.missed_before_subscribing:
+            lines.append("  published before the recorder subscribed: " + ", ".join(
+                f"{t}: {n}" for t, n in sorted(self.missed_before_subscribing.items())))
+        if self.untracked:
+            lines.append(f"  loss not tracked (several publishers): {', '.join(sorted(self.untracked))}")
+        several = self.publisher_watch.ever
+        if several:
+            lines.append("  SEVERAL PUBLISHERS (marked in the metadata): " + ", ".join(
+                f"{t}: {n}" for t, n in sorted(several.items())))
+        if w.failure is not None:
+            lines.append(f"  RECORDING STOPPED EARLY: {w.failure}")
+            lines.append(f"  messages lost (received, not in the bag: the open chunk and everything after): "
+                         f"{w.lost_after_failure}")
+            lines += [f"  {note}" for note in w.salvage_notes]
+            lines.append(f"  metadata.yaml: {'written' if (w.bag_dir / 'metadata.yaml').exists() else 'NOT written'}")
+        return "\n".join(lines)
+
+
+#: Exit status when a write error (disk full, ...) ended the recording; the bag holds what was
+#: written before it, closed validly where the disk allowed (see BagWriter.close).
+EXIT_WRITE_FAILED = 3
+
+
+#: `ros2 bag record` (Jazzy) options this recorder does not have, and why (each is refused
+#: with that reason rather than silently ignored).
+UNSUPPORTED_OPTIONS: dict[str, str] = {
+    "--services": "service recording (service event topics) is not supported",
+    "--all-services": "service recording (service event topics) is not supported",
+    "--exclude-services": "service recording (service event topics) is not supported",
+    "--topic-types": "selecting topics by type is not supported: name them, or use --regex",
+    "--exclude-topic-types": "excluding topics by type is not supported: use --exclude-regex",
+    "--include-unpublished-topics": "a topic is recorded once a publisher offers its QoS (as the "
+                                    "default ros2 bag record does)",
+    "--ignore-leaf-topics": "not supported",
+    "--use-sim-time": "messages are stamped with receive and source times, never /clock",
+    "--snapshot-mode": "snapshot mode is not supported",
+    "--start-paused": "pausing is not supported",
+    "--max-cache-size": "there is no write cache: each message is handed to the MCAP writer "
+                        "as it arrives (chunking is --chunk-size)",
+    "--compression-mode": "rosbag2's file/message compression is not supported: MCAP chunks are "
+                          "compressed instead (--compression zstd|lz4|none, "
+                          "or --storage-preset-profile)",
+    "--compression-format": "see --compression-mode",
+    "--compression-queue-size": "see --compression-mode",
+    "--compression-threads": "see --compression-mode",
+    "--storage-config-file": "MCAP writer options are --chunk-size and --compression",
+    "--static-topics-path": "not supported",
+}
+#: MCAP storage presets of rosbag2 (`--storage-preset-profile`) as our chunk compression.
+STORAGE_PRESETS = {"none": "zstd", "fastwrite": "none", "zstd_fast": "zstd", "zstd_small": "zstd"}
+
+
+class _Unsupported(argparse.Action):
+    def __init__(self, option_strings, dest, **kw):
+        kw.setdefault("nargs", "*")
+        super().__init__(option_strings, dest, **kw)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        parser.error(f"{option_string}: {UNSUPPORTED_OPTIONS[option_string]} (this recorder follows "
+                     "`ros2 bag record` of Jazzy for the options it has)")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(
+        prog="ros2 run trainer record",
+        description="Record ROS 2 topics into a rosbag2-compatible MCAP bag directory "
+                    "(NAME/NAME_0.mcap ... + metadata.yaml). Options follow `ros2 bag record` of "
+                    "Jazzy (same names, same meanings: -e/--regex includes, --exclude-regex "
+                    "excludes); its options this recorder lacks are refused with the reason. Every "
+                    "option is also a ROS parameter (--ros-args -p name:=value). SIGINT/SIGTERM close "
+                    "the bag cleanly; a write error (disk full) closes it and exits 3.",
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("-o", "--output", default=None,
+                    help="bag directory to create (default: rosbag2_YYYY_MM_DD-HH_MM_SS)")
+    ap.add_argument("-s", "--storage", default="mcap", choices=("mcap",),
+                    help="storage identifier (only mcap; default mcap)")
+    ap.add_argument("topics", nargs="*", default=[],
+                    help="topics to record (default, with no topic, -a or -e: the contract topics "
+                         "image, step_info, context, action, context_features in --namespace, and /clock)")
+    ap.add_argument("--topics", dest="topics_opt", nargs="+", default=[], metavar="TOPIC",
+                    help="space-delimited list of topics to record (as the positional ones)")
+    ap.add_argument("-a", "--all", dest="all_topics", action="store_true",
+                    help="record every topic (hidden ones excluded)")
+    ap.add_argument("--all-topics", dest="all_topics", action="store_true", help="same as -a")
+    ap.add_argument("-e", "--regex", default="",
+                    help="record only topics matching this regular expression (re.search); "
+                         "-a overrides it")
+    ap.add_argument("--exclude-regex", default="",
+                    help="do not record topics matching this regular expression; works on top of "
+                         "-a, --topics and -e")
+    ap.add_argument("--exclude-topics", nargs="+", default=[], metavar="TOPIC",
+                    help="topics not to record; works on top of -a, --topics and -e")
+    ap.add_argument("--include-hidden-topics", action="store_true",
+                    help="with -a or -e: hidden topics too")
+    ap.add_argument("--no-discovery", action="store_true",
+                    help="record only topics present at start-up")
+    ap.add_argument("-p", "--polling-interval", type=int, default=200, metavar="MS",
+                    help="milliseconds between graph polls for topics that appear late (default 200)")
+    ap.add_argument("--qos-profile-overrides-path", type=argparse.FileType("r"), default=None,
+                    metavar="YAML", help="QoS for specific topics, as ros2 bag record: "
+                    "{/topic: {reliability: reliable|best_effort, durability: volatile|transient_local, "
+                    "history: keep_last|keep_all, depth: N}}")
+    ap.add_argument("-f", "--serialization-format", default="cdr", choices=("cdr",),
+                    help="serialization format (only cdr, what every rmw here uses)")
+    ap.add_argument("-b", "--max-bag-size", dest="max_bagfile_size", type=int, default=0,
+                    help="split the bag at this file size in bytes (0: no split; >= 1024)")
+    ap.add_argument("-d", "--max-bag-duration", dest="max_bagfile_duration", type=float,
+                    default=0.0, help="split the bag after this many seconds (0: no split)")
+    ap.add_argument("--storage-preset-profile", choices=sorted(STORAGE_PRESETS), default=None,
+                    help="rosbag2's MCAP presets, as chunk compression: fastwrite = none, "
+                         "zstd_fast / zstd_small / none = zstd")
+    ap.add_argument("--custom-data", nargs="*", default=[], metavar="KEY=VALUE",
+                    help="stored under custom_data in metadata.yaml (as ros2 bag record)")
+    ap.add_argument("--node-name", default="recorder", help="ROS node name (default recorder)")
+    ap.add_argument("--log-level", choices=("debug", "info", "warn", "error", "fatal"), default="info")
+    ap.add_argument("--disable-keyboard-controls", action="store_true",
+                    help="accepted for compatibility: this recorder has no keyboard controls")
+    g = ap.add_argument_group("this recorder's own options")
+    g.add_argument("--namespace", default=T.DEFAULT_NAMESPACE,
+                   help="namespace of the default contract topics (default /protocad)")
+    g.add_argument("--compression", choices=("zstd", "lz4", "none"), default=None,
+                   help="MCAP chunk compression (default zstd)")
+    g.add_argument("--chunk-size", type=int, default=mcap_io.DEFAULT_CHUNK_SIZE,
+                   help=f"uncompressed chunk size in bytes (smaller: less lost on SIGKILL; default "
+                        f"{mcap_io.DEFAULT_CHUNK_SIZE})")
+    g.add_argument("--flush-interval", type=float, default=1.0,
+                   help="write the open chunk at least every this many seconds (0: only by "
+                        "size); bounds what a SIGKILL loses (default 1.0)")
+    g.add_argument("--queue-depth", type=int, default=DEFAULT_QUEUE_DEPTH,
+                   help="history of the subscriptions: 0 = KEEP_ALL (default: a backlog of any size "
+                        "holds KEEP_ALL writers back instead of being dropped), N > 0 = KEEP_LAST(N) "
+                        "(never holds a writer back; drops the oldest of a deeper backlog, counted)")
+    g.add_argument("--status-interval", type=float, default=0.0,
+                   help="log message counts every this many seconds (0: off)")
+    g = ap.add_argument_group("`ros2 bag record` options this recorder does not have (refused, "
+                              "with the reason)")
+    for opt in UNSUPPORTED_OPTIONS:
+        g.add_argument(opt, action=_Unsupported, help=argparse.SUPPRESS)
+    return ap
+
+
+def parse_custom_data(items: Sequence[str]) -> dict[str, str]:
+    out = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep or not key:
+            raise ValueError(f"--custom-data expects KEY=VALUE, got {item!r}")
+        out[key] = value
+    return out
+
+
+def load_qos_overrides(stream: Any) -> dict[str, dict[str, Any]]:
+    """The YAML of --qos-profile-overrides-path: {topic: {policy: value}} (ValueError if malformed)."""
+    import yaml
+
+    data = yaml.safe_load(stream) or {}
+    if not isinstance(data, dict) or not all(isinstance(v, dict) for v in data.values()):
+        raise ValueError("--qos-profile-overrides-path: expected a mapping of topic -> QoS policies")
+    allowed = {"reliability", "durability", "history", "depth"}
+    for topic, policies in data.items():
+        bad = set(policies) - allowed
+        if bad:
+            raise ValueError(f"--qos-profile-overrides-path: {topic}: unknown policies {sorted(bad)}; "
+                             f"supported: {sorted(allowed)}")
+    return {str(k): dict(v) for k, v in data.items()}
+
+
+def start_recorder(args: argparse.Namespace) -> RecorderNode:
+    """The RecorderNode the parsed command line asks for (ConfigError: bad options, exit 2)."""
+    import rclpy.logging
+
+    rclpy.logging.set_logger_level(args.node_name, getattr(rclpy.logging.LoggingSeverity, args.log_level.upper()))
+    try:
+        compression = args.compression or STORAGE_PRESETS.get(args.storage_preset_profile or "none", "zstd")
+        qos_overrides = load_qos_overrides(args.qos_profile_overrides_path) \
+            if args.qos_profile_overrides_path else None
+        node = RecorderNode(
+            output=args.output, topics=[*args.topics, *args.topics_opt],
+            namespace=args.namespace, all_topics=args.all_topics, regex=args.regex,
+            exclude_regex=args.exclude_regex, exclude_topics=args.exclude_topics,
+            include_hidden_topics=args.include_hidden_topics, no_discovery=args.no_discovery,
+            qos_overrides=qos_overrides, custom_data=parse_custom_data(args.custom_data),
+            compression=compression,
+            chunk_size=args.chunk_size, max_bagfile_size=args.max_bagfile_size,
+            max_bagfile_duration=args.max_bagfile_duration, flush_interval=args.flush_interval,
+            queue_depth=args.queue_depth, discovery_interval=args.polling_interval / 1000.0,
+            status_interval=args.status_interval, node_name=args.node_name)
+    except (mcap_io.BagWriteError, ValueError) as exc:
+        raise ConfigError(str(exc)) from None
+    print(f"recorder: recording to {node.writer.bag_dir}", flush=True)
+    return node
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """`ros2 bag record`'s command line (argv without the program name)."""
+    return run_node(start_recorder, prog="recorder", parser=build_parser(),
+                    argv=[sys.argv[0], *(sys.argv[1:] if argv is None else argv)])
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,381 @@
+"""`protocad-compare`: a grid of tasks x variants x seeds, each an ordinary `protocad-online` run
+directory, run as parallel worker processes, gathered into one `results.json` and reported.
+
+    protocad-compare --tasks pendulum_swingup --variants protocad dreamer --seeds 0 1 2 \\
+        --env-steps 30000 --wall-budget 85m --jobs 7 --out runs/compare-pend \\
+        --anchor-seeds 0 -- --preset small --updates-per-episode 25
+    protocad-compare --out runs/compare-pend ...same flags...   # resumes every unfinished run
+    protocad-compare --report runs/compare-pend/results.json --markdown   # README section
+
+Each run is `python -m trainer.research.online --run-dir OUT/TASK/LABEL/seedS ...` with its own torch
+thread budget (`--threads`) and device (`--devices`, assigned round robin), its output in
+RUN_DIR/online.log. Re-running the same command skips finished runs and resumes the others
+from their last checkpoint (`protocad-online --resume`: weights, optimisers, RNG, sampler;
+counters from the bags on disk, which all count); a run killed before its first checkpoint
+resumes from its bags. Ctrl-C
+(or SIGTERM) asks every run to stop cleanly (checkpoint, no final evaluation) and exits 130;
+the runs also die with this process if it is killed outright (PR_SET_PDEATHSIG).
+
+Budgets: every run stops at `--env-steps`, or earlier when its own training wall time (carried
+across resumes) reaches `--wall-budget`; either way it then runs the final evaluation on all
+test contexts and saves its checkpoint and curves. results.json records which budget ended
+each run and the env steps it reached.
+
+`--anchor-seeds S...` adds the sanity anchor of the RL core: `dreamer` at DreamerV2's dmc_vision
+settings (`reference=dreamerv2`: 32 x 32 discrete latents, trunc_normal actor) trained and
+evaluated on the unrandomized task (the default context, m=1 / m=1,d=1), label
+`dreamer_standard`, to set beside DreamerV2's published curves on standard DMC.
+
+Everything after `--` goes to every `protocad-online` run unchanged (preset, C, eval options,
+`--set` overrides).
+"""
+from __future__ import annotations
+
+import argparse
+import ctypes
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Sequence
+
+from trainer import runs
+from trainer.research.results import ANCHOR_LABEL
+
+
+
+@dataclass
+class RunSpec:
+    task: str
+    label: str           # variant, or ANCHOR_LABEL for the unrandomized dreamer
+    variant: str
+    seed: int
+    run_dir: Path
+    device: str = "cpu"
+    extra: list[str] = field(default_factory=list)
+
+    def state(self, env_steps: int, wall_budget: float | None) -> str:
+        """'done' (budget reached), 'resume' (a checkpoint to continue from) or 'fresh'."""
+        info = read_run_json(self.run_dir)
+        result = info.get("result") or {}
+        if result.get("status") == "finished" and int(result.get("env_steps", 0)) >= env_steps:
+            return "done"
+        if (result.get("status") == "wall_budget" and wall_budget
+                and float(result.get("wall_time", 0.0)) >= wall_budget):
+            return "done"
+        # protocad-online resumes from its bags too (a run killed before its first checkpoint)
+        bags = self.run_dir / "bags"
+        started = runs.checkpoint_path(self.run_dir).exists() or (bags.is_dir() and any(bags.iterdir()))
+        return "resume" if started and (self.run_dir / "run.json").exists() else "fresh"
+
+
+def read_run_json(run_dir: Path) -> dict:
+    try:
+        return json.loads((Path(run_dir) / "run.json").read_text())
+    except (OSError, json.JSONDecodeError):
+        return {}
+
+
+def standard_context(task: str) -> str:
+    """The unrandomized task's context (every scale 1) as a --train-context value."""
+    from sim_bridge.contract.contexts import get_task
+
+    return ",".join(f"{p}=1" for p in get_task(task).params)
+
+
+def plan(a: argparse.Namespace) -> list[RunSpec]:
+    specs: list[RunSpec] = []
+    grid = [(t, v, v, s) for t in a.tasks for v in a.variants for s in a.seeds]
+    grid += [(t, ANCHOR_LABEL, "dreamer", s) for t in a.tasks for s in a.anchor_seeds]
+    for i, (task, label, variant, seed) in enumerate(grid):
+        extra = []
+        if label == ANCHOR_LABEL:
+            ctx = standard_context(task)
+            # DreamerV2's own dmc_vision settings, so its published curve is the reference
+            extra = ["--train-context", ctx, "--eval-split", "train", "--eval-contexts", ctx,
+                     "--set", "reference=dreamerv2"]
+        specs.append(RunSpec(task, label, variant, seed, Path(a.out) / task / label / f"seed{seed}",
+                             a.devices[i % len(a.devices)], extra))
+    return specs
+
+
+def online_argv(spec: RunSpec, a: argparse.Namespace, state: str) -> list[str]:
+    argv = [sys.executable, "-m", "trainer.research.online", "--run-dir", str(spec.run_dir),
+            "--env-steps", str(a.env_steps), "--device", spec.device, "--threads", str(a.threads),
+            "--no-progress"]
+    if a.wall_budget:
+        argv += ["--wall-budget", str(a.wall_budget)]
+    if state == "resume":
+        return argv + ["--resume"]
+    return argv + ["--task", spec.task, "--variant", spec.variant, "--seed", str(spec.seed),
+                   *spec.extra, *a.online_args]
+
+
+def _die_with_parent() -> None:
+    """Child side of Popen: get SIGKILL when the compare process dies (Linux prctl)."""
+    try:
+        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGKILL)  # PR_SET_PDEATHSIG
+    except OSError:
+        pass
+    os.setpgid(0, 0)   # Ctrl-C in the terminal reaches only us; we forward it once
+
+
+def latest_env_steps(run_dir: Path) -> int:
+    """The newest env-step count a run has logged (metrics.jsonl), for progress."""
+    path = Path(run_dir) / "metrics.jsonl"
+    try:
+        with open(path, "rb") as f:
+            f.seek(max(0, path.stat().st_size - 4096))
+            lines = f.read().decode(errors="replace").splitlines()
+    except OSError:
+        return 0
+    for line in reversed(lines):
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if "env_steps" in row:
+            return int(row["env_steps"])
+    return 0
+
+
+def run_grid(specs: Sequence[RunSpec], a: argparse.Namespace) -> int:
+    """Runs every unfinished spec, at most a.jobs at once. Returns the number that failed."""
+    todo = []
+    for s in specs:
+        st = s.state(a.env_steps, a.wall_budget)
+        print(f"[compare] {s.task}/{s.label}/seed{s.seed}: {st}", flush=True)
+        if st == "fresh" and s.run_dir.exists():
+            shutil.rmtree(s.run_dir)   # killed before its first checkpoint: nothing to keep
+        if st != "done":
+            todo.append((s, st))
+    running: dict[int, tuple[RunSpec, subprocess.Popen, object]] = {}
+    failed = 0
+    bar = runs.progress(len(specs) * a.env_steps, desc="env steps (all runs)", unit="step")
+    done_steps = {id(s): (a.env_steps if s.state(a.env_steps, a.wall_budget) == "done" else 0) for s in specs}
+    bar.update(sum(done_steps.values()))
+    last_status = time.monotonic() - a.status_every + min(a.status_every, FIRST_ESTIMATE_S)
+    remaining = sum(a.env_steps - done_steps[id(s)] for s in specs)
+    print(f"[compare] {len(todo)} of {len(specs)} runs to go, {remaining:,} env steps in all, "
+          f"{a.jobs} at once; the estimated wall time follows a first timing of "
+          f"{min(a.status_every, FIRST_ESTIMATE_S):.0f} s", flush=True)
+    started = {}   # id(spec) -> (monotonic time, env steps) when this invocation first saw it run
+    with runs.StopFlag() as stop:
+        try:
+            while (todo or running) and not stop.stop:
+                while todo and len(running) < a.jobs and not stop.stop:
+                    s, st = todo.pop(0)
+                    s.run_dir.mkdir(parents=True, exist_ok=True)
+                    log = open(s.run_dir / "online.log", "a")
+                    p = subprocess.Popen(online_argv(s, a, st), stdout=log, stderr=subprocess.STDOUT,
+                                         stdin=subprocess.DEVNULL, preexec_fn=_die_with_parent)
+                    running[p.pid] = (s, p, log)
+                    print(f"[compare] started {s.task}/{s.label}/seed{s.seed} ({st}) pid {p.pid} on "
+                          f"{s.device}", flush=True)
+                time.sleep(1.0)
+                for pid, (s, p, log) in list(running.items()):
+                    steps = latest_env_steps(s.run_dir)
+                    bar.update(max(0, steps - done_steps[id(s)]))
+                    done_steps[id(s)] = max(done_steps[id(s)], steps)
+                    if p.poll() is None:
+                        continue
+                    log.close()
+                    del running[pid]
+                    res = read_run_json(s.run_dir).get("result") or {}
+                    ok = p.returncode == 0 and res.get("status") in ("finished", "wall_budget")
+                    failed += 0 if ok else 1
+                    print(f"[compare] {s.task}/{s.label}/seed{s.seed}: exit {p.returncode}, "
+                          f"{res.get('status', 'no result')} at {res.get('env_steps', '?')} env steps"
+                          + ("" if ok else f" (see {s.run_dir / 'online.log'})"), flush=True)
+                for s, _, _ in running.values():
+                    started.setdefault(id(s), (time.monotonic(), done_steps[id(s)]))
+                if running and time.monotonic() - last_status > a.status_every:
+                    last_status = time.monotonic()
+                    print("[compare] " + ", ".join(f"{s.label}/seed{s.seed}: {done_steps[id(s)]}"
+                                                   for s, _, _ in running.values())
+                          + grid_estimate(specs, running, started, done_steps, a), flush=True)
+        finally:
+            for s, p, log in running.values():
+                if p.poll() is None:
+                    p.send_signal(signal.SIGINT)   # each run checkpoints and exits
+            for s, p, log in running.values():
+                try:
+                    p.wait(timeout=300)
+                except subprocess.TimeoutExpired:
+                    p.kill()
+                    p.wait()
+                log.close()
+            bar.close()
+    if stop.stop:
+        print("[compare] interrupted: every run saved its checkpoint; re-run the same command to "
+              "resume", flush=True)
+        return -1
+    return failed
+
+
+#: Seconds of running before the first status line with a wall-time estimate.
+FIRST_ESTIMATE_S = 120.0
+
+
+def grid_estimate(specs, running, started, done_steps, a) -> str:
+    """'; about 3h10m left' from the env steps/s the running runs made since this invocation
+    started them (evaluations and all), the grid's remaining steps, and a.jobs at once."""
+    now = time.monotonic()
+    rates = [(done_steps[id(s)] - started[id(s)][1]) / max(1e-9, now - started[id(s)][0])
+             for s, _, _ in running.values()
+             if id(s) in started and now - started[id(s)][0] > min(30.0, a.status_every)]
+    rates = [r for r in rates if r > 0]
+    if not rates:
+        return "; no estimate yet"
+    per_run = sum(rates) / len(rates)
+    left = sum(max(0, a.env_steps - done_steps[id(s)]) for s in specs)
+    seconds = left / (per_run * min(a.jobs, max(1, len(running))))
+    return f"; about {runs.format_duration(seconds)} left ({per_run:.1f} env steps/s per run)"
+
+
+def add_grid_wall_time(out: Path, seconds: float) -> float:
+    """Wall time of the grid summed over every invocation (OUT/grid.json). Where no earlier
+    invocation recorded its share, it is the time from the oldest run's config.yaml to the
+    start of this invocation."""
+    path = Path(out) / "grid.json"
+    try:
+        total = float(json.loads(path.read_text()).get("wall_time_s", 0.0))
+    except (OSError, ValueError, AttributeError):
+        starts = [p.stat().st_mtime for p in Path(out).glob("*/*/seed*/config.yaml")]
+        total = max(0.0, time.time() - seconds - min(starts)) if starts else 0.0
+    total += seconds
+    runs.atomic_write_json(path, {"wall_time_s": round(total, 1)})
+    return total
+
+
+def random_baselines(a: argparse.Namespace) -> dict[str, dict]:
+    """The uniform random policy on each task's test contexts, once (OUT/TASK/random.json)."""
+    from trainer.learn.evaluate import evaluate_checkpoint
+
+    out = {}
+    for task in a.tasks:
+        path = Path(a.out) / task / "random.json"
+        if not path.exists():
+            res = evaluate_checkpoint(None, task=task, episodes=a.random_episodes, seed=7, progress=False)
+            runs.atomic_write_json(path, res.to_dict())
+        out[task] = json.loads(path.read_text())
+    return out
+
+
+# ---------------------------------------------------------------------- CLI
+def build_parser() -> argparse.ArgumentParser:
+    from protocad_ros.model.config import VARIANTS
+    from sim_bridge.contract.contexts import TASKS
+
+    ap = argparse.ArgumentParser(
+        prog="protocad-compare",
+        description="Run tasks x variants x seeds as parallel protocad-online runs (resumable), "
+                    "gather their evaluation curves into OUT/results.json and report: final "
+                    "test-context return per task and variant (mean over seeds, 95% bootstrap "
+                    "CI, the paper's figure beside it), mean / median / IQM over tasks, a "
+                    "learning-curve PNG and a rerun recording. Arguments after `--` go to every "
+                    "protocad-online run.",
+        formatter_class=runs.HelpFormatter)
+    g = ap.add_argument_group("grid")
+    g.add_argument("--tasks", nargs="+", choices=sorted(TASKS), default=["pendulum_swingup"])
+    g.add_argument("--variants", nargs="+", choices=VARIANTS, default=["protocad", "dreamer"])
+    g.add_argument("--seeds", nargs="*", type=int, default=[0, 1, 2],
+                   help="seeds of every variant (none: only the anchor's)")
+    g.add_argument("--anchor-seeds", nargs="*", type=int, default=[],
+                   help=f"also run dreamer on the unrandomized task (label {ANCHOR_LABEL}) with these seeds")
+    g = ap.add_argument_group("budgets and resources")
+    g.add_argument("--env-steps", type=int, default=2_000_000, help="env-step budget of every run")
+    g.add_argument("--wall-budget", type=runs.parse_duration, default=None, metavar="DURATION",
+                   help="training wall-time budget of every run (e.g. 85m, 1h30m, 5400)")
+    g.add_argument("--jobs", type=int, default=2, help="runs at once (worker processes)")
+    g.add_argument("--threads", type=int, default=1, help="torch threads of each run")
+    g.add_argument("--devices", nargs="+", default=["cpu"],
+                   help="devices assigned to runs round robin (cpu, cuda, cuda:N)")
+    g = ap.add_argument_group("output")
+    g.add_argument("--out", default=None, help="directory of the grid (default runs/compare-STAMP)")
+    g.add_argument("--report", default=None, metavar="RESULTS_JSON",
+                   help="only report from this results.json (no runs)")
+    g.add_argument("--markdown", action="store_true",
+                   help="print the README results section (generated from results.json)")
+    g.add_argument("--update-readme", default=None, metavar="README",
+                   help="replace the generated results section of this README in place")
+    g.add_argument("--image", default=None, metavar="PNG",
+                   help="also write the learning-curve plot here, and link it from the markdown section "
+                        "(a path relative to the README)")
+    g.add_argument("--rrd", default=None, metavar="RRD",
+                   help="write the curves' rerun recording here (a grid also writes OUT/curves.rrd)")
+    g.add_argument("--random-baseline", action="store_true",
+                   help="evaluate the uniform random policy once per task (OUT/TASK/random.json, the "
+                        "final evaluation's contexts and episodes) and report it beside the variants")
+    g.add_argument("--random-episodes", type=int, default=5, help="episodes per context of --random-baseline")
+    g.add_argument("--status-every", type=float, default=300.0, help="seconds between status lines")
+    ap.add_argument("online_args", nargs=argparse.REMAINDER,
+                    help="-- then arguments for every protocad-online run")
+    return ap
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    ap = build_parser()
+    a = ap.parse_args(argv)
+    if a.online_args and a.online_args[0] == "--":
+        a.online_args = a.online_args[1:]
+    try:
+        if a.report:
+            from trainer.research import results as R
+
+            doc = R.load_results(a.report)
+            out_dir = Path(a.report).parent
+        else:
+            if a.jobs < 1 or a.threads < 0:
+                ap.error("--jobs must be >= 1 and --threads >= 0")
+            a.out = Path(a.out or time.strftime("runs/compare-%Y%m%d-%H%M%S"))
+            a.out.mkdir(parents=True, exist_ok=True)
+            specs = plan(a)
+            t0 = time.monotonic()
+            failed = run_grid(specs, a)
+            wall = add_grid_wall_time(a.out, time.monotonic() - t0)
+            if failed < 0:
+                return 130
+            from trainer.research import results as R
+
+            random = random_baselines(a) if a.random_baseline else {}
+            command = ["protocad-compare", *(sys.argv[1:] if argv is None else argv)]
+            doc = R.gather(specs, command=command, env_steps=a.env_steps, wall_budget=a.wall_budget,
+                           jobs=a.jobs, threads=a.threads, wall_time=wall, random=random)
+            out_dir = a.out
+            R.save_results(doc, out_dir / "results.json")
+            print(f"[compare] {len(specs)} runs, {failed} failed; results: {out_dir / 'results.json'}",
+                  flush=True)
+        print(R.format_report(doc), flush=True)
+        # A grid writes its plot and recording beside results.json; --report only where asked.
+        # (never into the directory of a results.json it was only asked to read: that may be
+        # the source tree, msgs_docs/results/)
+        png = (R.plot_curves(doc, a.image) if a.image else "not written (--image PNG)") if a.report \
+            else R.plot_curves(doc, out_dir / "curves.png")
+        if a.image and not a.report:
+            shutil.copyfile(png, a.image)
+        rrd_path = a.rrd or (None if a.report else out_dir / "curves.rrd")
+        try:
+            rrd = R.log_curves_rerun(doc, rrd_path) if rrd_path else "not written (--rrd PATH)"
+        except ImportError:   # rerun-sdk absent (the GPU machine's bare Python)
+            rrd = "not written (rerun-sdk is not installed)"
+        print(f"[compare] plot: {png}\n[compare] rerun: {rrd}", flush=True)
+        source = a.report or str(out_dir / "results.json")
+        if a.markdown:
+            print(R.markdown_section(doc, image=a.image, source=source))
+        if a.update_readme:
+            R.update_readme(Path(a.update_readme), R.markdown_section(doc, image=a.image, source=source))
+            print(f"[compare] updated the results section of {a.update_readme}", flush=True)
+    except (ValueError, OSError) as exc:
+        print(f"protocad-compare: error: {exc}", file=sys.stderr)
+        return 2
+    return 0 if a.report or not failed else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
