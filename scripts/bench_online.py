@@ -78,7 +78,7 @@ def worker(spec: dict) -> dict:
     # 3. updates on what was collected
     ds = MCAPDataset([work / "bags" / "ep0"], topics=TopicMap(), seq_len=cfg.train.seq_len, seed=0,
                      cache_dir=work / "cache")
-    trainer.data.dataset = ds
+    trainer.dataset = ds
     B = cfg.train.batch_size
     for _ in range(spec["warmup"]):
         trainer.update()

@@ -502,8 +502,8 @@ def _train(a: argparse.Namespace, ctx: distributed.DistContext, device: str) -> 
         target = a.updates or 1000
         if ctx.is_main:
             cfg.save(run_dir / "config.yaml")
-    if trainer.data.dataset.action_dim != trainer.agent.action_dim:
-        raise ValueError(f"the logs have {trainer.data.dataset.action_dim}-d actions but the agent "
+    if trainer.dataset.action_dim != trainer.agent.action_dim:
+        raise ValueError(f"the logs have {trainer.dataset.action_dim}-d actions but the agent "
                          f"{trainer.agent.action_dim}-d")
     run_json.update(kind="train", argv=sys.argv, logs=[str(Path(p).resolve()) for p in logs],
                     topics_args=list(topic_args), namespace=[n for n in namespaces if n] or None,
@@ -526,7 +526,7 @@ def _train(a: argparse.Namespace, ctx: distributed.DistContext, device: str) -> 
         bar = runs.progress(target, initial=trainer.updates, desc="train",
                             disable=True if a.no_progress or not ctx.is_main else None, unit="upd")
         try:
-            done = trainer.learn.train(target, stop=stop, checkpoint_every=a.checkpoint_every, bar=bar)
+            done = trainer.train(target, stop=stop, checkpoint_every=a.checkpoint_every, bar=bar)
         finally:
             bar.close()
             trainer.close()

@@ -538,7 +538,7 @@ def _run(a: argparse.Namespace, ctx: distributed.DistContext, device: str) -> in
                         target = C + C * max(int(c["episodes"]) - N, 0)
                     if target > trainer.updates and ds.num_windows:
                         bar.set_description(f"train (ep {c['episodes']}, return {c['last_return']:.0f})")
-                        trainer.learn.train(target, stop=stop, checkpoint_every=a.checkpoint_every, save=False)
+                        trainer.train(target, stop=stop, checkpoint_every=a.checkpoint_every, save=False)
                         bar.set_description("env steps")
                     if (a.eval_every and int(c["env_steps"]) >= int(c["next_eval"]) and not stopped()
                             and int(c["env_steps"]) < a.env_steps):   # at the budget: the final one
