@@ -3,9 +3,9 @@
 counts ours: torch's FlopCounterMode (matmul + convolution, forward and backward) around the
 peer's first `Dreamer._train` call on a synthetic batch of its dmc_vision shapes.
 
-Run it with the peer's Python, in the directory `../shared/peer_bench/README.md` sets up (the
-peer's sources in PEER/dreamerv3-torch and its bench_update.py in PEER); nothing of the peer is
-part of this project, it is imported from there at run time:
+Run it with the peer's Python, in the directory msgs_docs/benchmarks.md ("The peer") describes
+(the peer's sources in PEER/dreamerv3-torch and its bench_update.py in PEER); nothing of the
+peer is part of this project, it is imported from there at run time:
 
     PEER/venv/bin/python scripts/bench_peer_flops.py --peer PEER
 """
@@ -22,13 +22,13 @@ def main() -> int:
                                  formatter_class=argparse.RawDescriptionHelpFormatter,
                                  epilog=__doc__.split("\n\n", 1)[1])
     ap.add_argument("--peer", type=Path, required=True,
-                    help="directory with bench_update.py and dreamerv3-torch/ (see shared/peer_bench)")
+                    help="directory with bench_update.py and dreamerv3-torch/ (see msgs_docs/benchmarks.md)")
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--depth", type=int, default=3, help="module nesting shown in the breakdown")
     a = ap.parse_args()
     peer = a.peer.resolve()
     if not (peer / "bench_update.py").is_file() or not (peer / "dreamerv3-torch" / "dreamer.py").is_file():
-        ap.error(f"{peer} has no bench_update.py and dreamerv3-torch/dreamer.py (see ../shared/peer_bench/README.md)")
+        ap.error(f"{peer} has no bench_update.py and dreamerv3-torch/dreamer.py (see msgs_docs/benchmarks.md, 'The peer')")
     sys.path[:0] = [str(peer / "dreamerv3-torch"), str(peer)]
     gl = os.environ.get("MUJOCO_GL", "egl")
     import dreamer   # the peer's; it sets MUJOCO_GL=osmesa on import

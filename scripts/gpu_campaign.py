@@ -16,8 +16,8 @@ The runs' logs travel back with them (compare/TASK/VARIANT/seedS/online.log, eva
 checkpoints and bags are deleted at the end unless --keep-runs (they do not fit the way back).
 
 The GPU machine has no ROS: this path imports no rclpy. Its Python packages come from the
-working tree (`--site DIR` is put first on sys.path of every step; see msgs_docs/gpu.md for
-what to carry) and message definitions from `--ament-prefix DIR` (share/<pkg>/msg/*.msg).
+working tree (`--site DIR` is put first on sys.path of every step; what to copy along:
+scripts/gpu_pack.sh, msgs_docs/training.md) and message definitions from `--ament-prefix DIR` (share/<pkg>/msg/*.msg).
 """
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
-# Prepare what a lent GPU machine lacks for scripts/gpu_campaign.py, under .gpu/ (git-ignored;
-# pass `.gpu` in the device tool's carry list):
+# Prepare what a borrowed GPU machine lacks for scripts/gpu_campaign.py, under .gpu/ (git-ignored;
+# copy `.gpu` to the GPU machine with the working tree):
 #   .gpu/site.tar.xz   mujoco 3.17.0, dm-control 1.0.50 (trimmed: no locomotion assets, no dog
 #                      meshes, no MuJoCo studio), mcap, mcap-ros2-support, tyro and dm_control's pure
 #                      dependencies, as CPython wheels for the GPU machine's Python (default 3.12)

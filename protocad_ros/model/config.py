@@ -44,7 +44,7 @@ class VariantSpec:
         'swav' (the context module with in-place SwAV, no temporal consistency), 'dreamerpro'
         (DreamerPro's prototypes, reconstruction-free), 'none'.
     decoder: image reconstruction loss; augmentation: random-shift views of the observations.
-    source: where the method comes from (the README's variant table lists these).
+    source: where the method comes from (msgs_docs/training.md, "Variants", lists these).
     """
 
     name: str
@@ -62,7 +62,7 @@ class VariantSpec:
 
 VARIANT_TABLE: dict[str, VariantSpec] = {v.name: v for v in (
     VariantSpec("protocad", "world_model", ("s", "u", "e"), "tc_swav", True, True,
-                "ProtoCAD (Wang & van Hoof, ICLR 2023): x = (s, u, e), eq. 6"),
+                "ProtoCAD (Wang et al., ICLR 2023): x = (s, u, e), eq. 6"),
     VariantSpec("dreamer", "world_model", ("s",), "none", True, False,
                 "Dreamer (Hafner et al., ICLR 2020), DreamerV2 world model as in DreamerPro's code"),
     VariantSpec("dreamerpro", "world_model", ("s",), "dreamerpro", False, True,
@@ -491,8 +491,8 @@ def check_train_memory(cfg: "Config") -> None:
 # ------------------------------------------------------------------------------------------------
 _PRESET_OVERRIDES: dict[str, dict[str, Any]] = {
     "paper": {},
-    # CPU preset: ~1/4 of the paper's widths, 2-layer heads, batch 16 x 32. About 0.1-0.2 s per
-    # update on 2 cores, so a 10-minute run gets a few thousand updates.
+    # CPU preset: ~1/4 of the paper's widths, 2-layer heads, batch 16 x 32, for runs and tests on a
+    # CPU. Its time per update, measured: msgs_docs/benchmarks.md ("Training update").
     "small": {
         "world_model.deter": 128, "world_model.hidden": 128, "world_model.stoch": 16,
         "world_model.cnn_depth": 16, "world_model.mlp_layers": 2, "world_model.mlp_units": 128,
