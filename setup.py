@@ -25,7 +25,7 @@ def ament_data_files():
     return files
 
 
-# Exact pins where the platform demands them (see ../shared/DESIGN.md): an unpinned torch
+# Exact pins where the platform demands them (msgs_docs/environment.md): an unpinned torch
 # pulls GBs of CUDA wheels, mujoco 4.x breaks dm-control, rerun recordings are only N+1
 # compatible. The ROS wheels come as one consistent Jazzy set.
 INSTALL_REQUIRES = [
@@ -39,7 +39,6 @@ INSTALL_REQUIRES = [
     "mcap==1.6.0",
     # Decodes real ROS 2 schemas leniently (FastCDR's trailing padding, which rosbags rejects).
     "mcap-ros2-support==0.6.0",
-    "rosbags==0.11.9",
     "rerun-sdk==0.41.0",
     "pyarrow>=14",  # rerun's dataframe API, used directly to read recordings back
     "pyyaml>=6.0",
@@ -64,7 +63,9 @@ setup(
     python_requires=">=3.11,<3.12",
     install_requires=INSTALL_REQUIRES,
     extras_require={"test": ["pytest==9.2.0", "pytest-timeout==2.4.0", "hypothesis==6.170.17",
-                             "grimp==3.20"],   # tests/test_architecture.py: the import graph
+                             "grimp==3.20",   # tests/docs/test_architecture.py: the import graph
+                             "rosbags==0.11.9",   # another tool's bag reader and writer, for the tests
+                             "ruff==0.17.5"],   # tests/docs/test_lint.py: ruff.toml's rules
                     "bench": ["py-spy==0.4.3"]},   # scripts/bench_ros_loop.py --profile
     data_files=ament_data_files(),
     entry_points={

@@ -225,7 +225,7 @@ class LiveView:
         if self._rec is not None:
             try:
                 self._rec.flush()
-            except Exception as exc:  # pragma: no cover - transport trouble must not kill a node
+            except Exception as exc:  # pragma: no cover - transport trouble must not kill a node  # noqa: BLE001
                 print(f"[live_view] flush failed: {exc}", file=sys.stderr)
 
     def close(self) -> None:
@@ -236,7 +236,7 @@ class LiveView:
         try:
             rec.flush()
             rec.disconnect()
-        except Exception as exc:  # pragma: no cover
+        except Exception as exc:  # pragma: no cover  # noqa: BLE001
             print(f"[live_view] close failed: {exc}", file=sys.stderr)
 
     def __enter__(self) -> "LiveView":

@@ -22,9 +22,9 @@ import numpy as np
 # Measure the working tree this script belongs to, not an installed copy of the packages.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from sim_bridge.contract.contexts import TASKS  # noqa: E402
-from sim_bridge.sim.envs import RENDER_QUALITIES, ContextDMCEnv  # noqa: E402
-from sim_bridge.sim.vector import VectorEnv  # noqa: E402
+from sim_bridge.contract.contexts import TASKS
+from sim_bridge.sim.envs import RENDER_QUALITIES, ContextDMCEnv
+from sim_bridge.sim.vector import VectorEnv
 
 
 def single(task: str, quality: str, actions: np.ndarray, seed: int, split: str

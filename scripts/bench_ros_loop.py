@@ -159,7 +159,7 @@ def floor(args, logdir: Path, image_only: bool = False) -> dict[str, float]:
     from rclpy.node import Node
     from sensor_msgs.msg import Image, JointState
 
-    from ros_helpers import wait_until
+    from helpers import wait_until
     from sim_bridge.contract import qos, topics
 
     ns = "/bench_floor"
@@ -252,7 +252,8 @@ def ros_loop(args, with_policy: bool, logdir: Path, acks: bool) -> dict[str, flo
 
     from sensor_msgs.msg import JointState
 
-    from ros_helpers import Probe, Responder, wait_until
+    from helpers import wait_until
+    from helpers.ros import Probe, Responder
     from sim_bridge.contract import qos, topics
 
     ns = ("/bench_policy" if with_policy else "/bench_zero") + ("_acked" if acks else "")

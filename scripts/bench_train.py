@@ -169,7 +169,7 @@ def run_spec(spec: dict, timeout: float) -> dict:
     return json.loads(p.stdout.strip().splitlines()[-1])
 
 
-def main(argv=None) -> int:
+def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter,
                                  epilog=__doc__.split("\n\n", 1)[1])
@@ -209,7 +209,49 @@ def main(argv=None) -> int:
     ap.add_argument("--json", type=Path, help="also write the results here")
     ap.add_argument("--list", action="store_true", help="print the configurations it would time and exit")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
-    args = ap.parse_args(argv)
+    return ap
+
+
+def print_row(spec: dict, r: dict, cuda: bool) -> None:
+    """One configuration's line (and its FLOPs and profile, when measured)."""
+    if "error" in r:
+        print(f"{spec['name']:26} {spec['precision']:9} ERROR: {r['error']}")
+        return
+    line = (f"{spec['name']:26} {spec['precision']:9} {r['batch']:>6} {r['params_m']:6.1f}M "
+            f"{r['sec']:9.3f} {r['sec_min']:6.2f} {r['wm_sec']:6.2f} {r['beh_sec']:6.2f} "
+            f"{r['rss_gb']:7.2f}GB")
+    if cuda:
+        line += f" {r.get('cuda_gb', 0):7.2f}GB"
+    print(line, flush=True)
+    if "wm_gflop" in r:
+        total = r["wm_gflop"] + r["beh_gflop"]
+        print(f"{'':26} FLOPs per update {total:.0f} G (world model {r['wm_gflop']:.0f}, "
+              f"behaviour {r['beh_gflop']:.0f}): {total / r['sec']:.0f} GFLOP/s reached; "
+              f"matmul roof here {r['roof_gflops']:.0f} GFLOP/s -> no update of these FLOPs "
+              f"under {total / r['roof_gflops']:.2f} s", flush=True)
+    if r.get("profile"):
+        print(r["profile"])
+
+
+def compare_with_peer(results: list[dict], args) -> None:
+    """The dreamerv3-sizes rows against dreamerv3-torch's time and memory (half of each: the target)."""
+    v3 = [r for r in results if r.get("preset") == "dreamerv3_sizes" and "error" not in r]
+    where = "measured on this machine"
+    if args.peer_sec is None or args.peer_gb is None:
+        where = "measured on another machine (quiet 2-core AVX2): time it here and pass --peer-sec/--peer-gb"
+        args.peer_sec = args.peer_sec if args.peer_sec is not None else PEER_V3["sec"]
+        args.peer_gb = args.peer_gb if args.peer_gb is not None else PEER_V3["rss_gb"]
+    for r in v3:
+        ok = r["sec"] <= args.peer_sec / 2 and r["rss_gb"] <= args.peer_gb / 2
+        print(f"dreamerv3-sizes {r['precision']}: {r['sec'] / args.peer_sec:.2f}x the time, "
+              f"{r['rss_gb'] / args.peer_gb:.2f}x the memory of dreamerv3-torch "
+              f"({args.peer_sec} s, {args.peer_gb} GB, {where}): target "
+              f"{'met' if ok else 'NOT met'} (<= {args.peer_sec / 2:.2f} s, "
+              f"<= {args.peer_gb / 2:.2f} GB)")
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
     if args.worker:
         print(json.dumps(worker(json.loads(args.worker))))
         return 0
@@ -266,37 +308,9 @@ def main(argv=None) -> int:
     for spec in specs:
         r = run_spec(spec, args.timeout)
         results.append({**spec, **r})
-        if "error" in r:
-            print(f"{spec['name']:26} {spec['precision']:9} ERROR: {r['error']}")
-            continue
-        line = (f"{spec['name']:26} {spec['precision']:9} {r['batch']:>6} {r['params_m']:6.1f}M "
-                f"{r['sec']:9.3f} {r['sec_min']:6.2f} {r['wm_sec']:6.2f} {r['beh_sec']:6.2f} "
-                f"{r['rss_gb']:7.2f}GB")
-        if cuda:
-            line += f" {r.get('cuda_gb', 0):7.2f}GB"
-        print(line, flush=True)
-        if "wm_gflop" in r:
-            total = r["wm_gflop"] + r["beh_gflop"]
-            print(f"{'':26} FLOPs per update {total:.0f} G (world model {r['wm_gflop']:.0f}, "
-                  f"behaviour {r['beh_gflop']:.0f}): {total / r['sec']:.0f} GFLOP/s reached; "
-                  f"matmul roof here {r['roof_gflops']:.0f} GFLOP/s -> no update of these FLOPs "
-                  f"under {total / r['roof_gflops']:.2f} s", flush=True)
-        if r.get("profile"):
-            print(r["profile"])
+        print_row(spec, r, cuda)
     print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
-    v3 = [r for r in results if r.get("preset") == "dreamerv3_sizes" and "error" not in r]
-    where = "measured on this machine"
-    if args.peer_sec is None or args.peer_gb is None:
-        where = "measured on another machine (quiet 2-core AVX2): time it here and pass --peer-sec/--peer-gb"
-        args.peer_sec = args.peer_sec if args.peer_sec is not None else PEER_V3["sec"]
-        args.peer_gb = args.peer_gb if args.peer_gb is not None else PEER_V3["rss_gb"]
-    for r in v3:
-        ok = r["sec"] <= args.peer_sec / 2 and r["rss_gb"] <= args.peer_gb / 2
-        print(f"dreamerv3-sizes {r['precision']}: {r['sec'] / args.peer_sec:.2f}x the time, "
-              f"{r['rss_gb'] / args.peer_gb:.2f}x the memory of dreamerv3-torch "
-              f"({args.peer_sec} s, {args.peer_gb} GB, {where}): target "
-              f"{'met' if ok else 'NOT met'} (<= {args.peer_sec / 2:.2f} s, "
-              f"<= {args.peer_gb / 2:.2f} GB)")
+    compare_with_peer(results, args)
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
     return 0

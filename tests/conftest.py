@@ -1,20 +1,25 @@
 """Shared test set-up: DDS stays on this machine, each run gets its own ROS domain.
 
 Node processes are started from the working tree (`python -m MODULE`), so tests exercise the
-code under test; tests/test_install.py checks the installed ament layout (`ros2 run`).
+code under test; tests/docs/test_install.py checks the installed ament layout (`ros2 run`).
+Tests mirror the source layout (tests/trainer/bag/test_mcap_io.py tests trainer/bag/); what they
+share is the `helpers` package next to this file.
 """
 from __future__ import annotations
 
 import os
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+# Test modules sit in subfolders; `import helpers` finds tests/helpers through this entry, first
+# on sys.path so that no installed module of that name can shadow it. The subfolders have no
+# __init__.py: tests/trainer/ must not shadow the trainer package.
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+from helpers import ROOT, Proc
 
 # Set before anything imports rclpy. LOCALHOST keeps discovery off external interfaces;
 # a per-run domain keeps concurrent test runs (and users) apart.
@@ -27,35 +32,6 @@ os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 os.environ.setdefault("AMENT_PREFIX_PATH", sys.prefix)
 os.environ["PYTHONUNBUFFERED"] = "1"
 os.environ["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
-
-
-class Proc:
-    """A node or CLI in its own process, output captured to a log file."""
-
-    def __init__(self, args: list[str], log: Path, env: dict | None = None, cwd: Path = ROOT):
-        self.args, self.log_path = args, log
-        self._log = open(log, "wb")
-        self.p = subprocess.Popen(args, stdout=self._log, stderr=subprocess.STDOUT, cwd=cwd,
-                                  env={**os.environ, **(env or {})}, start_new_session=True)
-
-    def output(self) -> str:
-        if not self._log.closed:
-            self._log.flush()
-        return self.log_path.read_text(errors="replace")
-
-    def alive(self) -> bool:
-        return self.p.poll() is None
-
-    def stop(self, sig=signal.SIGINT, timeout: float = 20.0) -> int:
-        if self.alive():
-            os.killpg(self.p.pid, sig)
-            try:
-                self.p.wait(timeout)
-            except subprocess.TimeoutExpired:
-                os.killpg(self.p.pid, signal.SIGKILL)
-                self.p.wait()
-        self._log.close()
-        return self.p.returncode
 
 
 @pytest.fixture
@@ -72,17 +48,6 @@ def spawn(tmp_path):
     yield _spawn
     for proc in procs:
         proc.stop()
-
-
-def wait_for(predicate, timeout: float, what: str, interval: float = 0.05):
-    """Poll until predicate() is truthy (returns it) or fail naming what was awaited."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(interval)
-    raise AssertionError(f"timed out after {timeout}s waiting for {what}")
 
 
 @pytest.fixture(scope="module")

@@ -8,7 +8,8 @@
   nodes/     the recorder, the random actor and the checkpoint publisher (ROS nodes)
   launch/    starting the nodes: the collect-train-reload loop, stacks, fleets, discovery
   ros2cli/   the `ros2` front-end for environments without ros2cli
-  (here)     runs.py: run directories, settings, metrics files, CLI helpers every command uses
+  (here)     runs.py: run directories, metrics files, CLI helpers every command uses;
+             settings.py: typed run settings and the command lines generated from them
 
-May import: protocad_ros.atomic, protocad_ros.model
+May import: protocad_ros.atomic, protocad_ros.model, sim_bridge.contract
 """

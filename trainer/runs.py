@@ -161,7 +161,7 @@ SELECTOR_FIELDS = ("own_settings", "reference")
 #: Config fields with flags of their own (--task, --variant, --preset: they pick the defaults
 #: of every other field), so not among the generated options.
 OWN_FLAG_FIELDS = ("task", "variant", "preset")
-OWN_SETTINGS_HELP = ("a baseline with the settings it was published with (the README's variant table); "
+OWN_SETTINGS_HELP = ("a baseline with the settings it was published with (msgs_docs/training.md, Variants); "
                      "false: ProtoCAD's settings for every variant")
 
 
@@ -175,7 +175,7 @@ def _config_options_class(cfg: Any) -> type:
 
     hints = typing.get_type_hints(type(cfg))
     # A field of the class made here has no comment for tyro to read: the one setting gets its help.
-    hints["own_settings"] = typing.Annotated[hints["own_settings"], tyro.conf.arg(help=OWN_SETTINGS_HELP)]
+    hints["own_settings"] = typing.Annotated[hints["own_settings"], tyro.conf.arg(help=OWN_SETTINGS_HELP)]  # noqa: F821 - a subscript, not a forward reference
     return dataclasses.make_dataclass("config", [
         (f.name, hints[f.name], dataclasses.field(default_factory=lambda v=getattr(cfg, f.name): copy.deepcopy(v)))
         for f in dataclasses.fields(cfg) if f.name not in OWN_FLAG_FIELDS])
@@ -199,57 +199,32 @@ def apply_config_flags(cfg: Any, args: Sequence[str], prog: str) -> Any:
     return cfg
 
 
-def parse_cli(ap: argparse.ArgumentParser, argv: Sequence[str] | None) -> argparse.Namespace:
-    """The command's own options (argparse); the rest must be config options, kept in
-    `a.config_args` for apply_config_flags. `-h` prints both: the command's options, then the
-    config options with the defaults of the --task / --variant / --preset / --config given."""
-    argv = list(sys.argv[1:] if argv is None else argv)
-    helps = [x for x in argv if x in ("-h", "--help")]
-    a, rest = ap.parse_known_args([x for x in argv if x not in helps])
-    if helps:
-        ap.print_help()
-        print(flush=True)
-        apply_config_flags(build_config(a.task, a.variant, a.preset, a.config), ["--help"], ap.prog)
-    a.config_args, a.prog, a.args = rest, ap.prog, argv
-    return a
+def read_run_json(run_dir: str | os.PathLike) -> dict[str, Any]:
+    """RUN_DIR/run.json, or {} when there is none or it is unreadable."""
+    try:
+        out = json.loads((Path(run_dir) / "run.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    return out if isinstance(out, dict) else {}
 
 
-def resumed_cli(build_parser: Callable[[], argparse.ArgumentParser], a: argparse.Namespace
-                ) -> argparse.Namespace:
-    """For `--resume`: the options of the run's original command (run.json `args`), replaced
-    by those given again; `a` unchanged when the run directory has no readable original. So a
-    resumed run keeps `--no-visualize`, `--eval-max-contexts 1`, ... unless told otherwise."""
-    saved = None
-    if a.run_dir:
-        try:
-            info = json.loads((Path(a.run_dir) / "run.json").read_text())
-            saved = info.get("args") or (info.get("argv") or [None])[1:]
-        except (OSError, ValueError, AttributeError, TypeError):
-            saved = None
-    if not isinstance(saved, list) or not all(isinstance(x, str) for x in saved):
-        return a
-    base, _ = build_parser().parse_known_args(saved)
-    only_given = build_parser()
-    for action in only_given._actions:
-        action.default = argparse.SUPPRESS
-    given, _ = only_given.parse_known_args(a.args)
-    for key, value in vars(given).items():
-        setattr(base, key, value)
-    base.config_args, base.prog, base.args = a.config_args, a.prog, a.args
-    return base
-
-
-def record_invocation(run_json: dict[str, Any], a: argparse.Namespace) -> None:
+def record_invocation(run_json: dict[str, Any], resume: bool, args: Sequence[str]) -> None:
     """run.json keeps the command that started the run (`argv`, `args`) and appends each
     resume's (`resumes_argv`), instead of the resume overwriting the original."""
-    if getattr(a, "resume", False) and "argv" in run_json:
+    if resume and "argv" in run_json:
         run_json.setdefault("resumes_argv", []).append(list(sys.argv))
     else:
-        run_json.update(argv=list(sys.argv), args=list(getattr(a, "args", sys.argv[1:])))
+        run_json.update(argv=list(sys.argv), args=list(args))
 
 
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
-    """Shows '(default: X)' unless the help already says what the default is or there is none."""
+    """Shows '(default: X)' unless the help already says what the default is or there is none;
+    a description or epilog written in lines keeps its lines."""
+
+    def _fill_text(self, text, width, indent):
+        if "\n" in text:
+            return "\n".join(indent + line for line in text.splitlines())
+        return super()._fill_text(text, width, indent)
 
     def _get_help_string(self, action):
         h = action.help or ""
@@ -362,7 +337,7 @@ class MetricsLogger:
         for cb in self.callbacks:
             try:
                 cb(int(update), {k: v for k, v in row.items() if isinstance(v, (int, float))})
-            except Exception as exc:  # a broken visualizer must not stop training
+            except Exception as exc:  # noqa: BLE001 - a broken visualizer must not stop training
                 print(f"[metrics] callback {cb!r} failed: {exc}", file=sys.stderr)
                 self.callbacks.remove(cb)
         return row

@@ -29,7 +29,7 @@ import torch
 import torch.nn as nn
 import torch.nn.functional as F
 
-from protocad_ros.model.augment import random_shift  # noqa: F401  (re-export: API.md lists it with this module)
+from protocad_ros.model.augment import random_shift  # (re-export: the two views of Algorithm 1)
 
 __all__ = [
     "sinkhorn_knopp",

@@ -188,7 +188,7 @@ class PolicyNode(CheckpointServing, ManagedNode):
             self._configure_seq(path, self.ckpt_sha, sig[2])
             try:
                 self.policy, self.ckpt_counters = self._load(path)
-            except Exception as e:  # CheckpointError and friends: a clear message, exit 2
+            except Exception as e:  # noqa: BLE001 - CheckpointError and friends: a clear message, exit 2
                 raise ConfigError(f"cannot load checkpoint {path}: {e}") from None
             self._loaded_sig = self._watch_key(path)
             self.agent_kind = "checkpoint"
@@ -211,7 +211,7 @@ class PolicyNode(CheckpointServing, ManagedNode):
         self.image_hw = (int(cfg.train.image_size),) * 2
         try:
             names = task_actuators(self.task)
-        except Exception:
+        except Exception:  # noqa: BLE001 - no actuator names for this task: generic ones below
             names = []
         self.action_names = names if len(names) == self.action_dim else [
             f"a{i}" for i in range(self.action_dim)]
@@ -525,7 +525,7 @@ class PolicyNode(CheckpointServing, ManagedNode):
         arr.status = [make_status(self._diag_name, self.task, values, level, message)]
         try:
             self.pub_diag.publish(arr)
-        except Exception:
+        except Exception:  # noqa: BLE001 - context shutting down
             pass
 
     def close(self) -> None:
@@ -535,7 +535,7 @@ class PolicyNode(CheckpointServing, ManagedNode):
         that was stalled still has a backlog, which exiting at once would lose."""
         try:
             self._publish_diagnostics()
-        except Exception:
+        except Exception:  # noqa: BLE001 - exiting: the last diagnostics are best effort
             pass
         self.shutdown_lifecycle()
         try:

@@ -61,7 +61,7 @@ class BridgeDiagnostics:
         arr.status = [status]
         try:
             self.pub_diag.publish(arr)
-        except Exception:  # context shutting down
+        except Exception:  # noqa: BLE001 - context shutting down
             pass
 
     def _other_publishers(self) -> list[str]:

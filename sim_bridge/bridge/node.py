@@ -381,7 +381,7 @@ class SimBridgeNode(BridgeDiagnostics, ManagedNode):
             if env is not None and hasattr(env, "close"):
                 try:
                     env.close()   # in the thread that owns the GL context
-                except Exception:
+                except Exception:  # noqa: BLE001 - on the way out: nothing left to tell
                     pass
 
     def _wait_active(self) -> bool:
@@ -662,7 +662,7 @@ class SimBridgeNode(BridgeDiagnostics, ManagedNode):
                 self.get_logger().warning(
                     f"{topic}: exiting with samples a reader has not acknowledged after "
                     f"{LOSSLESS_FLUSH_TIMEOUT_S:g} s (a reader stalled or gone)")
-        except Exception:
+        except Exception:  # noqa: BLE001 - exiting: the counters below are printed regardless
             pass
         c = self.counters
         self.get_logger().info(

@@ -144,7 +144,7 @@ TASKS: dict[str, TaskSpec] = {s.name: s for s in (
 
 
 # Actuator names of each domain's dm_control model, in action order (read once from the suite's
-# XML files; tests/test_envs.py checks them against the models), so that nodes and trainers that
+# XML files; tests/sim_bridge/sim/test_envs.py checks them against the models), so that nodes and trainers that
 # never simulate (a robot's policy node, a GPU learner) know the action layout without mujoco.
 ACTUATORS: dict[str, tuple[str, ...]] = {
     "cheetah": ("bthigh", "bshin", "bfoot", "fthigh", "fshin", "ffoot"),

@@ -54,11 +54,11 @@ class ProtocadNode(Node):
 
         return guarded
 
-    def create_subscription(self, msg_type, topic, callback, qos_profile, **kw):  # noqa: D102
+    def create_subscription(self, msg_type, topic, callback, qos_profile, **kw):
         return super().create_subscription(msg_type, topic, self.guard(callback, f"subscription {topic}"),
                                            qos_profile, **kw)
 
-    def create_service(self, srv_type, srv_name, callback, **kw):  # noqa: D102
+    def create_service(self, srv_type, srv_name, callback, **kw):
         def failed(args: tuple, exc: BaseException) -> Any:
             response = args[1] if len(args) > 1 else srv_type.Response()
             if hasattr(response, "success"):
@@ -70,12 +70,12 @@ class ProtocadNode(Node):
         return super().create_service(srv_type, srv_name, self.guard(callback, f"service {srv_name}", failed),
                                       **kw)
 
-    def create_timer(self, timer_period_sec, callback, *args, **kw):  # noqa: D102
+    def create_timer(self, timer_period_sec, callback, *args, **kw):
         name = getattr(callback, "__name__", "timer")
         return super().create_timer(timer_period_sec, self.guard(callback, f"timer {name}"), *args, **kw)
 
     # ------------------------------------------------------------------ parameters
-    def set_parameters_atomically(self, parameter_list):  # noqa: D102
+    def set_parameters_atomically(self, parameter_list):
         unknown = [p.name for p in parameter_list if not self.has_parameter(p.name)]
         try:
             return super().set_parameters_atomically(parameter_list)

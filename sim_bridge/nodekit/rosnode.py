@@ -406,7 +406,7 @@ def run_node(make_node: Callable[..., Any], *, prog: str, description: str = "",
             return 2
         except (KeyboardInterrupt, ExternalShutdownException):
             return 0
-        except Exception as e:
+        except Exception as e:  # noqa: BLE001 - any other start-up failure: logged with its traceback, exit 1
             import traceback
 
             log.error(f"could not start: {type(e).__name__}: {e}\n{traceback.format_exc()}")
@@ -427,15 +427,15 @@ def run_node(make_node: Callable[..., Any], *, prog: str, description: str = "",
                 close = getattr(node, "close", None)
                 if close is not None:
                     close()
-            except (Exception, KeyboardInterrupt) as e:  # never a traceback on the way out
+            except (Exception, KeyboardInterrupt) as e:  # noqa: BLE001 - never a traceback on the way out
                 print(f"[{prog}] error while shutting down: {e!r}", file=sys.stderr)
             try:
                 node.destroy_node()
-            except Exception:
+            except Exception:  # noqa: BLE001 - on the way out
                 pass
         try:
             rclpy.try_shutdown()
-        except Exception:
+        except Exception:  # noqa: BLE001 - on the way out
             pass
         watchdog.cancel()
     return code

@@ -13,8 +13,9 @@ from pathlib import Path
 import grimp
 import pytest
 
+from helpers import ROOT
+
 PACKAGES = ("protocad_ros", "sim_bridge", "trainer")
-ROOT = Path(__file__).resolve().parents[1]
 MAX_MODULES = 12
 #: Where ROS may appear at all: the node and launch side. Everything else trains and evaluates
 #: on a machine without ROS (protocad_ros.model above all).
@@ -101,3 +102,21 @@ def test_no_import_cycle_inside_a_package(graph, package):
     cycles = [(a, b) for a in mods for b in mods
               if a < b and graph.chain_exists(a, b) and graph.chain_exists(b, a)]
     assert cycles == []
+
+
+MAX_FUNCTION_LINES = 120
+
+
+def test_no_function_is_longer_than_120_lines():
+    """Long functions are where readers lose the thread: past 120 lines, split it into named parts."""
+    import ast as _ast
+
+    long = []
+    for folder in (*PACKAGES, "scripts", "tests"):
+        for path in sorted((ROOT / folder).rglob("*.py")):
+            for node in _ast.walk(_ast.parse(path.read_text())):
+                if isinstance(node, (_ast.FunctionDef, _ast.AsyncFunctionDef)):
+                    n = node.end_lineno - node.lineno + 1
+                    if n > MAX_FUNCTION_LINES:
+                        long.append(f"{path.relative_to(ROOT)}:{node.lineno} {node.name} ({n} lines)")
+    assert long == []

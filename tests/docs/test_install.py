@@ -12,6 +12,8 @@ from pathlib import Path
 
 import pytest
 
+from helpers import ROOT
+
 PREFIX = Path(sys.prefix)
 ROS2 = PREFIX / "bin" / "ros2"
 EXECUTABLES = {
@@ -38,6 +40,7 @@ def test_ament_python_layout_is_installed():
             assert path.is_file() and os.access(path, os.X_OK), path
 
 
+@pytest.mark.process
 def test_front_end_lists_packages_and_executables():
     listed = ros2("pkg", "executables").stdout.split("\n")
     for pkg, exes in EXECUTABLES.items():
@@ -47,6 +50,7 @@ def test_front_end_lists_packages_and_executables():
     assert ros2("pkg", "prefix", "trainer").stdout.strip() == str(PREFIX)
 
 
+@pytest.mark.process
 @pytest.mark.parametrize("pkg,exe", [("sim_bridge", "node"), ("protocad_ros", "policy"), ("trainer", "record")])
 def test_ros2_run_resolves_node_help(pkg, exe):
     out = ros2("run", pkg, exe, "--help")
@@ -54,6 +58,7 @@ def test_ros2_run_resolves_node_help(pkg, exe):
     assert "usage" in out.stdout.lower()
 
 
+@pytest.mark.process
 def test_front_end_errors_are_clear():
     out = ros2("run", "sim_bridge", "no_such_exe")
     assert out.returncode != 0 and "No executable found" in out.stderr and "node" in out.stderr
@@ -65,6 +70,7 @@ def test_front_end_errors_are_clear():
     assert out.returncode == 0 and "echo" in out.stdout and "hz" in out.stdout
 
 
+@pytest.mark.process
 def test_front_end_defers_to_a_real_ros2cli(tmp_path):
     # Stand-in (named as such): ros2cli cannot be installed here, so a script playing the real
     # `ros2` later on PATH shows the front-end hands every call over to it.
@@ -86,8 +92,10 @@ def _participant_log(profile: Path) -> str:
     return r.stdout + r.stderr
 
 
+@pytest.mark.ros
+@pytest.mark.process
 def test_the_environment_sets_a_discovery_profile_fast_dds_loads(tmp_path):
-    root = Path(__file__).resolve().parents[1]
+    root = ROOT
     tree = root / "sim_bridge" / "fastdds_discovery.xml"
     env = {k: v for k, v in os.environ.items() if k != "FASTRTPS_DEFAULT_PROFILES_FILE"}
 
@@ -131,13 +139,15 @@ def _udp_sockets(pid: int) -> list[tuple[str, int, int]]:
     return out
 
 
+@pytest.mark.ros
+@pytest.mark.process
 def test_dds_reads_only_loopback_sockets_in_the_default_environment():
     """With the environment's profile, every socket Fast DDS receives on is bound to 127.0.0.1;
     the others (send-only, rmw_fastrtps's LOCALHOST mode) are never read."""
     import socket
     import time
 
-    from conftest import wait_for
+    from helpers import wait_until
 
     domain = int(os.environ["ROS_DOMAIN_ID"])
     code = ("import rclpy, time; from std_msgs.msg import String; rclpy.init(); "
@@ -147,7 +157,7 @@ def test_dds_reads_only_loopback_sockets_in_the_default_environment():
                             env={**os.environ, "ROS_AUTOMATIC_DISCOVERY_RANGE": "LOCALHOST"})
     try:
         assert proc.stdout.readline().strip() == "up"
-        wait_for(lambda: len(_udp_sockets(proc.pid)) >= 3, 30, "the participant's sockets")
+        wait_until(lambda: len(_udp_sockets(proc.pid)) >= 3, 30, "the participant's sockets")
         socks = _udp_sockets(proc.pid)
         base = 7400 + 250 * domain      # RTPS well-known ports of this domain
         rtps = [s for s in socks if base <= s[1] < base + 250]
@@ -165,9 +175,10 @@ def test_dds_reads_only_loopback_sockets_in_the_default_environment():
         proc.wait()
 
 
-LAUNCH_FILE = Path(__file__).resolve().parents[1] / "trainer" / "ros_launch" / "protocad.launch.py"
+LAUNCH_FILE = ROOT / "trainer" / "ros_launch" / "protocad.launch.py"
 
 
+@pytest.mark.process
 def test_the_launch_file_is_installed_and_names_real_parameters():
     import ast
 
@@ -184,6 +195,7 @@ def test_the_launch_file_is_installed_and_names_real_parameters():
     assert node_params <= known, node_params - known
 
 
+@pytest.mark.process
 def test_the_launch_file_parses_with_launch_ros():
     pytest.importorskip("launch", reason="ros2 launch is not installable from PyPI (needs a full ROS 2 install)")
     pytest.importorskip("launch_ros", reason="launch_ros is not installable from PyPI (needs a full ROS 2 install)")

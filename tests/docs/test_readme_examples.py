@@ -1,7 +1,8 @@
 """The README's quick examples of "Running it as ROS 2 nodes", copied from README.md and run as
 written, in a directory laid out as the README assumes (`.venv`, a walker checkpoint at
 `runs/X/checkpoints/latest.pt`): the one-command stack, the three-terminal start, and the
-everyday `ros2` verbs. A block that runs until Ctrl-C gets one once the ROS graph shows it working.
+everyday `ros2` verbs (from msgs_docs/ros2cli.md, the page the README links for them). A block
+that runs until Ctrl-C gets one once the ROS graph shows it working.
 """
 from __future__ import annotations
 
@@ -14,20 +15,22 @@ from pathlib import Path
 import pytest
 from sensor_msgs.msg import JointState
 
-from conftest import ROOT
-from ros_helpers import Probe, wait_until
+from helpers import ROOT, wait_until
+from helpers.agents import tiny_checkpoint
+from helpers.ros import Probe
 from sim_bridge.contract import qos
 from sim_bridge.contract import topics as T
-from test_evaluate import tiny_checkpoint
 from trainer.bag import mcap_io as M
+
+pytestmark = [pytest.mark.ros, pytest.mark.process]
 
 START = 240.0   # three nodes importing torch and EGL on 2 loaded cores
 NS = T.DEFAULT_NAMESPACE
 
 
-def readme_block(marker: str) -> str:
-    blocks = [b for b in re.findall(r"```bash\n(.*?)```", (ROOT / "README.md").read_text(), re.S) if marker in b]
-    assert len(blocks) == 1, f"expected one README bash block containing {marker!r}, found {len(blocks)}"
+def readme_block(marker: str, doc: str = "README.md") -> str:
+    blocks = [b for b in re.findall(r"```bash\n(.*?)```", (ROOT / doc).read_text(), re.S) if marker in b]
+    assert len(blocks) == 1, f"expected one {doc} bash block containing {marker!r}, found {len(blocks)}"
     return blocks[0]
 
 
@@ -119,11 +122,12 @@ def test_three_terminals_then_the_everyday_ros2_verbs_as_written(workdir, probe)
     assert codes == [0, 0, 0], {k: v[-2000:] for k, v in logs.items()}
     assert assert_every_step_answered_from_stamp_0(workdir / "runs/X/bags/session1") >= 30
 
-    lines = [ln for ln in readme_block("ros2 node list").splitlines() if ln.strip()]
+    assert "(msgs_docs/ros2cli.md)" in (ROOT / "README.md").read_text()
+    lines = [ln for ln in readme_block("ros2 node list", "msgs_docs/ros2cli.md").splitlines() if ln.strip()]
     first, rest = lines[0], lines[1:]
     sim = terminal(workdir, first, workdir / "ros2_bridge.log")
     try:
-        wait_until(lambda: node.count_publishers(T.topic_name(NS, T.IMAGE)) >= 1, START, "the README's bridge")
+        wait_until(lambda: node.count_publishers(T.topic_name(NS, T.IMAGE)) >= 1, START, "the documented bridge")
         for line in rest:
             res = subprocess.run(["bash", "-c", f"source .venv/bin/activate && {line}"], cwd=workdir,
                                  capture_output=True, text=True, timeout=120)

@@ -13,11 +13,14 @@ import subprocess
 import sys
 from pathlib import Path
 
+import pytest
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
-from ros_helpers import wait_until
+from helpers import wait_exit, wait_until
 from sim_bridge.contract import topics
+
+pytestmark = [pytest.mark.ros, pytest.mark.process]
 
 TASK = "pendulum_swingup"
 EPISODES, LENGTH = 4, 15
@@ -25,11 +28,6 @@ START = 120.0
 NS = topics.DEFAULT_NAMESPACE
 TYPES = {topics.topic_name(NS, rel): t for rel, t in topics.TYPES.items()
          if rel not in (topics.DIAGNOSTICS,)}
-
-
-def wait_exit(proc, timeout: float) -> int:
-    wait_until(lambda: not proc.alive(), timeout, f"{proc.args} to exit", interval=0.1)
-    return proc.p.returncode
 
 
 def final_counters(log: str) -> dict[str, int]:

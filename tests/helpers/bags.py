@@ -7,11 +7,15 @@ the action answering step s of episode e is [s / 100 + e] (for every action dime
 """
 from __future__ import annotations
 
+import os
+import shutil
+import subprocess
 import sys
 from pathlib import Path
 
 import numpy as np
 
+from helpers import ROOT
 from sim_bridge.contract import topics as T
 
 DT_NS = 40_000_000  # pendulum: control_dt 0.02 s x action repeat 2
@@ -121,11 +125,8 @@ def write_rosbags_bag(bag_dir: Path, steps: list[dict], topics: dict[str, str]) 
 
 def run_cli(module: str, *args: str, timeout: float = 240, env: dict | None = None):
     """Run `python -m module args` to completion; returns the CompletedProcess (text)."""
-    import os
-    import subprocess
-
     return subprocess.run([sys.executable, "-m", module, *map(str, args)], capture_output=True, text=True,
-                          timeout=timeout, cwd=Path(__file__).resolve().parents[1],
+                          timeout=timeout, cwd=ROOT,
                           env={**os.environ, **(env or {})})
 
 
@@ -173,3 +174,13 @@ def check_robots_recorded_and_trained(run: Path, namespaces: list[str], *, episo
 
     ck = read_checkpoint(run / "checkpoints" / "latest.pt")
     assert ck["counters"]["episodes"] == episodes and int(ck["modules"]["updates"]) == updates
+
+
+RERUN = shutil.which("rerun", path=str(Path(sys.executable).parent)) or shutil.which("rerun")
+
+
+def rerun_check(path: Path) -> subprocess.CompletedProcess:
+    """`rerun mcap check` on one MCAP file: an independent reader's verdict."""
+    assert RERUN, "rerun CLI (rerun-sdk) not found next to the Python interpreter"
+    return subprocess.run([RERUN, "mcap", "check", str(path)], capture_output=True, text=True,
+                          timeout=60)

@@ -1,5 +1,6 @@
-"""Run by tests/test_distributed.py under torchrun: one update of a tiny agent on this rank's
-half of a saved batch, with this rank's seed; saves the gradients as averaged over the ranks."""
+"""Run by tests/trainer/learn/test_distributed.py under torchrun: one update of a tiny agent on
+this rank's half of a saved batch, with this rank's seed; saves the gradients as averaged over
+the ranks."""
 from __future__ import annotations
 
 import sys

@@ -1,4 +1,4 @@
-"""A ROS participant that only watches the graph: `python tests/graph_watch.py [--server
+"""A ROS participant that only watches the graph: `python tests/helpers/graph_watch.py [--server
 HOST:PORT]` collects every topic and node it sees until SIGINT, then prints them as one JSON
 line. Without --server it discovers the usual way (LOCALHOST, no Discovery Server), with it as
 a Discovery Server super client (it sees every endpoint the server knows of)."""

@@ -1,4 +1,4 @@
-"""Test-side rclpy node for the node tests (tests/test_*node*.py, tests/test_ros_e2e.py).
+"""Test-side rclpy node for the node tests (the ROS node tests, tests/e2e/test_ros_e2e.py).
 
 The probe lives in the pytest process, i.e. in a different process from the nodes under test,
 so everything it sends and receives crosses DDS (localhost only, the run's own domain; see
@@ -17,7 +17,6 @@ from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from sensor_msgs.msg import Image, JointState
 
-from conftest import wait_for
 from sim_bridge.contract import qos, topics
 
 NS = topics.DEFAULT_NAMESPACE
@@ -42,7 +41,7 @@ class Probe:
     def _spin(self) -> None:
         try:
             self.executor.spin()
-        except Exception:
+        except Exception:  # noqa: BLE001 - the context was shut down under it (close())
             pass
 
     def _on_diag(self, msg) -> None:
@@ -91,11 +90,11 @@ class Probe:
     def close(self) -> None:
         try:
             self.executor.shutdown(timeout_sec=1.0)
-        except Exception:
+        except Exception:  # noqa: BLE001 - closing: best effort
             pass
         try:
             self.node.destroy_node()
-        except Exception:
+        except Exception:  # noqa: BLE001 - closing: best effort
             pass
         rclpy.try_shutdown(context=self.ctx)
         self._thread.join(5.0)
@@ -164,7 +163,3 @@ class Responder:
         with self.probe.lock:
             self.answered.append(stamp)
 
-
-def wait_until(predicate, timeout: float, what: str, interval: float = 0.02):
-    """conftest.wait_for, polling faster (DDS events arrive within milliseconds)."""
-    return wait_for(predicate, timeout, what, interval)

@@ -3,13 +3,13 @@ clear CheckpointErrors for truncated, corrupt, foreign and incompatible files.""
 from __future__ import annotations
 
 import os
-from pathlib import Path
 import zipfile
 
 import numpy as np
 import pytest
 import torch
 
+from helpers import ROOT
 from protocad_ros import checkpoint as ckpt_mod
 from protocad_ros.model.agent import Agent
 from protocad_ros.checkpoint import (CONFIG_NAME, CheckpointError, load_checkpoint,
@@ -252,6 +252,7 @@ def test_restore_into_running_agent(tmp_path, trained, frames):
     assert np.array_equal(_actions(fresh, frames), _actions(trained, frames))
 
 
+@pytest.mark.process
 def test_interrupted_write_leftovers_are_removed_at_the_next_start(tmp_path):
     """A checkpoint write killed mid-way (SIGKILL: no cleanup) leaves .latest.pt.PID.*.tmp; the
     next Trainer on that run directory removes it, and never a live writer's file."""
@@ -266,7 +267,7 @@ def test_interrupted_write_leftovers_are_removed_at_the_next_start(tmp_path):
     code = ("import os, signal, sys; from protocad_ros.atomic import atomic_open\n"
             f"with atomic_open({str(ckpt)!r}) as f:\n"
             "    f.write(b'x' * 100000); f.flush(); os.kill(os.getpid(), signal.SIGKILL)\n")
-    p = subprocess.run([sys.executable, "-c", code], cwd=Path(__file__).resolve().parents[1])
+    p = subprocess.run([sys.executable, "-c", code], cwd=ROOT)
     assert p.returncode == -9
     left = list(ckpt.parent.glob(".latest.pt.*.tmp"))
     assert len(left) == 1 and left[0].stat().st_size == 100000

@@ -22,6 +22,7 @@ def pair(tmp_path):
     return kid, load_private_key(tmp_path / "learner.key"), load_trusted_keys([tmp_path / "learner.pub"])
 
 
+@pytest.mark.process
 def test_keygen_writes_a_private_key_only_its_owner_reads_and_never_overwrites(tmp_path, capsys):
     assert keygen_main([str(tmp_path / "k")]) == 0
     key, pub = tmp_path / "k.key", tmp_path / "k.pub"

@@ -7,15 +7,15 @@ import signal
 import socket
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
 
+import helpers
 from protocad_ros.live_view import DEFAULT_URL, PARAMETERS, LiveView, check_mode
 from trainer.viz.rerun_log import read_recording
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = str(helpers.ROOT)
 STEP_PATHS = ["/policy/image", "/policy/features/u", "/policy/features/e", "/policy/assignment",
               "/policy/assignment_top", "/policy/assignment_entropy", "/policy/action",
               "/policy/reward"]
@@ -60,6 +60,7 @@ def _steps(policy, n=12):
         prev = action
 
 
+@pytest.mark.process
 def test_save_mode_writes_documented_paths_on_sim_time(tmp_path, tiny_policy):
     path = tmp_path / "live" / "policy.rrd"
     view = LiveView("save", path=path, action_names=["torque"])
@@ -124,6 +125,7 @@ def test_variant_without_context_features_logs_the_rest(tmp_path):
     assert "/policy/assignment" not in rec and "/policy/features/u" not in rec
 
 
+@pytest.mark.process
 def test_off_mode_is_free_and_imports_no_rerun():
     code = ("import sys, numpy as np\n"
             "from protocad_ros.live_view import LiveView\n"
@@ -137,6 +139,7 @@ def test_off_mode_is_free_and_imports_no_rerun():
     assert out.returncode == 0, out.stderr
 
 
+@pytest.mark.process
 def test_bad_arguments_are_clear_errors(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match="valid modes"):
         LiveView("stream")
@@ -165,6 +168,7 @@ def _free_port() -> int:
         return s.getsockname()[1]
 
 
+@pytest.mark.process
 @pytest.mark.filterwarnings("ignore:RRD file has no footer")  # a server's stream file
 def test_connect_mode_streams_to_a_rerun_server(tmp_path, tiny_policy):
     """A headless rerun gRPC server on loopback saves what it receives; what LiveView sent in
@@ -176,29 +180,25 @@ def test_connect_mode_streams_to_a_rerun_server(tmp_path, tiny_policy):
                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                               start_new_session=True)
     try:
-        deadline = time.monotonic() + 20
-        while time.monotonic() < deadline:
+        def listening() -> bool:
             with socket.socket() as s:
-                if s.connect_ex(("127.0.0.1", port)) == 0:
-                    break
-            time.sleep(0.1)
-        else:
-            pytest.fail("rerun server did not listen")
+                return s.connect_ex(("127.0.0.1", port)) == 0
+
+        helpers.wait_until(listening, 20, "the rerun server to listen", 0.1)
         view = LiveView.from_params("connect", f"rerun+http://127.0.0.1:{port}/proxy", "")
         for t, image, action, feats in _steps(tiny_policy, 6):
             view.log_step(t * 20_000_000, image, feats.u, feats.w, feats.e, action, 1.0)
         view.close()
-        deadline = time.monotonic() + 20
-        rec = {}
-        while time.monotonic() < deadline:
-            if saved.exists() and saved.stat().st_size > 0:
-                try:
-                    rec = read_recording(saved)
-                except Exception:  # noqa: BLE001 - mid-write
-                    rec = {}
-                if rec.get("/policy/image", {}).get("rows") == 6:
-                    break
-            time.sleep(0.2)
+        def six_images() -> dict:
+            if not (saved.exists() and saved.stat().st_size > 0):
+                return {}
+            try:
+                rec = read_recording(saved)
+            except Exception:  # noqa: BLE001 - mid-write
+                return {}
+            return rec if rec.get("/policy/image", {}).get("rows") == 6 else {}
+
+        rec = helpers.wait_until(six_images, 20, "the server's recording of 6 images", 0.2)
     finally:
         # The whole group: `rerun` is a Python wrapper whose child, the native server, would
         # outlive a signal to the wrapper alone (each run of this test left one behind).

@@ -10,8 +10,10 @@ import sys
 
 import pytest
 
-from conftest import ROOT
+from helpers import HELPERS, ROOT
 from trainer.research import results as R
+
+pytestmark = pytest.mark.process
 
 GPU_MACHINE_LACKS = ("rclpy,rosidl_runtime_py,rosidl_parser,ament_index_python,sensor_msgs,std_msgs,"
                      "rosgraph_msgs,builtin_interfaces,diagnostic_msgs,rerun,jsonschema")
@@ -21,7 +23,7 @@ GPU_MACHINE_LACKS = ("rclpy,rosidl_runtime_py,rosidl_parser,ament_index_python,s
 def test_campaign_runs_every_step_without_ros_on_a_tiny_budget(tmp_path):
     out = tmp_path / "out"
     env = {**os.environ, "OUT": str(out), "PROTOCAD_BLOCK_IMPORTS": GPU_MACHINE_LACKS,
-           "PYTHONPATH": os.pathsep.join([str(ROOT / "tests" / "import_blocker"), str(ROOT)])}
+           "PYTHONPATH": os.pathsep.join([str(HELPERS / "import_blocker"), str(ROOT)])}
     p = subprocess.run([sys.executable, "scripts/gpu_campaign.py", "--tiny", "--deadline", "420"],
                        cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
     assert p.returncode == 0, p.stdout[-4000:] + p.stderr[-2000:]

@@ -159,7 +159,7 @@ def _index_from_summary(reader: SeekingReader, idx: _FileIndex) -> bool:
     try:
         idx.rosbag2_metadata = next((m.metadata.get("serialized_metadata") for m in reader.iter_metadata()
                                      if m.name == "rosbag2"), None)
-    except Exception:         # a damaged metadata record costs the metadata, not the messages
+    except Exception:         # noqa: BLE001 - a damaged metadata record costs the metadata, not the messages
         pass
     return True
 
@@ -205,7 +205,7 @@ def _scan(fh, idx: _FileIndex, size: int) -> None:
             elif isinstance(record, (DataEnd, Footer)):
                 complete = True
                 break
-        except Exception as exc:  # corrupt record: stop, keep what came before
+        except Exception as exc:  # noqa: BLE001 - corrupt record: stop, keep what came before
             name = Opcode(opcode).name if opcode in _OPCODES else hex(opcode)
             problem = f"corrupt {name} record at byte {pos} ({type(exc).__name__}: {exc})"
             break
@@ -235,13 +235,13 @@ def _index_file(path: Path) -> _FileIndex:
         try:
             _record_at(fh, len(MCAP_MAGIC), size)          # complete, or ValueError
             header = reader.get_header()
-        except Exception as exc:
+        except Exception as exc:  # noqa: BLE001 - whatever the mcap library raises: one BagReadError
             raise BagReadError(f"MCAP magic present but no valid Header record: {exc}") from None
         idx.profile, idx.library = header.profile, header.library
         intact = _ends_with_footer(fh, size)
         try:
             ok = intact and _index_from_summary(reader, idx)
-        except Exception:
+        except Exception:  # noqa: BLE001 - a damaged summary: scan the records instead
             ok = False
         if not ok:
             idx.schemas, idx.channels, idx.entries, idx.counts = {}, {}, [], {}
@@ -327,7 +327,7 @@ class BagReader:
             files = [path / Path(str(x)).name for x in info["relative_file_paths"]]
         except BagReadError:
             raise
-        except Exception as exc:
+        except Exception as exc:  # noqa: BLE001 - a broken metadata.yaml is reported, the files still read
             self.report.warnings.append(f"{meta}: unreadable ({exc}); reading *.mcap instead")
             return globbed
         for extra in globbed:

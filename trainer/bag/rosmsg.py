@@ -107,7 +107,7 @@ def _share_dir(pkg: str) -> Path:
     try:
         from ament_index_python.packages import get_package_share_directory
         return Path(get_package_share_directory(pkg))
-    except Exception:  # not installed, or not in the resource index: look at the prefixes
+    except Exception:  # noqa: BLE001 - not installed, or not in the resource index: look at the prefixes
         for prefix in _prefixes():
             if (prefix / "share" / pkg).is_dir():
                 return prefix / "share" / pkg

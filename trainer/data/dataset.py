@@ -19,10 +19,10 @@ How it rebuilds episodes (per bag; stamps are unique within one sim-bridge run)
     ends at a gap (missing step ids), and where the answer to the previous observation is
     missing (the action that led to the next observation is unknown).
 
-Training convention (API.md, Dreamer): ``action[t]`` is the action that LED TO obs t (the
-answer to obs t-1), zeros at ``is_first`` and at a segment start whose predecessor is
-unknown; ``reward[t]`` is the reward arriving with obs t. The answer to ``is_last`` is
-recorded but not executed, so it is unused.
+Training convention (Dreamer; msgs_docs/README.md, "Step convention"): ``action[t]`` is the
+action that LED TO obs t (the answer to obs t-1), zeros at ``is_first`` and at a segment start
+whose predecessor is unknown; ``reward[t]`` is the reward arriving with obs t. The answer to
+``is_last`` is recorded but not executed, so it is unused.
 
 Memory
     Each bag is streamed once into an on-disk store (``images.u8`` raw uint8 frames read
@@ -49,6 +49,7 @@ from typing import Any, Iterable, Iterator, Mapping, Sequence
 
 import numpy as np
 
+from protocad_ros.model.agent_base import BATCH_KEYS   # what an agent's train_step reads
 from trainer.data.store import (SourceStore, cache_key, default_cache_budget_gb,
                                    default_cache_dir, entry_size, find_sources, ingest_source,
                                    prune_cache)
@@ -59,7 +60,6 @@ __all__ = ["MCAPDataset", "TopicMap", "DatasetReport", "SourceReport", "DatasetE
            "CacheWriteError", "find_sources", "cache_key", "default_cache_dir", "BATCH_KEYS"]
 
 # ----------------------------------------------------------------------------- dataset
-BATCH_KEYS = ("image", "action", "reward", "discount", "is_first")
 
 
 class MCAPDataset:

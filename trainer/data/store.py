@@ -12,7 +12,7 @@ import time
 from array import array
 from dataclasses import asdict
 from pathlib import Path
-from typing import Iterable
+from typing import Any, Iterable
 
 import numpy as np
 
@@ -257,8 +257,6 @@ def _ingest_into(source: Path, topics: TopicMap, tmp: Path) -> None:
     si_stamps, si_vals = array("q"), array("d")
     act_stamps, act_vals = array("q"), array("d")
     ctx_stamps, ctx_vals = array("q"), array("d")
-    counts: dict[str, int] = {}
-    types: dict[str, str] = {}
     bad_type: set[str] = set()
     dup: dict[str, int] = {}
     dec_err: dict[str, int] = {}
@@ -335,24 +333,8 @@ def _ingest_into(source: Path, topics: TopicMap, tmp: Path) -> None:
     finally:
         img_f.close()
 
-    br = reader.report
-    counts.update(br.counts)
-    types.update(br.topic_types)
-    rep.truncated = [f"{f}: {why}" for f, why in br.truncated.items()]
-    rep.read_errors += [f"{f}: {why}" for f, why in br.errors.items()]
-    rep.read_warnings = list(br.warnings)
-    for t, n in counts.items():
-        rep.topics[t] = {"type": types.get(t, "?"), "count": n, "used_as": key_of.get(t)}
-        if t in key_of:
-            continue
-        rel = t[len(T.DEFAULT_NAMESPACE):].lstrip("/") if t.startswith(T.DEFAULT_NAMESPACE + "/") else t
-        if t in KNOWN_UNUSED or rel in KNOWN_UNUSED or t.rsplit("/", 1)[-1] in KNOWN_UNUSED:
-            rep.unused_contract_topics[t] = n
-        else:
-            rep.foreign_topics[t] = {"type": types.get(t, "?"), "count": n}
-    rep.missing_topics = [f"{k}={v}" for k, v in by_key.items() if v not in counts]
+    _report_reading(rep, reader.report, source, by_key)
     rep.decode_errors = dec_err
-    rep.recording_losses = recorder_losses(source, used=key_of)
     rep.context_names = [n for n in (ctx_names or []) if n != T.SPLIT_FIELD] or None
     rep.action_dim = act_dim
     rep.image_shape = [hw[0], hw[1], 3] if hw else None
@@ -366,6 +348,26 @@ def _ingest_into(source: Path, topics: TopicMap, tmp: Path) -> None:
                 topics=topics.as_dict(), num_images=n_img, image_shape=rep.image_shape,
                 report=asdict(rep))
     (tmp / "index.json").write_text(json.dumps(meta))
+
+
+def _report_reading(rep: SourceReport, br: Any, source: Path, by_key: dict[str, str]) -> None:
+    """What the bag reader saw, into the source's report: cut files, read errors, every topic
+    (used, an unused contract topic, or foreign), the mapped topics missing, recorder losses."""
+    key_of = {v: k for k, v in by_key.items()}
+    rep.truncated = [f"{f}: {why}" for f, why in br.truncated.items()]
+    rep.read_errors += [f"{f}: {why}" for f, why in br.errors.items()]
+    rep.read_warnings = list(br.warnings)
+    for t, n in br.counts.items():
+        rep.topics[t] = {"type": br.topic_types.get(t, "?"), "count": n, "used_as": key_of.get(t)}
+        if t in key_of:
+            continue
+        rel = t[len(T.DEFAULT_NAMESPACE):].lstrip("/") if t.startswith(T.DEFAULT_NAMESPACE + "/") else t
+        if t in KNOWN_UNUSED or rel in KNOWN_UNUSED or t.rsplit("/", 1)[-1] in KNOWN_UNUSED:
+            rep.unused_contract_topics[t] = n
+        else:
+            rep.foreign_topics[t] = {"type": br.topic_types.get(t, "?"), "count": n}
+    rep.missing_topics = [f"{k}={v}" for k, v in by_key.items() if v not in br.counts]
+    rep.recording_losses = recorder_losses(source, used=key_of)
 
 
 def _dedup(stamps: array, name: str, dup: dict) -> tuple[np.ndarray, np.ndarray]:

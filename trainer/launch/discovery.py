@@ -27,7 +27,7 @@ import os
 import socket
 import sys
 from pathlib import Path
-from typing import Callable
+from typing import Any, Callable
 
 DEFAULT_PORT = 11811
 LOCALHOST = "127.0.0.1"
@@ -87,23 +87,30 @@ def _argtype(parse: Callable[[str], object]):
     return conv
 
 
+server_list_arg = _argtype(parse_server_list)
+listen_arg = _argtype(parse_listen)
+DEFAULT_LISTEN = (LOCALHOST, DEFAULT_PORT)
+
+
 def add_args(ap: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
     """--discovery-server / --start-discovery-server, the same on every launcher."""
     g = ap.add_mutually_exclusive_group()
-    g.add_argument("--discovery-server", type=_argtype(parse_server_list), default=None, metavar="HOST:PORT",
+    g.add_argument("--discovery-server", type=server_list_arg, default=None, metavar="HOST:PORT",
                    help="discover through this running Fast DDS Discovery Server instead of multicast "
                         f"(sets {SERVER_ENV} for every node; default: ${SERVER_ENV} if set)")
-    g.add_argument("--start-discovery-server", type=_argtype(parse_listen), nargs="?", default=None,
-                   const=(LOCALHOST, DEFAULT_PORT), metavar="[HOST:]PORT",
+    g.add_argument("--start-discovery-server", type=listen_arg, nargs="?", default=None,
+                   const=DEFAULT_LISTEN, metavar="[HOST:]PORT",
                    help=f"start a Discovery Server (fast-discovery-server, default {LOCALHOST}:{DEFAULT_PORT}) "
                         "before the nodes, stop it after them, and discover through it; listen on "
                         "this machine's fleet-facing address to let actor groups on other machines "
                         "join (0.0.0.0 works but exposes it everywhere)")
 
 
-def from_args(a: argparse.Namespace) -> tuple[str | None, tuple[str, int] | None]:
-    """(server address to use, (host, port) to start one on) from add_args' options."""
-    return getattr(a, "discovery_server", None), getattr(a, "start_discovery_server", None)
+def from_args(a: Any) -> tuple[str | None, tuple[str, int] | None]:
+    """(server address to use, (host, port) to start one on) from add_args' options (or
+    settings with those fields; a saved [host, port] list becomes a tuple again)."""
+    start = getattr(a, "start_discovery_server", None)
+    return getattr(a, "discovery_server", None), tuple(start) if start is not None else None
 
 
 def apply_env(env: dict[str, str], server: str | None, *, super_client: bool) -> dict[str, str]:

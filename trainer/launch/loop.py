@@ -30,79 +30,138 @@ episodes, env steps) and the checkpoint (weights, optimizers, counters, sampler 
 """
 from __future__ import annotations
 
-import argparse
+import dataclasses
 import sys
 import time
 from pathlib import Path
+from dataclasses import dataclass
 from typing import Any, Sequence
 
 from sim_bridge.contract import topics as T
 from trainer.launch import discovery
-from trainer import runs
+from trainer import runs, settings
 from trainer.data.dataset import MCAPDataset, TopicMap
-from trainer.learn.train import Trainer, add_common_model_args, config_from_args
+from trainer.learn.schedule import Schedule
+from trainer.learn.train import Trainer
+from trainer.settings import arg
 
 DEMO = dict(task="pendulum_swingup", preset="small", cycles=3, episodes_per_cycle=1, prefill=2,
             updates_per_episode=25, eval_episodes=1)
 
 
-def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(
-        prog="protocad-loop",
-        description="Collect-train-reload loop through the ROS 2 nodes: prefill with random "
-                    "actions on the training contexts, then alternate collection (policy node "
-                    "-> sim bridge, recorded to a new MCAP bag per cycle) and training (C "
-                    "updates per collected episode from all bags); the policy node reloads each "
-                    "new checkpoint. Ends with an evaluation table on the test contexts.",
-        formatter_class=runs.HelpFormatter)
-    ap.add_argument("--demo", action="store_true",
-                    help=f"the README's main command: {DEMO['task']}, {DEMO['preset']} preset, "
-                         f"{DEMO['cycles']} cycles of {DEMO['episodes_per_cycle']} episode, C="
-                         f"{DEMO['updates_per_episode']}, then the test-context table and a rerun "
-                         "recording (a few minutes on 2 CPU cores)")
-    add_common_model_args(ap)
-    g = ap.add_argument_group("loop")
-    g.add_argument("--cycles", type=int, default=None, help="collection cycles after the prefill (default 10; demo 3)")
-    g.add_argument("--episodes-per-cycle", type=int, default=None, help="E episodes recorded per cycle (default 1)")
-    g.add_argument("--prefill-episodes", type=int, default=None, help="N random episodes (default train.prefill_episodes = 2)")
-    g.add_argument("--updates-per-episode", type=int, default=None,
-                   help="C updates per collected episode, also done once after the prefill "
-                        f"(default train.collect_interval = 100, the paper's; demo {DEMO['updates_per_episode']})")
-    g.add_argument("--episode-length", type=int, default=None,
-                   help="agent steps per episode (default train.time_limit / action_repeat = 500)")
-    g.add_argument("--exploration-noise", type=float, default=None,
-                   help="policy node exploration noise (default train.expl_noise)")
-    g.add_argument("--eval-episodes", type=int, default=None,
-                   help="final evaluation: episodes per test context (0: none; default 5, demo 1)")
-    g.add_argument("--eval-max-contexts", type=int, default=0, help="final evaluation: at most K test contexts (0: all)")
-    g.add_argument("--no-visualize", action="store_true", help="skip the rerun context recording at the end")
-    g.add_argument("--robots", type=runs.positive_int, default=None,
-                   help="N robots collecting at once: a bridge and a policy node each in /protocad/robotI "
-                        "(own /clock), one recorder recording all of them, training on every robot's "
-                        "episodes; each records --episodes-per-cycle episodes per cycle (default 1)")
-    g = ap.add_argument_group("run")
-    g.add_argument("--run-dir", default=None, help="output directory (default runs/loop-TASK-VARIANT-TIME)")
-    g.add_argument("--resume", action="store_true", help="continue RUN_DIR (bags + checkpoint + counters)")
-    g.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID of the nodes (default: a fresh one)")
-    discovery.add_args(g)
-    g.add_argument("--checkpoint-every", type=int, default=500, help="updates between checkpoints within a training phase")
-    g.add_argument("--log-every", type=int, default=10, help="updates per metrics line")
-    g.add_argument("--cache-dir", default=None, help="dataset cache (default RUN_DIR/cache)")
-    g.add_argument("--rerun", nargs="?", const="", default=None, metavar="RRD",
-                   help="log training scalars to a rerun recording (default RUN_DIR/metrics.rrd)")
-    g.add_argument("--phase-timeout", type=float, default=3600.0, help="seconds a collection phase may take")
-    g.add_argument("--no-progress", action="store_true")
-    return ap
+@dataclass
+class LoopSettings:
+    """protocad-loop's protocol (Algorithm 1 through the ROS nodes) and run options. Unset
+    values come from the config (train.*) or the demo, once, in `resolved`."""
+
+    demo: bool = False
+    """the README's main command: pendulum_swingup, small preset, 3 cycles of 1 episode, C=25,
+    then the test-context table and a rerun recording (a few minutes on 2 CPU cores)"""
+    cycles: int | None = arg(None, group="loop")
+    """collection cycles after the prefill (default 10; demo 3)"""
+    episodes_per_cycle: int | None = arg(None, group="loop")
+    """E episodes recorded per cycle (default 1)"""
+    prefill_episodes: int | None = arg(None, group="loop")
+    """N random episodes (default train.prefill_episodes = 2)"""
+    updates_per_episode: int | None = arg(None, group="loop")
+    """C updates per collected episode, also done once after the prefill (default
+    train.collect_interval = 100, the paper's; demo 25)"""
+    episode_length: int | None = arg(None, group="loop")
+    """agent steps per episode (default train.time_limit / action_repeat = 500)"""
+    exploration_noise: float | None = arg(None, group="loop")
+    """policy node exploration noise (default train.expl_noise)"""
+    eval_episodes: int | None = arg(None, group="loop")
+    """final evaluation: episodes per test context (0: none; default 5, demo 1)"""
+    eval_max_contexts: int = arg(0, group="loop")
+    """final evaluation: at most K test contexts (0: all)"""
+    no_visualize: bool = arg(False, group="loop")
+    """skip the rerun context recording at the end"""
+    robots: int | None = arg(None, type=runs.positive_int, group="loop")
+    """N robots collecting at once: a bridge and a policy node each in /protocad/robotI (own
+    /clock), one recorder recording all of them, training on every robot's episodes; each
+    records --episodes-per-cycle episodes per cycle (default 1)"""
+    run_dir: str | None = arg(None, group="run")
+    """output directory (default runs/loop-TASK-VARIANT-TIME)"""
+    resume: bool = arg(False, group="run")
+    """continue RUN_DIR (bags + checkpoint + counters)"""
+    domain_id: int | None = arg(None, group="run")
+    """ROS_DOMAIN_ID of the nodes (default: a fresh one)"""
+    discovery_server: str | None = arg(None, type=discovery.server_list_arg, metavar="HOST:PORT",
+                                       group="run", exclusive="discovery")
+    """discover through this running Fast DDS Discovery Server instead of multicast (sets
+    ROS_DISCOVERY_SERVER for every node; default: $ROS_DISCOVERY_SERVER if set)"""
+    start_discovery_server: tuple | None = arg(None, type=discovery.listen_arg, nargs="?",
+                                               const=discovery.DEFAULT_LISTEN, metavar="[HOST:]PORT",
+                                               group="run", exclusive="discovery")
+    """start a Discovery Server (fast-discovery-server, default 127.0.0.1:11811) before the
+    nodes, stop it after them, and discover through it; listen on this machine's fleet-facing
+    address to let actor groups on other machines join (0.0.0.0 works but exposes it everywhere)"""
+    checkpoint_every: int = arg(500, group="run")
+    """updates between checkpoints within a training phase"""
+    log_every: int = arg(10, group="run")
+    """updates per metrics line"""
+    cache_dir: str | None = arg(None, group="run")
+    """dataset cache (default RUN_DIR/cache)"""
+    rerun: str | None = arg(None, nargs="?", const="", metavar="RRD", group="run")
+    """log training scalars to a rerun recording (default RUN_DIR/metrics.rrd)"""
+    phase_timeout: float = arg(3600.0, group="run")
+    """seconds a collection phase may take"""
+    no_progress: bool = arg(False, group="run")
+    """no progress bar"""
+
+    def with_demo(self) -> "LoopSettings":
+        """The demo's values where none were given."""
+        if not self.demo:
+            return self
+        pick = {k: DEMO[d] for k, d in (("cycles", "cycles"), ("episodes_per_cycle", "episodes_per_cycle"),
+                                          ("prefill_episodes", "prefill"), ("updates_per_episode", "updates_per_episode"),
+                                          ("eval_episodes", "eval_episodes")) if getattr(self, k) is None}
+        return dataclasses.replace(self, **pick)
+
+    def resolved(self, tr, saved_protocol: dict[str, Any] | None = None) -> "LoopSettings":
+        """Every unset protocol value: from the resumed run's protocol, else the config's train
+        section (tr), else the defaults."""
+        saved = {k: v for k, v in (saved_protocol or {}).items()
+                 if k in PROTOCOL_KEYS and getattr(self, k) is None and v is not None}
+        s = dataclasses.replace(self, **saved)
+        return dataclasses.replace(
+            s, cycles=10 if s.cycles is None else s.cycles, episodes_per_cycle=s.episodes_per_cycle or 1,
+            prefill_episodes=tr.prefill_episodes if s.prefill_episodes is None else s.prefill_episodes,
+            updates_per_episode=tr.collect_interval if s.updates_per_episode is None else s.updates_per_episode,
+            episode_length=s.episode_length or max(1, tr.time_limit // tr.action_repeat),
+            exploration_noise=tr.expl_noise if s.exploration_noise is None else s.exploration_noise,
+            eval_episodes=5 if s.eval_episodes is None else s.eval_episodes, robots=s.robots or 1)
+
+
+#: The loop's protocol, as run.json records it and a resume restores it.
+PROTOCOL_KEYS = ("cycles", "episodes_per_cycle", "prefill_episodes", "updates_per_episode", "episode_length",
+                 "exploration_noise", "eval_episodes", "robots")
+
+
+def build_parser():
+    return settings.settings_parser(
+        "protocad-loop",
+        "Collect-train-reload loop through the ROS 2 nodes: prefill with random actions on the "
+        "training contexts, then alternate collection (policy node -> sim bridge, recorded to a "
+        "new MCAP bag per cycle) and training (C updates per collected episode from all bags); "
+        "the policy node reloads each new checkpoint. Ends with an evaluation table on the test contexts.",
+        [(None, LoopSettings), ("model / config", settings.ModelChoice)])
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    a = runs.parse_cli(build_parser(), argv)
-    if a.resume:   # the original command's options, unless given again
-        a = runs.resumed_cli(build_parser, a)
+    parser = build_parser()
+    parsed = settings.parse(parser, argv)
+    s, model = parsed.get(LoopSettings), parsed.get(settings.ModelChoice)
+    if s.resume and s.run_dir:   # the original command's options, unless given again
+        saved = runs.read_run_json(s.run_dir)
+        kept = saved.get("settings") or {}
+        old_args = saved.get("args") if isinstance(saved.get("args"), list) else None
+        s = settings.resumed(LoopSettings, kept.get("loop"), parsed, parser, old_args)
+        model = settings.resumed(settings.ModelChoice, kept.get("model"), parsed, parser, old_args)
     from trainer.launch.rosprocs import NodeFailed
 
     try:
-        return Loop(a).run()
+        return Loop(s, model, parsed.config_args, parsed.prog, parsed.argv).run()
     except NodeFailed as exc:
         print(f"protocad-loop: a node failed: {exc}", file=sys.stderr)
         return 1
@@ -112,59 +171,45 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 class Loop:
-    def __init__(self, a: argparse.Namespace):
-        self.a = a
-        if a.demo:
-            a.task = a.task or DEMO["task"]
-            a.preset = a.preset or DEMO["preset"]
-            for k, v in (("cycles", "cycles"), ("episodes_per_cycle", "episodes_per_cycle"),
-                         ("prefill_episodes", "prefill"), ("updates_per_episode", "updates_per_episode"),
-                         ("eval_episodes", "eval_episodes")):
-                if getattr(a, k) is None:
-                    setattr(a, k, DEMO[v])
-        self.device = runs.resolve_device(a.device)
-        runs.set_threads(a.threads)
+    def __init__(self, s: LoopSettings, model: settings.ModelChoice, config_args: Sequence[str] = (),
+                 prog: str = "protocad-loop", argv: Sequence[str] | None = None):
+        if s.demo:
+            model = dataclasses.replace(model, task=model.task or DEMO["task"], preset=model.preset or DEMO["preset"])
+        self.a, self.model = s.with_demo(), model
+        self.config_args, self.prog = list(config_args), prog
+        self.argv = list(sys.argv[1:] if argv is None else argv)
+        self.device = runs.resolve_device(model.device)
+        runs.set_threads(model.threads)
 
     # ------------------------------------------------------------------ setup
     def _setup(self) -> None:
         a = self.a
+        saved_protocol = None
         if a.resume:
             # A loop stopped during its prefill has bags but no checkpoint yet: still resumable.
-            self.run_dir, state = runs.resume_run_dir(a.run_dir, need_checkpoint=False)
+            self.run_dir, self.run_json = runs.resume_run_dir(a.run_dir, need_checkpoint=False)
             from protocad_ros.model.config import Config
 
             self.cfg = Config.load(self.run_dir / "config.yaml")
-            p = state["protocol"]
-            for k in ("cycles", "episodes_per_cycle", "prefill_episodes", "updates_per_episode", "episode_length",
-                      "exploration_noise", "eval_episodes", "robots"):
-                if getattr(a, k) is None:
-                    setattr(a, k, p.get(k, 1 if k == "robots" else None))
-            self.run_json = state
+            saved_protocol = self.run_json.get("protocol")
         else:
-            self.cfg = config_from_args(a)
+            self.cfg = self.model.to_config(self.config_args, self.prog)
             self.cfg.train.device = self.device
             self.run_dir = runs.new_run_dir(a.run_dir, "loop", self.cfg.task, self.cfg.variant)
             self.run_dir.mkdir(parents=True, exist_ok=True)
             self.cfg.save(self.run_dir / "config.yaml")
             self.run_json = {}
         tr = self.cfg.train
-        a.cycles = 10 if a.cycles is None else a.cycles
-        a.episodes_per_cycle = a.episodes_per_cycle or 1
-        a.prefill_episodes = tr.prefill_episodes if a.prefill_episodes is None else a.prefill_episodes
-        a.updates_per_episode = tr.collect_interval if a.updates_per_episode is None else a.updates_per_episode
-        a.episode_length = a.episode_length or max(1, tr.time_limit // tr.action_repeat)
-        a.exploration_noise = tr.expl_noise if a.exploration_noise is None else a.exploration_noise
-        a.eval_episodes = 5 if a.eval_episodes is None else a.eval_episodes
-        a.robots = a.robots or 1
+        self.a = a = a.resolved(tr, saved_protocol)
+        self.schedule = Schedule(N=a.prefill_episodes, C=a.updates_per_episode)
         from trainer.launch.rosprocs import robot_namespaces
 
         self.namespaces = robot_namespaces(T.DEFAULT_NAMESPACE, a.robots)
-        runs.record_invocation(self.run_json, a)
+        runs.record_invocation(self.run_json, a.resume, self.argv)
         self.run_json.update(kind="loop", task=self.cfg.task, variant=self.cfg.variant,
-                             preset=self.cfg.preset, seed=tr.seed, device=self.device, protocol={
-                                 k: getattr(a, k) for k in ("cycles", "episodes_per_cycle", "prefill_episodes",
-                                                            "updates_per_episode", "episode_length",
-                                                            "exploration_noise", "eval_episodes", "robots")})
+                             preset=self.cfg.preset, seed=tr.seed, device=self.device,
+                             protocol={k: getattr(a, k) for k in PROTOCOL_KEYS},
+                             settings={"loop": settings.as_data(a), "model": settings.as_data(self.model)})
         runs.atomic_write_json(self.run_dir / "run.json", self.run_json)
         self.bags_dir = self.run_dir / "bags"
         self.bags_dir.mkdir(exist_ok=True)
@@ -211,8 +256,7 @@ class Loop:
         return sum(p["episodes"] for p in self.phases if p["kind"] == "collect")
 
     def target_updates(self) -> int:
-        C = self.a.updates_per_episode
-        return C + C * self.collected_episodes
+        return self.schedule.target_updates(self.collected_episodes)
 
     def _counters(self) -> None:
         c = self.trainer.counters

@@ -169,20 +169,20 @@ def run(doc: dict[str, Any], *, log_dir: Path, domain_id: int | None, ready_time
                 up, reading = recorder_endpoints([]), recorder_endpoints([T.topic_name(ns, T.ACTION)])
                 # Endpoints of another recorder on this domain (e.g. a previous stack's, going).
                 old = stack.graph.snapshot("recorder", "/", up + reading)
-                proc = stack._spawn("recorder", MODULES["recorder"], ["-o", str(output), "--namespace", ns,
+                proc = stack._spawn("recorder", MODULES["recorder"], ["-o", str(output), "--namespace", ns,  # noqa: SLF001 - RosStack's generic start: a stack file picks the nodes
                                                                        "--ros-args", *ros_params(rec)],
                                     super_client=True)   # it reads topic types from the graph
                 stack.wait_endpoints(proc, "recorder", "/", up, ready_timeout, stop=stop, old=old)
             policy = dict(doc.get("policy") or {})
             policy.setdefault("task", (doc.get("bridge") or {}).get("task", "pendulum_swingup"))
-            proc = stack._spawn("policy", MODULES["policy"], ["--ros-args", *ros_params(policy), "-r", f"__ns:={ns}"])
+            proc = stack._spawn("policy", MODULES["policy"], ["--ros-args", *ros_params(policy), "-r", f"__ns:={ns}"])  # noqa: SLF001
             stack.wait_active(proc, "policy", ready_timeout, stop=stop)
             if record:   # the action topic exists now: wait until the recorder reads it
                 stack.wait_endpoints(stack.procs["recorder"], "recorder", "/", reading, ready_timeout,
                                      stop=stop, old=old)
             bridge = dict(doc.get("bridge") or {})
             bridge.setdefault("min_subscribers", 2 if record else 1)
-            stack._spawn("bridge", MODULES["bridge"], ["--ros-args", *ros_params(bridge), "-r", f"__ns:={ns}"])
+            stack._spawn("bridge", MODULES["bridge"], ["--ros-args", *ros_params(bridge), "-r", f"__ns:={ns}"])  # noqa: SLF001
             print("[stack] running: Ctrl-C stops every node", flush=True)
             policy_fqn = stack.node_fqn("policy")
             while not stop.stop:

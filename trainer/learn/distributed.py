@@ -94,15 +94,15 @@ def barrier_if(ctx: DistContext) -> None:
         dist.barrier()
 
 
-def run_entry_point(args: Any, body: Callable[[Any, DistContext, str], int]) -> int:
-    """A CLI's main under torchrun or not: threads, join the ranks (device per rank), run
-    body(args, ctx, device), leave the process group whatever happens."""
+def run_entry_point(threads: int, device: str, body: Callable[[DistContext, str], int]) -> int:
+    """A command's body under torchrun or not: threads, join the ranks (device per rank), run
+    body(ctx, device), leave the process group whatever happens."""
     from trainer import runs
 
-    runs.set_threads(args.threads)
-    ctx, device = init(runs.resolve_device(args.device))
+    runs.set_threads(threads)
+    ctx, device = init(runs.resolve_device(device))
     try:
-        return body(args, ctx, device)
+        return body(ctx, device)
     finally:
         shutdown(ctx)
 

@@ -25,7 +25,6 @@ true context, so the per-context episode counts follow the bridge's draws.
 """
 from __future__ import annotations
 
-import argparse
 import math
 import os
 import sys
@@ -39,6 +38,7 @@ import numpy as np
 from sim_bridge.contract.contexts import context_label
 from sim_bridge.sim.vector import VectorEnv
 from trainer import runs
+from trainer.settings import arg
 from sim_bridge.sim.rollout import RandomPolicy, rollout
 
 DEFAULT_EPISODES = 5
@@ -322,68 +322,82 @@ def evaluate_through_ros(checkpoint: str | None, *, task: str | None, split: str
 
 
 # ----------------------------------------------------------------------------- CLI
-def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(
-        prog="protocad-evaluate",
-        description="Evaluate checkpoints (or the random policy) on a split's contexts: E "
-                    "episodes per context, a per-context table with the mean, and the mean / "
-                    "median over tasks when several are given. Paper protocol: test split, "
-                    "5 episodes per context, deterministic actions.",
-        formatter_class=runs.HelpFormatter)
-    ap.add_argument("checkpoints", nargs="*", metavar="CHECKPOINT",
-                    help="checkpoint files (or run directories holding checkpoints/latest.pt)")
-    ap.add_argument("--random", action="store_true",
-                    help="evaluate the uniform random policy (needs --task; with checkpoints: "
-                         "also shown beside each as a baseline)")
-    ap.add_argument("--task", action="append", default=[],
-                    help="task(s) for --random (default: the checkpoints' tasks)")
-    ap.add_argument("--split", choices=("train", "test"), default="test")
-    ap.add_argument("--episodes", type=int, default=DEFAULT_EPISODES, help="episodes per context")
-    ap.add_argument("--context", action="append", default=[], metavar="k=v[,k=v]",
-                    help="evaluate only these contexts (repeatable), e.g. --context m=0.2,d=1.5")
-    ap.add_argument("--max-contexts", type=int, default=0,
-                    help="the fixed stratified subset of K contexts (every m and d equally often; "
-                         "0 = all; the (m, d) tasks have 64 test contexts)")
-    ap.add_argument("--time-limit", type=int, default=None,
-                    help="env steps per episode (default: the checkpoint's train.time_limit, 1000)")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto")
-    ap.add_argument("--workers", type=int, default=-1,
-                    help="env worker processes (0: envs in this process; -1: auto = 0 on <= 2 "
-                         "cores, else cores - 1)")
-    ap.add_argument("--batch", type=int, default=0, help="episodes run side by side (0: auto)")
-    ap.add_argument("--through-ros", action="store_true",
-                    help="run through the ROS nodes (sim bridge + policy node + recorder): the "
-                         "bridge cycles through the split's contexts, --episodes each (or "
-                         "--ros-episodes in all, contexts drawn uniformly); each episode's return "
-                         "is in the bridge's log")
-    ap.add_argument("--ros-episodes", type=int, default=0,
-                    help="--through-ros: total episodes, contexts drawn uniformly (default: the "
-                         "bridge cycles through the split's contexts, --episodes each)")
-    ap.add_argument("--episode-length", type=int, default=None,
-                    help="--through-ros: agent steps per episode (default: the checkpoint's "
-                         "time_limit / action_repeat)")
-    ap.add_argument("--ros-dir", default=None, help="--through-ros: where bags and node logs go")
-    ap.add_argument("--domain-id", type=int, default=None, help="--through-ros: ROS_DOMAIN_ID (default: a fresh one)")
-    ap.add_argument("--json", default=None, metavar="FILE", help="write the results as JSON")
-    ap.add_argument("--threads", type=int, default=0,
-                    help=runs.THREADS_HELP)
-    ap.add_argument("--no-progress", action="store_true")
-    return ap
+@dataclass
+class EvaluateSettings:
+    """What protocad-evaluate runs: which policies, on which contexts, how many episodes."""
+
+    checkpoints: list[str] = arg([], "checkpoints", nargs="*", metavar="CHECKPOINT")
+    """checkpoint files (or run directories holding checkpoints/latest.pt)"""
+    random: bool = False
+    """evaluate the uniform random policy (needs --task; with checkpoints: also shown beside each
+    as a baseline)"""
+    task: list[str] = arg([], action="append")
+    """task(s) for --random (default: the checkpoints' tasks)"""
+    split: str = arg("test", choices=("train", "test"))
+    """the contexts' split (paper: test = unseen)"""
+    episodes: int = DEFAULT_EPISODES
+    """episodes per context"""
+    context: list[str] = arg([], action="append", metavar="k=v[,k=v]")
+    """evaluate only these contexts (repeatable), e.g. --context m=0.2,d=1.5"""
+    max_contexts: int = 0
+    """the fixed stratified subset of K contexts (every m and d equally often; 0 = all; the
+    (m, d) tasks have 64 test contexts)"""
+    time_limit: int | None = None
+    """env steps per episode (default: the checkpoint's train.time_limit, 1000)"""
+    seed: int = 0
+    """seeds the contexts' episodes and the policy's samples"""
+    device: str = "cpu"
+    """cpu, cuda, cuda:N or auto"""
+    workers: int = -1
+    """env worker processes (0: envs in this process; -1: auto = 0 on <= 2 cores, else cores - 1)"""
+    batch: int = 0
+    """episodes run side by side (0: auto)"""
+    through_ros: bool = False
+    """run through the ROS nodes (sim bridge + policy node + recorder): the bridge cycles
+    through the split's contexts, --episodes each (or --ros-episodes in all, contexts drawn
+    uniformly); each episode's return is in the bridge's log"""
+    ros_episodes: int = 0
+    """--through-ros: total episodes, contexts drawn uniformly (default: the bridge cycles
+    through the split's contexts, --episodes each)"""
+    episode_length: int | None = None
+    """--through-ros: agent steps per episode (default: the checkpoint's time_limit / action_repeat)"""
+    ros_dir: str | None = None
+    """--through-ros: where bags and node logs go"""
+    domain_id: int | None = None
+    """--through-ros: ROS_DOMAIN_ID (default: a fresh one)"""
+    json: str | None = arg(None, metavar="FILE")
+    """write the results as JSON"""
+    threads: int = arg(0, help=runs.THREADS_HELP)
+    """torch threads"""
+    no_progress: bool = False
+    """no progress bar"""
+
+
+def build_parser():
+    from trainer.settings import settings_parser
+
+    return settings_parser(
+        "protocad-evaluate",
+        "Evaluate checkpoints (or the random policy) on a split's contexts: E episodes per "
+        "context, a per-context table with the mean, and the mean / median over tasks when "
+        "several are given. Paper protocol: test split, 5 episodes per context, deterministic actions.",
+        [(None, EvaluateSettings)])
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    a = build_parser().parse_args(argv)
     from protocad_ros.checkpoint import CheckpointError
+    from trainer import settings
 
+    s = settings.parse(build_parser(), argv, config_help=False).get(EvaluateSettings)
     try:
-        return _main(a)
+        return run(s)
     except (ValueError, CheckpointError) as exc:
         print(f"protocad-evaluate: error: {exc}", file=sys.stderr)
         return 2
 
 
-def _main(a: argparse.Namespace) -> int:
+def run(a: EvaluateSettings) -> int:
+    """Evaluate as the settings say, print the tables (and write --json)."""
     runs.set_threads(a.threads)
     device = runs.resolve_device(a.device)
     if not a.checkpoints and not a.random:

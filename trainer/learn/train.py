@@ -21,21 +21,24 @@ with fresh per-rank seeds.
 """
 from __future__ import annotations
 
-import argparse
+import dataclasses
 import json
 import os
 import sys
 import time
 import zlib
 from pathlib import Path
+from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
 from trainer.learn import distributed
 
-from trainer import runs
+from trainer import runs, settings
 from trainer.data.dataset import DatasetError, MCAPDataset, TopicMap
+from trainer.learn.schedule import RunCounters
+from trainer.settings import arg
 
 DEFAULT_LOG_EVERY = 10
 
@@ -43,9 +46,9 @@ DEFAULT_LOG_EVERY = 10
 class Trainer:
     """Agent + dataset + run directory: updates, metrics (JSON lines + callbacks), checkpoints.
 
-    counters: free-form numbers/strings saved with every checkpoint (the loop and the online
-    path keep env_steps, episodes, phase, ... there); `updates` always mirrors the agent's own
-    update counter.
+    counters: free-form numbers/strings saved with every checkpoint (the sampler state, wall
+    time, the loop's phases); `updates` always mirrors the agent's own update counter.
+    progress: a run's RunCounters (trainer.learn.schedule), saved with every checkpoint too.
     """
 
     def __init__(self, cfg, run_dir: str | Path, dataset: MCAPDataset | None, *, device: str = "cpu",
@@ -88,6 +91,7 @@ class Trainer:
         for key in ("dataset_state", "rank_states", "world_size"):   # rewritten at every save
             self.counters.pop(key, None)
         self.rank_fingerprints: list[dict[str, str]] = []
+        self.progress: RunCounters | None = None
         self.counters["updates"] = int(agent.counters()["updates"])
         self._last_saved: int | None = None
         self.log_every = max(1, int(log_every))
@@ -164,9 +168,10 @@ class Trainer:
         row_extra = {k: v for k, v in extra.items()}
         if rate is not None:
             row_extra["updates_per_s"] = round(rate, 3)
+        counters = {**self.counters, **(self.progress.as_dict() if self.progress else {})}
         for k in ("env_steps", "episodes"):
-            if k in self.counters:
-                row_extra.setdefault(k, self.counters[k])
+            if k in counters:
+                row_extra.setdefault(k, counters[k])
         return self.metrics.log(self.updates, means, kind="train", **row_extra)
 
     def train(self, target_updates: int, *, stop: runs.StopFlag | None = None, checkpoint_every: int = 0,
@@ -204,7 +209,7 @@ class Trainer:
         self.log_now()
         self.counters["updates"] = self.updates
         self.counters["wall_time"] = round(self.metrics.wall_time, 3)
-        counters = dict(self.counters)
+        counters = {**self.counters, **(self.progress.as_dict() if self.progress else {})}
         if self.dataset is not None:
             counters["dataset_state"] = json.dumps(self.dataset.state_dict())
         if self.dist.enabled:   # collective: every rank's sampler and RNG, and a weight check
@@ -251,116 +256,70 @@ class RanksDiverged(RuntimeError):
     """Data-parallel ranks hold different weights (nothing is written: the last checkpoint stays)."""
 
 
-# ---------------------------------------------------------------------- CLI
-def add_common_model_args(ap: argparse.ArgumentParser, *, defaults_from_config: bool = True) -> None:
-    from protocad_ros.model.config import DEFAULT_CLI_PRESET, PRESETS, VARIANTS
-    from sim_bridge.contract.contexts import TASKS
+# ---------------------------------------------------------------------- settings and CLI
+@dataclass
+class TrainSettings:
+    """protocad-train's logs and run options."""
 
-    g = ap.add_argument_group("model / config")
-    g.add_argument("--task", choices=sorted(TASKS), default=None,
-                   help="task (default: from --config, else pendulum_swingup)")
-    g.add_argument("--variant", choices=VARIANTS, default=None,
-                   help="agent variant (default: from --config, else protocad)")
-    g.add_argument("--preset", choices=PRESETS, default=None,
-                   help=f"model size preset (default: from --config, else {DEFAULT_CLI_PRESET})")
-    g.add_argument("--config", default=None, metavar="FILE",
-                   help="YAML config (a saved config.yaml or a partial nested mapping)")
-    g.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="config override, e.g. --set world_model.deter=64 --set train.batch_size=8 (repeatable); "
-                        "every field is also an option of its own, listed under 'Config options' below")
-    g.add_argument("--batch-size", type=int, default=None, help="B (train.batch_size)")
-    g.add_argument("--seq-len", type=int, default=None, help="M (train.seq_len)")
-    g.add_argument("--seed", type=int, default=0, help="seeds model init, sampling and augmentation")
-    g.add_argument("--device", default="cpu", help="cpu, cuda, cuda:N or auto (cuda when available)")
-    g.add_argument("--threads", type=int, default=0, help=runs.THREADS_HELP)
-    g.add_argument("--precision", choices=("auto", "float32", "bfloat16"), default=None,
-                   help="train.precision; auto = bfloat16 where the device has bf16 arithmetic "
-                        "(AVX512-BF16/AMX CPUs, Ampere+ GPUs), else float32; unset: the config's train.precision")
+    logs: list[str] | None = arg(None, "--logs", "--bags", metavar="PATH")
+    """bag directories / .mcap files / folders of bags (with --resume: default = the run's
+    logs). Under torchrun write --bags: torchrun takes --logs as its own --logs-specs"""
+    topic: list[str] = arg([], action="append", metavar="KEY=/TOPIC", group="logs")
+    """read KEY (image, step_info, action, context) from /TOPIC, for logs recorded under other
+    names (e.g. --topic image=/cam/rgb; context=none)"""
+    namespace: list[str] | None = arg(None, metavar="NS", group="logs")
+    """namespace(s) of the contract topics in the logs (default /protocad); several = one robot
+    each, e.g. the bags of `protocad-loop --robots 2`: --namespace /protocad/robot0 /protocad/robot1"""
+    cache_dir: str | None = arg(None, group="logs")
+    """dataset cache (default $PROTOCAD_CACHE_DIR or ~/.cache/protocad-ros/dataset)"""
+    cache_budget_gb: float | None = arg(None, group="logs")
+    """size budget of the dataset cache: least recently used bags are evicted (and re-indexed
+    from their logs if used again); bags in use never are; 0 = no limit (default
+    $PROTOCAD_CACHE_BUDGET_GB or 4)"""
+    updates: int | None = arg(None, group="run")
+    """train until the update counter reaches N (a total; default 1000, or the resumed run's target)"""
+    run_dir: str | None = arg(None, group="run")
+    """output directory (default runs/train-TASK-VARIANT-TIME)"""
+    checkpoint_every: int | None = arg(None, group="run")
+    """updates between checkpoints (default 500, or the resumed run's)"""
+    log_every: int | None = arg(None, group="run")
+    """updates per metrics line (default 10, or the resumed run's)"""
+    resume: bool = arg(False, group="run")
+    """continue RUN_DIR from its checkpoint (config, counters, sampler state)"""
+    rerun: str | None = arg(None, nargs="?", const="", metavar="RRD", group="run")
+    """also log the scalars to a rerun recording (default RUN_DIR/metrics.rrd)"""
+    no_progress: bool = arg(False, group="run")
+    """no progress bar"""
+    accept_test_split: bool = arg(False, group="run")
+    """train on episodes recorded on the test split's contexts (refused by default: the
+    evaluation keeps them unseen)"""
+    accept_multiple_publishers: bool = arg(False, group="run")
+    """train on bags whose recorder saw several publishers on a topic read here (a second bridge
+    or an impostor interleaved its messages); refused by default, naming the bag and topic"""
 
-
-def config_from_args(a: argparse.Namespace):
-    overrides = runs.parse_set(a.set)
-    if a.batch_size is not None:
-        overrides["train.batch_size"] = a.batch_size
-    if a.seq_len is not None:
-        overrides["train.seq_len"] = a.seq_len
-    overrides["train.seed"] = a.seed
-    if getattr(a, "precision", None):
-        from protocad_ros.model.precision import resolve_precision
-
-        choice = resolve_precision(a.precision, runs.resolve_device(a.device))
-        overrides["train.precision"] = choice.precision
-        print(f"[config] {choice.describe()}", flush=True)
-    from protocad_ros.model.config import check_train_memory
-
-    cfg = runs.build_config(a.task, a.variant, a.preset, a.config, overrides)
-    flags, prog = getattr(a, "config_args", []), getattr(a, "prog", "protocad")
-    if flags:
-        flagged = runs.apply_config_flags(cfg, flags, prog)
-        chosen = {k: getattr(flagged, k) for k in runs.SELECTOR_FIELDS}
-        if chosen != {k: getattr(cfg, k) for k in runs.SELECTOR_FIELDS}:
-            # --reference / --no_own_settings pick other defaults: rebuild on them, flags on top
-            cfg = runs.build_config(a.task, a.variant, a.preset, a.config, {**overrides, **chosen})
-            flagged = runs.apply_config_flags(cfg, flags, prog)
-        cfg = flagged
-    check_train_memory(cfg)   # before anything is built (ConfigError: one line, exit 2)
-    return cfg
-
-
-def add_topic_args(ap: argparse.ArgumentParser) -> None:
-    g = ap.add_argument_group("logs")
-    g.add_argument("--topic", action="append", default=[], metavar="KEY=/TOPIC",
-                   help="read KEY (image, step_info, action, context) from /TOPIC, for logs "
-                        "recorded under other names (e.g. --topic image=/cam/rgb; context=none)")
-    g.add_argument("--namespace", nargs="+", default=None, metavar="NS",
-                   help="namespace(s) of the contract topics in the logs (default /protocad); several = "
-                        "one robot each, e.g. the bags of `protocad-loop --robots 2`: --namespace "
-                        "/protocad/robot0 /protocad/robot1")
-    g.add_argument("--cache-dir", default=None,
-                   help="dataset cache (default $PROTOCAD_CACHE_DIR or ~/.cache/protocad-ros/dataset)")
-    g.add_argument("--cache-budget-gb", type=float, default=None,
-                   help="size budget of the dataset cache: least recently used bags are evicted (and "
-                        "re-indexed from their logs if used again); bags in use never are; 0 = no "
-                        "limit (default $PROTOCAD_CACHE_BUDGET_GB or 4)")
+    def resumed_from(self, run_json: dict[str, Any]) -> "TrainSettings":
+        """Options the run was started with (run.json), where not given again."""
+        saved = {"logs": run_json.get("logs"), "topic": run_json.get("topics_args") or [],
+                 "namespace": run_json.get("namespace"), "cache_dir": run_json.get("cache_dir"),
+                 "updates": run_json.get("updates"), "checkpoint_every": run_json.get("checkpoint_every"),
+                 "log_every": run_json.get("log_every"), "rerun": run_json.get("rerun"),
+                 "accept_test_split": bool(run_json.get("accept_test_split")),
+                 "accept_multiple_publishers": bool(run_json.get("accept_multiple_publishers"))}
+        if isinstance(saved["namespace"], str):   # older run.json: one
+            saved["namespace"] = [saved["namespace"]]
+        mine = dataclasses.asdict(self)
+        return dataclasses.replace(self, **{k: v for k, v in saved.items()
+                                            if mine[k] in (None, [], False) and v not in (None, [])})
 
 
-def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(
-        prog="protocad-train",
-        description="Train a ProtoCAD agent (or a baseline/ablation variant) from MCAP logs "
-                    "(rosbag2 layout; bag directories, .mcap files or folders of bags). "
-                    "Writes RUN_DIR/config.yaml, metrics.jsonl, checkpoints/latest.pt (atomic, "
-                    "every --checkpoint-every updates and at the end). Ctrl-C saves a final "
-                    "checkpoint and exits 0; --resume continues exactly from the last one.",
-        formatter_class=runs.HelpFormatter)
-    ap.add_argument("--logs", "--bags", nargs="+", default=None, metavar="PATH", dest="logs",
-                    help="bag directories / .mcap files / folders of bags (with --resume: "
-                         "default = the run's logs). Under torchrun write --bags: torchrun takes "
-                         "--logs as its own --logs-specs")
-    add_topic_args(ap)
-    add_common_model_args(ap)
-    g = ap.add_argument_group("run")
-    g.add_argument("--updates", type=int, default=None,
-                   help="train until the update counter reaches N (a total; default 1000, or "
-                        "the resumed run's target)")
-    g.add_argument("--run-dir", default=None, help="output directory (default runs/train-TASK-VARIANT-TIME)")
-    g.add_argument("--checkpoint-every", type=int, default=None,
-                   help="updates between checkpoints (default 500, or the resumed run's)")
-    g.add_argument("--log-every", type=int, default=None,
-                   help=f"updates per metrics line (default {DEFAULT_LOG_EVERY}, or the resumed run's)")
-    g.add_argument("--resume", action="store_true",
-                   help="continue RUN_DIR from its checkpoint (config, counters, sampler state)")
-    g.add_argument("--rerun", nargs="?", const="", default=None, metavar="RRD",
-                   help="also log the scalars to a rerun recording (default RUN_DIR/metrics.rrd)")
-    g.add_argument("--no-progress", action="store_true", help="no progress bar")
-    g.add_argument("--accept-test-split", action="store_true",
-                   help="train on episodes recorded on the test split's contexts (refused by default: "
-                        "the evaluation keeps them unseen)")
-    g.add_argument("--accept-multiple-publishers", action="store_true",
-                   help="train on bags whose recorder saw several publishers on a topic read here "
-                        "(a second bridge or an impostor interleaved its messages); refused by "
-                        "default, naming the bag and topic")
-    return ap
+def build_parser():
+    return settings.settings_parser(
+        "protocad-train",
+        "Train a ProtoCAD agent (or a baseline/ablation variant) from MCAP logs (rosbag2 layout; "
+        "bag directories, .mcap files or folders of bags). Writes RUN_DIR/config.yaml, "
+        "metrics.jsonl, checkpoints/latest.pt (atomic, every --checkpoint-every updates and at the "
+        "end). Ctrl-C saves a final checkpoint and exits 0; --resume continues exactly from the last one.",
+        [(None, TrainSettings), ("model / config", settings.ModelChoice)])
 
 
 def refuse_test_split(ds: MCAPDataset, accept: bool, say: Callable[..., None] = print) -> None:
@@ -401,9 +360,10 @@ def refuse_multiple_publishers(logs: Sequence[str | Path], topic_maps: Sequence[
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    a = runs.parse_cli(build_parser(), argv)
+    parsed = settings.parse(build_parser(), argv)
+    s, model = parsed.get(TrainSettings), parsed.get(settings.ModelChoice)
     try:
-        return _main(a)
+        return run(s, model, parsed.config_args, parsed.prog)
     except (DatasetError, ValueError) as exc:
         print(f"protocad-train: error: {exc}", file=sys.stderr)
         return 2
@@ -412,121 +372,132 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
 
 
-def _main(a: argparse.Namespace) -> int:
-    return distributed.run_entry_point(a, _train)
+def run(s: TrainSettings, model: settings.ModelChoice, config_args: Sequence[str] = (),
+        prog: str = "protocad-train") -> int:
+    """Train from logs (or resume); under torchrun, this rank's share."""
+    return distributed.run_entry_point(model.threads, model.device,
+                                       lambda ctx, device: _train(s, model, list(config_args), prog, ctx, device))
 
 
-def _train(a: argparse.Namespace, ctx: distributed.DistContext, device: str) -> int:
-    from protocad_ros.checkpoint import CheckpointError
-
-    say = print if ctx.is_main else (lambda *args, **kw: None)
-    run_json: dict[str, Any] = {}
-    if a.resume:
-        run_dir, run_json = runs.resume_run_dir(a.run_dir, need_state=False)
-    else:
-        cfg = config_from_args(a)
-        # One directory for every rank (the default name has a time stamp): rank 0's.
-        run_dir = distributed.gather_objects(
-            str(runs.new_run_dir(a.run_dir, "train", cfg.task, cfg.variant)) if ctx.is_main else None, ctx)[0]
-        run_dir = Path(run_dir)
-    a.checkpoint_every = a.checkpoint_every or run_json.get("checkpoint_every") or 500
-    a.log_every = a.log_every or run_json.get("log_every") or DEFAULT_LOG_EVERY
-    logs = a.logs or run_json.get("logs")
-    if not logs:
-        raise ValueError("give --logs PATH... (bag directories, .mcap files or folders of bags)")
-    topic_args = a.topic or run_json.get("topics_args", [])
-    namespaces = a.namespace or run_json.get("namespace") or [None]
-    namespaces = [namespaces] if isinstance(namespaces, str) else list(namespaces)   # older run.json: one
-    topics = TopicMap.parse(topic_args, namespaces[0])
-    cache_dir = a.cache_dir or run_json.get("cache_dir")
-    accept_several = bool(a.accept_multiple_publishers or run_json.get("accept_multiple_publishers"))
-    if not accept_several:
-        refuse_multiple_publishers(logs, [TopicMap.parse(topic_args, ns) for ns in namespaces])
-
-    say(f"[train] reading logs: {', '.join(map(str, logs))}", flush=True)
+def open_logs(s: TrainSettings, cfg, ctx: distributed.DistContext, say: Callable[..., None]) -> MCAPDataset:
+    """The dataset over the logs, one topic map per robot namespace; rank 0 fills the cache
+    first, the others then reuse it. Refuses bags with several publishers on a topic read and
+    logs of the wrong action size (ValueError)."""
+    namespaces = list(s.namespace or [None])
+    if not s.accept_multiple_publishers:
+        refuse_multiple_publishers(s.logs, [TopicMap.parse(s.topic, ns) for ns in namespaces])
+    say(f"[train] reading logs: {', '.join(map(str, s.logs))}", flush=True)
     from trainer.data.dataset import default_cache_dir
 
-    where = "--cache-dir" if a.cache_dir else "the run's" if cache_dir else (
+    where = "--cache-dir" if s.cache_dir else (
         "$PROTOCAD_CACHE_DIR" if os.environ.get("PROTOCAD_CACHE_DIR") else "default, outside the project")
     say(f"[train] dataset cache (decoded frames, reused across runs): "
-          f"{Path(cache_dir) if cache_dir else default_cache_dir()} ({where}; LRU budget: --cache-budget-gb)", flush=True)
-    if a.resume:
-        try:
-            from protocad_ros.model.config import Config
-
-            cfg = Config.load(run_dir / "config.yaml")
-        except Exception as exc:  # noqa: BLE001
-            raise ValueError(f"--resume: cannot read {run_dir / 'config.yaml'}: {exc}") from None
+        f"{Path(s.cache_dir) if s.cache_dir else default_cache_dir()} ({where}; LRU budget: --cache-budget-gb)",
+        flush=True)
     if not ctx.is_main:
-        distributed.barrier_if(ctx)   # rank 0 fills the dataset cache first; the others then reuse it
-    ds = MCAPDataset(logs, topics=topics, seq_len=cfg.train.seq_len, seed=cfg.train.seed,
-                     cache_dir=cache_dir, verbose=ctx.is_main, cache_budget_gb=a.cache_budget_gb)
+        distributed.barrier_if(ctx)
+    ds = MCAPDataset(s.logs, topics=TopicMap.parse(s.topic, namespaces[0]), seq_len=cfg.train.seq_len,
+                     seed=cfg.train.seed, cache_dir=s.cache_dir, verbose=ctx.is_main,
+                     cache_budget_gb=s.cache_budget_gb)
     for ns in namespaces[1:]:   # the same logs, read once more per robot namespace
-        ds.add(logs, topics=TopicMap.parse(topic_args, ns))
+        ds.add(s.logs, topics=TopicMap.parse(s.topic, ns))
     if ctx.is_main:
         distributed.barrier_if(ctx)
     say(ds.report.summary(), flush=True)
     if ds.num_windows == 0:
         raise DatasetError(f"nothing to train on: no window of {cfg.train.seq_len} steps in the logs "
                            "(see the report above)")
-
-    accept_test = bool(a.accept_test_split or run_json.get("accept_test_split"))
-    refuse_test_split(ds, accept_test, say)
+    refuse_test_split(ds, s.accept_test_split, say)
     from sim_bridge.contract.contexts import task_actuators
 
     n_act = len(task_actuators(cfg.task))
     if ds.action_dim != n_act:
         raise ValueError(f"the logs carry {ds.action_dim}-d actions {ds.action_names} but {cfg.task} has "
                          f"{n_act} actuators: wrong --task, or the action topic maps something else")
-    callbacks = []
-    rrd = None
-    if a.rerun is not None or run_json.get("rerun"):
-        rrd = a.rerun or run_json.get("rerun") or str(run_dir / "metrics.rrd")
+    return ds
+
+
+def _train(s: TrainSettings, model: settings.ModelChoice, config_args: list[str], prog: str,
+           ctx: distributed.DistContext, device: str) -> int:
+    from protocad_ros.checkpoint import CheckpointError
+
+    say = print if ctx.is_main else (lambda *args, **kw: None)
+    run_json: dict[str, Any] = {}
+    if s.resume:
+        run_dir, run_json = runs.resume_run_dir(s.run_dir, need_state=False)
+        s = s.resumed_from(run_json)
+        try:
+            from protocad_ros.model.config import Config
+
+            cfg = Config.load(run_dir / "config.yaml")
+        except Exception as exc:  # noqa: BLE001 - any unreadable config is one line
+            raise ValueError(f"--resume: cannot read {run_dir / 'config.yaml'}: {exc}") from None
+    else:
+        cfg = model.to_config(config_args, prog)
+        # One directory for every rank (the default name has a time stamp): rank 0's.
+        run_dir = Path(distributed.gather_objects(
+            str(runs.new_run_dir(s.run_dir, "train", cfg.task, cfg.variant)) if ctx.is_main else None, ctx)[0])
+    s = dataclasses.replace(s, checkpoint_every=s.checkpoint_every or 500, log_every=s.log_every or DEFAULT_LOG_EVERY)
+    if not s.logs:
+        raise ValueError("give --logs PATH... (bag directories, .mcap files or folders of bags)")
+    ds = open_logs(s, cfg, ctx, say)
+    callbacks, rrd = [], None
+    if s.rerun is not None:
+        rrd = s.rerun or str(run_dir / "metrics.rrd")
         from trainer.viz.rerun_log import metrics_callback
 
         callbacks.append(metrics_callback(rrd, application="protocad-train"))
-    if a.resume:
+    if s.resume:
         try:
             trainer = Trainer.from_checkpoint(runs.checkpoint_path(run_dir), run_dir, ds, device=device,
-                                              callbacks=callbacks, log_every=a.log_every, dist_ctx=ctx)
+                                              callbacks=callbacks, log_every=s.log_every, dist_ctx=ctx)
         except CheckpointError as exc:
             raise ValueError(str(exc)) from None
-        target = a.updates or int(run_json.get("updates", 1000))
+        target = s.updates or 1000
         say(f"[train] resuming {run_dir} at update {trainer.updates} (target {target})", flush=True)
     else:
         cfg.train.device = device
         if ctx.is_main:
             (run_dir / "metrics.jsonl").unlink(missing_ok=True)   # a fresh run (no checkpoint yet)
-        trainer = Trainer(cfg, run_dir, ds, device=device, callbacks=callbacks, log_every=a.log_every,
+        trainer = Trainer(cfg, run_dir, ds, device=device, callbacks=callbacks, log_every=s.log_every,
                           dist_ctx=ctx)
-        target = a.updates or 1000
+        target = s.updates or 1000
         if ctx.is_main:
             cfg.save(run_dir / "config.yaml")
     if trainer.dataset.action_dim != trainer.agent.action_dim:
         raise ValueError(f"the logs have {trainer.dataset.action_dim}-d actions but the agent "
                          f"{trainer.agent.action_dim}-d")
-    run_json.update(kind="train", argv=sys.argv, logs=[str(Path(p).resolve()) for p in logs],
-                    topics_args=list(topic_args), namespace=[n for n in namespaces if n] or None,
-                    cache_dir=str(Path(cache_dir).resolve()) if cache_dir else None, task=cfg.task,
+    namespaces = [n for n in (s.namespace or []) if n] or None
+    run_json.update(kind="train", argv=sys.argv, logs=[str(Path(p).resolve()) for p in s.logs],
+                    topics_args=list(s.topic), namespace=namespaces,
+                    cache_dir=str(Path(s.cache_dir).resolve()) if s.cache_dir else None, task=cfg.task,
                     variant=cfg.variant, preset=cfg.preset, seed=cfg.train.seed, device=device, updates=target,
-                    checkpoint_every=a.checkpoint_every, log_every=a.log_every,
-                    rerun=str(rrd) if rrd else None, topics=topics.as_dict(), world_size=ctx.world_size,
-                    accept_multiple_publishers=accept_several, accept_test_split=accept_test)
+                    checkpoint_every=s.checkpoint_every, log_every=s.log_every,
+                    rerun=str(rrd) if rrd else None, topics=ds.topics.as_dict(), world_size=ctx.world_size,
+                    accept_multiple_publishers=s.accept_multiple_publishers,
+                    accept_test_split=s.accept_test_split,
+                    settings={"train": settings.as_data(s), "model": settings.as_data(model)})
     if ctx.is_main:
         runs.atomic_write_json(run_dir / "run.json", run_json)
+    return _train_to(trainer, target, s, cfg, ctx, say)
 
+
+def _train_to(trainer: Trainer, target: int, s: TrainSettings, cfg, ctx: distributed.DistContext,
+              say: Callable[..., None]) -> int:
+    """Update to `target` with a progress bar (Ctrl-C: a checkpoint, then exit 0) and report."""
+    run_dir = trainer.run_dir
     ranks = (f" ({ctx.world_size} ranks over {ctx.backend}, {trainer.local_batch} sequences each)"
              if ctx.enabled else "")
-    say(f"[train] {cfg.task} / {cfg.variant} / {cfg.preset} on {device}: batch "
-          f"{cfg.train.batch_size} x {cfg.train.seq_len}{ranks}, {trainer.updates} -> {target} updates; "
-          f"run dir {run_dir}", flush=True)
+    say(f"[train] {cfg.task} / {cfg.variant} / {cfg.preset} on {trainer.device}: batch "
+        f"{cfg.train.batch_size} x {cfg.train.seq_len}{ranks}, {trainer.updates} -> {target} updates; "
+        f"run dir {run_dir}", flush=True)
     t0 = time.monotonic()
     start = trainer.updates
     with runs.StopFlag() as stop:
         bar = runs.progress(target, initial=trainer.updates, desc="train",
-                            disable=True if a.no_progress or not ctx.is_main else None, unit="upd")
+                            disable=True if s.no_progress or not ctx.is_main else None, unit="upd")
         try:
-            done = trainer.train(target, stop=stop, checkpoint_every=a.checkpoint_every, bar=bar)
+            done = trainer.train(target, stop=stop, checkpoint_every=s.checkpoint_every, bar=bar)
         finally:
             bar.close()
             trainer.close()
@@ -534,7 +505,7 @@ def _train(a: argparse.Namespace, ctx: distributed.DistContext, device: str) -> 
     n = trainer.updates - start
     status = "finished" if done else "interrupted"
     say(f"[train] {status} at update {trainer.updates} ({n} updates in {runs.fmt_seconds(dt)}"
-          f"{f', {n / dt:.2f}/s' if dt > 0 and n else ''})", flush=True)
+        f"{f', {n / dt:.2f}/s' if dt > 0 and n else ''})", flush=True)
     say(f"[train] checkpoint: {trainer.checkpoint_path}", flush=True)
     say(f"[train] metrics:    {run_dir / 'metrics.jsonl'}", flush=True)
     say(f"[train] config:     {run_dir / 'config.yaml'}", flush=True)

@@ -219,7 +219,7 @@ class CheckpointPublisherNode(ProtocadNode):
     def close(self) -> None:
         try:
             self._publish_diagnostics()
-        except Exception:
+        except Exception:  # noqa: BLE001 - exiting: the last diagnostics are best effort
             pass
         self.get_logger().info("stopped: " + ", ".join(f"{k}={v}" for k, v in self.counters.items() if v))
 

@@ -257,7 +257,7 @@ class RecorderNode(ProtocadNode):
                 continue  # wait for a publisher: its offered QoS decides ours
             try:
                 self._subscribe(topic, types[0], pubs)
-            except Exception as exc:  # unknown type, import error...
+            except Exception as exc:  # noqa: BLE001 - unknown type, import error...
                 self._warn_once(f"sub:{topic}", f"cannot record {topic} [{types[0]}]: {exc}")
 
     def _subscribe(self, topic: str, msgtype: str, pubs: Sequence[Any]) -> None:
@@ -316,7 +316,7 @@ class RecorderNode(ProtocadNode):
             try:
                 self.writer.write(topic, data, recv, src if src else recv, sequence=seq)
                 self.received += 1
-            except Exception as exc:
+            except Exception as exc:  # noqa: BLE001 - any write failure is counted and reported; _check_failure decides
                 self.errors += 1
                 self._warn_once(f"write:{type(exc).__name__}", f"write to bag failed: {exc}")
                 self._check_failure()

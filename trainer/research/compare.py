@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import ctypes
+import dataclasses
 import json
 import os
 import shutil
@@ -44,8 +45,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Sequence
 
+from protocad_ros.model.config import VARIANTS
+from sim_bridge.contract.contexts import TASKS
 from trainer import runs
 from trainer.research.results import ANCHOR_LABEL
+from trainer.settings import arg
 
 
 
@@ -61,7 +65,7 @@ class RunSpec:
 
     def state(self, env_steps: int, wall_budget: float | None) -> str:
         """'done' (budget reached), 'resume' (a checkpoint to continue from) or 'fresh'."""
-        info = read_run_json(self.run_dir)
+        info = runs.read_run_json(self.run_dir)
         result = info.get("result") or {}
         if result.get("status") == "finished" and int(result.get("env_steps", 0)) >= env_steps:
             return "done"
@@ -74,13 +78,6 @@ class RunSpec:
         return "resume" if started and (self.run_dir / "run.json").exists() else "fresh"
 
 
-def read_run_json(run_dir: Path) -> dict:
-    try:
-        return json.loads((Path(run_dir) / "run.json").read_text())
-    except (OSError, json.JSONDecodeError):
-        return {}
-
-
 def standard_context(task: str) -> str:
     """The unrandomized task's context (every scale 1) as a --train-context value."""
     from sim_bridge.contract.contexts import get_task
@@ -88,7 +85,7 @@ def standard_context(task: str) -> str:
     return ",".join(f"{p}=1" for p in get_task(task).params)
 
 
-def plan(a: argparse.Namespace) -> list[RunSpec]:
+def plan(a: GridSettings) -> list[RunSpec]:
     specs: list[RunSpec] = []
     grid = [(t, v, v, s) for t in a.tasks for v in a.variants for s in a.seeds]
     grid += [(t, ANCHOR_LABEL, "dreamer", s) for t in a.tasks for s in a.anchor_seeds]
@@ -104,7 +101,7 @@ def plan(a: argparse.Namespace) -> list[RunSpec]:
     return specs
 
 
-def online_argv(spec: RunSpec, a: argparse.Namespace, state: str) -> list[str]:
+def online_argv(spec: RunSpec, a: GridSettings, state: str) -> list[str]:
     argv = [sys.executable, "-m", "trainer.research.online", "--run-dir", str(spec.run_dir),
             "--env-steps", str(a.env_steps), "--device", spec.device, "--threads", str(a.threads),
             "--no-progress"]
@@ -144,7 +141,7 @@ def latest_env_steps(run_dir: Path) -> int:
     return 0
 
 
-def run_grid(specs: Sequence[RunSpec], a: argparse.Namespace) -> int:
+def run_grid(specs: Sequence[RunSpec], a: GridSettings) -> int:
     """Runs every unfinished spec, at most a.jobs at once. Returns the number that failed."""
     todo = []
     for s in specs:
@@ -186,7 +183,7 @@ def run_grid(specs: Sequence[RunSpec], a: argparse.Namespace) -> int:
                         continue
                     log.close()
                     del running[pid]
-                    res = read_run_json(s.run_dir).get("result") or {}
+                    res = runs.read_run_json(s.run_dir).get("result") or {}
                     ok = p.returncode == 0 and res.get("status") in ("finished", "wall_budget")
                     failed += 0 if ok else 1
                     print(f"[compare] {s.task}/{s.label}/seed{s.seed}: exit {p.returncode}, "
@@ -253,7 +250,7 @@ def add_grid_wall_time(out: Path, seconds: float) -> float:
     return total
 
 
-def random_baselines(a: argparse.Namespace) -> dict[str, dict]:
+def random_baselines(a: GridSettings) -> dict[str, dict]:
     """The uniform random policy on each task's test contexts, once (OUT/TASK/random.json)."""
     from trainer.learn.evaluate import evaluate_checkpoint
 
@@ -267,61 +264,71 @@ def random_baselines(a: argparse.Namespace) -> dict[str, dict]:
     return out
 
 
-# ---------------------------------------------------------------------- CLI
-def build_parser() -> argparse.ArgumentParser:
-    from protocad_ros.model.config import VARIANTS
-    from sim_bridge.contract.contexts import TASKS
+# ---------------------------------------------------------------------- settings and CLI
+@dataclass
+class GridSettings:
+    """A grid of protocad-online runs and what to report from it."""
 
-    ap = argparse.ArgumentParser(
-        prog="protocad-compare",
-        description="Run tasks x variants x seeds as parallel protocad-online runs (resumable), "
-                    "gather their evaluation curves into OUT/results.json and report: final "
-                    "test-context return per task and variant (mean over seeds, 95% bootstrap "
-                    "CI, the paper's figure beside it), mean / median / IQM over tasks, a "
-                    "learning-curve PNG and a rerun recording. Arguments after `--` go to every "
-                    "protocad-online run.",
-        formatter_class=runs.HelpFormatter)
-    g = ap.add_argument_group("grid")
-    g.add_argument("--tasks", nargs="+", choices=sorted(TASKS), default=["pendulum_swingup"])
-    g.add_argument("--variants", nargs="+", choices=VARIANTS, default=["protocad", "dreamer"])
-    g.add_argument("--seeds", nargs="*", type=int, default=[0, 1, 2],
-                   help="seeds of every variant (none: only the anchor's)")
-    g.add_argument("--anchor-seeds", nargs="*", type=int, default=[],
-                   help=f"also run dreamer on the unrandomized task (label {ANCHOR_LABEL}) with these seeds")
-    g = ap.add_argument_group("budgets and resources")
-    g.add_argument("--env-steps", type=int, default=2_000_000, help="env-step budget of every run")
-    g.add_argument("--wall-budget", type=runs.parse_duration, default=None, metavar="DURATION",
-                   help="training wall-time budget of every run (e.g. 85m, 1h30m, 5400)")
-    g.add_argument("--jobs", type=int, default=2, help="runs at once (worker processes)")
-    g.add_argument("--threads", type=int, default=1, help="torch threads of each run")
-    g.add_argument("--devices", nargs="+", default=["cpu"],
-                   help="devices assigned to runs round robin (cpu, cuda, cuda:N)")
-    g = ap.add_argument_group("output")
-    g.add_argument("--out", default=None, help="directory of the grid (default runs/compare-STAMP)")
-    g.add_argument("--report", default=None, metavar="RESULTS_JSON",
-                   help="only report from this results.json (no runs)")
-    g.add_argument("--markdown", action="store_true",
-                   help="print the README results section (generated from results.json)")
-    g.add_argument("--update-readme", default=None, metavar="README",
-                   help="replace the generated results section of this README in place")
-    g.add_argument("--image", default=None, metavar="PNG",
-                   help="also write the learning-curve plot here, and link it from the markdown section "
-                        "(a path relative to the README)")
-    g.add_argument("--rrd", default=None, metavar="RRD",
-                   help="write the curves' rerun recording here (a grid also writes OUT/curves.rrd)")
-    g.add_argument("--random-baseline", action="store_true",
-                   help="evaluate the uniform random policy once per task (OUT/TASK/random.json, the "
-                        "final evaluation's contexts and episodes) and report it beside the variants")
-    g.add_argument("--random-episodes", type=int, default=5, help="episodes per context of --random-baseline")
-    g.add_argument("--status-every", type=float, default=300.0, help="seconds between status lines")
-    ap.add_argument("online_args", nargs=argparse.REMAINDER,
-                    help="-- then arguments for every protocad-online run")
-    return ap
+    tasks: list[str] = arg(["pendulum_swingup"], choices=sorted(TASKS), group="grid")
+    """tasks of the grid"""
+    variants: list[str] = arg(["protocad", "dreamer"], choices=VARIANTS, group="grid")
+    """variants of the grid"""
+    seeds: list[int] = arg([0, 1, 2], nargs="*", group="grid")
+    """seeds of every variant (none: only the anchor's)"""
+    anchor_seeds: list[int] = arg([], nargs="*", group="grid")
+    """also run dreamer on the unrandomized task (label dreamer_standard) with these seeds"""
+    env_steps: int = arg(2_000_000, group="budgets and resources")
+    """env-step budget of every run"""
+    wall_budget: float | None = arg(None, type=runs.parse_duration, metavar="DURATION",
+                                    group="budgets and resources")
+    """training wall-time budget of every run (e.g. 85m, 1h30m, 5400)"""
+    jobs: int = arg(2, type=runs.positive_int, group="budgets and resources")
+    """runs at once (worker processes)"""
+    threads: int = arg(1, type=runs.non_negative_int, group="budgets and resources")
+    """torch threads of each run"""
+    devices: list[str] = arg(["cpu"], group="budgets and resources")
+    """devices assigned to runs round robin (cpu, cuda, cuda:N)"""
+    out: str | None = arg(None, group="output")
+    """directory of the grid (default runs/compare-STAMP)"""
+    report: str | None = arg(None, metavar="RESULTS_JSON", group="output")
+    """only report from this results.json (no runs)"""
+    markdown: bool = arg(False, group="output")
+    """print the README results section (generated from results.json)"""
+    update_readme: str | None = arg(None, metavar="README", group="output")
+    """replace the generated results section of this README in place"""
+    image: str | None = arg(None, metavar="PNG", group="output")
+    """also write the learning-curve plot here, and link it from the markdown section (a path
+    relative to the README)"""
+    rrd: str | None = arg(None, metavar="RRD", group="output")
+    """write the curves' rerun recording here (a grid also writes OUT/curves.rrd)"""
+    random_baseline: bool = arg(False, group="output")
+    """evaluate the uniform random policy once per task (OUT/TASK/random.json, the final
+    evaluation's contexts and episodes) and report it beside the variants"""
+    random_episodes: int = arg(5, group="output")
+    """episodes per context of --random-baseline"""
+    status_every: float = arg(300.0, group="output")
+    """seconds between status lines"""
+    online_args: list[str] = arg([], "online_args", nargs=argparse.REMAINDER)
+    """-- then arguments for every protocad-online run"""
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from trainer.settings import settings_parser
+
+    return settings_parser(
+        "protocad-compare",
+        "Run tasks x variants x seeds as parallel protocad-online runs (resumable), gather their "
+        "evaluation curves into OUT/results.json and report: final test-context return per task and "
+        "variant (mean over seeds, 95% bootstrap CI, the paper's figure beside it), mean / median / "
+        "IQM over tasks, a learning-curve PNG and a rerun recording. Arguments after `--` go to "
+        "every protocad-online run.",
+        [(None, GridSettings)])
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    ap = build_parser()
-    a = ap.parse_args(argv)
+    from trainer.settings import build
+
+    a = build(GridSettings, vars(build_parser().parse_args(argv)))
     if a.online_args and a.online_args[0] == "--":
         a.online_args = a.online_args[1:]
     try:
@@ -331,14 +338,13 @@ def main(argv: Sequence[str] | None = None) -> int:
             doc = R.load_results(a.report)
             out_dir = Path(a.report).parent
         else:
-            if a.jobs < 1 or a.threads < 0:
-                ap.error("--jobs must be >= 1 and --threads >= 0")
-            a.out = Path(a.out or time.strftime("runs/compare-%Y%m%d-%H%M%S"))
-            a.out.mkdir(parents=True, exist_ok=True)
+            out_dir = Path(a.out or time.strftime("runs/compare-%Y%m%d-%H%M%S"))
+            out_dir.mkdir(parents=True, exist_ok=True)
+            a = dataclasses.replace(a, out=str(out_dir))
             specs = plan(a)
             t0 = time.monotonic()
             failed = run_grid(specs, a)
-            wall = add_grid_wall_time(a.out, time.monotonic() - t0)
+            wall = add_grid_wall_time(out_dir, time.monotonic() - t0)
             if failed < 0:
                 return 130
             from trainer.research import results as R
@@ -347,7 +353,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             command = ["protocad-compare", *(sys.argv[1:] if argv is None else argv)]
             doc = R.gather(specs, command=command, env_steps=a.env_steps, wall_budget=a.wall_budget,
                            jobs=a.jobs, threads=a.threads, wall_time=wall, random=random)
-            out_dir = a.out
             R.save_results(doc, out_dir / "results.json")
             print(f"[compare] {len(specs)} runs, {failed} failed; results: {out_dir / 'results.json'}",
                   flush=True)

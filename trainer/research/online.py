@@ -33,20 +33,24 @@ any rank); rank 0 evaluates (the others wait), writes the metrics, run.json and 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
 
 from sim_bridge.contract import topics as T
-from trainer.learn import distributed
-from trainer import runs
+from trainer import runs, settings
 from trainer.data.dataset import MCAPDataset, TopicMap
-from trainer.learn.train import Trainer, add_common_model_args, config_from_args
+from trainer.learn import distributed
+from trainer.learn.schedule import RunCounters, Schedule
+from trainer.learn.train import Trainer
+from trainer.settings import arg
 
 BAG_QOS = dict(history="keep_last", depth=100, reliability="reliable", durability="volatile")
 
@@ -115,101 +119,6 @@ def _feature_row(features: Any, i: int) -> Any:
     return f
 
 
-# ---------------------------------------------------------------------- CLI
-def parse_context_arg(text: str) -> dict[str, float]:
-    from trainer.learn.evaluate import parse_context
-
-    try:
-        return parse_context(text)
-    except ValueError as exc:
-        raise argparse.ArgumentTypeError(str(exc)) from None
-
-
-def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(
-        prog="protocad-online",
-        description="In-process training (no ROS): vectorized envs on the training contexts -> "
-                    "agent -> trainer, with the paper's protocol (prefill N random episodes, C "
-                    "updates per collected episode, evaluation on the test contexts every "
-                    "--eval-every env steps) and the same MCAP bags as the ROS path.",
-        formatter_class=runs.HelpFormatter)
-    add_common_model_args(ap)
-    # The research path uses a GPU when there is one, and bf16 where the hardware has it.
-    ap.set_defaults(device="auto", precision="auto")
-    g = ap.add_argument_group("protocol")
-    g.add_argument("--env-steps", type=int, default=2_000_000,
-                   help="budget in env steps (agent steps x action repeat); paper: 2M")
-    g.add_argument("--num-envs", type=int, default=1, help="training envs (worker processes)")
-    g.add_argument("--prefill-episodes", type=int, default=None, help="N (default train.prefill_episodes = 2)")
-    g.add_argument("--updates-per-episode", type=int, default=None,
-                   help="C (default train.collect_interval = 100)")
-    g.add_argument("--time-limit", type=int, default=None,
-                   help="env steps per episode (default train.time_limit = 1000)")
-    g.add_argument("--eval-every", type=int, default=10_000, help="env steps between evaluations (0: only at the end)")
-    g.add_argument("--eval-episodes", type=int, default=2,
-                   help="episodes per context of the periodic evaluations")
-    g.add_argument("--final-episodes", type=int, default=5,
-                   help="episodes per context of the final evaluation and --random-baseline "
-                        "(the paper's 5)")
-    g.add_argument("--eval-max-contexts", type=int, default=8,
-                   help="periodic evaluations use a fixed subset of K contexts, stratified over the "
-                        "parameters (every m and every d equally often; sim_bridge.contract.contexts."
-                        "TaskSpec.stratified); 0: all. 8 contexts x 2 episodes = 1.6x the training "
-                        "interaction every 10k env steps, where all 64 x 5 of walker were 32x")
-    g.add_argument("--final-max-contexts", type=int, default=0,
-                   help="the final evaluation (and --random-baseline): 0 = every context of the "
-                        "split, the paper protocol; K = the stratified subset of K")
-    g.add_argument("--wall-budget", type=runs.parse_duration, default=None, metavar="DURATION",
-                   help="also stop once the run's training wall time (carried across resumes) reaches "
-                        "this, e.g. 5400, 90m, 1h30m; then the final evaluation, checkpoint and curves "
-                        "are written as at the env-step budget")
-    g.add_argument("--train-context", type=parse_context_arg, default=None, metavar="K=V[,K=V]",
-                   help="train on this one context of the train split instead of a draw per episode "
-                        "(e.g. m=1: the standard, unrandomized task)")
-    g.add_argument("--eval-split", choices=("test", "train"), default="test",
-                   help="split of the evaluation contexts (paper: test = unseen)")
-    g.add_argument("--eval-contexts", type=parse_context_arg, nargs="+", default=None, metavar="K=V[,K=V]",
-                   help="evaluate on exactly these contexts of --eval-split (default: the split's grid)")
-    g.add_argument("--eval-workers", type=int, default=-1,
-                   help="evaluation env processes (0: in this process; -1: auto)")
-    g.add_argument("--random-baseline", action="store_true",
-                   help="also evaluate the uniform random policy once (same contexts and episodes)")
-    g = ap.add_argument_group("run")
-    g.add_argument("--run-dir", default=None, help="output directory (default runs/online-TASK-VARIANT-TIME)")
-    g.add_argument("--resume", action="store_true", help="continue RUN_DIR from its checkpoint")
-    g.add_argument("--checkpoint-every", type=int, default=1000,
-                   help="updates between checkpoints (also after every evaluation and at the end)")
-    g.add_argument("--log-every", type=int, default=10, help="updates per metrics line")
-    g.add_argument("--cache-dir", default=None, help="dataset cache (default RUN_DIR/cache)")
-    g.add_argument("--rerun", nargs="?", const="", default=None, metavar="RRD",
-                   help="log scalars and evaluations to a rerun recording (default RUN_DIR/metrics.rrd)")
-    g.add_argument("--no-progress", action="store_true")
-    return ap
-
-
-def main(argv: Sequence[str] | None = None) -> int:
-    a = runs.parse_cli(build_parser(), argv)
-    if a.resume:   # the original command's options, unless given again
-        a = runs.resumed_cli(build_parser, a)
-    from trainer.learn.train import CheckpointWriteError, RanksDiverged
-
-    try:
-        return run(a)
-    except ValueError as exc:
-        print(f"protocad-online: error: {exc}", file=sys.stderr)
-        return 2
-    except (CheckpointWriteError, RanksDiverged, mcap_io_errors(), cache_errors(), OSError) as exc:
-        # a full disk (cache, bags, checkpoints, metrics) is one line with the path; the run
-        # resumes once space is freed (protocad-online --resume)
-        where = (f" ({exc.filename})" if isinstance(exc, OSError) and exc.filename
-                 and str(exc.filename) not in str(exc) else "")
-        print(f"protocad-online: error: {exc}{where}", file=sys.stderr)
-        if a.run_dir:
-            print(f"protocad-online: continue with: protocad-online --run-dir {a.run_dir} --resume",
-                  file=sys.stderr)
-        return 1
-
-
 def bag_name(bags_dir: Path, index: int, env: int, attempt: int, rank_tag: str = "") -> str:
     """A new episode's bag directory name: its index, env, and the attempt (invocation) that
     writes it, so an attempt killed before its checkpoint never collides with the next one;
@@ -270,6 +179,137 @@ def close_quietly(steps) -> list[tuple[str, Exception]]:
     return errors
 
 
+# ---------------------------------------------------------------------- settings
+def parse_context_arg(text: str) -> dict[str, float]:
+    from trainer.learn.evaluate import parse_context
+
+    try:
+        return parse_context(text)
+    except ValueError as exc:
+        raise argparse.ArgumentTypeError(str(exc)) from None
+
+
+@dataclass
+class OnlineSettings:
+    """protocad-online's protocol (Algorithm 1 and the evaluation protocol) and run options."""
+
+    env_steps: int = arg(2_000_000, group="protocol")
+    """budget in env steps (agent steps x action repeat); paper: 2M"""
+    num_envs: int = arg(1, group="protocol")
+    """training envs (worker processes)"""
+    prefill_episodes: int | None = arg(None, group="protocol")
+    """N (default train.prefill_episodes = 2)"""
+    updates_per_episode: int | None = arg(None, group="protocol")
+    """C (default train.collect_interval = 100)"""
+    time_limit: int | None = arg(None, group="protocol")
+    """env steps per episode (default train.time_limit = 1000)"""
+    eval_every: int = arg(10_000, group="protocol")
+    """env steps between evaluations (0: only at the end)"""
+    eval_episodes: int = arg(2, group="protocol")
+    """episodes per context of the periodic evaluations"""
+    final_episodes: int = arg(5, group="protocol")
+    """episodes per context of the final evaluation and --random-baseline (the paper's 5)"""
+    eval_max_contexts: int = arg(8, group="protocol")
+    """periodic evaluations use a fixed subset of K contexts, stratified over the parameters
+    (every m and every d equally often; sim_bridge.contract.contexts.TaskSpec.stratified); 0: all.
+    8 contexts x 2 episodes = 1.6x the training interaction every 10k env steps, where all
+    64 x 5 of walker were 32x"""
+    final_max_contexts: int = arg(0, group="protocol")
+    """the final evaluation (and --random-baseline): 0 = every context of the split, the paper
+    protocol; K = the stratified subset of K"""
+    wall_budget: float | None = arg(None, type=runs.parse_duration, metavar="DURATION", group="protocol")
+    """also stop once the run's training wall time (carried across resumes) reaches this, e.g.
+    5400, 90m, 1h30m; then the final evaluation, checkpoint and curves are written as at the
+    env-step budget"""
+    train_context: dict | None = arg(None, type=parse_context_arg, metavar="K=V[,K=V]", group="protocol")
+    """train on this one context of the train split instead of a draw per episode (e.g. m=1:
+    the standard, unrandomized task)"""
+    eval_split: str = arg("test", choices=("test", "train"), group="protocol")
+    """split of the evaluation contexts (paper: test = unseen)"""
+    eval_contexts: list[dict] | None = arg(None, type=parse_context_arg, nargs="+", metavar="K=V[,K=V]",
+                                           group="protocol")
+    """evaluate on exactly these contexts of --eval-split (default: the split's grid)"""
+    eval_workers: int = arg(-1, group="protocol")
+    """evaluation env processes (0: in this process; -1: auto)"""
+    random_baseline: bool = arg(False, group="protocol")
+    """also evaluate the uniform random policy once (same contexts and episodes)"""
+    run_dir: str | None = arg(None, group="run")
+    """output directory (default runs/online-TASK-VARIANT-TIME)"""
+    resume: bool = arg(False, group="run")
+    """continue RUN_DIR from its checkpoint"""
+    checkpoint_every: int = arg(1000, group="run")
+    """updates between checkpoints (also after every evaluation and at the end)"""
+    log_every: int = arg(10, group="run")
+    """updates per metrics line"""
+    cache_dir: str | None = arg(None, group="run")
+    """dataset cache (default RUN_DIR/cache)"""
+    rerun: str | None = arg(None, nargs="?", const="", metavar="RRD", group="run")
+    """log scalars and evaluations to a rerun recording (default RUN_DIR/metrics.rrd)"""
+    no_progress: bool = arg(False, group="run")
+    """no progress bar"""
+
+    def config_overrides(self) -> dict[str, Any]:
+        """The protocol's shortcut flags, as config settings."""
+        pairs = (("train.prefill_episodes", self.prefill_episodes),
+                 ("train.collect_interval", self.updates_per_episode), ("train.time_limit", self.time_limit))
+        return {k: v for k, v in pairs if v is not None}
+
+
+#: Settings a resume takes from run.json's `protocol` when the run predates `settings`.
+PROTOCOL_KEYS = ("env_steps", "num_envs", "eval_every", "eval_episodes", "eval_max_contexts",
+                 "final_max_contexts", "final_episodes", "wall_budget", "train_context", "eval_split",
+                 "eval_contexts")
+
+
+def build_parser():
+    return settings.settings_parser(
+        "protocad-online",
+        "In-process training (no ROS): vectorized envs on the training contexts -> agent -> "
+        "trainer, with the paper's protocol (prefill N random episodes, C updates per collected "
+        "episode, evaluation on the test contexts every --eval-every env steps) and the same "
+        "MCAP bags as the ROS path.",
+        [("model / config", settings.ModelChoice), (None, OnlineSettings)],
+        # the research path uses a GPU when there is one, and bf16 where the hardware has it
+        defaults={"device": "auto", "precision": "auto"})
+
+
+def parse_args(argv: Sequence[str] | None = None) -> tuple[OnlineSettings, settings.ModelChoice, settings.Parsed]:
+    """The command line as (protocol, model choice); with --resume, the run's saved settings
+    replaced by the flags given."""
+    parser = build_parser()
+    parsed = settings.parse(parser, argv)
+    s = parsed.get(OnlineSettings)
+    model = parsed.get(settings.ModelChoice)
+    if s.resume and s.run_dir:
+        saved = runs.read_run_json(Path(s.run_dir))
+        kept = saved.get("settings") or {}
+        old_args = saved.get("args") if isinstance(saved.get("args"), list) else None
+        s = settings.resumed(OnlineSettings, kept.get("online"), parsed, parser, old_args)
+        model = settings.resumed(settings.ModelChoice, kept.get("model"), parsed, parser, old_args)
+    return s, model, parsed
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    s, model, parsed = parse_args(argv)
+    from trainer.learn.train import CheckpointWriteError, RanksDiverged
+
+    try:
+        return run(s, model, parsed.config_args, parsed.prog, parsed.argv)
+    except ValueError as exc:
+        print(f"protocad-online: error: {exc}", file=sys.stderr)
+        return 2
+    except (CheckpointWriteError, RanksDiverged, mcap_io_errors(), cache_errors(), OSError) as exc:
+        # a full disk (cache, bags, checkpoints, metrics) is one line with the path; the run
+        # resumes once space is freed (protocad-online --resume)
+        where = (f" ({exc.filename})" if isinstance(exc, OSError) and exc.filename
+                 and str(exc.filename) not in str(exc) else "")
+        print(f"protocad-online: error: {exc}{where}", file=sys.stderr)
+        if s.run_dir:
+            print(f"protocad-online: continue with: protocad-online --run-dir {s.run_dir} --resume",
+                  file=sys.stderr)
+        return 1
+
+
 def mcap_io_errors() -> type:
     from trainer.bag.mcap_io import BagWriteError
 
@@ -282,313 +322,393 @@ def cache_errors() -> type:
     return CacheWriteError
 
 
-def run(a: argparse.Namespace) -> int:
-    return distributed.run_entry_point(a, _run)
+# ---------------------------------------------------------------------- the run, in parts
+class EnvBags:
+    """One bag per episode for each env, named by bag_name; the run's counters advance as
+    steps and episodes are recorded (global under torchrun: each rank adds world_size)."""
 
+    def __init__(self, bags_dir: Path, n: int, action_names: Sequence[str], dt_ns: int, attempt: int,
+                 rank_tag: str, counters: RunCounters, action_repeat: int, world: int):
+        self.bags_dir, self.names, self.dt_ns = bags_dir, list(action_names), dt_ns
+        self.attempt, self.rank_tag, self.c, self.R, self.world = attempt, rank_tag, counters, action_repeat, world
+        self.writers: list[EpisodeBagWriter | None] = [None] * n
+        self.ticks = [0] * n
+        self.returns = np.zeros(n)
 
-def _run(a: argparse.Namespace, ctx: distributed.DistContext, device: str) -> int:
-    from protocad_ros.policy import Policy
-    from sim_bridge.sim.vector import VectorEnv
-    from trainer.learn.evaluate import evaluate_checkpoint, format_table, select_contexts
-    from sim_bridge.sim.rollout import RandomPolicy, continuing_rollout
-
-    main_rank, world = ctx.is_main, ctx.world_size
-    say = print if main_rank else (lambda *args, **kw: None)
-    run_json: dict[str, Any] = {}
-    if a.resume:
-        # A run killed before its first checkpoint still resumes: from its config and its bags.
-        run_dir, run_json = runs.resume_run_dir(a.run_dir, need_checkpoint=False)
-        from protocad_ros.model.config import Config
-
-        cfg = Config.load(run_dir / "config.yaml")
-        proto = run_json["protocol"]
-        for k in ("env_steps", "num_envs", "eval_every", "eval_episodes", "eval_max_contexts",
-                  "final_max_contexts", "final_episodes", "wall_budget", "train_context", "eval_split", "eval_contexts"):
-            if getattr(a, k) == build_parser().get_default(k):
-                setattr(a, k, proto.get(k, getattr(a, k)))
-    else:
-        overrides = {}
-        if a.prefill_episodes is not None:
-            overrides["train.prefill_episodes"] = a.prefill_episodes
-        if a.updates_per_episode is not None:
-            overrides["train.collect_interval"] = a.updates_per_episode
-        if a.time_limit is not None:
-            overrides["train.time_limit"] = a.time_limit
-        a.set = list(a.set) + [f"{k}={v}" for k, v in overrides.items()]
-        cfg = config_from_args(a)
-        cfg.train.device = device
-        run_dir = Path(distributed.gather_objects(   # rank 0's (the default name has a stamp)
-            str(runs.new_run_dir(a.run_dir, "online", cfg.task, cfg.variant)) if main_rank else None, ctx)[0])
-        if main_rank:
-            run_dir.mkdir(parents=True, exist_ok=True)
-            cfg.save(run_dir / "config.yaml")
-        distributed.barrier_if(ctx)
-    tr = cfg.train
-    N, C, R = tr.prefill_episodes, tr.collect_interval, tr.action_repeat
-    bags_dir = run_dir / "bags"
-    bags_dir.mkdir(parents=True, exist_ok=True)
-    rank_tag = f"_rank{ctx.rank}" if ctx.enabled else ""
-    cache_dir = Path(a.cache_dir) if a.cache_dir else run_dir / "cache"
-    eval_dir = run_dir / "eval"
-    eval_dir.mkdir(exist_ok=True)
-    from trainer.research.results import code_version
-
-    versions = list(run_json.get("code_versions", []))
-    if code_version() not in versions:   # every invocation's code, resumes included
-        versions.append(code_version())
-    runs.record_invocation(run_json, a)
-    run_json.update(kind="online", code_versions=versions, task=cfg.task, variant=cfg.variant, preset=cfg.preset,
-                    seed=tr.seed, device=device, protocol={
-                        "env_steps": a.env_steps, "num_envs": a.num_envs, "prefill_episodes": N,
-                        "updates_per_episode": C, "action_repeat": R, "time_limit": tr.time_limit,
-                        "eval_every": a.eval_every, "eval_episodes": a.eval_episodes,
-                        "eval_max_contexts": a.eval_max_contexts, "final_max_contexts": a.final_max_contexts,
-                        "final_episodes": a.final_episodes,
-                        "wall_budget": a.wall_budget, "train_context": a.train_context,
-                        "eval_split": a.eval_split, "eval_contexts": a.eval_contexts, "world_size": world})
-    if main_rank:
-        runs.atomic_write_json(run_dir / "run.json", run_json)
-
-    # The run's own cache is its replay buffer: every entry is in use, no budget applies.
-    ds = MCAPDataset([], topics=TopicMap(), seq_len=tr.seq_len, seed=tr.seed, cache_dir=cache_dir,
-                     cache_budget_gb=None if a.cache_dir else 0)
-    # On resume each rank replays a share of the bags on disk (all of them on one process),
-    # whatever the number of ranks that wrote them.
-    if main_rank and a.resume:
-        for left in leftovers(run_dir, cache_dir):
-            say(f"[online] removed {left}, left by an interrupted attempt", flush=True)
-    distributed.barrier_if(ctx)
-    all_bags = sorted(p for p in bags_dir.iterdir() if p.is_dir())
-    existing = all_bags[ctx.rank::world]
-    if existing:
-        ds.add(existing)
-    callbacks = []
-    if a.rerun is not None:
-        from trainer.viz.rerun_log import metrics_callback
-
-        callbacks.append(metrics_callback(a.rerun or run_dir / "metrics.rrd", application="protocad-online"))
-    if a.resume and runs.checkpoint_path(run_dir).exists():
-        trainer = Trainer.from_checkpoint(runs.checkpoint_path(run_dir), run_dir, ds, device=device,
-                                          callbacks=callbacks, log_every=a.log_every, dist_ctx=ctx)
-    else:
-        from sim_bridge.contract.contexts import task_actuators
-
-        if a.resume and main_rank:   # killed before its first checkpoint: updates start again
-            runs.truncate_metrics(run_dir / "metrics.jsonl", 0)
-        trainer = Trainer(cfg, run_dir, ds, device=device, callbacks=callbacks, log_every=a.log_every,
-                          action_dim=len(task_actuators(cfg.task)), dist_ctx=ctx)
-        trainer.counters.update(env_steps=0, agent_steps=0, episodes=0, prefill_done=0,
-                                next_eval=a.eval_every, evals=0, resumes=0, last_return=0.0, bags=0)
-    c = trainer.counters
-    if a.resume:
-        # The data is the truth: every bag on disk counts, also those written after the last
-        # checkpoint (their updates are made up by the schedule, which counts from episodes).
-        steps, episodes = (sum(x) for x in zip(*distributed.gather_objects(data_counts(ds), ctx)))
-        c.update(agent_steps=steps, env_steps=steps * R, episodes=episodes, bags=len(all_bags),
-                 prefill_done=int(episodes >= N), resumes=int(c.get("resumes", 0)) + 1)
-        say(f"[online] resuming {run_dir}: {c['env_steps']} env steps, {c['episodes']} episodes "
-            f"in {len(all_bags)} bags, {trainer.updates} updates"
-            + ("" if runs.checkpoint_path(run_dir).exists() else " (no checkpoint yet: from the bags)"),
-            flush=True)
-    attempt = len(run_json.get("resumes_argv", []))   # this invocation's number, unique per run
-    eval_workers = a.eval_workers if a.eval_workers >= 0 else (0 if (os.cpu_count() or 1) <= 2 else
-                                                               min(16, (os.cpu_count() or 2) - 1))
-    periodic_contexts = select_contexts(cfg.task, a.eval_split, a.eval_contexts, a.eval_max_contexts)
-    final_contexts = select_contexts(cfg.task, a.eval_split, a.eval_contexts, a.final_max_contexts)
-    if a.train_context is not None:
-        from sim_bridge.contract.contexts import get_task
-
-        a.train_context = get_task(cfg.task).validate(a.train_context, "train")
-
-    def log_eval(result, tag: str) -> None:
-        if not main_rank:
-            return
-        d = result.to_dict()
-        d.update(env_steps=int(c["env_steps"]), updates=trainer.updates, tag=tag)
-        runs.atomic_write_json(eval_dir / f"{tag}.json", d)
-        with open(run_dir / "eval.jsonl", "a") as f:
-            f.write(json.dumps({"env_steps": int(c["env_steps"]), "updates": trainer.updates, "tag": tag,
-                                "policy": d["policy"], "mean_return": d["mean_return"],
-                                "per_context": {" ".join(f"{k}={v:g}" for k, v in pc["context"].items()):
-                                                pc["mean_return"] for pc in d["per_context"]}}) + "\n")
-        trainer.metrics.log(trainer.updates, {"eval_return": d["mean_return"]}, kind="eval", tag=tag,
-                            env_steps=int(c["env_steps"]))
-        for hook in trainer.metrics.eval_hooks():
-            try:
-                hook.log_eval(trainer.updates, d)
-            except Exception as exc:  # noqa: BLE001
-                print(f"[online] rerun eval logging failed: {exc}", file=sys.stderr)
-
-    final_episodes = a.final_episodes
-
-    def evaluate(tag: str, contexts, stop, episodes: int) -> Any:
-        if not main_rank:   # rank 0 evaluates; the others wait for it
-            distributed.barrier_if(ctx)
+    def record(self, i: int, obs: Any, action: np.ndarray, features: Any) -> Path | None:
+        """Write env i's observation and the action answering it; the bag's directory when
+        this observation ended its episode."""
+        c, w = self.c, self.writers
+        stamp = self.ticks[i] * self.dt_ns
+        if obs.is_first or w[i] is None:
+            if w[i] is not None:
+                w[i].close()
+            w[i] = EpisodeBagWriter(self.bags_dir / bag_name(self.bags_dir, c.bags, i, self.attempt, self.rank_tag),
+                                    self.names)
+            c.bags += 1
+            self.returns[i] = 0.0
+        w[i].write_observation(obs, stamp)
+        w[i].write_action(action, stamp, features)
+        self.ticks[i] += 1
+        if not obs.is_first:
+            self.returns[i] += obs.reward
+            c.agent_steps += self.world
+            c.env_steps += self.R * self.world
+        if not obs.is_last:
             return None
-        res = evaluate_checkpoint(None, agent=trainer.agent, task=cfg.task, episodes=episodes,
-                                  contexts=contexts, split=a.eval_split, seed=tr.seed + 7, device=device, workers=eval_workers,
-                                  counters=c, progress=False if a.no_progress else None, stop=stop)
-        res.policy = f"{cfg.variant}@{int(c['env_steps'])}"
-        distributed.barrier_if(ctx)
+        w[i].close()
+        done, w[i] = w[i].bag_dir, None
+        c.episodes += self.world
+        c.last_return = float(self.returns[i])
+        return done
+
+    def closers(self) -> list[tuple[str, Any]]:
+        return [("closing the bag", w.close) for w in self.writers if w is not None]
+
+
+class Evaluator:
+    """Rank 0 evaluates the current agent (the others wait) and logs the result: eval/TAG.json,
+    a line of eval.jsonl, the metrics' eval row and the rerun hooks."""
+
+    def __init__(self, trainer: Trainer, task: str, variant: str, split: str, seed: int, device: str,
+                 workers: int, counters: RunCounters, ctx: distributed.DistContext, run_dir: Path,
+                 progress: bool | None):
+        self.trainer, self.task, self.variant, self.split, self.seed = trainer, task, variant, split, seed
+        self.device, self.workers, self.c, self.ctx, self.progress = device, workers, counters, ctx, progress
+        self.run_dir, self.eval_dir = run_dir, run_dir / "eval"
+
+    def __call__(self, tag: str, contexts, episodes: int, stop: runs.StopFlag) -> Any:
+        from trainer.learn.evaluate import evaluate_checkpoint, format_table
+
+        if not self.ctx.is_main:   # rank 0 evaluates; the others wait for it
+            distributed.barrier_if(self.ctx)
+            return None
+        res = evaluate_checkpoint(None, agent=self.trainer.agent, task=self.task, episodes=episodes,
+                                  contexts=contexts, split=self.split, seed=self.seed, device=self.device,
+                                  workers=self.workers, counters=self.c.as_dict(), progress=self.progress,
+                                  stop=stop)
+        res.policy = f"{self.variant}@{self.c.env_steps}"
+        distributed.barrier_if(self.ctx)
         if stop.stop:
             return res
-        log_eval(res, tag)
+        self.log(res, tag)
         print(format_table(res), flush=True)
         return res
 
-    venv = None
-    writers: list[EpisodeBagWriter | None] = []
-    t_start = time.monotonic()
-    status = "failed"   # until the loop below ends normally or is stopped
-    cause: BaseException | None = None
-    with runs.StopFlag() as stop:
-        try:
-            if a.random_baseline and main_rank and not (eval_dir / "random.json").exists():
-                from sim_bridge.contract.contexts import task_actuators
+    def random_baseline(self, contexts, episodes: int, time_limit: int, stop: runs.StopFlag) -> None:
+        """The uniform random policy once per run (eval/random.json)."""
+        from trainer.learn.evaluate import evaluate_checkpoint, format_table
 
-                rnd = evaluate_checkpoint(None, task=cfg.task, episodes=final_episodes, contexts=final_contexts,
-                                          split=a.eval_split,
-                                          seed=tr.seed + 7, workers=eval_workers,
-                                          time_limit=tr.time_limit, progress=False if a.no_progress else None,
-                                          stop=stop)
-                if not stop.stop:
-                    runs.atomic_write_json(eval_dir / "random.json", rnd.to_dict())
-                    print(format_table(rnd), flush=True)
-            seed = distributed.rank_seed(tr.seed * 1000 + int(c.get("resumes", 0)), ctx.rank)
-            venv = VectorEnv(cfg.task, a.num_envs, split="train", seed=seed, action_repeat=R,
-                             render_quality=tr.render_quality,
-                             time_limit=tr.time_limit, image_size=tr.image_size, context=a.train_context)
-            names = list(venv.action_names)
-            dt_ns = int(round(venv.control_dt * 1e9))
-            A = venv.action_dim
-            rng_policy = RandomPolicy(A, seed=tr.seed + 1000 * int(c.get("resumes", 0)))
-            agent_policy = Policy(trainer.agent, device=device, mode="sample",
-                                  exploration_noise=tr.expl_noise, seed=tr.seed + int(c["episodes"]))
-            n = a.num_envs
-            agent_policy.reset(n)
+        if not self.ctx.is_main or (self.eval_dir / "random.json").exists():
+            return
+        rnd = evaluate_checkpoint(None, task=self.task, episodes=episodes, contexts=contexts, split=self.split,
+                                  seed=self.seed, workers=self.workers, time_limit=time_limit,
+                                  progress=self.progress, stop=stop)
+        if not stop.stop:
+            runs.atomic_write_json(self.eval_dir / "random.json", rnd.to_dict())
+            print(format_table(rnd), flush=True)
 
-            def prefilling() -> bool:
-                return int(c["episodes"]) < N and not int(c["prefill_done"])
+    def log(self, result: Any, tag: str) -> None:
+        t, env_steps = self.trainer, self.c.env_steps
+        d = result.to_dict()
+        d.update(env_steps=env_steps, updates=t.updates, tag=tag)
+        runs.atomic_write_json(self.eval_dir / f"{tag}.json", d)
+        per_context = {" ".join(f"{k}={v:g}" for k, v in pc["context"].items()): pc["mean_return"]
+                       for pc in d["per_context"]}
+        with open(self.run_dir / "eval.jsonl", "a") as f:
+            f.write(json.dumps({"env_steps": env_steps, "updates": t.updates, "tag": tag, "policy": d["policy"],
+                                "mean_return": d["mean_return"], "per_context": per_context}) + "\n")
+        t.metrics.log(t.updates, {"eval_return": d["mean_return"]}, kind="eval", tag=tag, env_steps=env_steps)
+        for hook in t.metrics.eval_hooks():
+            try:
+                hook.log_eval(t.updates, d)
+            except Exception as exc:  # noqa: BLE001 - a viewer's failure never stops the run
+                print(f"[online] rerun eval logging failed: {exc}", file=sys.stderr)
 
-            # Asked before every step: the prefill's random policy, then the agent.
-            stream = continuing_rollout(venv, lambda: rng_policy if prefilling() else agent_policy)
-            ticks = [0] * n
-            ep_return = np.zeros(n)
-            writers = [None] * n
-            bar = runs.progress(a.env_steps, initial=int(c["env_steps"]), desc="env steps",
-                                disable=True if a.no_progress or not main_rank else None, unit="step")
-            from protocad_ros.model.precision import cpu_capability
 
-            wall = f", wall budget {runs.fmt_seconds(a.wall_budget)}" if a.wall_budget else ""
-            say(f"[online] {cfg.task} / {cfg.variant} / {cfg.preset} on {device}: {n} env(s)"
-                  + (f" on each of {world} ranks ({ctx.backend})" if ctx.enabled else "") + ", "
-                  f"budget {a.env_steps} env steps{wall}, prefill {N} episodes, C={C}, eval every "
-                  f"{a.eval_every} env steps on {len(periodic_contexts)} {a.eval_split} contexts; "
-                  f"precision {tr.precision}, CPU capability {cpu_capability()}, "
-                  f"{runs.torch_threads()} torch thread(s); run dir {run_dir}", flush=True)
+def run(s: OnlineSettings, model: settings.ModelChoice, config_args: Sequence[str] = (),
+        prog: str = "protocad-online", argv: Sequence[str] | None = None) -> int:
+    """A whole online run (or its resume); under torchrun, this rank's share of it."""
+    return distributed.run_entry_point(
+        model.threads, model.device,
+        lambda ctx, device: OnlineRun(s, model, ctx, device, list(config_args), prog, argv).run())
 
-            def out_of_wall_time() -> bool:
-                return bool(a.wall_budget) and trainer.metrics.wall_time >= a.wall_budget
 
-            def stopped() -> bool:   # collective under torchrun: every rank decides the same
-                return distributed.any_rank(stop.stop, ctx)
+class OnlineRun:
+    """Algorithm 1 in one process: prepare the run directory, replay and trainer, then collect,
+    train on schedule and evaluate until the budget; every part resumable."""
 
-            def keep_going() -> bool:
-                halt = stop.stop or out_of_wall_time()
-                return int(c["env_steps"]) < a.env_steps and not distributed.any_rank(halt, ctx)
+    def __init__(self, s: OnlineSettings, model: settings.ModelChoice, ctx: distributed.DistContext,
+                 device: str, config_args: list[str], prog: str, argv: Sequence[str] | None):
+        self.s, self.model, self.ctx, self.device = s, model, ctx, device
+        self.config_args, self.prog = config_args, prog
+        self.argv = list(sys.argv[1:] if argv is None else argv)
+        self.main_rank, self.world = ctx.is_main, ctx.world_size
+        self.say = print if self.main_rank else (lambda *args, **kw: None)
 
-            while keep_going():
-                obs, actions, feats = next(stream)
-                prefill = prefilling()
-                finished = []
-                for i, o in enumerate(obs):
-                    stamp = ticks[i] * dt_ns
-                    if o.is_first or writers[i] is None:
-                        if writers[i] is not None:
-                            writers[i].close()
-                        name = bag_name(bags_dir, int(c["bags"]), i, attempt, rank_tag)
-                        c["bags"] = int(c["bags"]) + 1
-                        writers[i] = EpisodeBagWriter(bags_dir / name, names)
-                        ep_return[i] = 0.0
-                    writers[i].write_observation(o, stamp)
-                    writers[i].write_action(actions[i], stamp, _feature_row(feats, i))
-                    ticks[i] += 1
-                    if not o.is_first:
-                        ep_return[i] += o.reward
-                        c["agent_steps"] = int(c["agent_steps"]) + world   # counters are global
-                        c["env_steps"] = int(c["env_steps"]) + R * world
-                        bar.update(R * world)
-                    if o.is_last:
-                        writers[i].close()
-                        finished.append(writers[i].bag_dir)
-                        writers[i] = None
-                        c["episodes"] = int(c["episodes"]) + world
-                        c["last_return"] = float(ep_return[i])
-                        trainer.metrics.log(trainer.updates, {"train_return": float(ep_return[i])}, kind="episode",
-                                            env_steps=int(c["env_steps"]), episodes=int(c["episodes"]),
-                                            prefill=bool(prefill))
-                if finished:
-                    ds.add(finished)
-                    if int(c["episodes"]) >= N and not int(c["prefill_done"]):
-                        c["prefill_done"] = 1
-                    target = 0
-                    if int(c["prefill_done"]):
-                        # Algorithm 1: C updates before the first collected episode, then C per
-                        # collected episode (a total, so an interrupted phase is made up on resume)
-                        target = C + C * max(int(c["episodes"]) - N, 0)
-                    if target > trainer.updates and ds.num_windows:
-                        bar.set_description(f"train (ep {c['episodes']}, return {c['last_return']:.0f})")
-                        trainer.train(target, stop=stop, checkpoint_every=a.checkpoint_every, save=False)
-                        bar.set_description("env steps")
-                    if (a.eval_every and int(c["env_steps"]) >= int(c["next_eval"]) and not stopped()
-                            and int(c["env_steps"]) < a.env_steps):   # at the budget: the final one
-                        while int(c["next_eval"]) <= int(c["env_steps"]):
-                            c["next_eval"] = int(c["next_eval"]) + a.eval_every
-                        evaluate(f"eval_{int(c['env_steps']):08d}", periodic_contexts, stop, a.eval_episodes)
-                        c["evals"] = int(c["evals"]) + 1
-                        trainer.save()
-                if stopped():
-                    break
-            bar.close()
-            if stopped():
-                status = "interrupted"
-            else:
-                status = "finished" if int(c["env_steps"]) >= a.env_steps else "wall_budget"
-                final = evaluate("final", final_contexts, stop, final_episodes)
-                if main_rank and not stop.stop:
-                    print(f"[online] final mean return on {len(final.per_context)} test contexts: "
-                          f"{final.mean:.1f}", flush=True)
-        except BaseException as exc:
-            cause = exc   # the real error: the clean-up below must neither hide nor replace it
-            raise
-        finally:
-            cleanup_errors = close_quietly([*(("closing the bag", w.close) for w in writers if w is not None),
-                                            *([("closing the envs", venv.close)] if venv is not None else [])])
-            if trainer.updates or status == "interrupted":
-                cleanup_errors += close_quietly([("saving the checkpoint", trainer.save)])
-            cleanup_errors += close_quietly([("closing the metrics", trainer.close)])
-            run_json["result"] = {"status": status, "env_steps": int(c["env_steps"]), "updates": trainer.updates,
-                                  "episodes": int(c["episodes"]), "wall_time": round(trainer.metrics.wall_time, 1),
-                                  "precision": tr.precision, "resumes": int(c.get("resumes", 0))}
-            if cause is not None and not isinstance(cause, (KeyboardInterrupt, SystemExit)):
-                run_json["result"]["error"] = f"{type(cause).__name__}: {cause}"
-            if main_rank:
-                cleanup_errors += close_quietly([(f"writing {run_dir / 'run.json'}",
-                                                  lambda: runs.atomic_write_json(run_dir / "run.json", run_json))])
-            for what, err in cleanup_errors:
-                print(f"[online] while stopping, {what}: {err}", file=sys.stderr, flush=True)
-            if cleanup_errors and cause is None:
-                raise cleanup_errors[0][1]
-    dt = time.monotonic() - t_start
-    say(f"[online] {status}: {c['env_steps']} env steps, {c['episodes']} episodes, {trainer.updates} "
-          f"updates in {runs.fmt_seconds(dt)}", flush=True)
-    say(f"[online] run dir:    {run_dir}\n[online] checkpoint: {trainer.checkpoint_path}\n"
-          f"[online] bags:       {bags_dir} ({len(ds.stores)} episodes)\n"
-          f"[online] metrics:    {run_dir / 'metrics.jsonl'}\n[online] eval:       {run_dir / 'eval.jsonl'}, {eval_dir}",
-          flush=True)
-    if status == "interrupted":
-        say(f"[online] resume with: protocad-online --run-dir {run_dir} --resume", flush=True)
-    return 0
+    # ------------------------------------------------------------------ preparation
+    def _open_run_dir(self) -> None:
+        s, ctx = self.s, self.ctx
+        self.run_json: dict[str, Any] = {}
+        if s.resume:
+            # A run killed before its first checkpoint still resumes: from its config and its bags.
+            self.run_dir, self.run_json = runs.resume_run_dir(s.run_dir, need_checkpoint=False)
+            from protocad_ros.model.config import Config
+
+            self.cfg = Config.load(self.run_dir / "config.yaml")
+            if "settings" not in self.run_json:   # a run from before settings were saved
+                proto = self.run_json.get("protocol", {})
+                defaults = OnlineSettings()
+                self.s = s = dataclasses.replace(s, **{k: proto[k] for k in PROTOCOL_KEYS if k in proto
+                                                       and getattr(s, k) == getattr(defaults, k)})
+        else:
+            self.cfg = self.model.to_config(self.config_args, self.prog, s.config_overrides())
+            self.cfg.train.device = self.device
+            self.run_dir = Path(distributed.gather_objects(   # rank 0's (the default name has a stamp)
+                str(runs.new_run_dir(s.run_dir, "online", self.cfg.task, self.cfg.variant))
+                if self.main_rank else None, ctx)[0])
+            if self.main_rank:
+                self.run_dir.mkdir(parents=True, exist_ok=True)
+                self.cfg.save(self.run_dir / "config.yaml")
+            distributed.barrier_if(ctx)
+        tr = self.cfg.train
+        self.schedule = Schedule(N=tr.prefill_episodes, C=tr.collect_interval, eval_every=s.eval_every)
+        self.bags_dir = self.run_dir / "bags"
+        self.bags_dir.mkdir(parents=True, exist_ok=True)
+        self.cache_dir = Path(s.cache_dir) if s.cache_dir else self.run_dir / "cache"
+        (self.run_dir / "eval").mkdir(exist_ok=True)
+        if s.train_context is not None:
+            from sim_bridge.contract.contexts import get_task
+
+            self.s = dataclasses.replace(s, train_context=get_task(self.cfg.task).validate(s.train_context, "train"))
+
+    def _write_run_json(self) -> None:
+        from trainer.research.results import code_version
+
+        s, tr, rj = self.s, self.cfg.train, self.run_json
+        versions = list(rj.get("code_versions", []))
+        if code_version() not in versions:   # every invocation's code, resumes included
+            versions.append(code_version())
+        runs.record_invocation(rj, s.resume, self.argv)
+        rj.update(kind="online", code_versions=versions, task=self.cfg.task, variant=self.cfg.variant,
+                  preset=self.cfg.preset, seed=tr.seed, device=self.device,
+                  settings={"online": settings.as_data(s), "model": settings.as_data(self.model)},
+                  protocol={"env_steps": s.env_steps, "num_envs": s.num_envs, "prefill_episodes": tr.prefill_episodes,
+                            "updates_per_episode": tr.collect_interval, "action_repeat": tr.action_repeat,
+                            "time_limit": tr.time_limit, "eval_every": s.eval_every,
+                            "eval_episodes": s.eval_episodes, "eval_max_contexts": s.eval_max_contexts,
+                            "final_max_contexts": s.final_max_contexts, "final_episodes": s.final_episodes,
+                            "wall_budget": s.wall_budget, "train_context": s.train_context,
+                            "eval_split": s.eval_split, "eval_contexts": s.eval_contexts, "world_size": self.world})
+        if self.main_rank:
+            runs.atomic_write_json(self.run_dir / "run.json", rj)
+
+    def _open_replay(self) -> None:
+        """The replay (the run's own bags, its cache as the buffer) and the trainer, restored
+        from the checkpoint when there is one; the counters from the data on a resume."""
+        s, ctx, tr = self.s, self.ctx, self.cfg.train
+        # The run's own cache is its replay buffer: every entry is in use, no budget applies.
+        self.ds = MCAPDataset([], topics=TopicMap(), seq_len=tr.seq_len, seed=tr.seed, cache_dir=self.cache_dir,
+                              cache_budget_gb=None if s.cache_dir else 0)
+        if self.main_rank and s.resume:
+            for left in leftovers(self.run_dir, self.cache_dir):
+                self.say(f"[online] removed {left}, left by an interrupted attempt", flush=True)
+        distributed.barrier_if(ctx)
+        all_bags = sorted(p for p in self.bags_dir.iterdir() if p.is_dir())
+        if all_bags[ctx.rank::self.world]:   # each rank a share, whatever the ranks that wrote them
+            self.ds.add(all_bags[ctx.rank::self.world])
+        callbacks = []
+        if s.rerun is not None:
+            from trainer.viz.rerun_log import metrics_callback
+
+            callbacks.append(metrics_callback(s.rerun or self.run_dir / "metrics.rrd", application="protocad-online"))
+        ckpt = runs.checkpoint_path(self.run_dir)
+        if s.resume and ckpt.exists():
+            self.trainer = Trainer.from_checkpoint(ckpt, self.run_dir, self.ds, device=self.device,
+                                                   callbacks=callbacks, log_every=s.log_every, dist_ctx=ctx)
+            self.c = RunCounters.from_dict(self.trainer.counters)
+        else:
+            from sim_bridge.contract.contexts import task_actuators
+
+            if s.resume and self.main_rank:   # killed before its first checkpoint: updates start again
+                runs.truncate_metrics(self.run_dir / "metrics.jsonl", 0)
+            self.trainer = Trainer(self.cfg, self.run_dir, self.ds, device=self.device, callbacks=callbacks,
+                                   log_every=s.log_every, action_dim=len(task_actuators(self.cfg.task)), dist_ctx=ctx)
+            self.c = RunCounters(next_eval=self.schedule.first_eval())
+        self.trainer.progress = self.c
+        if s.resume:
+            # The data is the truth: every bag on disk counts, also those written after the last
+            # checkpoint (their updates are made up by the schedule, which counts from episodes).
+            steps, episodes = (sum(x) for x in zip(*distributed.gather_objects(data_counts(self.ds), ctx)))
+            c = self.c
+            c.agent_steps, c.env_steps, c.episodes, c.bags = steps, steps * tr.action_repeat, episodes, len(all_bags)
+            c.prefill_done, c.resumes = int(self.schedule.prefilled(episodes)), c.resumes + 1
+            self.say(f"[online] resuming {self.run_dir}: {c.env_steps} env steps, {c.episodes} episodes "
+                     f"in {len(all_bags)} bags, {self.trainer.updates} updates"
+                     + ("" if ckpt.exists() else " (no checkpoint yet: from the bags)"), flush=True)
+
+    def _evaluation(self) -> None:
+        from trainer.learn.evaluate import select_contexts
+
+        s, task = self.s, self.cfg.task
+        workers = s.eval_workers if s.eval_workers >= 0 else (0 if (os.cpu_count() or 1) <= 2 else
+                                                              min(16, (os.cpu_count() or 2) - 1))
+        self.periodic_contexts = select_contexts(task, s.eval_split, s.eval_contexts, s.eval_max_contexts)
+        self.final_contexts = select_contexts(task, s.eval_split, s.eval_contexts, s.final_max_contexts)
+        self.evaluate = Evaluator(self.trainer, task, self.cfg.variant, s.eval_split, self.cfg.train.seed + 7,
+                                  self.device, workers, self.c, self.ctx, self.run_dir,
+                                  False if s.no_progress else None)
+
+    def _start_envs(self):
+        """The training envs and the rollout that asks, before every step, who acts: the
+        prefill's random policy, then the agent (sampling, as DreamerV2 collects)."""
+        from protocad_ros.policy import Policy
+        from sim_bridge.sim.rollout import RandomPolicy, continuing_rollout
+        from sim_bridge.sim.vector import VectorEnv
+
+        s, tr, c = self.s, self.cfg.train, self.c
+        seed = distributed.rank_seed(tr.seed * 1000 + c.resumes, self.ctx.rank)
+        self.venv = VectorEnv(self.cfg.task, s.num_envs, split="train", seed=seed, action_repeat=tr.action_repeat,
+                              render_quality=tr.render_quality, time_limit=tr.time_limit,
+                              image_size=tr.image_size, context=s.train_context)
+        random_policy = RandomPolicy(self.venv.action_dim, seed=tr.seed + 1000 * c.resumes)
+        agent_policy = Policy(self.trainer.agent, device=self.device, mode="sample",
+                              exploration_noise=tr.expl_noise, seed=tr.seed + c.episodes)
+        agent_policy.reset(s.num_envs)
+        attempt = len(self.run_json.get("resumes_argv", []))   # this invocation's number, unique per run
+        self.bags = EnvBags(self.bags_dir, s.num_envs, self.venv.action_names, int(round(self.venv.control_dt * 1e9)),
+                            attempt, f"_rank{self.ctx.rank}" if self.ctx.enabled else "", c, tr.action_repeat,
+                            self.world)
+        return continuing_rollout(self.venv, lambda: random_policy if self.prefilling() else agent_policy)
+
+    def _announce(self) -> None:
+        from protocad_ros.model.precision import cpu_capability
+
+        s, cfg, tr, ctx = self.s, self.cfg, self.cfg.train, self.ctx
+        wall = f", wall budget {runs.fmt_seconds(s.wall_budget)}" if s.wall_budget else ""
+        self.say(f"[online] {cfg.task} / {cfg.variant} / {cfg.preset} on {self.device}: {s.num_envs} env(s)"
+                 + (f" on each of {self.world} ranks ({ctx.backend})" if ctx.enabled else "") + ", "
+                 f"budget {s.env_steps} env steps{wall}, prefill {tr.prefill_episodes} episodes, "
+                 f"C={tr.collect_interval}, eval every {s.eval_every} env steps on {len(self.periodic_contexts)} "
+                 f"{s.eval_split} contexts; precision {tr.precision}, CPU capability {cpu_capability()}, "
+                 f"{runs.torch_threads()} torch thread(s); run dir {self.run_dir}", flush=True)
+
+    # ------------------------------------------------------------------ Algorithm 1
+    def prefilling(self) -> bool:
+        return not self.schedule.prefilled(self.c.episodes) and not self.c.prefill_done
+
+    def _stopped(self, stop: runs.StopFlag) -> bool:   # collective under torchrun: every rank decides the same
+        return distributed.any_rank(stop.stop, self.ctx)
+
+    def _keep_going(self, stop: runs.StopFlag) -> bool:
+        out_of_time = bool(self.s.wall_budget) and self.trainer.metrics.wall_time >= self.s.wall_budget
+        return self.c.env_steps < self.s.env_steps and not distributed.any_rank(stop.stop or out_of_time, self.ctx)
+
+    def _after_episodes(self, finished: list[Path], stop: runs.StopFlag, bar) -> None:
+        """Episodes ended: replay them, train up to the schedule's target, evaluate when due."""
+        s, c, sched, trainer = self.s, self.c, self.schedule, self.trainer
+        self.ds.add(finished)
+        if sched.prefilled(c.episodes):
+            c.prefill_done = 1
+        target = sched.target_updates(c.episodes - sched.N) if c.prefill_done else 0
+        if target > trainer.updates and self.ds.num_windows:
+            bar.set_description(f"train (ep {c.episodes}, return {c.last_return:.0f})")
+            trainer.train(target, stop=stop, checkpoint_every=s.checkpoint_every, save=False)
+            bar.set_description("env steps")
+        # at the budget the final evaluation comes instead
+        if sched.eval_due(c.env_steps, c.next_eval) and not self._stopped(stop) and c.env_steps < s.env_steps:
+            c.next_eval = sched.next_eval_after(c.env_steps, c.next_eval)
+            self.evaluate(f"eval_{c.env_steps:08d}", self.periodic_contexts, s.eval_episodes, stop)
+            c.evals += 1
+            trainer.save()
+
+    def _collect_and_train(self, stream, stop: runs.StopFlag) -> str:
+        """The loop: step every env, record, and after each finished episode train and evaluate
+        on schedule. Returns how it ended: interrupted, finished (env steps) or wall_budget."""
+        c, s = self.c, self.s
+        bar = runs.progress(s.env_steps, initial=c.env_steps, desc="env steps",
+                            disable=True if s.no_progress or not self.main_rank else None, unit="step")
+        while self._keep_going(stop):
+            obs, actions, feats = next(stream)
+            prefill, steps_before = self.prefilling(), c.env_steps
+            finished = [bag for i, o in enumerate(obs)
+                        if (bag := self.bags.record(i, o, actions[i], _feature_row(feats, i))) is not None]
+            bar.update(c.env_steps - steps_before)
+            for bag in finished:   # one training-return row per episode
+                self.trainer.metrics.log(self.trainer.updates, {"train_return": c.last_return}, kind="episode",
+                                         env_steps=c.env_steps, episodes=c.episodes, prefill=bool(prefill))
+            if finished:
+                self._after_episodes(finished, stop, bar)
+            if self._stopped(stop):
+                break
+        bar.close()
+        if self._stopped(stop):
+            return "interrupted"
+        return "finished" if c.env_steps >= s.env_steps else "wall_budget"
+
+    def run(self) -> int:
+        self._open_run_dir()
+        self._write_run_json()
+        self._open_replay()
+        self._evaluation()
+        t_start = time.monotonic()
+        self.venv, self.bags = None, None
+        status, cause = "failed", None   # until the loop ends normally or is stopped
+        with runs.StopFlag() as stop:
+            try:
+                if self.s.random_baseline:
+                    self.evaluate.random_baseline(self.final_contexts, self.s.final_episodes,
+                                                  self.cfg.train.time_limit, stop)
+                stream = self._start_envs()
+                self._announce()
+                status = self._collect_and_train(stream, stop)
+                if status != "interrupted":
+                    final = self.evaluate("final", self.final_contexts, self.s.final_episodes, stop)
+                    if self.main_rank and not stop.stop:
+                        print(f"[online] final mean return on {len(final.per_context)} test contexts: "
+                              f"{final.mean:.1f}", flush=True)
+            except BaseException as exc:
+                cause = exc   # the real error: the clean-up below must neither hide nor replace it
+                raise
+            finally:
+                self._close(status, cause)
+        self._report(status, time.monotonic() - t_start)
+        return 0
+
+    # ------------------------------------------------------------------ the end
+    def _close(self, status: str, cause: BaseException | None) -> None:
+        """Close bags and envs, save, write run.json's result: each step even if another failed
+        (a full disk fails them all); the error that stopped the run stays the one raised."""
+        trainer, c = self.trainer, self.c
+        errors = close_quietly([*(self.bags.closers() if self.bags else []),
+                                *([("closing the envs", self.venv.close)] if self.venv is not None else [])])
+        if trainer.updates or status == "interrupted":
+            errors += close_quietly([("saving the checkpoint", trainer.save)])
+        errors += close_quietly([("closing the metrics", trainer.close)])
+        result = {"status": status, "env_steps": c.env_steps, "updates": trainer.updates, "episodes": c.episodes,
+                  "wall_time": round(trainer.metrics.wall_time, 1), "precision": self.cfg.train.precision,
+                  "resumes": c.resumes}
+        if cause is not None and not isinstance(cause, (KeyboardInterrupt, SystemExit)):
+            result["error"] = f"{type(cause).__name__}: {cause}"
+        self.run_json["result"] = result
+        if self.main_rank:
+            path = self.run_dir / "run.json"
+            errors += close_quietly([(f"writing {path}", lambda: runs.atomic_write_json(path, self.run_json))])
+        for what, err in errors:
+            print(f"[online] while stopping, {what}: {err}", file=sys.stderr, flush=True)
+        if errors and cause is None:
+            raise errors[0][1]
+
+    def _report(self, status: str, seconds: float) -> None:
+        c, run_dir = self.c, self.run_dir
+        self.say(f"[online] {status}: {c.env_steps} env steps, {c.episodes} episodes, {self.trainer.updates} "
+                 f"updates in {runs.fmt_seconds(seconds)}", flush=True)
+        self.say(f"[online] run dir:    {run_dir}\n[online] checkpoint: {self.trainer.checkpoint_path}\n"
+                 f"[online] bags:       {self.bags_dir} ({len(self.ds.stores)} episodes)\n"
+                 f"[online] metrics:    {run_dir / 'metrics.jsonl'}\n"
+                 f"[online] eval:       {run_dir / 'eval.jsonl'}, {run_dir / 'eval'}", flush=True)
+        if status == "interrupted":
+            self.say(f"[online] resume with: protocad-online --run-dir {run_dir} --resume", flush=True)
 
 
 if __name__ == "__main__":

@@ -239,7 +239,7 @@ class TrainingRecorder:
         tabs = training_blueprint(self._metrics, self._eval_splits) + list(self._context_tabs)
         try:
             self.recording.send_blueprint(rrb.Blueprint(rrb.Tabs(*tabs)))
-        except Exception as exc:  # a layout problem must never stop training
+        except Exception as exc:  # noqa: BLE001 - a layout problem must never stop training
             print(f"[rerun_log] blueprint not sent: {exc}", file=sys.stderr)
 
     def flush(self) -> None:

@@ -563,7 +563,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     t0 = time.monotonic()
     try:
         agent = load_agent(ckpt, args.device)
-    except Exception as exc:  # CheckpointError and friends: one clear line
+    except Exception as exc:  # noqa: BLE001 - CheckpointError and friends: one clear line
         raise SystemExit(f"cannot load {ckpt}: {exc}")
     task = args.task or getattr(getattr(agent, "cfg", None), "task", None)
     if not args.logs and not task:

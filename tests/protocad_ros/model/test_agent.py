@@ -13,6 +13,7 @@ import numpy as np
 import pytest
 import torch
 
+from helpers.agents import render_batch
 from protocad_ros.model.agent import Agent
 from protocad_ros.model.config import WORLD_MODEL_VARIANTS, Config, ConfigError, make_config
 from protocad_ros.policy import ContextFeatures, Policy
@@ -36,34 +37,9 @@ def tiny(variant: str = "protocad", **kw) -> Config:
     return make_config("pendulum_swingup", "small", variant, **over)
 
 
-def render_batch(task: str = "pendulum_swingup", batch: int = B, length: int = T, seed: int = 0):
-    """Real rendered frames with random actions, in the training-batch layout."""
-    from sim_bridge.sim.envs import ContextDMCEnv
-
-    rng = np.random.default_rng(seed)
-    env = ContextDMCEnv(task, seed=seed)
-    A = env.action_dim
-    out = {"image": np.zeros((batch, length, 64, 64, 3), np.uint8),
-           "action": np.zeros((batch, length, A), np.float32),
-           "reward": np.zeros((batch, length), np.float32),
-           "discount": np.ones((batch, length), np.float32),
-           "is_first": np.zeros((batch, length), bool)}
-    try:
-        for b in range(batch):
-            obs = env.reset()
-            out["image"][b, 0], out["is_first"][b, 0] = obs.image, True
-            for t in range(1, length):
-                a = rng.uniform(-1, 1, A).astype(np.float32)
-                obs = env.step(a)
-                out["image"][b, t], out["action"][b, t], out["reward"][b, t] = obs.image, a, obs.reward
-    finally:
-        env.close()
-    return out
-
-
 @pytest.fixture(scope="module")
 def real_batch():
-    batch = render_batch()
+    batch = render_batch(batch=B, length=T)
     assert batch["image"].std() > 5  # real pixels, not a blank buffer
     return batch
 
@@ -306,7 +282,7 @@ def test_policy_is_first_resets_state_and_is_reproducible(real_batch):
     # nothing sampled (posterior mean, trunc_normal's mode): answers depend on the state alone,
     # not on how far a policy's generator has advanced
     agent = Agent(tiny("protocad", **{"behavior.actor_dist": "trunc_normal"}), action_dim=1)
-    Policy = functools.partial(_Policy, state_mean=True)  # noqa: N806
+    Policy = functools.partial(_Policy, state_mean=True)
     p1, p2 = Policy(agent), Policy(agent)
     run1, run2 = _run(p1, real_batch, 0, 6), _run(p2, real_batch, 0, 6)
     for (a1, u1), (a2, u2) in zip(run1, run2):  # deterministic mode: identical

@@ -49,6 +49,7 @@ def test_a_config_too_large_to_train_is_refused_before_allocating_and_the_limit_
     check_train_memory(big.replace(**{"train.memory_limit_gb": 1e5}))   # the override
 
 
+@pytest.mark.process
 @pytest.mark.parametrize("config,says", [("missing.yaml", "No such file"), (".", "Is a directory"),
                                          ("bad.yaml", "not valid YAML (line 2")])
 def test_a_bad_config_file_is_one_line_and_exit_2(tmp_path, config, says):

@@ -18,7 +18,7 @@ from protocad_ros.model.config import ConfigError, make_config
 from protocad_ros.model.drq import (DrQAgent, soft_q_target, soft_update, temperature_loss,
                               transitions)
 from protocad_ros.policy import Policy
-from test_agent import render_batch
+from helpers.agents import render_batch
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -185,6 +185,7 @@ def test_checkpoint_round_trip_and_policy(tmp_path):
         prev = a1
 
 
+@pytest.mark.process
 def test_compare_runs_drq_online_and_protocad_train_learns_from_its_logs(tmp_path):
     """protocad-compare runs DrQ as an ordinary protocad-online run, which collects into MCAP bags
     and trains from them; protocad-train then continues from the same logs offline (DrQ is
@@ -217,9 +218,12 @@ def test_compare_runs_drq_online_and_protocad_train_learns_from_its_logs(tmp_pat
 
 
 # ---- the policy node serves DrQ -----------------------------------------------------------------
+@pytest.mark.ros
+@pytest.mark.process
 def test_policy_node_serves_a_drq_checkpoint(spawn, tmp_path):
-    from ros_helpers import Probe, wait_until
-    from test_policy_node import START, Feeder, policy_args
+    from helpers import wait_until
+    from helpers.ros import Probe
+    from helpers.policy import START, Feeder, policy_args
 
     agent = make_agent(make_config(TASK, "small", "drq", **{"train.seed": 3}), 1)
     agent.updates.fill_(11)

@@ -7,7 +7,7 @@ import sys
 
 import pytest
 
-from conftest import ROOT
+from helpers import ROOT
 from protocad_ros.model import precision as P
 
 
@@ -39,6 +39,7 @@ def bench_rows(*args: str) -> list[str]:
     return out.stdout.split("\n")[:-1]
 
 
+@pytest.mark.process
 def test_bench_train_float32_runs_float32_only_including_the_dreamerv3_rows():
     rows = bench_rows("--dreamerv3-sizes", "--precision", "float32")
     assert rows and all(r.endswith(" float32") for r in rows)

@@ -13,12 +13,12 @@ import numpy as np
 import pytest
 from sensor_msgs.msg import Image, JointState
 
-from ros_helpers import Probe, wait_until
+from helpers import ROOT, wait_exit, wait_until
+from helpers.agents import save_agent
+from helpers.policy import START, TASK, Feeder, policy_args
+from helpers.ros import Probe
 from sim_bridge.contract import qos, topics
 from sim_bridge.contract.contexts import TASKS
-
-TASK = "pendulum_swingup"
-START = 120.0   # torch import + model build on a loaded 2-core machine
 
 
 @pytest.fixture
@@ -28,74 +28,8 @@ def probe():
     p.close()
 
 
-def policy_args(*params: str) -> list[str]:
-    args = ["-m", "protocad_ros.node.policy_node", "--ros-args", "-p", f"task:={TASK}",
-            "-p", "diagnostics_period_s:=0.1", "-p", "num_threads:=1"]
-    for p in params:
-        args += ["-p", p]
-    return args
-
-
-class Feeder:
-    """Publishes observations to the policy and collects its answers."""
-
-    def __init__(self, probe: Probe):
-        self.probe = probe
-        self.pub_image = probe.publisher(topics.IMAGE, Image, qos.observation_qos())
-        self.pub_info = probe.publisher(topics.STEP_INFO, JointState, qos.observation_qos())
-        self.actions = probe.record(topics.ACTION, JointState, qos.action_qos())
-        self.features = probe.record(topics.CONTEXT_FEATURES, JointState, qos.action_qos())
-        self.rng = np.random.default_rng(0)
-        self.images: dict[int, np.ndarray] = {}
-
-    def ready(self) -> bool:
-        return (self.pub_image.get_subscription_count() >= 1
-                and self.pub_info.get_subscription_count() >= 1
-                and self.actions.matched() >= 1 and self.features.matched() >= 1)
-
-    def image(self, stamp: int, img: np.ndarray | None = None) -> None:
-        if img is None:
-            img = self.images.get(stamp)
-        if img is None:
-            img = self.rng.integers(0, 256, (64, 64, 3), dtype=np.uint8)
-        self.images[stamp] = img
-        self.pub_image.publish(topics.fill_image(Image(), img, stamp))
-
-    def raw_image(self, stamp: int, h: int, w: int, encoding: str, data: bytes,
-                  step: int | None = None) -> None:
-        m = Image()
-        topics.set_stamp(m.header.stamp, stamp)
-        m.height, m.width, m.encoding = h, w, encoding
-        m.step = w * 3 if step is None else step
-        m.data = data
-        self.pub_image.publish(m)
-
-    def info(self, stamp: int, step: int, episode: int = 0, is_first: bool = False,
-             is_last: bool = False) -> None:
-        info = topics.StepInfo(0.0 if is_first else 0.5, 1.0, is_first, is_last, False,
-                               episode, step)
-        self.pub_info.publish(topics.fill_step_info(JointState(), info, stamp))
-
-    def obs(self, stamp: int, step: int, episode: int = 0, info_first: bool = False, **kw) -> None:
-        if info_first:
-            self.info(stamp, step, episode, **kw)
-            self.image(stamp)
-        else:
-            self.image(stamp)
-            self.info(stamp, step, episode, **kw)
-
-    def stamps(self) -> list[int]:
-        return [topics.stamp_to_ns(m.header.stamp) for m in list(self.actions)]
-
-    def wait_answers(self, n: int, what: str, timeout: float = 30.0) -> None:
-        wait_until(lambda: len(self.actions) >= n and len(self.features) >= n, timeout, what)
-
-
-def wait_exit(proc, timeout: float) -> int:
-    wait_until(lambda: not proc.alive(), timeout, f"{proc.args} to exit")
-    return proc.p.returncode
-
-
+@pytest.mark.ros
+@pytest.mark.process
 def test_malformed_images_and_stamp_matching(spawn, probe):
     f = Feeder(probe)
     policy = spawn("policy", *policy_args())
@@ -168,23 +102,14 @@ def test_malformed_images_and_stamp_matching(spawn, probe):
     assert "RANDOMLY INITIALISED" in out and "Traceback" not in out
 
 
-def _save(path, updates: int, seed: int = 0):
-    from protocad_ros.model.agent import Agent
-    from protocad_ros.checkpoint import save_checkpoint
-    from protocad_ros.model.config import make_config
-
-    agent = Agent(make_config(TASK, "small", **{"train.seed": seed}), 1)
-    agent.updates.fill_(updates)
-    save_checkpoint(path, agent, counters={"env_steps": 100 * updates})
-    return agent
-
-
+@pytest.mark.ros
+@pytest.mark.process
 def test_checkpoint_reload_between_episodes(spawn, probe, tmp_path):
     from protocad_ros.policy import Policy
 
     ckpt = tmp_path / "run" / "checkpoints" / "latest.pt"
     ckpt.parent.mkdir(parents=True)
-    _save(ckpt, 5, seed=1)
+    save_agent(ckpt, 5, seed=1)
     missing = spawn("missing", *policy_args(f"checkpoint:={tmp_path / 'nope.pt'}"))
     f = Feeder(probe)
     # named by its run directory, as protocad-evaluate and protocad-visualize take it
@@ -199,7 +124,7 @@ def test_checkpoint_reload_between_episodes(spawn, probe, tmp_path):
     f.obs(10, 0, is_first=True)
     f.obs(20, 1)
     f.wait_answers(2, "episode 0")
-    new_agent = _save(ckpt, 7, seed=2)                   # the trainer writes a newer one
+    new_agent = save_agent(ckpt, 7, seed=2)                   # the trainer writes a newer one
     wait_until(lambda: probe.node_diag(node).get("pending_checkpoint_updates") == "7", 30,
                "the new checkpoint to be loaded in the background")
     f.obs(30, 2)                                         # same episode: still the old model
@@ -242,15 +167,15 @@ def test_checkpoint_reload_between_episodes(spawn, probe, tmp_path):
 
 
 def test_docs_cover_every_parameter_and_counter():
-    from pathlib import Path
-
     from protocad_ros.node.policy_node import COUNTERS, PARAMS
 
-    doc = (Path(__file__).resolve().parents[1] / "msgs_docs" / "policy.md").read_text()
+    doc = (ROOT / "msgs_docs" / "policy.md").read_text()
     missing = [n for n in [p.name for p in PARAMS] + list(COUNTERS) if f"`{n}`" not in doc]
     assert not missing, f"msgs_docs/policy.md does not document {missing}"
 
 
+@pytest.mark.ros
+@pytest.mark.process
 def test_live_rerun_stream_saved_by_the_node(spawn, probe, tmp_path):
     from trainer.viz.rerun_log import read_recording
 
@@ -272,14 +197,16 @@ def test_live_rerun_stream_saved_by_the_node(spawn, probe, tmp_path):
     assert "configuration error" in bad.log_path.read_text()
 
 
+@pytest.mark.ros
+@pytest.mark.process
 def test_deploys_without_the_simulator_and_names_the_real_actuators(spawn, probe):
     """On a robot there is no mujoco or dm_control: the node still starts, and its actions carry
     the task's real actuator names (from the task table), not a0, a1, ..."""
-    from conftest import ROOT
+    from helpers import HELPERS
 
     f = Feeder(probe)
     env = {"PROTOCAD_BLOCK_IMPORTS": "mujoco,dm_control",
-           "PYTHONPATH": os.pathsep.join([str(ROOT / "tests" / "import_blocker"), str(ROOT)])}
+           "PYTHONPATH": os.pathsep.join([str(HELPERS / "import_blocker"), str(ROOT)])}
     args = policy_args()
     args[args.index(f"task:={TASK}")] = "task:=walker_walk"
     policy = spawn("policy", *args, env=env)
@@ -292,6 +219,8 @@ def test_deploys_without_the_simulator_and_names_the_real_actuators(spawn, probe
     assert "blocked by the test's import blocker" not in policy.output()
 
 
+@pytest.mark.ros
+@pytest.mark.process
 def test_realtime_latest_only_skips_to_the_newest_observation(spawn, probe):
     """A real-time bridge at 500 steps/s, faster than this policy answers on 2 shared cores:
     with latest_only the policy never answers an older observation after a newer one, skips to
@@ -312,6 +241,8 @@ def test_realtime_latest_only_skips_to_the_newest_observation(spawn, probe):
     assert policy.alive()
 
 
+@pytest.mark.ros
+@pytest.mark.process
 def test_a_checkpoint_for_another_task_is_refused_at_the_first_observation(spawn, probe):
     """A pendulum policy next to a walker bridge (the README's mistake): the policy says so at
     once and never publishes a wrong-sized action; the bridge's image never gets an answer."""
@@ -335,6 +266,8 @@ def test_a_checkpoint_for_another_task_is_refused_at_the_first_observation(spawn
     assert bridge.alive() and policy.alive()
 
 
+@pytest.mark.ros
+@pytest.mark.process
 def test_two_bridges_in_one_namespace_are_reported_by_both(spawn, probe):
     """...and by the policy that reads them: both announce themselves on bridge_info and
     publish image and step_info (the policy warns once per topic and counts on /diagnostics)."""

@@ -17,7 +17,8 @@ from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Image, JointState
 from std_srvs.srv import Trigger
 
-from ros_helpers import Probe, Responder, wait_until
+from helpers import ROOT, wait_exit, wait_until
+from helpers.ros import Probe, Responder
 from sim_bridge.contract import qos, topics
 
 TASK = "pendulum_swingup"
@@ -41,11 +42,6 @@ def bridge_args(*params: str, ns: str | None = None) -> list[str]:
     return args
 
 
-def wait_exit(proc, timeout: float) -> int:
-    wait_until(lambda: not proc.alive(), timeout, f"{proc.args} to exit")
-    return proc.p.returncode
-
-
 def wait_counter(probe: Probe, node: str, key: str, value: float, timeout: float = 20.0):
     wait_until(lambda: probe.counter(node, key) == value, timeout,
                f"{node} diagnostics {key} == {value} (now {probe.counter(node, key)})")
@@ -56,6 +52,8 @@ def digest(steps) -> list[tuple]:
              info.episode, info.step, hashlib.sha1(img).hexdigest()) for stamp, info, img in steps]
 
 
+@pytest.mark.ros
+@pytest.mark.process
 def test_help_and_configuration_errors(spawn):
     h = spawn("help", "-m", "sim_bridge.bridge.node", "--help")
     assert wait_exit(h, 60) == 0
@@ -76,6 +74,8 @@ def test_help_and_configuration_errors(spawn):
         assert "Traceback" not in out
 
 
+@pytest.mark.ros
+@pytest.mark.process
 def test_lockstep_is_deterministic_given_the_seed(spawn, probe):
     """Two bridges with seed 3 (own namespaces, concurrently) produce identical streams; seed 4
     differs. Each runs 2 episodes of 8 steps, every observation answered exactly once."""
@@ -132,6 +132,8 @@ def test_lockstep_is_deterministic_given_the_seed(spawn, probe):
         assert sorted(r.answered) == sorted(set(r.answered)) == [s[0] for s in r.steps]
 
 
+@pytest.mark.ros
+@pytest.mark.process
 def test_malformed_actions_timeouts_parameters_and_reset(spawn, probe):
     from sim_bridge.sim.envs import ContextDMCEnv
 
@@ -232,6 +234,8 @@ def test_malformed_actions_timeouts_parameters_and_reset(spawn, probe):
     assert "unknown parameter 'bogus_param' ignored" in out
 
 
+@pytest.mark.ros
+@pytest.mark.process
 def test_realtime_holds_the_latest_action(spawn, probe):
     from sim_bridge.sim.envs import ContextDMCEnv
 
@@ -275,15 +279,15 @@ def test_realtime_holds_the_latest_action(spawn, probe):
 
 
 def test_docs_cover_every_parameter_and_counter():
-    from pathlib import Path
-
     from sim_bridge.bridge.node import COUNTERS, PARAMS
 
-    doc = (Path(__file__).resolve().parents[1] / "msgs_docs" / "sim_bridge.md").read_text()
+    doc = (ROOT / "msgs_docs" / "sim_bridge.md").read_text()
     missing = [n for n in [p.name for p in PARAMS] + list(COUNTERS) if f"`{n}`" not in doc]
     assert not missing, f"msgs_docs/sim_bridge.md does not document {missing}"
 
 
+@pytest.mark.ros
+@pytest.mark.process
 def test_fixed_context_outside_the_split_is_a_configuration_error(spawn):
     bad = spawn("bridge", "-m", "sim_bridge.bridge.node", "--ros-args", "-p", "task:=pendulum_swingup",
                 "-p", "split:=test", "-p", "context:=m=1.0")
@@ -293,6 +297,8 @@ def test_fixed_context_outside_the_split_is_a_configuration_error(spawn):
     assert "configuration error" in out and "belongs to the train split" in out
 
 
+@pytest.mark.ros
+@pytest.mark.process
 def test_image_qos_is_overridable_by_parameter(spawn, probe):
     """`-p qos_overrides./protocad/image.publisher.reliability:=best_effort` (rclpy's QoS
     overriding) turns the image writer best effort, e.g. for a viewer over a lossy link."""
@@ -311,6 +317,8 @@ def test_image_qos_is_overridable_by_parameter(spawn, probe):
     assert "unknown parameter" not in bridge.output()
 
 
+@pytest.mark.ros
+@pytest.mark.process
 def test_a_second_action_publisher_is_reported_and_refused_with_first_publisher_only(spawn, probe):
     """An impostor publishes actions the bridge would otherwise take (the pending stamp, valid
     values) next to the stand-in policy: the bridge warns once, reports the topic and counts it,

@@ -18,8 +18,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from sensor_msgs.msg import Image, JointState
 
-from ros_helpers import Probe, wait_until
+from helpers import wait_until
+from helpers.ros import Probe
 from sim_bridge.contract import qos, topics
+
+pytestmark = pytest.mark.ros
 
 NS = "/fuzz"
 FUZZ = settings(max_examples=150, deadline=None, suppress_health_check=list(HealthCheck),
@@ -214,6 +217,7 @@ def test_parameter_changes_are_answered_and_unknown_names_are_named(which, reque
     assert node.callback_errors == 0
 
 
+@pytest.mark.process
 def test_hostile_inputs_over_dds_leave_the_policy_process_up_and_counted(spawn):
     """A sample through real DDS from this process to the policy node's own process."""
     probe = Probe("fuzz_probe")
@@ -246,6 +250,7 @@ def test_hostile_inputs_over_dds_leave_the_policy_process_up_and_counted(spawn):
         probe.close()
 
 
+@pytest.mark.process
 def test_a_flood_is_accounted_for_answered_plus_lost_equals_published(spawn):
     """5,000 observations as fast as this process can publish them: the policy answers what it
     can, and every other one is counted as lost (from the step numbering)."""

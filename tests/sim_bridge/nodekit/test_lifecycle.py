@@ -18,8 +18,11 @@ from lifecycle_msgs.msg import Transition, TransitionEvent
 from lifecycle_msgs.srv import ChangeState, GetAvailableStates, GetAvailableTransitions, GetState
 from sensor_msgs.msg import Image, JointState
 
-from ros_helpers import Probe, Responder, wait_until
+from helpers import wait_until
+from helpers.ros import Probe, Responder
 from sim_bridge.contract import qos, topics
+
+pytestmark = pytest.mark.ros
 
 TASK = "pendulum_swingup"
 START = 120.0   # first start on a loaded 2-core machine (imports, EGL / torch, discovery)
@@ -136,6 +139,7 @@ def probe():
     p.close()
 
 
+@pytest.mark.process
 def test_sim_bridge_steps_only_while_active(spawn, probe):
     life = Lifecycle(probe, "sim_bridge")
     diag = DiagLog(probe, "sim_bridge")
@@ -205,6 +209,7 @@ def test_sim_bridge_steps_only_while_active(spawn, probe):
     assert "Traceback" not in out
 
 
+@pytest.mark.process
 def test_sim_bridge_realtime_holds_still_while_inactive(spawn, probe):
     """Real time: deactivate pauses the clock-driven stepping, activate resumes it at the rate,
     the sim time going on from where it stopped (no step lost, none skipped)."""
@@ -230,8 +235,10 @@ def test_sim_bridge_realtime_holds_still_while_inactive(spawn, probe):
     dt = stamps[1] - stamps[0]
     assert stamps == [i * dt for i in range(len(stamps))]
 
+@pytest.mark.process
 def test_policy_answers_only_while_active(spawn, probe, tmp_path):
-    from test_policy_node import Feeder, _save
+    from helpers.agents import save_agent
+    from helpers.policy import Feeder
 
     ckpt = tmp_path / "agent.pt"
     life = Lifecycle(probe, "policy")
@@ -246,7 +253,7 @@ def test_policy_answers_only_while_active(spawn, probe, tmp_path):
 
     # configure loads the checkpoint: missing, configure fails and the node stays unconfigured
     assert not life.set("configure") and life.state() == "unconfigured" and policy.alive()
-    _save(ckpt, 4)
+    save_agent(ckpt, 4)
     life.go("configure", "inactive")
     report = diag.after(1, "lifecycle_state", "inactive")
     assert report["agent"] == "checkpoint" and report["checkpoint_updates"] == "4"
@@ -317,6 +324,7 @@ def test_a_transition_that_raises_is_an_error_transition_not_a_dead_node():
         rclpy.try_shutdown(context=ctx)
 
 
+@pytest.mark.process
 def test_a_closed_control_plane_refuses_other_processes(spawn, probe):
     """remote_lifecycle:=false and reset_service:=false (what protocad-fleet gives its nodes):
     a transition asked from this process is refused and counted, the bridge keeps stepping, no
@@ -373,6 +381,7 @@ sys.exit(run_node(Hanging, prog="hanging"))
 """
 
 
+@pytest.mark.process
 def test_a_node_whose_close_hangs_still_exits_on_ctrl_c(spawn):
     import signal
 

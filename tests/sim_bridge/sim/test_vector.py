@@ -11,6 +11,8 @@ from sim_bridge.contract.contexts import get_task
 from sim_bridge.sim.envs import ContextDMCEnv
 from sim_bridge.sim.vector import VectorEnv, WorkerError
 
+pytestmark = pytest.mark.process
+
 
 def reaped(pids: list[int]) -> bool:
     """No process left, not even a zombie waiting for its parent's wait()."""

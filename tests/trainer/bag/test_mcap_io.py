@@ -2,31 +2,22 @@
 MCAP checker, rclpy's serializer. Real files, a real killed writer process."""
 from __future__ import annotations
 
-import shutil
 import signal
-import subprocess
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
 
-from conftest import wait_for
+from helpers import wait_until
+from helpers.bags import rerun_check
 from sim_bridge.contract import topics as T
 from trainer.bag import writer as bag_writer, rosmsg
 from trainer.bag import mcap_io as M
 
-RERUN = shutil.which("rerun", path=str(Path(sys.executable).parent)) or shutil.which("rerun")
 IMAGE, JOINT = "sensor_msgs/msg/Image", "sensor_msgs/msg/JointState"
 CLOCK = "rosgraph_msgs/msg/Clock"
 T0 = 1_700_000_000_000_000_000
-
-
-def rerun_check(path: Path) -> subprocess.CompletedProcess:
-    assert RERUN, "rerun CLI (rerun-sdk) not found next to the Python interpreter"
-    return subprocess.run([RERUN, "mcap", "check", str(path)], capture_output=True, text=True,
-                          timeout=60)
 
 
 def image(i: int, h: int = 64, w: int = 64) -> np.ndarray:
@@ -467,6 +458,7 @@ while True:
 """
 
 
+@pytest.mark.process
 def test_writer_killed_with_sigkill_leaves_readable_chunks(tmp_path, spawn):
     bag = tmp_path / "killed"
     proc = spawn("writer", "-c", WRITER_SCRIPT, str(bag))
@@ -475,7 +467,7 @@ def test_writer_killed_with_sigkill_leaves_readable_chunks(tmp_path, spawn):
         lines = [ln for ln in proc.output().splitlines() if ln.startswith("flushed ")]
         return int(lines[-1].split()[1]) if lines else 0
 
-    wait_for(lambda: flushed() >= 1500 or not proc.alive(), 60, "the writer to flush 1500")
+    wait_until(lambda: flushed() >= 1500 or not proc.alive(), 60, "the writer to flush 1500")
     assert proc.alive(), proc.output()
     at_least = flushed()  # every message reported flushed is in a complete chunk on disk
     proc.stop(signal.SIGKILL)

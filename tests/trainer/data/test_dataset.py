@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from trainer.data.dataset import DatasetError, MCAPDataset, TopicMap, find_sources
-from trainer_bags import DT_NS, answer, make_steps, write_bag
+from helpers.bags import DT_NS, answer, make_steps, write_bag
 
 
 def test_episode_rebuild_reports_gaps_duplicates_foreign_topics_and_unanswered(tmp_path):
@@ -157,8 +157,9 @@ def test_foreign_topic_names_and_clear_errors(tmp_path):
         find_sources([tmp_path / "nope"])
 
 
+@pytest.mark.process
 def test_dataset_cli_prints_the_report(tmp_path):
-    from trainer_bags import run_cli
+    from helpers.bags import run_cli
 
     bag = write_bag(tmp_path / "bag", make_steps(2, 6), extra_topics={"/x": 1})
     r = run_cli("trainer.data.dataset", bag, "--seq-len", "4", "--cache-dir", tmp_path / "c", "--json", tmp_path / "r.json")

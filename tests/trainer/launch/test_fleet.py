@@ -8,8 +8,8 @@ import os
 
 import pytest
 
-from conftest import wait_for
-from trainer_bags import TINY, check_robot_episodes, check_robots_recorded_and_trained, loop_failure, run_cli
+from helpers import wait_until
+from helpers.bags import TINY, check_robot_episodes, check_robots_recorded_and_trained, loop_failure, run_cli
 
 from trainer.launch.discovery import free_port
 
@@ -23,16 +23,18 @@ def _seen(proc) -> dict:
     return json.loads(lines[-1])
 
 
+@pytest.mark.ros
+@pytest.mark.process
 def test_two_actor_groups_through_a_discovery_server(tmp_path, spawn):
     port = free_port()
     server = f"127.0.0.1:{port}"
     # Two onlookers in the loop's domain: one discovering the usual way, one a super client of
     # the fleet's server (both up before the server: a client keeps asking for it).
-    plain = spawn("watch_plain", "tests/graph_watch.py")
-    super_client = spawn("watch_super", "tests/graph_watch.py", "--server", server)
-    control = spawn("watch_control", "tests/graph_watch.py", "--name", "control")   # plain, seen by plain
+    plain = spawn("watch_plain", "tests/helpers/graph_watch.py")
+    super_client = spawn("watch_super", "tests/helpers/graph_watch.py", "--server", server)
+    control = spawn("watch_control", "tests/helpers/graph_watch.py", "--name", "control")   # plain, seen by plain
     for w in (plain, super_client, control):
-        wait_for(lambda w=w: "watching" in w.output() or not w.alive(), 60, f"{w.args} to start")
+        wait_until(lambda w=w: "watching" in w.output() or not w.alive(), 60, f"{w.args} to start")
     run = tmp_path / "run"
     r = run_cli("trainer.launch.loop", "--task", "pendulum_swingup", *TINY, "--episode-length", "12", "--robots", "2",
                 "--prefill-episodes", "2", "--cycles", "1", "--updates-per-episode", "2",
@@ -81,6 +83,8 @@ def test_a_server_on_every_interface_is_warned_about():
     assert exposure_warning("127.0.0.1") is None and exposure_warning("10.0.0.2") is None
 
 
+@pytest.mark.ros
+@pytest.mark.process
 def test_actor_groups_placed_like_on_other_machines(tmp_path, spawn):
     """`protocad-fleet` as on three machines (here all on 127.0.0.1): A runs the server, one
     recorder for robot0 and robot1 and the checkpoint publisher on the learner's file; B and C
@@ -102,7 +106,7 @@ def test_actor_groups_placed_like_on_other_machines(tmp_path, spawn):
     a = spawn("machine_a", "-m", "trainer.launch.fleet", "--start-discovery-server", str(port), "--robots", "2",
               "--no-actors", "--record", str(bag), "--log-dir", str(tmp_path / "logs_a"),
               "--publish-checkpoint", str(learner), "--checkpoint-topic", topic, *dom)
-    wait_for(lambda: f"publishing {learner} on {topic}" in a.output() or not a.alive(), 90,
+    wait_until(lambda: f"publishing {learner} on {topic}" in a.output() or not a.alive(), 90,
              "machine A's recorder and checkpoint publisher")
     assert a.alive(), a.output()
     own = {m: tmp_path / f"machine_{m}" / "policy.pt" for m in "bc"}
@@ -111,7 +115,7 @@ def test_actor_groups_placed_like_on_other_machines(tmp_path, spawn):
                     "--checkpoint", str(own[m]), "--checkpoint-topic", topic, "--wait-for-checkpoint",
                     "--log-dir", str(tmp_path / f"logs_{m}"), *dom) for i, m in enumerate("bc")]
     for g in groups:
-        wait_for(lambda g=g: not g.alive(), 180, f"{g.args} to finish")
+        wait_until(lambda g=g: not g.alive(), 180, f"{g.args} to finish")
         assert g.p.returncode == 0 and "every bridge finished" in g.output(), g.output()
     for m in "bc":   # each policy's own copy is the learner's checkpoint, byte for byte, served
         assert own[m].read_bytes() == learner.read_bytes()   # from the first episode on
@@ -126,6 +130,8 @@ def test_actor_groups_placed_like_on_other_machines(tmp_path, spawn):
     assert t.returncode == 0, t.stdout + t.stderr
 
 
+@pytest.mark.ros
+@pytest.mark.process
 def test_a_fleet_profile_allows_the_fleet_interface_beside_loopback(tmp_path):
     import subprocess
     import sys

@@ -5,7 +5,11 @@ from __future__ import annotations
 import json
 import os
 
-from trainer_bags import TINY, check_robots_recorded_and_trained, loop_failure, run_cli
+import pytest
+
+from helpers.bags import TINY, check_robots_recorded_and_trained, loop_failure, run_cli
+
+pytestmark = [pytest.mark.ros, pytest.mark.process]
 
 
 def test_two_collect_train_reload_cycles_through_ros(tmp_path):

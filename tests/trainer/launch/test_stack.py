@@ -4,11 +4,16 @@ from __future__ import annotations
 import signal
 import sys
 
-from conftest import wait_for
+import pytest
+
+from helpers import wait_until
 from sim_bridge.contract import topics as T
 from trainer.bag import mcap_io as M
 
+pytestmark = pytest.mark.process
 
+
+@pytest.mark.ros
 def test_one_ctrl_c_three_clean_exits_and_every_step_has_its_action_from_stamp_0(spawn, tmp_path):
     bag = tmp_path / "bag"
     (tmp_path / "stack.yaml").write_text(
@@ -16,7 +21,7 @@ def test_one_ctrl_c_three_clean_exits_and_every_step_has_its_action_from_stamp_0
         "policy: {num_threads: 1}\n"
         f"recorder: {{output: {bag}}}\n")
     stack = spawn("stack", "-m", "trainer.launch.stack", str(tmp_path / "stack.yaml"))
-    wait_for(lambda: "episode 3 " in stack.output(), 240, "three episodes through the stack")
+    wait_until(lambda: "episode 3 " in stack.output(), 240, "three episodes through the stack")
     assert stack.stop(signal.SIGINT, timeout=60) == 0, stack.output()[-3000:]
     out = stack.output()
     assert "[stack] exit codes: bridge 0, policy 0, recorder 0" in out, out[-3000:]

@@ -7,27 +7,26 @@ import os
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 import torch
 
+from helpers import HELPERS, ROOT, wait_until
+from helpers.agents import render_batch
 from protocad_ros.model.agents import make_agent
 from protocad_ros.checkpoint import load_checkpoint, read_checkpoint
 from protocad_ros.model.config import make_config
-from test_agent import render_batch
 from trainer.learn import distributed
-from trainer_bags import TINY, make_steps, write_bag
+from helpers.bags import TINY, make_steps, write_bag
 
-pytestmark = [pytest.mark.usefixtures("one_torch_thread"),
+pytestmark = [pytest.mark.process, pytest.mark.usefixtures("one_torch_thread"),
               pytest.mark.skipif(not (Path(sys.executable).parent / "protocad-train").exists(),
                                  reason="protocad-ros is not installed in this Python (run scripts/protocad setup)")]
-ROOT = Path(__file__).resolve().parents[1]
 BIN = Path(sys.executable).parent
-# The README's command as written: torchrun and protocad-train are the environment's console
-# scripts (protocad-train runs this tree's code: conftest puts it on PYTHONPATH).
+# The documented command (msgs_docs/training.md) as written: torchrun and protocad-train are the
+# environment's console scripts (protocad-train runs this tree's code: conftest puts it on PYTHONPATH).
 TORCHRUN = [str(BIN / "torchrun"), "--standalone", "--nproc_per_node", "2"]
 TRAIN = ["--no-python", str(BIN / "protocad-train")]
 # gloo on the loopback interface only (it would otherwise pick the host's first interface).
@@ -97,7 +96,7 @@ def test_first_update_gradients_are_the_single_process_average(tmp_path):
     cfg.save(tmp_path / "config.yaml")
     batch = render_batch("pendulum_swingup", batch=4, length=8, seed=3)
     np.savez(tmp_path / "batch.npz", **batch)
-    out = torchrun(str(ROOT / "tests" / "ddp_grad_worker.py"), str(tmp_path))
+    out = torchrun(str(HELPERS / "ddp_grad_worker.py"), str(tmp_path))
     assert out.returncode == 0, out.stdout + out.stderr
     g0, g1 = (torch.load(tmp_path / f"grads_rank{r}.pt") for r in (0, 1))
 
@@ -133,10 +132,7 @@ def _children(pid: int) -> list[int]:
 
 
 def wait_gone(pids: list[int], timeout: float = 30) -> None:
-    deadline = time.monotonic() + timeout
-    while any(Path(f"/proc/{p}").exists() for p in pids):
-        assert time.monotonic() < deadline, f"{pids} still running"
-        time.sleep(0.1)
+    wait_until(lambda: not any(Path(f"/proc/{p}").exists() for p in pids), timeout, f"{pids} to exit", 0.1)
 
 
 def _counters(path: Path) -> dict:
@@ -153,11 +149,9 @@ def test_a_killed_two_rank_run_resumes_with_two_ranks_and_with_one(bags, tmp_pat
                             cwd=ROOT, env=ENV, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
                             text=True, start_new_session=True)
     try:
-        deadline = time.monotonic() + 180
-        while _counters(ckpt).get("updates", 0) < 4:
-            assert proc.poll() is None, proc.stdout.read()
-            assert time.monotonic() < deadline, "no checkpoint at update 4"
-            time.sleep(0.2)
+        wait_until(lambda: proc.poll() is not None or _counters(ckpt).get("updates", 0) >= 4, 180,
+                   "a checkpoint at update 4", 0.2)
+        assert proc.poll() is None, proc.stdout.read()
         ranks = _children(proc.pid)
         assert len(ranks) == 2, ranks
     finally:
@@ -187,7 +181,7 @@ def test_a_killed_two_rank_run_resumes_with_two_ranks_and_with_one(bags, tmp_pat
 
 
 def test_torchrun_takes_logs_as_its_own_option_so_the_docs_say_bags():
-    """Why the README's command writes --bags: torchrun's parser matches --logs to its own
+    """Why the documented command writes --bags: torchrun's parser matches --logs to its own
     --logs-specs even after the script. If a torch release stops doing that, this fails and
     --logs can be documented again."""
     out = torchrun("--no-python", "true", "--logs", "x", timeout=60)

@@ -8,22 +8,8 @@ import numpy as np
 import pytest
 
 from sim_bridge.contract.contexts import TASKS
-from trainer_bags import run_cli
-
-TINY_OVERRIDES = {"world_model.deter": 32, "world_model.hidden": 32, "world_model.stoch": 8,
-                  "world_model.cnn_depth": 8, "world_model.mlp_units": 32, "behavior.actor_units": 32,
-                  "behavior.critic_units": 32, "context.num_prototypes": 8, "context.proto_dim": 8,
-                  "train.batch_size": 4, "train.seq_len": 8}
-
-
-def tiny_checkpoint(path, task="pendulum_swingup", action_dim=1):
-    from protocad_ros.model.agent import Agent
-    from protocad_ros.checkpoint import save_checkpoint
-    from protocad_ros.model.config import make_config
-
-    cfg = make_config(task, "small", "protocad", **TINY_OVERRIDES)
-    return save_checkpoint(path, Agent(cfg, action_dim), {"env_steps": 1234})
-
+from helpers.agents import tiny_checkpoint
+from helpers.bags import run_cli
 
 def test_select_contexts_subsets():
     from trainer.learn.evaluate import parse_context, select_contexts
@@ -36,6 +22,7 @@ def test_select_contexts_subsets():
         select_contexts("pendulum_swingup", contexts=[{"m": 1.0}])
 
 
+@pytest.mark.process
 def test_checkpoints_of_two_tasks_with_random_baseline(tmp_path):
     tiny_checkpoint(tmp_path / "pend" / "checkpoints" / "latest.pt")
     b = tiny_checkpoint(tmp_path / "hop.pt", task="hopper_stand", action_dim=4)
@@ -65,6 +52,7 @@ def test_checkpoints_of_two_tasks_with_random_baseline(tmp_path):
     assert r.returncode == 2 and "junk.pt" in r.stderr
 
 
+@pytest.mark.process
 def test_random_baseline_in_worker_processes_matches_in_process(tmp_path):
     from trainer.learn.evaluate import evaluate_checkpoint
 
@@ -74,6 +62,8 @@ def test_random_baseline_in_worker_processes_matches_in_process(tmp_path):
     assert [c.returns for c in a.per_context] == [c.returns for c in b.per_context]
 
 
+@pytest.mark.ros
+@pytest.mark.process
 @pytest.mark.slow
 def test_through_ros_nodes(tmp_path):
     ck = tiny_checkpoint(tmp_path / "ck.pt")

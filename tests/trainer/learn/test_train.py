@@ -12,8 +12,8 @@ from pathlib import Path
 import pytest
 import yaml
 
-from conftest import ROOT, wait_for
-from trainer_bags import TINY, make_steps, run_cli, write_bag, write_rosbags_bag
+from helpers import ROOT, wait_until
+from helpers.bags import TINY, make_steps, run_cli, write_bag, write_rosbags_bag
 
 ROBOT = {"image": "/robot/camera", "step_info": "/robot/step", "action": "/robot/cmd", "context": "/robot/ctx"}
 
@@ -31,6 +31,7 @@ def ckpt_counters(path: Path) -> dict:
     return {**p["counters"], "agent_updates": int(p["modules"]["updates"])}
 
 
+@pytest.mark.process
 def test_log_from_another_tool_trains_and_evaluates(tmp_path):
     bag = write_rosbags_bag(tmp_path / "robot_bag", make_steps(2, 16, context={"m": 1.0}), ROBOT)
     assert (bag / "metadata.yaml").exists()
@@ -73,6 +74,7 @@ def _train_proc(tmp_path: Path, bag: Path, run_dir: Path, *extra: str) -> subpro
                             start_new_session=True)
 
 
+@pytest.mark.process
 def test_resume_after_kill_continues_from_last_checkpoint(tmp_path):
     bag = write_bag(tmp_path / "bag", make_steps(3, 20))
     N = 8
@@ -85,7 +87,7 @@ def test_resume_after_kill_continues_from_last_checkpoint(tmp_path):
     run_dir = tmp_path / "killed"
     p = _train_proc(tmp_path, bag, run_dir, "--updates", "1000", "--checkpoint-every", "2")
     ck = run_dir / "checkpoints" / "latest.pt"
-    wait_for(ck.exists, 240, "the first checkpoint")
+    wait_until(ck.exists, 240, "the first checkpoint")
     os.killpg(p.pid, signal.SIGKILL)
     p.wait(30)
     saved = ckpt_counters(ck)
@@ -104,11 +106,12 @@ def test_resume_after_kill_continues_from_last_checkpoint(tmp_path):
     assert final["agent_updates"] == N and final["updates"] == N
 
 
+@pytest.mark.process
 def test_ctrl_c_saves_a_checkpoint_and_exits_0(tmp_path):
     bag = write_bag(tmp_path / "bag", make_steps(2, 20))
     run_dir = tmp_path / "run"
     p = _train_proc(tmp_path, bag, run_dir, "--updates", "100000", "--checkpoint-every", "1000")
-    wait_for(lambda: (run_dir / "metrics.jsonl").exists() and metrics(run_dir), 240, "training to start")
+    wait_until(lambda: (run_dir / "metrics.jsonl").exists() and metrics(run_dir), 240, "training to start")
     os.killpg(p.pid, signal.SIGINT)
     out, _ = p.communicate(timeout=120)
     assert p.returncode == 0, out
@@ -117,6 +120,7 @@ def test_ctrl_c_saves_a_checkpoint_and_exits_0(tmp_path):
     assert c["agent_updates"] >= 1 and c["agent_updates"] == metrics(run_dir)[-1]["update"]
 
 
+@pytest.mark.process
 def test_cli_help_and_errors(tmp_path):
     r = run_cli("trainer.learn.train", "--help")
     assert r.returncode == 0
@@ -132,6 +136,7 @@ def test_cli_help_and_errors(tmp_path):
     assert r.returncode == 2 and "no window of 8 steps" in r.stderr
 
 
+@pytest.mark.process
 def test_resume_and_new_run_dirs_are_checked_by_every_command(tmp_path):
     (tmp_path / "ckpt_only" / "checkpoints").mkdir(parents=True)
     (tmp_path / "ckpt_only" / "checkpoints" / "latest.pt").write_bytes(b"")
@@ -159,6 +164,7 @@ def _help_entry(text: str, option: str) -> str:
     return " ".join(lines[start:end])
 
 
+@pytest.mark.process
 def test_every_config_field_is_an_option_with_the_configs_help_and_the_presets_default():
     import dataclasses
 
@@ -182,11 +188,12 @@ def test_every_config_field_is_an_option_with_the_configs_help_and_the_presets_d
 
 
 def test_config_options_set_what_set_and_the_file_set(tmp_path):
-    from trainer import runs
-    from trainer.learn.train import build_parser, config_from_args
+    from trainer import settings
+    from trainer.learn.train import build_parser
 
     def config(*argv):
-        return config_from_args(runs.parse_cli(build_parser(), [str(x) for x in argv]))
+        parsed = settings.parse(build_parser(), [str(x) for x in argv])
+        return parsed.get(settings.ModelChoice).to_config(parsed.config_args, parsed.prog)
 
     (tmp_path / "c.yaml").write_text("world_model: {deter: 40, hidden: 48}\n")
     cfg = config("--config", tmp_path / "c.yaml", "--set", "world_model.hidden=56", "--world_model.deter", "24",
@@ -202,6 +209,7 @@ def test_config_options_set_what_set_and_the_file_set(tmp_path):
         config("--train.precision", "float8")
 
 
+@pytest.mark.process
 @pytest.mark.parametrize("local_ranks", [None, "2"])
 def test_auto_threads_are_the_cores_shared_among_the_local_ranks(local_ranks):
     """--threads 0: torch's one thread per core, divided among torchrun's ranks on the machine;
@@ -226,7 +234,7 @@ def record_with_a_second_image_publisher(tmp_path: Path, steps: list[dict]) -> P
     from rclpy.node import Node
     from sensor_msgs.msg import Image, JointState
 
-    from conftest import Proc
+    from helpers import Proc
     from sim_bridge.contract import qos
     from sim_bridge.contract import topics as T
 
@@ -239,7 +247,7 @@ def record_with_a_second_image_publisher(tmp_path: Path, steps: list[dict]) -> P
         pubs = {rel: node.create_publisher(Image if rel == T.IMAGE else JointState, rel, qos.observation_qos(True))
                 for rel in (T.IMAGE, T.STEP_INFO, T.CONTEXT, T.ACTION)}
         impostor = node.create_publisher(Image, T.IMAGE, qos.observation_qos(True))
-        wait_for(lambda: all(p.get_subscription_count() for p in [*pubs.values(), impostor]), 90,
+        wait_until(lambda: all(p.get_subscription_count() for p in [*pubs.values(), impostor]), 90,
                  "the recorder to subscribe to every topic")
         for st in steps:
             s = st["stamp"]
@@ -259,6 +267,8 @@ def record_with_a_second_image_publisher(tmp_path: Path, steps: list[dict]) -> P
     return bag
 
 
+@pytest.mark.ros
+@pytest.mark.process
 def test_a_bag_with_two_image_publishers_is_refused_unless_accepted(tmp_path):
     bag = record_with_a_second_image_publisher(tmp_path, make_steps(2, 12))
     custom = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]["custom_data"]
@@ -275,6 +285,7 @@ def test_a_bag_with_two_image_publishers_is_refused_unless_accepted(tmp_path):
     assert "the recorder reported multiple publishers" in r.stdout   # and the dataset report says why
 
 
+@pytest.mark.process
 def test_logs_with_test_split_episodes_are_refused_unless_accepted(tmp_path):
     bag = write_bag(tmp_path / "bag", make_steps(2, 12, split="test"))
     args = ["--logs", bag, "--task", "pendulum_swingup", *TINY, "--updates", "1", "--cache-dir", tmp_path / "cache"]

@@ -14,13 +14,16 @@ import re
 import signal
 import time
 
+import pytest
 import yaml
 
-from conftest import wait_for
-from ros_helpers import Probe, Responder
+from helpers import wait_until
+from helpers.ros import Probe, Responder
 from sim_bridge.contract import topics as T
 from sim_bridge.nodekit.rosnode import flush_publishers
 from trainer.bag import mcap_io as M
+
+pytestmark = [pytest.mark.ros, pytest.mark.process]
 
 TASK, NS = "pendulum_swingup", T.DEFAULT_NAMESPACE
 START = 90.0
@@ -37,7 +40,7 @@ def start(spawn, tmp_path, mode: list[str]):
     bag = tmp_path / "bag"
     rec = spawn("recorder", "-m", "trainer.nodes.recorder", "-o", str(bag), T.topic_name(NS, T.STEP_INFO),
                 T.topic_name(NS, T.IMAGE), T.topic_name(NS, T.ACTION))
-    wait_for(lambda: "recording to" in rec.output(), START, "the recorder")
+    wait_until(lambda: "recording to" in rec.output(), START, "the recorder")
     bridge = spawn("bridge", "-m", "sim_bridge.bridge.node", "--ros-args", "-p", f"task:={TASK}", "-p", "seed:=1",
                    "-p", "min_subscribers:=2", "-p", "diagnostics_period_s:=0.2", *mode)
     return probe, resp, bag, rec, bridge
@@ -62,18 +65,18 @@ def test_lockstep_recorder_frozen_6s_records_every_message_of_every_topic(spawn,
     resp = Responder(probe, lambda info: [0.0], names=["torque"])
     bag = tmp_path / "bag"
     rec = spawn("recorder", "-m", "trainer.nodes.recorder", "-o", str(bag))
-    wait_for(lambda: "recording to" in rec.output(), START, "the recorder")
+    wait_until(lambda: "recording to" in rec.output(), START, "the recorder")
     bridge = spawn("bridge", "-m", "sim_bridge.bridge.node", "--ros-args", "-p", f"task:={TASK}", "-p", "seed:=2",
                    "-p", "min_subscribers:=2", "-p", "episode_length:=400")
     try:
-        wait_for(lambda: len(resp.steps) >= 40, START, "40 lock-step steps")
+        wait_until(lambda: len(resp.steps) >= 40, START, "40 lock-step steps")
         rec.p.send_signal(signal.SIGSTOP)
         frozen_at, t_frozen = len(resp.steps), time.monotonic()
-        wait_for(lambda: len(resp.steps) >= frozen_at + FROZEN_STEPS and time.monotonic() - t_frozen >= FROZEN_S,
+        wait_until(lambda: len(resp.steps) >= frozen_at + FROZEN_STEPS and time.monotonic() - t_frozen >= FROZEN_S,
                  240, f"{FROZEN_STEPS} steps and {FROZEN_S} s while the recorder is frozen")
         rec.p.send_signal(signal.SIGCONT)
         resumed_at = len(resp.steps)
-        wait_for(lambda: len(resp.steps) >= resumed_at + 100, 120, "100 more steps")
+        wait_until(lambda: len(resp.steps) >= resumed_at + 100, 120, "100 more steps")
         assert bridge.stop() == 0, bridge.output()[-2000:]     # SIGINT: waits for every reader's acks
         assert flush_publishers([resp.pub], 30.0) == []
         assert rec.stop() == 0, rec.output()[-2000:]
@@ -104,13 +107,13 @@ def test_realtime_loss_is_counted_exactly_and_named_by_the_dataset(spawn, tmp_pa
 
     probe, resp, bag, rec, bridge = start(spawn, tmp_path, ["-p", "mode:=realtime", "-p", "control_rate_hz:=100.0"])
     try:
-        wait_for(lambda: len(resp.steps) >= 100, START, "100 real-time steps")
+        wait_until(lambda: len(resp.steps) >= 100, START, "100 real-time steps")
         rec.p.send_signal(signal.SIGSTOP)
         n0 = len(resp.steps)
-        wait_for(lambda: len(resp.steps) >= n0 + 300, 60, "300 steps while the recorder is frozen")
+        wait_until(lambda: len(resp.steps) >= n0 + 300, 60, "300 steps while the recorder is frozen")
         rec.p.send_signal(signal.SIGCONT)
         n1 = len(resp.steps)
-        wait_for(lambda: len(resp.steps) >= n1 + 100, 60, "100 more steps")
+        wait_until(lambda: len(resp.steps) >= n1 + 100, 60, "100 more steps")
         assert bridge.stop() == 0
         time.sleep(1.0)                     # the last samples in flight reach the recorder
         out_code = rec.stop()
@@ -148,10 +151,10 @@ def test_a_lockstep_recording_stopped_by_a_full_disk_is_in_time_order_and_read_b
     bag = disk / "bag"
     rec = spawn("recorder", "-m", "trainer.nodes.recorder", "-o", str(bag), "--compression", "none",
                 "--ros-args", "-p", "flush_interval:=0.2")
-    wait_for(lambda: "recording to" in rec.output(), START, "the recorder")
+    wait_until(lambda: "recording to" in rec.output(), START, "the recorder")
     spawn("bridge", "-m", "sim_bridge.bridge.node", "--ros-args", "-p", f"task:={TASK}", "-p", "seed:=1",
           "-p", "min_subscribers:=2")
-    wait_for(lambda: not rec.alive(), 120, "the recorder to stop on the full disk")
+    wait_until(lambda: not rec.alive(), 120, "the recorder to stop on the full disk")
     assert rec.p.returncode == EXIT_WRITE_FAILED, rec.output()[-2000:]
     (mcap,) = bag.glob("*.mcap")
     with open(mcap, "rb") as f:

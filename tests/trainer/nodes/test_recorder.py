@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from conftest import wait_for
+from helpers import wait_until
 from sim_bridge.contract import topics as T
 from trainer.bag import mcap_io as M
 
@@ -75,7 +75,7 @@ def publish_steps(pubs, steps: int) -> None:
 
 
 def wait_matched(pubs) -> None:
-    wait_for(lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 60,
+    wait_until(lambda: all(p.get_subscription_count() > 0 for p in pubs.values()), 60,
              "the recorder to subscribe to every contract topic")
 
 
@@ -101,6 +101,8 @@ def check_recorded(reader: M.BagReader, steps: int) -> None:
         assert sorted(stamps[t]) == [stamp(i) for i in range(steps)], t
 
 
+@pytest.mark.ros
+@pytest.mark.process
 @pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM], ids=["SIGINT", "SIGTERM"])
 def test_recorder_records_every_message_and_closes_cleanly(tmp_path, spawn, ros, sig):
     bag = tmp_path / "run"
@@ -126,7 +128,7 @@ def test_recorder_records_every_message_and_closes_cleanly(tmp_path, spawn, ros,
     r = M.BagReader(bag)
     assert not r.report.truncated
     check_recorded(r, STEPS)
-    from test_mcap_io import rerun_check
+    from helpers.bags import rerun_check
     res = rerun_check(bag / "run_0.mcap")
     assert res.returncode == 0, res.stdout + res.stderr
     from rosbags.rosbag2 import Reader
@@ -134,6 +136,8 @@ def test_recorder_records_every_message_and_closes_cleanly(tmp_path, spawn, ros,
         assert rb.message_count == STEPS * len(TOPICS)
 
 
+@pytest.mark.ros
+@pytest.mark.process
 def test_recorder_killed_with_sigkill_keeps_flushed_chunks(tmp_path, spawn, ros):
     bag = tmp_path / "killed"
     rec = spawn("recorder", "-m", "trainer.nodes.recorder", "-o", str(bag), "--chunk-size", "8192",
@@ -144,7 +148,7 @@ def test_recorder_killed_with_sigkill_keeps_flushed_chunks(tmp_path, spawn, ros)
     publish_steps(pubs, steps)
     wait_acked(pubs)
     # the flush timer writes the open chunk within 0.2 s: wait until a reader sees it all
-    wait_for(lambda: M.BagReader(bag).report.message_count == steps * len(TOPICS), 20,
+    wait_until(lambda: M.BagReader(bag).report.message_count == steps * len(TOPICS), 20,
              "the recorder to write every message in complete chunks")
     rec.stop(signal.SIGKILL)
     assert not (bag / "metadata.yaml").exists()
@@ -153,12 +157,15 @@ def test_recorder_killed_with_sigkill_keeps_flushed_chunks(tmp_path, spawn, ros)
     check_recorded(r, steps)
 
 
+@pytest.mark.process
 def test_recorder_help():
     res = subprocess.run([sys.executable, "-m", "trainer.nodes.recorder", "--help"], capture_output=True,
                          text=True, timeout=60)
     assert res.returncode == 0 and "--max-bag-size" in res.stdout and "--compression" in res.stdout
 
 
+@pytest.mark.ros
+@pytest.mark.process
 def test_recording_into_a_full_disk_stops_cleanly_with_a_readable_bag(ros, small_disk):
     """Random (incompressible) 12 KB images until the disk is full: the recorder exits by itself
     with EXIT_WRITE_FAILED, prints the summary with the loss, and the bag is valid MCAP that the
@@ -181,7 +188,7 @@ def test_recording_into_a_full_disk_stops_cleanly_with_a_readable_bag(ros, small
                             T.topic_name(NS, T.STEP_INFO), "--ros-args", "-p", "flush_interval:=0.2"],
                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
-        wait_for(lambda: pub.get_subscription_count() >= 1 and info_pub.get_subscription_count() >= 1, 60,
+        wait_until(lambda: pub.get_subscription_count() >= 1 and info_pub.get_subscription_count() >= 1, 60,
                  "the recorder's subscriptions")
         rng = np.random.default_rng(0)
         sent = 0
@@ -251,6 +258,8 @@ def test_every_jazzy_record_option_is_known_with_its_meaning_or_refused_with_a_r
             assert res.returncode == 2 and "snapshot mode is not supported" in res.stderr
 
 
+@pytest.mark.ros
+@pytest.mark.process
 def test_include_and_exclude_regex_select_topics_as_ros2_bag_record(ros, tmp_path):
     from std_msgs.msg import String
 
@@ -260,7 +269,7 @@ def test_include_and_exclude_regex_select_topics_as_ros2_bag_record(ros, tmp_pat
                             "--exclude-regex", "skip", "--exclude-topics", "/a/drop", "-p", "50"],
                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
-        wait_for(lambda: pubs["/a/keep"].get_subscription_count() >= 1, 60, "the recorder on /a/keep")
+        wait_until(lambda: pubs["/a/keep"].get_subscription_count() >= 1, 60, "the recorder on /a/keep")
         time.sleep(1.0)   # it had the chance to (wrongly) subscribe to the others too
         for i in range(20):
             for pub in pubs.values():
@@ -277,6 +286,8 @@ def test_include_and_exclude_regex_select_topics_as_ros2_bag_record(ros, tmp_pat
     assert M.BagReader(bag).report.counts == {"/a/keep": 20}
 
 
+@pytest.mark.ros
+@pytest.mark.process
 def test_loss_while_frozen_is_counted_exactly_and_shown_by_the_dataset(ros, tmp_path):
     """A KEEP_LAST(50) writer at full speed while the recorder is frozen (SIGSTOP) for 3 s: what
     the bag lacks equals what the recorder counted as lost, in its summary, metadata.yaml and
@@ -294,7 +305,7 @@ def test_loss_while_frozen_is_counted_exactly_and_shown_by_the_dataset(ros, tmp_
     rec = subprocess.Popen([sys.executable, "-m", "trainer.nodes.recorder", "-o", str(bag), T.topic_name(NS, T.STEP_INFO),
                             "-p", "100"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
-        wait_for(lambda: pub.get_subscription_count() >= 1, 60, "the recorder's subscription")
+        wait_until(lambda: pub.get_subscription_count() >= 1, 60, "the recorder's subscription")
         time.sleep(0.5)
         n = 3000
         for i in range(n):

@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from conftest import ROOT, wait_for
+from helpers import ROOT, wait_until
 from trainer.research import results as R
 
 # 4 runs of 100-agent-step episodes; 2 test contexts, 1 episode each, so a run takes seconds.
@@ -35,13 +35,14 @@ def read_counters(run_dir: Path) -> dict:
     return read_checkpoint(run_dir / "checkpoints" / "latest.pt")["counters"]
 
 
+@pytest.mark.process
 @pytest.mark.slow
 def test_grid_runs_in_parallel_resumes_after_ctrl_c_and_reports(tmp_path, spawn):
     out = tmp_path / "grid"
     run_dirs = [out / "pendulum_swingup" / v / f"seed{s}" for v in ("protocad", "dreamer") for s in (0, 1)]
     first = spawn("compare1", *grid_args(out))
     # All four runs are alive at once (parallel workers) and each has written a checkpoint.
-    wait_for(lambda: all((d / "checkpoints" / "latest.pt").exists() for d in run_dirs), 300,
+    wait_until(lambda: all((d / "checkpoints" / "latest.pt").exists() for d in run_dirs), 300,
              "a checkpoint in every run directory")
     pids = set(re.findall(r"started \S+ \(fresh\) pid (\d+)", first.output()))
     assert len(pids) == 4, first.output()
@@ -55,7 +56,7 @@ def test_grid_runs_in_parallel_resumes_after_ctrl_c_and_reports(tmp_path, spawn)
         assert not (d / "eval" / "final.json").exists()
 
     second = spawn("compare2", *grid_args(out))
-    wait_for(lambda: not second.alive(), 400, "the resumed grid to finish")
+    wait_until(lambda: not second.alive(), 400, "the resumed grid to finish")
     log = second.output()
     assert second.p.returncode == 0, log
     # status lines carry the grid's estimated wall time once the runs have been timed
@@ -78,7 +79,7 @@ def test_grid_runs_in_parallel_resumes_after_ctrl_c_and_reports(tmp_path, spawn)
         assert [c["env_steps"] for c in r["curve"]] == sorted(c["env_steps"] for c in r["curve"])
     # A third run of the same command has nothing left to do.
     third = spawn("compare3", *grid_args(out))
-    wait_for(lambda: not third.alive(), 120, "the finished grid to report")
+    wait_until(lambda: not third.alive(), 120, "the finished grid to report")
     assert third.output().count(": done") == 4 and "started" not in third.output()
 
     # The plot: a valid PNG with one curve per variant (each variant's colour is in it).
@@ -141,6 +142,7 @@ def test_readme_results_section_regenerates_byte_identically_from_the_committed_
     assert (ROOT / "msgs_docs" / "results" / "pendulum_cpu.png").exists()
 
 
+@pytest.mark.process
 def test_compare_help_and_bad_report_are_clear(tmp_path):
     import subprocess
 
@@ -162,6 +164,7 @@ def test_durations_print_as_they_parse():
     assert (format_duration(45), format_duration(11400)) == ("45s", "3h10m")
 
 
+@pytest.mark.process
 def test_a_report_writes_only_where_it_is_told(tmp_path):
     import shutil
     import subprocess
@@ -179,6 +182,7 @@ def test_a_report_writes_only_where_it_is_told(tmp_path):
     assert r.returncode == 0 and (tmp_path / "c.png").stat().st_size > 0
 
 
+@pytest.mark.process
 def test_a_grid_whose_parent_is_killed_twice_resumes_to_completion(tmp_path, spawn):
     """SIGKILL of protocad-compare (its runs die with it) twice in a row, once before any
     checkpoint: the same command then finishes every run, counters equal to their bags."""
@@ -195,15 +199,15 @@ def test_a_grid_whose_parent_is_killed_twice_resumes_to_completion(tmp_path, spa
         return len(list((d / "bags").glob("*"))) if (d / "bags").is_dir() else 0
 
     first = spawn("kill1", *args)
-    wait_for(lambda: all(bags(d) >= 2 for d in run_dirs), 300, "bags in both runs")
+    wait_until(lambda: all(bags(d) >= 2 for d in run_dirs), 300, "bags in both runs")
     assert not any((d / "checkpoints" / "latest.pt").exists() for d in run_dirs)   # none yet
     first.stop(signal.SIGKILL)
     second = spawn("kill2", *args)
-    wait_for(lambda: second.output().count("(resume)") == 2, 120, "both runs resumed from their bags")
-    wait_for(lambda: all(bags(d) >= 3 for d in run_dirs), 300, "more bags")
+    wait_until(lambda: second.output().count("(resume)") == 2, 120, "both runs resumed from their bags")
+    wait_until(lambda: all(bags(d) >= 3 for d in run_dirs), 300, "more bags")
     second.stop(signal.SIGKILL)
     third = spawn("finish", *args)
-    wait_for(lambda: not third.alive(), 400, "the grid to finish")
+    wait_until(lambda: not third.alive(), 400, "the grid to finish")
     assert third.p.returncode == 0, third.output()[-3000:]
     for d in run_dirs:
         assert json.loads((d / "run.json").read_text())["result"]["status"] == "finished"

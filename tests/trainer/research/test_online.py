@@ -8,13 +8,14 @@ import json
 
 import pytest
 
-from trainer_bags import TINY, run_cli
+from helpers.bags import TINY, run_cli
 
 ARGS = ["--task", "pendulum_swingup", *TINY, "--time-limit", "40", "--prefill-episodes", "2",
         "--updates-per-episode", "2", "--eval-every", "80", "--eval-episodes", "1", "--final-episodes", "1",
         "--eval-max-contexts", "2", "--eval-workers", "0", "--log-every", "1", "--no-progress"]
 
 
+@pytest.mark.process
 def test_online_runs_end_to_end_and_resumes(tmp_path):
     run = tmp_path / "run"
     r = run_cli("trainer.research.online", *ARGS, "--env-steps", "160", "--num-envs", "2", "--run-dir", run,
@@ -72,16 +73,22 @@ def test_online_runs_end_to_end_and_resumes(tmp_path):
 
 
 def test_resume_keeps_the_original_options_unless_given_again(tmp_path):
-    from trainer import runs
-    from trainer.research.online import build_parser
+    from trainer.research.online import parse_args
 
     run = tmp_path / "run"
     run.mkdir()
+    # a run.json from before settings were saved: its command line
     (run / "run.json").write_text(json.dumps({"args": ["--eval-max-contexts", "1", "--log-every", "1",
                                                        "--task", "walker_walk", "--run-dir", str(run)]}))
-    a = runs.resumed_cli(build_parser, runs.parse_cli(build_parser(), [
-        "--run-dir", str(run), "--resume", "--log-every", "5"]))
-    assert (a.eval_max_contexts, a.log_every, a.task, a.resume) == (1, 5, "walker_walk", True)
+    s, model, _ = parse_args(["--run-dir", str(run), "--resume", "--log-every", "5"])
+    assert (s.eval_max_contexts, s.log_every, model.task, s.resume) == (1, 5, "walker_walk", True)
+    # one with its settings saved (what runs write now): the same rule
+    (run / "run.json").write_text(json.dumps({"settings": {
+        "online": {"eval_max_contexts": 3, "log_every": 1, "wall_budget": 60.0, "run_dir": str(run)},
+        "model": {"task": "cheetah_run", "threads": 1}}}))
+    s, model, _ = parse_args(["--run-dir", str(run), "--resume", "--threads", "2"])
+    assert (s.eval_max_contexts, s.log_every, s.wall_budget, s.resume) == (3, 1, 60.0, True)
+    assert (model.task, model.threads) == ("cheetah_run", 2)
 
 
 def test_defaults_quoted_in_help_are_the_configs():
@@ -112,6 +119,7 @@ def _bag_count(run) -> int:
     return sum(1 for p in bags.iterdir() if p.is_dir()) if bags.is_dir() else 0
 
 
+@pytest.mark.process
 def test_sigkill_at_any_point_then_resume_completes_with_counters_from_the_data(tmp_path, spawn):
     """Five SIGKILLs in a row (before the first checkpoint, right after a resume, after a
     checkpoint, mid-collection), then a resume to completion: the counters are the bags' steps,
@@ -119,7 +127,7 @@ def test_sigkill_at_any_point_then_resume_completes_with_counters_from_the_data(
     import re
     import signal
 
-    from conftest import wait_for
+    from helpers import wait_until
     from protocad_ros.checkpoint import read_checkpoint
     from trainer.data.dataset import MCAPDataset
     from trainer.research.online import data_counts
@@ -133,7 +141,7 @@ def test_sigkill_at_any_point_then_resume_completes_with_counters_from_the_data(
     ckpt = run / "checkpoints" / "latest.pt"
 
     def kill_when(proc, ready, what):
-        wait_for(lambda: ready() or not proc.alive(), 240, what)
+        wait_until(lambda: ready() or not proc.alive(), 240, what)
         assert proc.alive(), proc.output()[-3000:]
         proc.stop(signal.SIGKILL)
 
@@ -154,7 +162,7 @@ def test_sigkill_at_any_point_then_resume_completes_with_counters_from_the_data(
     kill_when(p, lambda: _bag_count(run) >= n + 2, "two more bags")
     # then to completion
     p = spawn("a6", *resume)
-    wait_for(lambda: not p.alive(), 400, "the final resume to finish")
+    wait_until(lambda: not p.alive(), 400, "the final resume to finish")
     log = p.output()
     assert p.p.returncode == 0, log[-3000:]
     assert "finished: " in log
@@ -173,6 +181,7 @@ def test_sigkill_at_any_point_then_resume_completes_with_counters_from_the_data(
     assert len(bag_names) == len(set(bag_names)) and all(re.match(r"ep\d{6}_env0_a\d", b) for b in bag_names)
 
 
+@pytest.mark.process
 @pytest.mark.disk_size("1m")
 @pytest.mark.parametrize("full", ["run_dir", "cache"])
 def test_a_full_disk_is_one_line_with_the_cause_and_the_run_resumes_after_space_is_freed(tmp_path, small_disk, full):

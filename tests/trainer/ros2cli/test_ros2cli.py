@@ -15,8 +15,10 @@ import sys
 import pytest
 import yaml
 
-from conftest import ROOT, Proc
-from ros_helpers import Probe, Responder, wait_until
+from helpers import ROOT, Proc, wait_until
+from helpers.ros import Probe, Responder
+
+pytestmark = pytest.mark.process
 
 TASK = "pendulum_swingup"
 BRIDGE = "/protocad/sim_bridge"
@@ -52,6 +54,7 @@ def bridge(tmp_path_factory):
     assert "Traceback" not in proc.output()
 
 
+@pytest.mark.ros
 def test_node_list_and_info(bridge):
     out = ros2_graph("node", "list")
     assert out.returncode == 0, out.stderr
@@ -76,6 +79,7 @@ def test_node_list_and_info(bridge):
     assert missing.returncode == 1 and "Unable to find node '/protocad/nobody'" in missing.stderr
 
 
+@pytest.mark.ros
 def test_topic_list_and_info(bridge):
     out = ros2_graph("topic", "list", "-t")
     assert out.returncode == 0, out.stderr
@@ -97,6 +101,7 @@ def test_topic_list_and_info(bridge):
     assert unknown.returncode == 1 and unknown.stderr.strip() == "Unknown topic '/protocad/nope'"
 
 
+@pytest.mark.ros
 def test_topic_echo_prints_ros2cli_yaml(bridge):
     # The latched bridge_info is deterministic: the whole text is ros2cli's block YAML.
     out = ros2("topic", "echo", "/protocad/bridge_info", "--once")
@@ -129,6 +134,7 @@ def test_topic_echo_prints_ros2cli_yaml(bridge):
     assert "Traceback" not in failing.stderr
 
 
+@pytest.mark.ros
 def test_topic_hz_prints_the_ros2cli_summary(bridge, tmp_path):
     log = tmp_path / "hz.log"
     with open(log, "w") as fh:
@@ -150,6 +156,7 @@ def test_topic_hz_prints_the_ros2cli_summary(bridge, tmp_path):
     assert "Traceback" not in log.read_text()
 
 
+@pytest.mark.ros
 def test_param_list_get_set_dump(bridge):
     probe, _ = bridge
     listed = ros2("param", "list", BRIDGE)
@@ -189,6 +196,7 @@ def test_param_list_get_set_dump(bridge):
     assert "    Min value: 0.0\n    Max value: 1000.0" in described
 
 
+@pytest.mark.ros
 def test_service_list_and_call(bridge):
     listed = ros2_graph("service", "list", "-t").stdout.splitlines()
     assert "/protocad/reset [std_srvs/srv/Trigger]" in listed
@@ -206,6 +214,7 @@ def test_service_list_and_call(bridge):
     assert bad_field.returncode == 1 and bad_field.stderr.startswith("Failed to populate field:")
 
 
+@pytest.mark.ros
 def test_lifecycle_nodes_get_list_set(bridge):
     probe, _ = bridge
     assert BRIDGE in ros2_graph("lifecycle", "nodes").stdout.splitlines()

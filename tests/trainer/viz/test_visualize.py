@@ -13,11 +13,12 @@ import sys
 import numpy as np
 import pytest
 
+import helpers
 from sim_bridge.contract.contexts import get_task
 from trainer.viz import visualize as V
 from trainer.viz.rerun_log import TrainingRecorder, normalize_eval, read_recording
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = str(helpers.ROOT)
 K = 6  # configured number of prototypes of the tiny agents (the paper's is 50/100)
 
 
@@ -87,6 +88,7 @@ def _check_context_view(rec, task, method="pca", params=("m",)):
     assert rec["__blueprints"]["rows"] >= 1
 
 
+@pytest.mark.process
 def test_context_recording_covers_every_context_of_both_splits(tmp_path, pendulum_agent):
     """Collected in-process with the agent's own policy: one episode per context (11 + 8)."""
     out = tmp_path / "ctx.rrd"
@@ -161,6 +163,7 @@ def _write_bag(bag_dir, episodes):
     return sorted(bag_dir.glob("*.mcap"))
 
 
+@pytest.mark.process
 def test_mcap_logs_view_and_rerun_reads_the_mcap(tmp_path, pendulum_agent):
     contexts = {"train": [{"m": 0.75}, {"m": 1.25}], "test": [{"m": 0.2}]}
     eps = V.collect_context_episodes("pendulum_swingup", None, steps=10, contexts=contexts,
@@ -226,6 +229,7 @@ def test_bad_input_is_a_clear_error(tmp_path, pendulum_agent):
         V.collect_context_episodes("cartpole_swingup", None, steps=3)
 
 
+@pytest.mark.process
 def test_cli_writes_the_run_dirs_recording(tmp_path, pendulum_agent):
     from protocad_ros.checkpoint import save_checkpoint
 
