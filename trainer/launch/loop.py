@@ -388,11 +388,9 @@ class Loop:
         self._setup()
         a, cfg = self.a, self.cfg
         t_start = time.monotonic()
-        callbacks = []
-        if a.rerun is not None:
-            from trainer.viz.rerun_log import metrics_callback
+        from trainer.viz.rerun_log import metrics_callbacks
 
-            callbacks.append(metrics_callback(a.rerun or self.run_dir / "metrics.rrd", application="protocad-loop"))
+        callbacks = metrics_callbacks(a.rerun, self.run_dir, "protocad-loop")
         ckpt = runs.checkpoint_path(self.run_dir)
         if a.resume and ckpt.exists():
             self.trainer = Trainer.from_checkpoint(ckpt, self.run_dir, self.ds, device=self.device,

@@ -441,12 +441,10 @@ def _train(s: TrainSettings, model: settings.ModelChoice, config_args: list[str]
     if not s.logs:
         raise ValueError("give --logs PATH... (bag directories, .mcap files or folders of bags)")
     ds = open_logs(s, cfg, ctx, say)
-    callbacks, rrd = [], None
-    if s.rerun is not None:
-        rrd = s.rerun or str(run_dir / "metrics.rrd")
-        from trainer.viz.rerun_log import metrics_callback
+    from trainer.viz.rerun_log import metrics_callbacks
 
-        callbacks.append(metrics_callback(rrd, application="protocad-train"))
+    callbacks = metrics_callbacks(s.rerun, run_dir, "protocad-train")
+    rrd = (s.rerun or str(run_dir / "metrics.rrd")) if s.rerun is not None else None
     if s.resume:
         try:
             trainer = Trainer.from_checkpoint(runs.checkpoint_path(run_dir), run_dir, ds, device=device,

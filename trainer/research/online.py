@@ -517,11 +517,9 @@ class OnlineRun:
         all_bags = sorted(p for p in self.bags_dir.iterdir() if p.is_dir())
         if all_bags[ctx.rank::self.world]:   # each rank a share, whatever the ranks that wrote them
             self.ds.add(all_bags[ctx.rank::self.world])
-        callbacks = []
-        if s.rerun is not None:
-            from trainer.viz.rerun_log import metrics_callback
+        from trainer.viz.rerun_log import metrics_callbacks
 
-            callbacks.append(metrics_callback(s.rerun or self.run_dir / "metrics.rrd", application="protocad-online"))
+        callbacks = metrics_callbacks(s.rerun, self.run_dir, "protocad-online")
         ckpt = runs.checkpoint_path(self.run_dir)
         if s.resume and ckpt.exists():
             self.trainer = Trainer.from_checkpoint(ckpt, self.run_dir, self.ds, device=self.device,

@@ -261,6 +261,12 @@ class TrainingRecorder:
         self.close()
 
 
+def metrics_callbacks(rerun: str | None, run_dir: Path, application: str) -> list[TrainingRecorder]:
+    """What a training command's `--rerun [RRD]` asks for: nothing (None), or the callback
+    writing RRD (default RUN_DIR/metrics.rrd)."""
+    return [] if rerun is None else [metrics_callback(rerun or Path(run_dir) / "metrics.rrd", application)]
+
+
 def metrics_callback(rrd_path: str | Path | None, application: str = "protocad-train",
                      recording_id: str | None = None) -> TrainingRecorder | None:
     """The training scalars' callback of protocad-train/-online/-loop: a TrainingRecorder writing
