@@ -86,8 +86,11 @@ class RSSM(nn.Module):
             if self.cfg.unimix > 0:  # DreamerV3: probs = (1 - mix) softmax + mix / classes
                 probs = torch.softmax(logit, -1)
                 probs = (1 - self.cfg.unimix) * probs + self.cfg.unimix / self.classes
-                logit = probs.log()
-            return {"logit": logit}
+                return {"logit": probs.log()}
+            # Normalized: `kl` reads these as log-probabilities (raw network outputs would make
+            # sum(exp(lp) * (lp - rp)) any number, negative too, and the KL loss would sit at
+            # its free nats with no gradient); softmax, argmax and sampling are unchanged.
+            return {"logit": torch.log_softmax(logit, -1)}
         mean, std = x.chunk(2, -1)
         std = 2 * torch.sigmoid(std / 2) + self.cfg.min_std  # DreamerPro std_act 'sigmoid2'
         return {"mean": mean, "std": std}

@@ -185,6 +185,28 @@ def test_categorical_latent_sampling_and_straight_through():
     assert logit.grad.abs().sum() > 0
 
 
+@pytest.mark.parametrize("unimix", [0.0, 0.01])
+def test_categorical_kl_is_the_kl_of_the_networks_distributions(unimix):
+    """From raw network outputs (any offset, as a linear layer gives them), with and without
+    unimix: the KL of the distributions the latents are sampled from, never negative."""
+    from protocad_ros.model.config import WorldModelConfig
+    from protocad_ros.model.rssm import RSSM
+
+    rssm = RSSM(1, 8, WorldModelConfig(stoch=3, discrete=5, unimix=unimix))
+    g = torch.Generator().manual_seed(0)
+    raw_post, raw_prior = torch.randn(4, 15, generator=g) * 3 + 7, torch.randn(4, 15, generator=g) * 3 - 2
+    post, prior = rssm._stats(raw_post), rssm._stats(raw_prior)
+
+    def dist(raw):
+        probs = torch.softmax(raw.reshape(4, 3, 5), -1)
+        probs = (1 - unimix) * probs + unimix / 5
+        return torch.distributions.Categorical(probs=probs)
+
+    expected = torch.distributions.kl_divergence(dist(raw_post), dist(raw_prior)).sum(-1)
+    assert torch.allclose(rssm.kl(post, prior), expected, atol=1e-5)
+    assert (rssm.kl(post, prior) >= 0).all() and torch.allclose(rssm.kl(post, post), torch.zeros(4), atol=1e-6)
+
+
 def test_kl_balancing_and_free_nats():
     from protocad_ros.model.config import WorldModelConfig
     from protocad_ros.model.rssm import RSSM
