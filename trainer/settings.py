@@ -206,6 +206,19 @@ def resumed(cls: type[S], saved: dict[str, Any] | None, parsed: Parsed,
                                         if k in {f.name for f in dataclasses.fields(cls)}})
 
 
+def resumed_from_run(run_dir: str, parsed: Parsed, parser: argparse.ArgumentParser,
+                     sections: dict[str, type]) -> dict[str, Any]:
+    """`resumed` for each section ({run.json settings key: class}) of the run in run_dir: its
+    saved settings, else its saved command line, replaced by the flags given. A run.json whose
+    `settings` is not a mapping of mappings (edited by hand) is a ValueError naming it."""
+    saved = runs.read_run_json(run_dir)
+    kept = saved.get("settings") or {}
+    if not isinstance(kept, dict) or not all(isinstance(v, dict) for v in kept.values()):
+        raise ValueError(f"{run_dir}/run.json: 'settings' is not a mapping of settings sections")
+    old_args = saved.get("args") if isinstance(saved.get("args"), list) else None
+    return {key: resumed(cls, kept.get(key), parsed, parser, old_args) for key, cls in sections.items()}
+
+
 def as_data(settings: Any) -> dict[str, Any]:
     """A settings object as JSON-able data (run.json)."""
     return dataclasses.asdict(settings)

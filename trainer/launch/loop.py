@@ -152,15 +152,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     parsed = settings.parse(parser, argv)
     s, model = parsed.get(LoopSettings), parsed.get(settings.ModelChoice)
-    if s.resume and s.run_dir:   # the original command's options, unless given again
-        saved = runs.read_run_json(s.run_dir)
-        kept = saved.get("settings") or {}
-        old_args = saved.get("args") if isinstance(saved.get("args"), list) else None
-        s = settings.resumed(LoopSettings, kept.get("loop"), parsed, parser, old_args)
-        model = settings.resumed(settings.ModelChoice, kept.get("model"), parsed, parser, old_args)
     from trainer.launch.rosprocs import NodeFailed
 
     try:
+        if s.resume and s.run_dir:   # the original command's options, unless given again
+            got = settings.resumed_from_run(s.run_dir, parsed, parser,
+                                            {"loop": LoopSettings, "model": settings.ModelChoice})
+            s, model = got["loop"], got["model"]
         return Loop(s, model, parsed.config_args, parsed.prog, parsed.argv).run()
     except NodeFailed as exc:
         print(f"protocad-loop: a node failed: {exc}", file=sys.stderr)

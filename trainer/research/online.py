@@ -281,16 +281,18 @@ def parse_args(argv: Sequence[str] | None = None) -> tuple[OnlineSettings, setti
     s = parsed.get(OnlineSettings)
     model = parsed.get(settings.ModelChoice)
     if s.resume and s.run_dir:
-        saved = runs.read_run_json(Path(s.run_dir))
-        kept = saved.get("settings") or {}
-        old_args = saved.get("args") if isinstance(saved.get("args"), list) else None
-        s = settings.resumed(OnlineSettings, kept.get("online"), parsed, parser, old_args)
-        model = settings.resumed(settings.ModelChoice, kept.get("model"), parsed, parser, old_args)
+        got = settings.resumed_from_run(s.run_dir, parsed, parser,
+                                        {"online": OnlineSettings, "model": settings.ModelChoice})
+        s, model = got["online"], got["model"]
     return s, model, parsed
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    s, model, parsed = parse_args(argv)
+    try:
+        s, model, parsed = parse_args(argv)
+    except ValueError as exc:   # a run.json edited out of shape
+        print(f"protocad-online: error: {exc}", file=sys.stderr)
+        return 2
     from trainer.learn.train import CheckpointWriteError, RanksDiverged
 
     try:

@@ -89,6 +89,12 @@ def test_resume_keeps_the_original_options_unless_given_again(tmp_path):
     s, model, _ = parse_args(["--run-dir", str(run), "--resume", "--threads", "2"])
     assert (s.eval_max_contexts, s.log_every, s.wall_budget, s.resume) == (3, 1, 60.0, True)
     assert (model.task, model.threads) == ("cheetah_run", 2)
+    # a run.json edited out of shape: one line, exit 2, nothing touched
+    from trainer.research.online import main
+
+    (run / "run.json").write_text(json.dumps({"settings": ["not", "a", "mapping"]}))
+    assert main(["--run-dir", str(run), "--resume"]) == 2
+    assert json.loads((run / "run.json").read_text()) == {"settings": ["not", "a", "mapping"]}
 
 
 def test_defaults_quoted_in_help_are_the_configs():
