@@ -12,10 +12,17 @@ kernel selection, allocator growth) are not timed but do count for peak memory.
     python scripts/bench_train.py --device cuda --dreamerv3-sizes
     python scripts/bench_train.py --only-dreamerv3 --profile   # + top ops from torch.profiler
     python scripts/bench_train.py --only-dreamerv3 --precision float32 --flops   # + FLOPs, roof
+    python scripts/bench_train.py --presets small --variants dreamer --baseline 3ee8463
+                                   # before (that commit) and after (this tree), row by row
 
 Precision: `--precision auto` (default) times bfloat16 autocast only where the device has bf16
 arithmetic (protocad_ros/model/precision.py) and float32 elsewhere; `--precision float32` runs float32
 only, for every row (the --dreamerv3-sizes rows included). The CPU capability is printed first.
+
+Before and after: `--baseline REV` times every configuration twice, interleaved, once with the
+code of git revision REV (exported to a temporary directory) and once with this tree, and prints
+the speed-up of each pair; the worker is this script either way, so only the code under test
+differs (a baseline without trainer.runs.retain_freed_memory runs glibc's default allocator).
 
 Peer reference: NM512/dreamerv3-torch dmc_vision, timed side by side on the same machine
 (`--peer-sec`, `--peer-gb`; the defaults are the quiet 2-core AVX2-only machine's 18.1 s and
@@ -28,9 +35,11 @@ import json
 import os
 import platform
 import resource
+import shutil
 import signal
 import subprocess
 import sys
+import tempfile
 import time
 from pathlib import Path
 
@@ -54,9 +63,13 @@ def worker(spec: dict) -> dict:
     import torch
 
     torch.set_num_threads(spec["threads"])
-    sys.path.insert(0, str(ROOT))
+    sys.path.insert(0, spec.get("root", str(ROOT)))
     from protocad_ros.model.agent import Agent
     from protocad_ros.model.config import make_config
+    from trainer import runs
+
+    # What every training command does first (a baseline revision may predate it).
+    retained = getattr(runs, "retain_freed_memory", lambda: False)()
 
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     overrides = dict(spec["overrides"])
@@ -100,6 +113,7 @@ def worker(spec: dict) -> dict:
         "rss_base_gb": rss0 * 1024 / 1e9,
         "params_m": sum(p.numel() for p in agent.parameters()) / 1e6,
         "batch": f"{B}x{T}", "horizon": cfg.behavior.horizon,
+        "allocator": "retained" if retained else "default",
     }
     if cuda:
         out["cuda_gb"] = torch.cuda.max_memory_allocated() / 1e9
@@ -158,7 +172,7 @@ def gemm_roof(dtype, seconds: float = 2.0) -> float:
 # ---- driver -------------------------------------------------------------------------------------
 def run_spec(spec: dict, timeout: float) -> dict:
     cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", json.dumps(spec)]
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [str(ROOT),
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [spec.get("root", str(ROOT)),
                                                                       os.environ.get("PYTHONPATH")]))}
     try:
         p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env)
@@ -206,6 +220,12 @@ def build_parser() -> argparse.ArgumentParser:
                          "2048^2 matmul: prints GFLOP/s reached and the fastest an update of those "
                          "FLOPs could be on these cores")
     ap.add_argument("--timeout", type=float, default=1800, help="seconds per config")
+    ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                    help="config override for every row, as protocad-online's --set "
+                         "(e.g. --set train.seq_len=50 --set reference=dreamerv2)")
+    ap.add_argument("--baseline", metavar="REV",
+                    help="also time every configuration with the code of git revision REV, "
+                         "interleaved with this tree's, and print each speed-up")
     ap.add_argument("--json", type=Path, help="also write the results here")
     ap.add_argument("--list", action="store_true", help="print the configurations it would time and exit")
     ap.add_argument("--worker", help=argparse.SUPPRESS)
@@ -231,6 +251,27 @@ def print_row(spec: dict, r: dict, cuda: bool) -> None:
               f"under {total / r['roof_gflops']:.2f} s", flush=True)
     if r.get("profile"):
         print(r["profile"])
+
+
+def export_revision(rev: str) -> Path:
+    """The tree of git revision `rev` of this repository, in a fresh temporary directory."""
+    out = Path(tempfile.mkdtemp(prefix="bench_train_baseline_"))
+    archive = subprocess.run(["git", "-C", str(ROOT), "archive", rev], capture_output=True)
+    if archive.returncode != 0:
+        shutil.rmtree(out, ignore_errors=True)
+        raise SystemExit(f"--baseline {rev}: {archive.stderr.decode().strip()}")
+    subprocess.run(["tar", "-x", "-C", str(out)], input=archive.stdout, check=True)
+    return out
+
+
+def print_speedups(results: list[dict]) -> None:
+    """Each --baseline row against the row of this tree that follows it."""
+    for base, new in zip(results, results[1:]):
+        if base.get("baseline_of") != new["name"] or "error" in base or "error" in new:
+            continue
+        print(f"speed-up {new['name']} {new['precision']}: {base['sec'] / new['sec']:.2f}x "
+              f"({base['sec']:.3f} -> {new['sec']:.3f} s/update; allocator {base['allocator']} "
+              f"-> {new['allocator']})")
 
 
 def compare_with_peer(results: list[dict], args) -> None:
@@ -267,17 +308,24 @@ def main(argv=None) -> int:
     common = {"task": args.task, "device": args.device, "threads": args.threads,
               "updates": args.updates, "warmup": args.warmup, "profile": args.profile,
               "flops": args.flops}
+    overrides = dict(kv.split("=", 1) for kv in args.set)
     if not args.only_dreamerv3:
         for preset in args.presets:
             for variant in args.variants:
                 for prec in precisions:
                     specs.append({**common, "name": f"{preset}/{variant}", "preset": preset,
-                                  "variant": variant, "precision": prec, "overrides": {}})
+                                  "variant": variant, "precision": prec, "overrides": overrides})
     if args.dreamerv3_sizes or args.only_dreamerv3:
         for prec in precisions:
             specs.append({**common, "name": "dreamerv3-sizes/dreamer", "preset": "dreamerv3_sizes",
-                          "variant": "dreamer", "precision": prec, "overrides": {}})
+                          "variant": "dreamer", "precision": prec, "overrides": overrides})
 
+    baseline_dir = None
+    if args.baseline:
+        baseline_dir = export_revision(args.baseline)
+        specs = [row for spec in specs for row in (
+            {**spec, "name": f"{spec['name']}@{args.baseline[:10]}", "root": str(baseline_dir),
+             "baseline_of": spec["name"]}, spec)]
     if args.list:
         for spec in specs:
             print(f"{spec['name']} {spec['precision']}")
@@ -310,7 +358,10 @@ def main(argv=None) -> int:
         results.append({**spec, **r})
         print_row(spec, r, cuda)
     print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    print_speedups(results)
     compare_with_peer(results, args)
+    if baseline_dir is not None:
+        shutil.rmtree(baseline_dir, ignore_errors=True)
     if args.json:
         args.json.write_text(json.dumps(results, indent=1))
     return 0

@@ -177,7 +177,7 @@ class Loop:
         self.config_args, self.prog = list(config_args), prog
         self.argv = list(sys.argv[1:] if argv is None else argv)
         self.device = runs.resolve_device(model.device)
-        runs.set_threads(model.threads)
+        runs.setup_torch(model.threads)
 
     # ------------------------------------------------------------------ setup
     def _setup(self) -> None:

@@ -99,7 +99,7 @@ def run_entry_point(threads: int, device: str, body: Callable[[DistContext, str]
     body(ctx, device), leave the process group whatever happens."""
     from trainer import runs
 
-    runs.set_threads(threads)
+    runs.setup_torch(threads)
     ctx, device = init(runs.resolve_device(device))
     try:
         return body(ctx, device)

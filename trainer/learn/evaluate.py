@@ -398,7 +398,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def run(a: EvaluateSettings) -> int:
     """Evaluate as the settings say, print the tables (and write --json)."""
-    runs.set_threads(a.threads)
+    runs.setup_torch(a.threads)
     device = runs.resolve_device(a.device)
     if not a.checkpoints and not a.random:
         raise ValueError("give CHECKPOINT(s) or --random --task TASK")

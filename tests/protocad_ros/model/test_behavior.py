@@ -185,6 +185,23 @@ def test_categorical_latent_sampling_and_straight_through():
     assert logit.grad.abs().sum() > 0
 
 
+def test_categorical_samples_are_one_hot_and_never_a_zero_probability_class():
+    """Classes of probability 0 (first and last included) are never drawn, each latent draws
+    exactly one class, and the mode is the most likely class."""
+    from protocad_ros.model.config import WorldModelConfig
+    from protocad_ros.model.rssm import RSSM
+
+    rssm = RSSM(1, 8, WorldModelConfig(stoch=2, discrete=5, unimix=0.0))
+    p = torch.tensor([0.0, 0.7, 0.0, 0.3, 0.0])
+    logit = torch.log_softmax(p.log(), -1).expand(50000, 2, 5)
+    s = rssm._sample({"logit": logit}, True).reshape(-1, 2, 5)
+    assert torch.equal(s.sum(-1), torch.ones(50000, 2))
+    assert s[..., [0, 2, 4]].sum() == 0
+    assert torch.allclose(s.mean(0), p.expand(2, 5), atol=0.01)
+    mode = rssm._sample({"logit": logit[:3]}, False).reshape(3, 2, 5)
+    assert torch.equal(mode.argmax(-1), torch.ones(3, 2, dtype=torch.long))
+
+
 @pytest.mark.parametrize("unimix", [0.0, 0.01])
 def test_categorical_kl_is_the_kl_of_the_networks_distributions(unimix):
     """From raw network outputs (any offset, as a linear layer gives them), with and without

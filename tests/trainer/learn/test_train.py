@@ -215,7 +215,7 @@ def test_auto_threads_are_the_cores_shared_among_the_local_ranks(local_ranks):
     """--threads 0: torch's one thread per core, divided among torchrun's ranks on the machine;
     an explicit number wins, and auto after it comes back to the same share."""
     code = ("import torch; from trainer import runs; d = torch.get_num_threads(); "
-            "print(d, runs.set_threads(0), runs.set_threads(3), runs.set_threads(None))")
+            "print(d, runs.setup_torch(0), runs.setup_torch(3), runs.setup_torch(None))")
     env = {k: v for k, v in os.environ.items() if k != "LOCAL_WORLD_SIZE"}
     if local_ranks:
         env["LOCAL_WORLD_SIZE"] = local_ranks
