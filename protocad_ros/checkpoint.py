@@ -11,6 +11,11 @@ torch.load(weights_only=True)):
     counters (the caller's: env steps, episodes, ...), torch_rng (optional).
 A `config.yaml` with the same config is written beside the file (for humans and tools).
 
+A policy file (`save_policy`) is the same format without optimizer states and RNG, its weights
+stored in bfloat16 (a quarter of a training checkpoint), with a `provenance` mapping (where it
+was trained, with what, how it scored): what the project ships. It loads like any checkpoint
+(weights back in float32, fresh optimizers), so it is served, evaluated and trained on from.
+
 A file may come from elsewhere (a policy node receives them over ROS), so loading checks before
 it allocates: the weights' shapes against the config's, on torch's meta device (a config that
 asks for huge networks costs nothing there), and, with `fits`, the caller's own conditions (a
@@ -25,6 +30,7 @@ does not fit) is a CheckpointError that says which file and what is wrong.
 from __future__ import annotations
 
 import io
+import json
 import os
 import time
 import zipfile
@@ -35,10 +41,10 @@ import torch
 
 from protocad_ros.model.agent_base import AgentBase
 from protocad_ros.model.agents import make_agent
-from protocad_ros.atomic import atomic_open
+from protocad_ros.atomic import atomic_open, atomic_write_text
 from protocad_ros.model.config import Config, ConfigError
 
-__all__ = ["save_checkpoint", "load_checkpoint", "restore_checkpoint", "read_checkpoint",
+__all__ = ["save_checkpoint", "save_policy", "read_provenance", "load_checkpoint", "restore_checkpoint", "read_checkpoint",
            "architecture_differences", "CheckpointError", "CheckpointMismatch", "FORMAT", "VERSION",
            "CONFIG_NAME"]
 
@@ -103,14 +109,43 @@ def save_checkpoint(path: str | os.PathLike, agent: AgentBase, counters: Mapping
     }
     if rng_state:
         payload["torch_rng"] = torch.get_rng_state()
+    _write(path, payload)
+    agent.cfg.save(path.parent / CONFIG_NAME)
+    return path
+
+
+def save_policy(path: str | os.PathLike, agent: AgentBase, provenance: Mapping[str, Any],
+                dtype: torch.dtype = torch.bfloat16) -> Path:
+    """Write the agent's weights alone (floating tensors in `dtype`; no optimizer states, no
+    RNG) with `provenance` (strings, numbers, lists and mappings of them), atomically, and the
+    same provenance and config as JSON beside it (PATH with .json: a policy directory may hold
+    several, so no shared config.yaml)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    modules = {k: v.detach().to("cpu", dtype) if v.is_floating_point() else v.detach().cpu()
+               for k, v in agent.state_dict().items()}
+    payload = {"format": FORMAT, "version": VERSION, "created_unix": time.time(),
+               "config": agent.cfg.to_dict(), "action_dim": agent.action_dim, "modules": modules,
+               "agent_counters": agent.counters(), "counters": {},
+               "provenance": dict(provenance)}
+    _write(path, payload)
+    atomic_write_text(path.with_suffix(".json"), json.dumps(
+        {"provenance": payload["provenance"], "config": payload["config"]}, indent=1) + "\n")
+    return path
+
+
+def read_provenance(path: str | os.PathLike) -> dict[str, Any]:
+    """A checkpoint's `provenance` ({} for a training checkpoint, which has none)."""
+    return dict(read_checkpoint(Path(path)).get("provenance") or {})
+
+
+def _write(path: Path, payload: Mapping[str, Any]) -> None:
     # Serialized in memory first: torch's zip writer reports a failed file write as a
     # RuntimeError ("unexpected pos"); written as one buffer, a full disk is an OSError.
     buf = io.BytesIO()
-    torch.save(payload, buf)
+    torch.save(dict(payload), buf)
     with atomic_open(path, "wb") as f:
         f.write(buf.getbuffer())
-    agent.cfg.save(path.parent / CONFIG_NAME)
-    return path
 
 
 def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
@@ -137,7 +172,7 @@ def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
     if version != VERSION:
         raise CheckpointError(f"{path}: checkpoint format version {version!r} is not supported "
                               f"by this code (version {VERSION})")
-    for key in ("config", "action_dim", "modules", "optimizers"):
+    for key in ("config", "action_dim", "modules"):   # optimizers: not in a policy file
         if key not in payload:
             raise CheckpointError(f"{path}: checkpoint is missing {key!r}")
     return payload
@@ -157,6 +192,8 @@ def _load_into(path: Path, agent: AgentBase, payload: Mapping[str, Any],
     except (RuntimeError, KeyError) as err:
         raise CheckpointError(f"{path}: weights do not fit this agent (config "
                               f"{agent.cfg.variant}/{agent.cfg.preset}): {err}") from None
+    if "optimizers" not in payload:   # a policy file: the agent's optimizers start fresh
+        return dict(payload.get("counters", {}))
     opts = agent.optimizers()
     if set(payload["optimizers"]) != set(opts):
         raise CheckpointError(f"{path}: optimizer states {sorted(payload['optimizers'])} do not "

@@ -306,6 +306,11 @@ class GridSettings:
     evaluation's contexts and episodes) and report it beside the variants"""
     random_episodes: int = arg(5, group="output")
     """episodes per context of --random-baseline"""
+    ship: str | None = arg(None, metavar="POLICY_PT", group="output")
+    """write the best run's policy here (highest final return on unseen contexts; bfloat16
+    weights and provenance, POLICY_PT with .json beside it: trainer.research.ship)"""
+    ship_label: str | None = arg(None, metavar="LABEL", group="output")
+    """--ship only among this variant label's runs"""
     status_every: float = arg(300.0, group="output")
     """seconds between status lines"""
     online_args: list[str] = arg([], "online_args", nargs=argparse.REMAINDER)
@@ -376,6 +381,15 @@ def main(argv: Sequence[str] | None = None) -> int:
         if a.update_readme:
             R.update_readme(Path(a.update_readme), R.markdown_section(doc, image=a.image, source=source))
             print(f"[compare] updated the results section of {a.update_readme}", flush=True)
+        if a.ship:
+            from trainer.research.ship import ship_best
+
+            path, prov = ship_best(doc, a.ship, source, label=a.ship_label)
+            entry = prov["results_entry"]
+            print(f"[compare] shipped {entry['task']} {entry['label']} seed {entry['seed']} (final "
+                  f"{entry['final']['mean_return']:.1f} on unseen contexts) as {path} "
+                  f"({path.stat().st_size / 1e6:.1f} MB; provenance: {path.with_suffix('.json')})",
+                  flush=True)
     except (ValueError, OSError) as exc:
         print(f"protocad-compare: error: {exc}", file=sys.stderr)
         return 2

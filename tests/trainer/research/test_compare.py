@@ -213,3 +213,45 @@ def test_a_grid_whose_parent_is_killed_twice_resumes_to_completion(tmp_path, spa
         assert json.loads((d / "run.json").read_text())["result"]["status"] == "finished"
         steps, episodes = data_counts(MCAPDataset([d / "bags"], seq_len=4, cache_dir=tmp_path / "c" / d.name))
         assert read_counters(d)["env_steps"] == 2 * steps >= 500
+
+    ship_the_best_policy(out, tmp_path)
+
+
+def ship_the_best_policy(out: Path, tmp_path: Path) -> None:
+    """`--ship`: the run with the best final return on unseen contexts becomes a policy file
+    (bfloat16 weights, no optimizer states, provenance inside and beside it) that loads, acts
+    and can be trained on from fresh optimizers."""
+    import subprocess
+
+    import torch
+
+    from protocad_ros.checkpoint import load_checkpoint, read_checkpoint, read_provenance
+
+    policy = tmp_path / "policies" / "pendulum.pt"
+    r = subprocess.run([sys.executable, "-m", "trainer.research.compare", "--report", str(out / "results.json"),
+                        "--ship", str(policy)], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert r.returncode == 0, r.stderr
+    doc = R.load_results(out / "results.json")
+    best = max(doc["runs"], key=lambda row: row["final"]["mean_return"])
+    prov = read_provenance(policy)
+    assert prov["results_entry"]["seed"] == best["seed"] and prov["results_entry"]["final"] == best["final"]
+    assert prov["run_command"] and prov["code_versions"]
+    assert json.loads(policy.with_suffix(".json").read_text())["provenance"] == prov
+    assert f"seed {best['seed']}" in r.stdout and str(policy) in r.stdout
+
+    source = Path(best["run_dir"]) / "checkpoints" / "latest.pt"
+    assert "optimizers" not in read_checkpoint(policy)
+    assert policy.stat().st_size < source.stat().st_size / 2
+    shipped, _ = load_checkpoint(policy, restore_rng=False)
+    trained, _ = load_checkpoint(source, restore_rng=False)
+    for (k, a), b in zip(shipped.state_dict().items(), trained.state_dict().values()):
+        assert a.dtype == b.dtype, k                  # back in float32 once loaded
+        if b.is_floating_point():
+            assert torch.equal(a, b.to(torch.bfloat16).to(b.dtype)), k
+    assert all(not st for opt in shipped.optimizers().values() for st in opt.state.values())
+
+    # Only unseen-context finals count: asked for a label without any, a clear error, no file.
+    r = subprocess.run([sys.executable, "-m", "trainer.research.compare", "--report", str(out / "results.json"),
+                        "--ship", str(tmp_path / "none.pt"), "--ship-label", "protocad"],
+                       capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert r.returncode == 2 and "no finished run" in r.stderr and not (tmp_path / "none.pt").exists()

@@ -1,0 +1,66 @@
+"""Ship the best policy of a comparison: `protocad-compare --report RESULTS_JSON --ship OUT.pt`.
+
+The best run is the one with the highest final mean return on unseen contexts (the test split)
+among the finished runs of results.json (optionally of one task / label). Its checkpoint is
+written as a policy file (protocad_ros.checkpoint.save_policy: bfloat16 weights, no optimizer
+states, a few MB) whose provenance says where it comes from: the results.json entry (task,
+variant, seed, env steps, updates, final scores per context), the commands that trained it, the
+code version(s) and the SHA-256 of the training checkpoint it was cut from.
+"""
+from __future__ import annotations
+
+import hashlib
+from pathlib import Path
+from typing import Any, Mapping
+
+from protocad_ros.checkpoint import (CheckpointError, existing_checkpoint_file, load_checkpoint,
+                                     save_policy)
+from trainer import runs
+
+
+def best_run(doc: Mapping[str, Any], task: str | None = None, label: str | None = None) -> dict[str, Any]:
+    """The finished run with the highest final mean return on the test split (ValueError when
+    there is none)."""
+    rows = [r for r in doc["runs"] if r.get("final") and r.get("eval_split", "test") == "test"
+            and r.get("status") in ("finished", "wall_budget")
+            and (task is None or r["task"] == task) and (label is None or r["label"] == label)]
+    if not rows:
+        what = " ".join(f"{k} {v}" for k, v in (("task", task), ("label", label)) if v)
+        raise ValueError("no finished run with a final evaluation on unseen (test) contexts"
+                         + (f" for {what}" if what else "") + " in results.json")
+    return max(rows, key=lambda r: r["final"]["mean_return"])
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def ship_best(doc: Mapping[str, Any], out: str | Path, results_path: str | Path,
+              task: str | None = None, label: str | None = None) -> tuple[Path, dict[str, Any]]:
+    """Write the best run's policy file to `out`; returns (path, its provenance)."""
+    row = best_run(doc, task, label)
+    ckpt = existing_checkpoint_file(row["run_dir"])
+    try:
+        agent, counters = load_checkpoint(ckpt, restore_rng=False)
+    except CheckpointError as err:
+        raise ValueError(f"cannot ship {row['run_dir']}: {err}") from None
+    info = runs.read_run_json(row["run_dir"])
+    provenance = {
+        "what": f"{row['task']} {row['label']} seed {row['seed']}: the best final return on unseen "
+                f"contexts among the finished runs of {Path(results_path).name}",
+        "results_json": str(results_path),
+        "results_entry": {k: row[k] for k in ("task", "label", "variant", "seed", "env_steps",
+                                               "updates", "preset", "precision", "final")},
+        "grid_command": list(doc.get("command", [])),
+        "run_command": list(info.get("argv", [])),
+        "resume_commands": list(info.get("resumes_argv", [])),
+        "code_versions": list(info.get("code_versions", [])) or [doc.get("code_version", "unknown")],
+        "source_checkpoint": str(ckpt),
+        "source_checkpoint_sha256": _sha256(ckpt),
+        "counters": {k: v for k, v in counters.items() if isinstance(v, (int, float, str, bool))},
+    }
+    return save_policy(out, agent, provenance), provenance
