@@ -59,7 +59,8 @@ setup(
     description="ProtoCAD (ICLR 2023) context-aware world models as a ROS 2 Jazzy stack",
     packages=find_packages(include=["protocad_ros*", "sim_bridge*", "trainer*"]),
     # DreamerV2's published curves, the anchor's reference (trainer/research/results.py plots them)
-    package_data={"trainer.research": ["dreamerv2_dmc_vision.json"]},
+    package_data={"trainer.research": ["dreamerv2_dmc_vision.json"],
+                  "protocad_ros": ["policies/*.pt", "policies/*.json"]},   # shipped policies
     python_requires=">=3.11,<3.12",
     install_requires=INSTALL_REQUIRES,
     extras_require={"test": ["pytest==9.2.0", "pytest-timeout==2.4.0", "hypothesis==6.170.17",

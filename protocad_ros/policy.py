@@ -18,6 +18,7 @@ to [-1, 1] (Dreamer's exploration). No ROS import here.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -25,7 +26,17 @@ import torch
 
 from protocad_ros.model.agent_base import AgentBase
 
-__all__ = ["Policy", "ContextFeatures"]
+__all__ = ["Policy", "ContextFeatures", "SHIPPED_POLICIES", "shipped_policy"]
+
+#: Policies that ship with the package, one per task: TASK.pt (protocad-compare --ship) with
+#: TASK.json beside it saying where it was trained and how it scored.
+SHIPPED_POLICIES = Path(__file__).resolve().parent / "policies"
+
+
+def shipped_policy(task: str) -> Path | None:
+    """The shipped policy file of `task`, or None where none ships."""
+    path = SHIPPED_POLICIES / f"{task}.pt"
+    return path if path.is_file() else None
 
 
 @dataclass

@@ -1,6 +1,7 @@
 """`protocad-loop` (`ros2 run trainer loop`): the collect-train-reload loop through the ROS nodes.
 
-    protocad-loop --demo                         # README main command (Pendulum Swingup, small)
+    protocad-loop --demo                         # README main command (a shipped policy, else Pendulum Swingup)
+    protocad-loop --init-policy protocad_ros/policies/walker_walk.pt --cycles 20   # train on from it
     protocad-loop --task walker_walk --preset paper --cycles 100 --run-dir runs/ww
     protocad-loop --run-dir runs/ww --resume     # continue after Ctrl-C / a crash
     protocad-loop --robots 2 --start-discovery-server   # a Fast DDS Discovery Server, no multicast
@@ -55,8 +56,10 @@ class LoopSettings:
     values come from the config (train.*) or the demo, once, in `resolved`."""
 
     demo: bool = False
-    """the README's main command: pendulum_swingup, small preset, 3 cycles of 1 episode, C=25,
-    then the test-context table and a rerun recording (a few minutes on 2 CPU cores)"""
+    """the README's main command: 3 cycles of 1 episode, C=25, then the test-context table and a
+    rerun recording: from the shipped policy of the first of walker_walk, cheetah_run the
+    package ships (--init-policy), else pendulum_swingup from scratch at the small preset (a few
+    minutes on 2 CPU cores)"""
     cycles: int | None = arg(None, group="loop")
     """collection cycles after the prefill (default 10; demo 3)"""
     episodes_per_cycle: int | None = arg(None, group="loop")
@@ -74,6 +77,14 @@ class LoopSettings:
     """final evaluation: episodes per test context (0: none; default 5, demo 1)"""
     eval_max_contexts: int = arg(0, group="loop")
     """final evaluation: at most K test contexts (0: all)"""
+    init_policy: str | None = arg(None, metavar="POLICY_PT", group="loop")
+    """start from this policy file's (or checkpoint's) weights: its config (task, variant,
+    sizes) is the run's, optimizers and the update count start afresh; first its return on unseen
+    contexts is printed beside the random policy's, both through the ROS nodes (the demo: the
+    shipped policy of its task, protocad_ros/policies/TASK.pt, when there is one)"""
+    start_eval_episodes: int = arg(4, group="loop")
+    """with --init-policy: episodes on unseen contexts (drawn by the bridge, the same for both
+    policies) before training; 0: none"""
     no_visualize: bool = arg(False, group="loop")
     """skip the rerun context recording at the end"""
     robots: int | None = arg(None, type=runs.positive_int, group="loop")
@@ -134,6 +145,23 @@ class LoopSettings:
 
 
 #: The loop's protocol, as run.json records it and a resume restores it.
+#: Tasks whose shipped policy the demo starts from, in this order, when the package has one.
+DEMO_POLICY_TASKS = ("walker_walk", "cheetah_run")
+
+
+def with_shipped_policy(s: LoopSettings, model: settings.ModelChoice) -> LoopSettings:
+    """The demo: start from a shipped policy (of --task if given, else the first of
+    DEMO_POLICY_TASKS the package ships) unless --init-policy names one."""
+    from protocad_ros.policy import shipped_policy
+
+    if s.init_policy or s.resume:
+        return s
+    for task in [model.task] if model.task else DEMO_POLICY_TASKS:
+        if path := shipped_policy(task):
+            return dataclasses.replace(s, init_policy=str(path))
+    return s
+
+
 PROTOCOL_KEYS = ("cycles", "episodes_per_cycle", "prefill_episodes", "updates_per_episode", "episode_length",
                  "exploration_noise", "eval_episodes", "robots")
 
@@ -172,7 +200,9 @@ class Loop:
     def __init__(self, s: LoopSettings, model: settings.ModelChoice, config_args: Sequence[str] = (),
                  prog: str = "protocad-loop", argv: Sequence[str] | None = None):
         if s.demo:
-            model = dataclasses.replace(model, task=model.task or DEMO["task"], preset=model.preset or DEMO["preset"])
+            s = with_shipped_policy(s, model)
+            if not s.init_policy:
+                model = dataclasses.replace(model, task=model.task or DEMO["task"], preset=model.preset or DEMO["preset"])
         self.a, self.model = s.with_demo(), model
         self.config_args, self.prog = list(config_args), prog
         self.argv = list(sys.argv[1:] if argv is None else argv)
@@ -183,6 +213,11 @@ class Loop:
     def _setup(self) -> None:
         a = self.a
         saved_protocol = None
+        self.init_policy = None
+        if a.init_policy:
+            from protocad_ros.checkpoint import existing_checkpoint_file
+
+            self.init_policy = existing_checkpoint_file(a.init_policy)
         if a.resume:
             # A loop stopped during its prefill has bags but no checkpoint yet: still resumable.
             self.run_dir, self.run_json = runs.resume_run_dir(a.run_dir, need_checkpoint=False)
@@ -191,7 +226,7 @@ class Loop:
             self.cfg = Config.load(self.run_dir / "config.yaml")
             saved_protocol = self.run_json.get("protocol")
         else:
-            self.cfg = self.model.to_config(self.config_args, self.prog)
+            self.cfg = self._policy_config() if a.init_policy else self.model.to_config(self.config_args, self.prog)
             self.cfg.train.device = self.device
             self.run_dir = runs.new_run_dir(a.run_dir, "loop", self.cfg.task, self.cfg.variant)
             self.run_dir.mkdir(parents=True, exist_ok=True)
@@ -216,6 +251,50 @@ class Loop:
         self.phases: list[dict[str, Any]] = []
         for bag in sorted(p for p in self.bags_dir.iterdir() if p.is_dir()):
             self._add_bag(bag, resumed=True)
+
+    def _policy_config(self):
+        """--init-policy: the policy file's config (its networks), with this run's seed."""
+        from protocad_ros.checkpoint import CheckpointError, read_checkpoint
+        from protocad_ros.model.config import Config
+
+        try:
+            cfg = Config.from_dict(read_checkpoint(self.init_policy)["config"])
+        except CheckpointError as err:
+            raise ValueError(f"--init-policy: {err}") from None
+        asked = {"task": self.model.task, "variant": self.model.variant, "preset": self.model.preset}
+        other = [f"--{k} {v} (the policy's: {getattr(cfg, k)})" for k, v in asked.items()
+                 if v is not None and v != getattr(cfg, k)]
+        if other and not self.a.demo:
+            raise ValueError(f"--init-policy {self.a.init_policy} is another model than "
+                             + ", ".join(other) + ": leave them out, the policy's config is the run's")
+        cfg.train.seed = self.model.seed
+        return cfg
+
+    def _agent_from_policy(self):
+        """The policy's weights with fresh optimizers and update counter 0 (this run's schedule
+        counts its own updates)."""
+        from protocad_ros.checkpoint import load_checkpoint
+
+        agent, _ = load_checkpoint(self.init_policy, device=self.device, restore_rng=False)
+        agent.updates.zero_()
+        return agent
+
+    def _policy_vs_random(self, stop) -> None:
+        """The starting policy and the random one on the same unseen contexts, through ROS."""
+        from trainer.learn.evaluate import evaluate_through_ros, format_table
+
+        n, cfg = self.a.start_eval_episodes, self.cfg
+        print(f"[loop] {self.init_policy} against the random policy on {n} unseen-context episode(s), "
+              "through the ROS nodes (sim bridge + policy node / random actor + recorder)", flush=True)
+        common = dict(task=cfg.task, split="test", total_episodes=n, seed=cfg.train.seed + 11,
+                      out_dir=self.run_dir / "eval_start", domain_id=self.stack.domain_id,
+                      episode_length=self.a.episode_length)
+        res = evaluate_through_ros(str(self.init_policy), device=self.device, **common)
+        if stop.stop:
+            return
+        rnd = evaluate_through_ros(None, **common)
+        print(format_table(res, rnd), flush=True)
+        runs.atomic_write_json(self.run_dir / "eval" / "start.json", {**res.to_dict(), "random": rnd.to_dict()})
 
     def _bag_stats(self, bag: Path) -> dict[str, Any]:
         """The bag's episodes, over every robot namespace it recorded."""
@@ -397,7 +476,8 @@ class Loop:
             from sim_bridge.contract.contexts import task_actuators
 
             self.trainer = Trainer(cfg, self.run_dir, self.ds, device=self.device, callbacks=callbacks,
-                                   log_every=a.log_every, action_dim=len(task_actuators(cfg.task)))
+                                   log_every=a.log_every, action_dim=len(task_actuators(cfg.task)),
+                                   agent=self._agent_from_policy() if a.init_policy else None)
         server, start_server = discovery.from_args(a)
         self.stack = RosStack(self.run_dir / "logs", domain_id=a.domain_id, discovery_server=server,
                               start_discovery_server=start_server)
@@ -411,6 +491,8 @@ class Loop:
         status = "finished"
         with runs.StopFlag() as stop:
             try:
+                if a.init_policy and a.start_eval_episodes and not a.resume:
+                    self._policy_vs_random(stop)
                 # 1. prefill
                 while self.prefill_episodes_done < a.prefill_episodes and not stop.stop:
                     for i, ns in enumerate(self.namespaces):
@@ -480,7 +562,7 @@ class Loop:
         if stop.stop:
             return None
         print(format_table(res, rnd), flush=True)
-        if self.a.demo:
+        if self.a.demo and not self.init_policy:
             print("[loop] what to expect: the demo trains a few hundred updates, far from the "
                   "~6k Pendulum Swingup needs before DreamerV2's own seeds show learning, so its "
                   "policy scores near the random one; a policy that learned: README 'Results'.",

@@ -56,6 +56,39 @@ def test_two_collect_train_reload_cycles_through_ros(tmp_path):
     for p in phases:
         assert (run / "bags" / p["bag"] / "metadata.yaml").exists() and not p["problems"], p
 
+    continue_from_a_policy_file(run, tmp_path)
+
+
+def continue_from_a_policy_file(trained, tmp_path):
+    """--init-policy: a policy file's networks and weights, fresh optimizers and counter; first
+    the table of that policy against the random one through the ROS nodes."""
+    import torch
+
+    from protocad_ros.checkpoint import load_checkpoint, read_checkpoint, save_policy
+
+    agent, _ = load_checkpoint(trained / "checkpoints" / "latest.pt", restore_rng=False)
+    policy = save_policy(tmp_path / "policies" / "pendulum_swingup.pt", agent, {"what": "a test policy"})
+    run, C = tmp_path / "from_policy", 2
+    r = run_cli("trainer.launch.loop", "--init-policy", policy, "--start-eval-episodes", "2", "--seed", "5",
+                "--episode-length", "16", "--prefill-episodes", "1", "--cycles", "1",
+                "--updates-per-episode", str(C), "--batch-size", "4", "--seq-len", "8", "--threads", "1",
+                "--eval-episodes", "0", "--no-visualize", "--run-dir", run,
+                "--domain-id", os.environ["ROS_DOMAIN_ID"], "--no-progress", timeout=400)
+    assert r.returncode == 0, loop_failure(r, run)
+    assert "against the random policy on 2 unseen-context episode(s)" in r.stdout
+    start = json.loads((run / "eval" / "start.json").read_text())
+    assert start["mode"] == "through ROS" and start["random"]["mode"] == "through ROS"
+    assert sum(len(c["returns"]) for c in start["per_context"]) == 2
+    assert [c["context"] for c in start["random"]["per_context"]] == [c["context"] for c in start["per_context"]]
+    ck = read_checkpoint(run / "checkpoints" / "latest.pt")
+    assert ck["config"]["world_model"] == read_checkpoint(policy)["config"]["world_model"]
+    assert int(ck["modules"]["updates"]) == 2 * C         # its own count, from 0
+    # trained on from the policy's weights (4 Adam steps away: each moves a weight by <= ~lr),
+    # not from seed 5's fresh initialisation
+    start_w = agent.state_dict()["wm.encoder.convs.0.weight"].to(torch.bfloat16).float()
+    end_w = ck["modules"]["wm.encoder.convs.0.weight"]
+    assert 0 < (end_w - start_w).abs().max() < 0.01
+
 
 def test_two_robots_in_one_loop(tmp_path):
     """--robots 2: two bridges and two policy nodes in /protocad/robot0 and /protocad/robot1
