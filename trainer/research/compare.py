@@ -87,7 +87,9 @@ def standard_context(task: str) -> str:
 
 def plan(a: GridSettings) -> list[RunSpec]:
     specs: list[RunSpec] = []
-    grid = [(t, v, v, s) for t in a.tasks for v in a.variants for s in a.seeds]
+    # Seed-major: the variants of a seed run side by side, so a grid cut short (or still
+    # running) has compared seeds, not all of one variant and none of the other.
+    grid = [(t, v, v, s) for t in a.tasks for s in a.seeds for v in a.variants]
     grid += [(t, ANCHOR_LABEL, "dreamer", s) for t in a.tasks for s in a.anchor_seeds]
     for i, (task, label, variant, seed) in enumerate(grid):
         extra = []

@@ -255,3 +255,14 @@ def ship_the_best_policy(out: Path, tmp_path: Path) -> None:
                         "--ship", str(tmp_path / "none.pt"), "--ship-label", "protocad"],
                        capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert r.returncode == 2 and "no finished run" in r.stderr and not (tmp_path / "none.pt").exists()
+
+
+def test_the_variants_of_a_seed_are_planned_side_by_side():
+    """A grid cut short has compared seeds: protocad and dreamer of seed 0 come first."""
+    from trainer.research.compare import GridSettings, plan
+
+    specs = plan(GridSettings(tasks=["walker_walk"], variants=["protocad", "dreamer"], seeds=[0, 1, 2],
+                              anchor_seeds=[0], out="grid"))
+    assert [(s.label, s.seed) for s in specs] == [
+        ("protocad", 0), ("dreamer", 0), ("protocad", 1), ("dreamer", 1), ("protocad", 2), ("dreamer", 2),
+        ("dreamer_standard", 0)]
