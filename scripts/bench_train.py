@@ -170,17 +170,30 @@ def gemm_roof(dtype, seconds: float = 2.0) -> float:
 
 
 # ---- driver -------------------------------------------------------------------------------------
-def run_spec(spec: dict, timeout: float) -> dict:
+def run_spec(spec: dict, timeout: float, copies: int = 1) -> dict:
+    """Time one configuration in `copies` worker processes at once (a grid's runs share the
+    cores like this); the figures are the mean over the copies."""
     cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", json.dumps(spec)]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join(filter(None, [spec.get("root", str(ROOT)),
                                                                       os.environ.get("PYTHONPATH")]))}
+    procs = [subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env)
+             for _ in range(copies)]
+    outs = []
     try:
-        p = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env)
+        for p in procs:
+            out, err = p.communicate(timeout=timeout)
+            if p.returncode != 0:
+                return {"error": (err.strip().splitlines() or ["?"])[-1]}
+            outs.append(json.loads(out.strip().splitlines()[-1]))
     except subprocess.TimeoutExpired:
         return {"error": f"timed out after {timeout:.0f} s"}
-    if p.returncode != 0:
-        return {"error": (p.stderr.strip().splitlines() or ["?"])[-1]}
-    return json.loads(p.stdout.strip().splitlines()[-1])
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+    numbers = [k for k, v in outs[0].items() if isinstance(v, float)]
+    return {**outs[0], **{k: sum(o[k] for o in outs) / len(outs) for k in numbers}}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -223,6 +236,9 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                     help="config override for every row, as protocad-online's --set "
                          "(e.g. --set train.seq_len=50 --set reference=dreamerv2)")
+    ap.add_argument("--concurrent", type=int, default=1, metavar="N",
+                    help="time N copies of each configuration at once, as protocad-compare's "
+                         "--jobs N runs share the cores (default 1)")
     ap.add_argument("--baseline", metavar="REV",
                     help="also time every configuration with the code of git revision REV, "
                          "interleaved with this tree's, and print each speed-up")
@@ -338,6 +354,8 @@ def main(argv=None) -> int:
     print(f"CPU capability: {cpu_capability()}; precision(s): {', '.join(precisions)}"
           f" (asked: {' '.join(args.precision)})")
     load = os.getloadavg()
+    if args.concurrent > 1:
+        print(f"{args.concurrent} copies of each configuration at once; figures: their mean")
     print(f"load average before: {' '.join(f'{x:.2f}' for x in load)}")
     if args.device == "cpu" and load[0] + args.threads > (os.cpu_count() or 1) + 0.5:
         print(f"WARNING: the machine is busy (load {load[0]:.1f} on {os.cpu_count()} cores): the "
@@ -354,7 +372,7 @@ def main(argv=None) -> int:
     print("-" * len(head))
     results = []
     for spec in specs:
-        r = run_spec(spec, args.timeout)
+        r = run_spec(spec, args.timeout, args.concurrent)
         results.append({**spec, **r})
         print_row(spec, r, cuda)
     print(f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
