@@ -9,9 +9,12 @@ Steps, each with its own time limit so the whole stays inside --deadline (defaul
   1. the machine: GPU name and memory, torch, CUDA, CPU capability, cores -> machine.txt
   2. s/update at paper sizes (scripts/bench_train.py, protocad and dreamer) -> bench_train.txt
   3. env steps/s of the suite (scripts/bench_envs.py, fast rendering) -> bench_envs.txt
-  4. protocad-compare: protocad and dreamer x --seeds on --tasks, paper preset, all runs side
-     by side on the GPU (--jobs), stopped by their wall budget (what is left of the deadline
-     minus the final evaluations), then results.json, curves.png, curves.rrd -> compare/
+  4. protocad-compare: protocad and dreamer x --seeds on --tasks (walker_walk and cheetah_run,
+     the tasks that learn first on DreamerV2's published curves), with the anchor (dreamer on the
+     unrandomized task, --anchor-seeds), paper preset, the protocol of the CPU grids (issue 25:
+     reference=dreamerv2 for both variants, 100 updates of 50 x 50 per 1,000 env steps), all
+     runs side by side on the GPU (--jobs), stopped by their wall budget (what is left of the
+     deadline minus the final evaluations), then results.json, curves.png, curves.rrd -> compare/
 The runs' logs travel back with them (compare/TASK/VARIANT/seedS/online.log, eval/, run.json);
 checkpoints and bags are deleted at the end unless --keep-runs (they do not fit the way back).
 
@@ -57,13 +60,16 @@ def main(argv=None) -> int:
                                  epilog=__doc__.split("\n\n", 1)[1])
     ap.add_argument("--out", default=os.environ.get("OUT"), help="output directory (default $OUT)")
     ap.add_argument("--deadline", type=float, default=540.0, help="seconds for everything")
-    ap.add_argument("--tasks", nargs="+", default=["pendulum_swingup", "cheetah_run"])
-    ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2, 3])
+    ap.add_argument("--tasks", nargs="+", default=["walker_walk", "cheetah_run"])
+    ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
+    ap.add_argument("--anchor-seeds", nargs="*", type=int, default=[0, 1],
+                    help="seeds of the anchor (dreamer on the unrandomized task) per task")
     ap.add_argument("--jobs", type=int, default=16, help="runs at once (all of them by default)")
     ap.add_argument("--final-reserve", type=float, default=90.0,
                     help="seconds kept for the final evaluations and the report")
     ap.add_argument("--tiny", action="store_true",
-                    help="CPU dry run: small preset, a few hundred env steps, one seed pair")
+                    help="CPU dry run: pendulum_swingup, small preset, a few hundred env steps, one "
+                         "seed pair, no anchor")
     ap.add_argument("--site", default=None, help="extra Python packages directory (first on sys.path)")
     ap.add_argument("--site-archive", default=None,
                     help="a .tar.xz made by scripts/gpu_pack.sh: extracted to a temporary directory "
@@ -111,14 +117,16 @@ def main(argv=None) -> int:
               ["--presets", "paper", "--updates", "5", "--warmup", "2", "--precision", "auto", "float32"])
     steps.append(step("bench_train", bench, out, min(150 if not a.tiny else 120, left() - 60), env))
 
+    if a.tiny:
+        a.tasks, a.seeds, a.anchor_seeds = ["pendulum_swingup"], a.seeds[:1], []
     envs = [py, "scripts/bench_envs.py", "--tasks", *a.tasks, "--steps", "100" if a.tiny else "500",
             "--workers", "0" if a.tiny else "8"]
     steps.append(step("bench_envs", envs, out, min(90, left() - 60), env))
 
     budget = max(30.0, left() - a.final_reserve)
-    tasks, seeds = (a.tasks[:1], a.seeds[:1]) if a.tiny else (a.tasks, a.seeds)
-    compare = [py, "-m", "trainer.research.compare", "--tasks", *tasks, "--variants", "protocad", "dreamer",
-               "--seeds", *map(str, seeds), "--env-steps", "400" if a.tiny else "2000000",
+    compare = [py, "-m", "trainer.research.compare", "--tasks", *a.tasks, "--variants", "protocad", "dreamer",
+               "--seeds", *map(str, a.seeds), "--anchor-seeds", *map(str, a.anchor_seeds),
+               "--env-steps", "400" if a.tiny else "2000000",
                "--wall-budget", f"{budget:.0f}", "--jobs", str(a.jobs), "--threads", "1",
                "--devices", device, "--out", str(out / "compare"), "--status-every", "60", "--"]
     if a.tiny:
@@ -132,7 +140,7 @@ def main(argv=None) -> int:
         # 5% of a 2M-step run's updates would be 10k, far beyond this budget: 200 here.
         compare += ["--preset", "paper", "--eval-every", "10000", "--eval-episodes", "2",
                     "--eval-max-contexts", "8", "--final-episodes", "2", "--checkpoint-every", "500",
-                    "--set", "context.freeze_prototypes_updates=200"]
+                    "--set", "context.freeze_prototypes_updates=200", "--set", "reference=dreamerv2"]
     steps.append(step("compare", compare, out, left() - 15, env))
 
     if not a.keep_runs:
