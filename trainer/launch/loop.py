@@ -47,7 +47,7 @@ from trainer.learn.train import Trainer
 from trainer.settings import arg
 
 DEMO = dict(task="pendulum_swingup", preset="small", cycles=3, episodes_per_cycle=1, prefill=2,
-            updates_per_episode=25, eval_episodes=1)
+            updates_per_episode=25, eval_episodes=1, eval_max_contexts=8)
 
 
 @dataclass
@@ -76,7 +76,7 @@ class LoopSettings:
     eval_episodes: int | None = arg(None, group="loop")
     """final evaluation: episodes per test context (0: none; default 5, demo 1)"""
     eval_max_contexts: int = arg(0, group="loop")
-    """final evaluation: at most K test contexts (0: all)"""
+    """final evaluation: at most K test contexts, the fixed stratified subset (0: all; demo 8)"""
     init_policy: str | None = arg(None, metavar="POLICY_PT", group="loop")
     """start from this policy file's (or checkpoint's) weights: its config (task, variant,
     sizes) is the run's, optimizers and the update count start afresh; first its return on unseen
@@ -127,6 +127,8 @@ class LoopSettings:
         pick = {k: DEMO[d] for k, d in (("cycles", "cycles"), ("episodes_per_cycle", "episodes_per_cycle"),
                                           ("prefill_episodes", "prefill"), ("updates_per_episode", "updates_per_episode"),
                                           ("eval_episodes", "eval_episodes")) if getattr(self, k) is None}
+        if self.eval_max_contexts == 0:   # all 8 of Pendulum; 8 of the 64 of walker / cheetah
+            pick["eval_max_contexts"] = DEMO["eval_max_contexts"]
         return dataclasses.replace(self, **pick)
 
     def resolved(self, tr, saved_protocol: dict[str, Any] | None = None) -> "LoopSettings":
