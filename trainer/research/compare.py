@@ -48,7 +48,7 @@ from typing import Sequence
 from protocad_ros.model.config import VARIANTS
 from sim_bridge.contract.contexts import TASKS
 from trainer import runs
-from trainer.research.results import ANCHOR_LABEL
+from trainer.research.results import ANCHOR_LABEL, standard_context
 from trainer.settings import arg
 
 
@@ -76,13 +76,6 @@ class RunSpec:
         bags = self.run_dir / "bags"
         started = runs.checkpoint_path(self.run_dir).exists() or (bags.is_dir() and any(bags.iterdir()))
         return "resume" if started and (self.run_dir / "run.json").exists() else "fresh"
-
-
-def standard_context(task: str) -> str:
-    """The unrandomized task's context (every scale 1) as a --train-context value."""
-    from sim_bridge.contract.contexts import get_task
-
-    return ",".join(f"{p}=1" for p in get_task(task).params)
 
 
 def plan(a: GridSettings) -> list[RunSpec]:

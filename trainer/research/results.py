@@ -102,6 +102,14 @@ RESULTS_SCHEMA: dict[str, Any] = {
 
 
 # ----------------------------------------------------------------------------- statistics
+def standard_context(task: str) -> str:
+    """The unrandomized task's context (every scale 1), e.g. 'm=1,d=1': the anchor's train and
+    evaluation context, as a --train-context value."""
+    from sim_bridge.contract.contexts import get_task
+
+    return ",".join(f"{p}=1" for p in get_task(task).params)
+
+
 def iqm(scores: np.ndarray) -> float:
     """Interquartile mean: the mean of the middle 50% (25% trimmed from each end)."""
     from scipy.stats import trim_mean
@@ -349,7 +357,8 @@ def table_rows(doc: Mapping[str, Any], summary: Mapping[str, Any]) -> tuple[list
     rows = []
     for r in summary["rows"]:
         rnd = doc["random"].get(r["task"]) if r["eval_split"] == "test" else None
-        label = r["label"] + ("" if r["eval_split"] == "test" else " (train on m=1, eval m=1)")
+        ctx = standard_context(r["task"])
+        label = r["label"] + ("" if r["eval_split"] == "test" else f" (train and eval on {ctx})")
         rows.append([r["task"], label, str(r["n"]), _steps(r["env_steps"]), _steps(r["updates"]),
                      _ci(r["mean"], r["ci"]), "-" if rnd is None else f"{rnd['mean_return']:.1f}",
                      _paper(r["paper"])])
@@ -465,7 +474,7 @@ def plot_curves(doc: Mapping[str, Any], path: str | Path) -> Path:
                 continue
             n = len({r["seed"] for r in doc["runs"] if r["task"] == task and r["label"] == label})
             split = next(r["eval_split"] for r in doc["runs"] if r["task"] == task and r["label"] == label)
-            name = f"{label} (n={n}" + (", m=1 only)" if split == "train" else ")")
+            name = f"{label} (n={n}" + (f", {standard_context(task)} only)" if split == "train" else ")")
             line, = ax.plot(x, m, marker="o", ms=3, label=name, gid=f"curve:{label}")
             ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.2, linewidth=0)
         if any(r["task"] == task and r["label"] == ANCHOR_LABEL for r in doc["runs"]):
@@ -481,7 +490,8 @@ def plot_curves(doc: Mapping[str, Any], path: str | Path) -> Path:
             ax.axhline(rnd["mean_return"], color="gray", ls="--", lw=1, label="random policy")
         ax.set_title(task)
         ax.set_xlabel("env steps")
-        ax.set_ylabel("mean return, test contexts")
+        tested = any(r["task"] == task and r["eval_split"] == "test" for r in doc["runs"])
+        ax.set_ylabel("mean return, test contexts" if tested else f"mean return, {standard_context(task)}")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     fig.tight_layout()

@@ -135,11 +135,13 @@ def test_iqm_and_aggregates_match_hand_computed_values():
 
 
 def test_readme_results_section_regenerates_byte_identically_from_the_committed_json():
-    source = "msgs_docs/results/pendulum_cpu.json"
+    source = "msgs_docs/results/walker_anchor_cpu.json"
     doc = R.load_results(ROOT / source)
-    section = R.markdown_section(doc, image="msgs_docs/results/pendulum_cpu.png", source=source)
+    section = R.markdown_section(doc, image="msgs_docs/results/walker_anchor_cpu.png", source=source)
     assert R.readme_section(ROOT / "README.md") == section
-    assert (ROOT / "msgs_docs" / "results" / "pendulum_cpu.png").exists()
+    assert (ROOT / "msgs_docs" / "results" / "walker_anchor_cpu.png").exists()
+    # the anchor's verdicts, from the committed curves and DreamerV2's committed points
+    assert "| walker_walk | 30,000 | 133.3 (n=2) | 130 (83-239) | yes |" in section
 
 
 @pytest.mark.process
