@@ -305,7 +305,11 @@ class GridSettings:
     """write the best run's policy here (highest final return on unseen contexts; bfloat16
     weights and provenance, POLICY_PT with .json beside it: trainer.research.ship)"""
     ship_label: str | None = arg(None, metavar="LABEL", group="output")
-    """--ship only among this variant label's runs"""
+    """--ship only among this label's runs, whatever their evaluation split (dreamer_standard:
+    the anchor's best run, by its final return on the standard task)"""
+    ship_evaluation: str | None = arg(None, metavar="EVAL_JSON", group="output")
+    """with --ship: `protocad-evaluate CHECKPOINT --random --json EVAL_JSON` of the shipped run's
+    checkpoint on unseen contexts, kept in the provenance (checked to be that checkpoint's)"""
     status_every: float = arg(300.0, group="output")
     """seconds between status lines"""
     online_args: list[str] = arg([], "online_args", nargs=argparse.REMAINDER)
@@ -379,11 +383,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         if a.ship:
             from trainer.research.ship import ship_best
 
-            path, prov = ship_best(doc, a.ship, source, label=a.ship_label)
-            entry = prov["results_entry"]
-            print(f"[compare] shipped {entry['task']} {entry['label']} seed {entry['seed']} (final "
-                  f"{entry['final']['mean_return']:.1f} on unseen contexts) as {path} "
-                  f"({path.stat().st_size / 1e6:.1f} MB; provenance: {path.with_suffix('.json')})",
+            path, prov = ship_best(doc, a.ship, source, label=a.ship_label, evaluation=a.ship_evaluation)
+            unseen = prov.get("unseen_evaluation")
+            print(f"[compare] shipped {prov['what']} (final {prov['results_entry']['final']['mean_return']:.1f}"
+                  + (f"; unseen contexts {unseen['mean_return']:.1f}, random {unseen['random_mean_return']:.1f}"
+                     if unseen and unseen["random_mean_return"] is not None else "")
+                  + f") as {path} ({path.stat().st_size / 1e6:.1f} MB; provenance: {path.with_suffix('.json')})",
                   flush=True)
     except (ValueError, OSError) as exc:
         print(f"protocad-compare: error: {exc}", file=sys.stderr)

@@ -19,14 +19,17 @@ from trainer import runs
 
 
 def best_run(doc: Mapping[str, Any], task: str | None = None, label: str | None = None) -> dict[str, Any]:
-    """The finished run with the highest final mean return on the test split (ValueError when
-    there is none)."""
-    rows = [r for r in doc["runs"] if r.get("final") and r.get("eval_split", "test") == "test"
-            and r.get("status") in ("finished", "wall_budget")
-            and (task is None or r["task"] == task) and (label is None or r["label"] == label)]
+    """The finished run with the highest final mean return: among the runs evaluated on the
+    test split (unseen contexts), or, where `label` names them, among that label's runs
+    whatever their split (the anchor's final is on its training context). ValueError when there
+    is none."""
+    rows = [r for r in doc["runs"] if r.get("final") and r.get("status") in ("finished", "wall_budget")
+            and (task is None or r["task"] == task) and (label is None or r["label"] == label)
+            and (label is not None or r.get("eval_split", "test") == "test")]
     if not rows:
         what = " ".join(f"{k} {v}" for k, v in (("task", task), ("label", label)) if v)
-        raise ValueError("no finished run with a final evaluation on unseen (test) contexts"
+        raise ValueError("no finished run with a final evaluation"
+                         + (" on unseen (test) contexts" if label is None else "")
                          + (f" for {what}" if what else "") + " in results.json")
     return max(rows, key=lambda r: r["final"]["mean_return"])
 
@@ -39,9 +42,36 @@ def _sha256(path: Path) -> str:
     return h.hexdigest()
 
 
+def unseen_evaluation(path: str | Path, checkpoint: Path) -> dict[str, Any]:
+    """The summary of `protocad-evaluate CHECKPOINT --random --json PATH` for `checkpoint` on the
+    test split (ValueError if the file evaluates another checkpoint or split)."""
+    import json
+
+    from trainer.learn.evaluate import context_label
+
+    try:
+        doc = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"--ship-evaluation {path}: {exc}") from None
+    mine = [r for r in doc.get("results", []) if Path(r.get("policy", "")).resolve() == checkpoint.resolve()]
+    if not mine:
+        raise ValueError(f"--ship-evaluation {path} does not evaluate {checkpoint}")
+    r = mine[0]
+    if r.get("split") != "test":
+        raise ValueError(f"--ship-evaluation {path} is on the {r.get('split')!r} split, not the unseen (test) one")
+    rnd = next((x for x in doc.get("random", []) if x.get("task") == r["task"]), None)
+    return {"file": str(path), "split": "test", "episodes": r["episodes"],
+            "mean_return": r["mean_return"], "median_over_contexts": r.get("median_over_contexts"),
+            "random_mean_return": rnd["mean_return"] if rnd else None,
+            "per_context": {context_label(c["context"]): c["mean_return"] for c in r["per_context"]}}
+
+
 def ship_best(doc: Mapping[str, Any], out: str | Path, results_path: str | Path,
-              task: str | None = None, label: str | None = None) -> tuple[Path, dict[str, Any]]:
-    """Write the best run's policy file to `out`; returns (path, its provenance)."""
+              task: str | None = None, label: str | None = None,
+              evaluation: str | Path | None = None) -> tuple[Path, dict[str, Any]]:
+    """Write the best run's policy file to `out`; returns (path, its provenance). `evaluation`:
+    a protocad-evaluate --json file of that run's checkpoint on unseen contexts, kept in the
+    provenance."""
     row = best_run(doc, task, label)
     ckpt = existing_checkpoint_file(row["run_dir"])
     try:
@@ -50,8 +80,10 @@ def ship_best(doc: Mapping[str, Any], out: str | Path, results_path: str | Path,
         raise ValueError(f"cannot ship {row['run_dir']}: {err}") from None
     info = runs.read_run_json(row["run_dir"])
     provenance = {
-        "what": f"{row['task']} {row['label']} seed {row['seed']}: the best final return on unseen "
-                f"contexts among the finished runs of {Path(results_path).name}",
+        "what": f"{row['task']} {row['label']} seed {row['seed']}: the best final return on "
+                + ("unseen contexts" if row.get("eval_split", "test") == "test"
+                   else f"its {row.get('eval_split')} context(s)")
+                + f" among the finished {label + ' ' if label else ''}runs of {Path(results_path).name}",
         "results_json": str(results_path),
         "results_entry": {k: row[k] for k in ("task", "label", "variant", "seed", "env_steps",
                                                "updates", "preset", "precision", "final")},
@@ -63,4 +95,6 @@ def ship_best(doc: Mapping[str, Any], out: str | Path, results_path: str | Path,
         "source_checkpoint_sha256": _sha256(ckpt),
         "counters": {k: v for k, v in counters.items() if isinstance(v, (int, float, str, bool))},
     }
+    if evaluation is not None:
+        provenance["unseen_evaluation"] = unseen_evaluation(evaluation, ckpt)
     return save_policy(out, agent, provenance), provenance

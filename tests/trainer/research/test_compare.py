@@ -252,6 +252,28 @@ def ship_the_best_policy(out: Path, tmp_path: Path) -> None:
             assert torch.equal(a, b.to(torch.bfloat16).to(b.dtype)), k
     assert all(not st for opt in shipped.optimizers().values() for st in opt.state.values())
 
+    # With the run's own unseen-context evaluation in the provenance; another checkpoint's is refused.
+    evaluation = tmp_path / "unseen.json"
+    e = subprocess.run([sys.executable, "-m", "trainer.learn.evaluate", str(source), "--random", "--context", "m=0.2",
+                        "--episodes", "1", "--time-limit", "100", "--no-progress", "--json", str(evaluation)],
+                       capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert e.returncode == 0, e.stderr
+    r = subprocess.run([sys.executable, "-m", "trainer.research.compare", "--report", str(out / "results.json"),
+                        "--ship", str(policy), "--ship-evaluation", str(evaluation)],
+                       capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert r.returncode == 0, r.stderr
+    unseen = read_provenance(policy)["unseen_evaluation"]
+    measured = json.loads(evaluation.read_text())
+    assert unseen["mean_return"] == measured["results"][0]["mean_return"] and unseen["split"] == "test"
+    assert unseen["random_mean_return"] == measured["random"][0]["mean_return"]
+    other = next(row for row in doc["runs"] if row["seed"] != best["seed"])
+    measured["results"][0]["policy"] = str(Path(other["run_dir"]) / "checkpoints" / "latest.pt")
+    evaluation.write_text(json.dumps(measured))
+    r = subprocess.run([sys.executable, "-m", "trainer.research.compare", "--report", str(out / "results.json"),
+                        "--ship", str(tmp_path / "mismatch.pt"), "--ship-evaluation", str(evaluation)],
+                       capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert r.returncode == 2 and "does not evaluate" in r.stderr and not (tmp_path / "mismatch.pt").exists()
+
     # Only unseen-context finals count: asked for a label without any, a clear error, no file.
     r = subprocess.run([sys.executable, "-m", "trainer.research.compare", "--report", str(out / "results.json"),
                         "--ship", str(tmp_path / "none.pt"), "--ship-label", "protocad"],
