@@ -93,7 +93,7 @@ def ship_best(doc: Mapping[str, Any], out: str | Path, results_path: str | Path,
         "code_versions": list(info.get("code_versions", [])) or [doc.get("code_version", "unknown")],
         "source_checkpoint": str(ckpt),
         "source_checkpoint_sha256": _sha256(ckpt),
-        "counters": {k: v for k, v in counters.items() if isinstance(v, (int, float, str, bool))},
+        "counters": {k: v for k, v in counters.items() if isinstance(v, (int, float))},   # not the sampler state
     }
     if evaluation is not None:
         provenance["unseen_evaluation"] = unseen_evaluation(evaluation, ckpt)
