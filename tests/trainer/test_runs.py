@@ -6,7 +6,7 @@ import sys
 
 import pytest
 
-from tests.helpers import ROOT
+from helpers import ROOT
 
 # Fills and frees a 24 MB tensor (an update's activations are such blocks) and prints how much
 # of it the process still holds after the free, in MB, from /proc/self/statm's resident pages.
@@ -17,6 +17,7 @@ if sys.argv[1] == "retain":
     print(runs.retain_freed_memory())
 page = os.sysconf("SC_PAGE_SIZE")
 resident = lambda: int(open("/proc/self/statm").read().split()[1]) * page
+y = torch.empty(1 << 10); y.fill_(1.0); del y   # fill's code pages, loaded once, are not the block
 before = resident()
 x = torch.empty(6 << 20); x.fill_(1.0); del x
 print(round((resident() - before) / 1e6))
@@ -39,4 +40,5 @@ def test_freed_activations_stay_with_the_process_for_the_next_update():
     taken, held = _run("retain")
     assert taken == "True"
     assert int(held) >= 20, f"only {held} MB of the freed 24 MB block stayed"
-    assert int(_run("default")[0]) <= 4, "glibc's default kept the block: the test shows nothing"
+    # (a few MB of anything else the process touches may come and go; the 24 MB block may not)
+    assert int(_run("default")[0]) <= 12, "glibc's default kept the block: the test shows nothing"
