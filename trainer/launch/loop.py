@@ -255,29 +255,52 @@ class Loop:
             self._add_bag(bag, resumed=True)
 
     def _policy_config(self):
-        """--init-policy: the policy file's config (its networks), with this run's seed."""
-        from protocad_ros.checkpoint import CheckpointError, read_checkpoint
-        from protocad_ros.model.config import Config
+        """--init-policy: the policy file's config (its networks) with this run's training
+        options on top (--set, --batch-size, --seq-len, --seed, --precision, config flags); an
+        option that would change the networks is refused (ValueError)."""
+        import copy
+
+        from protocad_ros.checkpoint import CheckpointError, architecture_differences, read_checkpoint
+        from protocad_ros.model.config import Config, apply_overrides
 
         try:
-            cfg = Config.from_dict(read_checkpoint(self.init_policy)["config"])
+            policy_cfg = Config.from_dict(read_checkpoint(self.init_policy)["config"])
         except CheckpointError as err:
             raise ValueError(f"--init-policy: {err}") from None
-        asked = {"task": self.model.task, "variant": self.model.variant, "preset": self.model.preset}
-        other = [f"--{k} {v} (the policy's: {getattr(cfg, k)})" for k, v in asked.items()
-                 if v is not None and v != getattr(cfg, k)]
+        m = self.model
+        asked = {"task": m.task, "variant": m.variant, "preset": m.preset}
+        other = [f"--{k} {v} (the policy's: {getattr(policy_cfg, k)})" for k, v in asked.items()
+                 if v is not None and v != getattr(policy_cfg, k)]
         if other and not self.a.demo:
             raise ValueError(f"--init-policy {self.a.init_policy} is another model than "
                              + ", ".join(other) + ": leave them out, the policy's config is the run's")
-        cfg.train.seed = self.model.seed
+        train = {"train.seed": m.seed, **({"train.batch_size": m.batch_size} if m.batch_size else {}),
+                 **({"train.seq_len": m.seq_len} if m.seq_len else {})}
+        if m.precision:
+            from protocad_ros.model.precision import resolve_precision
+
+            train["train.precision"] = resolve_precision(m.precision, self.device).precision
+        cfg = apply_overrides(copy.deepcopy(policy_cfg), {**runs.parse_set(m.set), **train})
+        if self.config_args:
+            cfg = runs.apply_config_flags(cfg, self.config_args, self.prog)
+        diffs = architecture_differences(policy_cfg, cfg)
+        if diffs:
+            raise ValueError(f"--init-policy {self.a.init_policy}: these options change its networks: "
+                             + "; ".join(diffs))
         return cfg
 
     def _agent_from_policy(self):
-        """The policy's weights with fresh optimizers and update counter 0 (this run's schedule
-        counts its own updates)."""
-        from protocad_ros.checkpoint import load_checkpoint
+        """An agent of the run's config (its optimizers from the run's learning rates) holding
+        the policy's weights, update counter 0 (this run's schedule counts its own updates)."""
+        from protocad_ros.checkpoint import CheckpointError, read_checkpoint
+        from protocad_ros.model.agents import make_agent
 
-        agent, _ = load_checkpoint(self.init_policy, device=self.device, restore_rng=False)
+        try:
+            payload = read_checkpoint(self.init_policy)
+            agent = make_agent(self.cfg, int(payload["action_dim"]), device=self.device)
+            agent.load_state_dict(payload["modules"], strict=True)
+        except (CheckpointError, RuntimeError, KeyError) as err:
+            raise ValueError(f"--init-policy {self.init_policy}: its weights do not load: {err}") from None
         agent.updates.zero_()
         return agent
 

@@ -88,6 +88,12 @@ def continue_from_a_policy_file(trained, tmp_path):
     start_w = agent.state_dict()["wm.encoder.convs.0.weight"].to(torch.bfloat16).float()
     end_w = ck["modules"]["wm.encoder.convs.0.weight"]
     assert 0 < (end_w - start_w).abs().max() < 0.01
+    # training options apply on top of the policy's config; one that changes its networks is refused
+    assert ck["config"]["train"]["seed"] == 5 and ck["config"]["train"]["batch_size"] == 4
+    bad = run_cli("trainer.launch.loop", "--init-policy", policy, "--set", "world_model.deter=64",
+                  "--run-dir", tmp_path / "refused", "--no-progress", timeout=120)
+    assert bad.returncode == 2 and "world_model.deter: 32 != 64" in bad.stderr, bad.stderr
+    assert not (tmp_path / "refused" / "bags").exists()
 
 
 def test_two_robots_in_one_loop(tmp_path):
