@@ -26,7 +26,7 @@ from std_msgs.msg import String, UInt8MultiArray
 
 from protocad_ros.node.checkpoint_receiver import CheckpointReceiver, manifest_of
 from protocad_ros.checkpoint_signing import (generate_keypair, load_private_key, next_seq,
-                                             sign_file, sign_manifest)
+                                             sign_file, sign_manifest, signature_path)
 from helpers import Proc, wait_until
 from helpers.ros import Probe
 from sim_bridge.contract import qos, topics
@@ -270,11 +270,14 @@ def _rss_anon_mb(pid: int) -> float:
 
 
 def _write_signed(path: Path, data: bytes, key, seq: int) -> None:
-    from protocad_ros.atomic import atomic_open
-
-    with atomic_open(path, "wb") as f:
-        f.write(data)
-    sign_file(path, key, seq)
+    """The file, then its FILE.sig, each appearing at once: both are made beside it first, since
+    signing reads the checkpoint back and on loaded cores that alone can outlast the policy's
+    grace for a missing signature (which would count a refusal the test did not mean)."""
+    staged = path.with_name(path.name + ".staged")
+    staged.write_bytes(data)
+    sign_file(staged, key, seq)
+    os.replace(staged, path)
+    os.replace(signature_path(staged), signature_path(path))
 
 
 def _keyed_policy_args(served, pub, *extra: str) -> list[str]:
