@@ -21,6 +21,12 @@ across resumes) reaches `--wall-budget`; either way it then runs the final evalu
 test contexts and saves its checkpoint and curves. results.json records which budget ended
 each run and the env steps it reached.
 
+Runs that span machines: OUT/results.json is rewritten each time a run finishes (and when the
+grid is interrupted), so the rows of the finished runs can be committed at any time. Another
+machine then continues the grid with `--from-results THAT.json`: the finished runs recorded
+there count as done (their rows are kept as they are, with where they came from) and only the
+others run. Their budgets and the arguments after `--` must be this grid's.
+
 `--anchor-seeds S...` adds the sanity anchor of the RL core: `dreamer` at DreamerV2's dmc_vision
 settings (`reference=dreamerv2`: 32 x 32 discrete latents, trunc_normal actor) trained and
 evaluated on the unrandomized task (the default context, m=1 / m=1,d=1), label
@@ -43,7 +49,7 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Sequence
+from typing import Callable, Sequence
 
 from protocad_ros.model.config import VARIANTS
 from sim_bridge.contract.contexts import TASKS
@@ -62,20 +68,66 @@ class RunSpec:
     run_dir: Path
     device: str = "cpu"
     extra: list[str] = field(default_factory=list)
+    carried: dict | None = None   # its finished results.json row from --from-results
 
     def state(self, env_steps: int, wall_budget: float | None) -> str:
-        """'done' (budget reached), 'resume' (a checkpoint to continue from) or 'fresh'."""
-        info = runs.read_run_json(self.run_dir)
-        result = info.get("result") or {}
-        if result.get("status") == "finished" and int(result.get("env_steps", 0)) >= env_steps:
+        """'done' (budget reached here), 'carried' (reached elsewhere: --from-results), 'resume'
+        (a checkpoint to continue from) or 'fresh'."""
+        result = runs.read_run_json(self.run_dir).get("result") or {}
+        if reached_budget(result.get("status"), result.get("env_steps", 0), result.get("wall_time", 0.0),
+                          env_steps, wall_budget):
             return "done"
-        if (result.get("status") == "wall_budget" and wall_budget
-                and float(result.get("wall_time", 0.0)) >= wall_budget):
-            return "done"
+        if self.carried is not None:
+            return "carried"
         # protocad-online resumes from its bags too (a run killed before its first checkpoint)
         bags = self.run_dir / "bags"
         started = runs.checkpoint_path(self.run_dir).exists() or (bags.is_dir() and any(bags.iterdir()))
         return "resume" if started and (self.run_dir / "run.json").exists() else "fresh"
+
+
+def reached_budget(status: str | None, env_steps: int, wall_time: float, budget_steps: int,
+                   wall_budget: float | None) -> bool:
+    """A run that ended at the grid's budget: its env steps, or its training wall time."""
+    if status == "finished":
+        return int(env_steps) >= budget_steps
+    return status == "wall_budget" and bool(wall_budget) and float(wall_time) >= wall_budget
+
+
+def online_args_of(command: Sequence[str]) -> list[str]:
+    """The arguments after `--` in a recorded protocad-compare command."""
+    command = list(command)
+    return command[command.index("--") + 1:] if "--" in command else []
+
+
+def carry_finished_runs(specs: Sequence[RunSpec], a: GridSettings) -> int:
+    """Marks the specs whose run finished in one of a.from_results (results.json written by this
+    grid elsewhere: another machine, an earlier session). Returns how many. A file made with
+    other budgets or other run arguments is refused (ValueError): its rows are not this grid's."""
+    from trainer.research import results as R
+
+    wanted = {(s.task, s.label, s.seed): s for s in specs}
+    n = 0
+    for path in a.from_results:
+        doc = R.load_results(path)
+        b = doc["budgets"]
+        theirs = online_args_of(doc["command"])
+        if (b["env_steps"], b["wall_budget_s"]) != (a.env_steps, a.wall_budget) or theirs != a.online_args:
+            raise ValueError(
+                f"--from-results {path}: its runs had budgets {b['env_steps']} env steps / wall "
+                f"{b['wall_budget_s']} and run arguments {' '.join(theirs) or '(none)'}; this grid has "
+                f"{a.env_steps} / {a.wall_budget} and {' '.join(a.online_args) or '(none)'}")
+        for row in doc["runs"]:
+            s = wanted.get((row["task"], row["label"], row["seed"]))
+            if (s is None or s.carried is not None or row["variant"] != s.variant
+                    or not reached_budget(row["status"], row["env_steps"], row["wall_time_s"],
+                                          a.env_steps, a.wall_budget)):
+                continue
+            origin = row.get("carried_from") or {
+                "results": str(path), "code_version": doc["code_version"], "machine": doc["machine"],
+                "created": doc["created"]}
+            s.carried = {**row, "carried_from": origin}
+            n += 1
+    return n
 
 
 def plan(a: GridSettings) -> list[RunSpec]:
@@ -136,20 +188,23 @@ def latest_env_steps(run_dir: Path) -> int:
     return 0
 
 
-def run_grid(specs: Sequence[RunSpec], a: GridSettings) -> int:
-    """Runs every unfinished spec, at most a.jobs at once. Returns the number that failed."""
+def run_grid(specs: Sequence[RunSpec], a: GridSettings, on_finished: Callable[[], None] = lambda: None) -> int:
+    """Runs every unfinished spec, at most a.jobs at once, calling on_finished after each run
+    ends. Returns the number that failed (-1: interrupted)."""
     todo = []
     for s in specs:
         st = s.state(a.env_steps, a.wall_budget)
-        print(f"[compare] {s.task}/{s.label}/seed{s.seed}: {st}", flush=True)
+        origin = f" (from {s.carried['carried_from']['results']})" if st == "carried" else ""
+        print(f"[compare] {s.task}/{s.label}/seed{s.seed}: {st}{origin}", flush=True)
         if st == "fresh" and s.run_dir.exists():
             shutil.rmtree(s.run_dir)   # killed before its first checkpoint: nothing to keep
-        if st != "done":
+        if st not in ("done", "carried"):
             todo.append((s, st))
     running: dict[int, tuple[RunSpec, subprocess.Popen, object]] = {}
     failed = 0
     bar = runs.progress(len(specs) * a.env_steps, desc="env steps (all runs)", unit="step")
-    done_steps = {id(s): (a.env_steps if s.state(a.env_steps, a.wall_budget) == "done" else 0) for s in specs}
+    done_steps = {id(s): (a.env_steps if s.state(a.env_steps, a.wall_budget) in ("done", "carried") else 0)
+                  for s in specs}
     bar.update(sum(done_steps.values()))
     last_status = time.monotonic() - a.status_every + min(a.status_every, FIRST_ESTIMATE_S)
     remaining = sum(a.env_steps - done_steps[id(s)] for s in specs)
@@ -184,6 +239,7 @@ def run_grid(specs: Sequence[RunSpec], a: GridSettings) -> int:
                     print(f"[compare] {s.task}/{s.label}/seed{s.seed}: exit {p.returncode}, "
                           f"{res.get('status', 'no result')} at {res.get('env_steps', '?')} env steps"
                           + ("" if ok else f" (see {s.run_dir / 'online.log'})"), flush=True)
+                    on_finished()
                 for s, _, _ in running.values():
                     started.setdefault(id(s), (time.monotonic(), done_steps[id(s)]))
                 if running and time.monotonic() - last_status > a.status_every:
@@ -230,28 +286,30 @@ def grid_estimate(specs, running, started, done_steps, a) -> str:
     return f"; about {runs.format_duration(seconds)} left ({per_run:.1f} env steps/s per run)"
 
 
-def add_grid_wall_time(out: Path, seconds: float) -> float:
-    """Wall time of the grid summed over every invocation (OUT/grid.json). Where no earlier
-    invocation recorded its share, it is the time from the oldest run's config.yaml to the
-    start of this invocation."""
-    path = Path(out) / "grid.json"
+def earlier_grid_wall_time(out: Path) -> float:
+    """Wall time of the grid's earlier invocations here (OUT/grid.json). Where none recorded
+    its share, the time from the oldest run's config.yaml to now (call it before starting)."""
     try:
-        total = float(json.loads(path.read_text()).get("wall_time_s", 0.0))
+        return float(json.loads((Path(out) / "grid.json").read_text()).get("wall_time_s", 0.0))
     except (OSError, ValueError, AttributeError):
         starts = [p.stat().st_mtime for p in Path(out).glob("*/*/seed*/config.yaml")]
-        total = max(0.0, time.time() - seconds - min(starts)) if starts else 0.0
-    total += seconds
-    runs.atomic_write_json(path, {"wall_time_s": round(total, 1)})
-    return total
+        return max(0.0, time.time() - min(starts)) if starts else 0.0
 
 
-def random_baselines(a: GridSettings) -> dict[str, dict]:
-    """The uniform random policy on each task's test contexts, once (OUT/TASK/random.json)."""
+def save_grid_wall_time(out: Path, total: float) -> None:
+    runs.atomic_write_json(Path(out) / "grid.json", {"wall_time_s": round(total, 1)})
+
+
+def random_baselines(a: GridSettings, evaluate: bool = True) -> dict[str, dict]:
+    """The uniform random policy on each task's test contexts, once (OUT/TASK/random.json);
+    evaluate=False: only those already there."""
     from trainer.learn.evaluate import evaluate_checkpoint
 
     out = {}
     for task in a.tasks:
         path = Path(a.out) / task / "random.json"
+        if not path.exists() and not evaluate:
+            continue
         if not path.exists():
             res = evaluate_checkpoint(None, task=task, episodes=a.random_episodes, seed=7, progress=False)
             runs.atomic_write_json(path, res.to_dict())
@@ -272,6 +330,10 @@ class GridSettings:
     """seeds of every variant (none: only the anchor's)"""
     anchor_seeds: list[int] = arg([], nargs="*", group="grid")
     """also run dreamer on the unrandomized task (label dreamer_standard) with these seeds"""
+    from_results: list[str] = arg([], nargs="+", metavar="RESULTS_JSON", group="grid")
+    """results.json of this grid made elsewhere (another machine, an earlier session): the runs
+    finished there count as done, their rows are kept, only the others run here (the budgets
+    and the arguments after -- must be the same)"""
     env_steps: int = arg(2_000_000, group="budgets and resources")
     """env-step budget of every run"""
     wall_budget: float | None = arg(None, type=runs.parse_duration, metavar="DURATION",
@@ -346,18 +408,30 @@ def main(argv: Sequence[str] | None = None) -> int:
             out_dir.mkdir(parents=True, exist_ok=True)
             a = dataclasses.replace(a, out=str(out_dir))
             specs = plan(a)
-            t0 = time.monotonic()
-            failed = run_grid(specs, a)
-            wall = add_grid_wall_time(out_dir, time.monotonic() - t0)
-            if failed < 0:
-                return 130
+            carried = carry_finished_runs(specs, a)
+            if a.from_results:
+                print(f"[compare] {carried} finished run(s) carried from {', '.join(a.from_results)}",
+                      flush=True)
             from trainer.research import results as R
 
-            random = random_baselines(a) if a.random_baseline else {}
+            earlier, t0 = earlier_grid_wall_time(out_dir), time.monotonic()
             command = ["protocad-compare", *(sys.argv[1:] if argv is None else argv)]
-            doc = R.gather(specs, command=command, env_steps=a.env_steps, wall_budget=a.wall_budget,
-                           jobs=a.jobs, threads=a.threads, wall_time=wall, random=random)
-            R.save_results(doc, out_dir / "results.json")
+
+            def save(random: dict) -> dict:
+                doc = R.gather(specs, command=command, env_steps=a.env_steps, wall_budget=a.wall_budget,
+                               jobs=a.jobs, threads=a.threads, wall_time=earlier + time.monotonic() - t0,
+                               random=random)
+                R.save_results(doc, out_dir / "results.json")
+                return doc
+
+            # Rewritten as runs finish and when cut short: what finished can be committed anytime.
+            failed = run_grid(specs, a, on_finished=lambda: save(random_baselines(a, evaluate=False)))
+            save_grid_wall_time(out_dir, earlier + time.monotonic() - t0)
+            if failed < 0:
+                save(random_baselines(a, evaluate=False))
+                print(f"[compare] results of the finished runs so far: {out_dir / 'results.json'}", flush=True)
+                return 130
+            doc = save(random_baselines(a) if a.random_baseline else {})
             print(f"[compare] {len(specs)} runs, {failed} failed; results: {out_dir / 'results.json'}",
                   flush=True)
         print(R.format_report(doc), flush=True)

@@ -19,7 +19,9 @@ Schema (RESULTS_SCHEMA, checked on every save and load):
      "runs": [{"task", "label", "variant", "seed", "run_dir", "status", "env_steps", "updates",
                "wall_time_s", "precision", "preset", "eval_split",
                "final": {"mean_return", "episodes", "per_context": {"m=0.2": return, ...}} | null,
-               "curve": [{"env_steps", "mean_return", "tag"}]}],
+               "curve": [{"env_steps", "mean_return", "tag"}],
+               "carried_from": {"results", "code_version", "machine", "created"}  (optional: a
+               run finished elsewhere, taken over by `--from-results`)}],
      "random": {task: {"mean_return", "episodes", "per_context"}}}
 """
 from __future__ import annotations
@@ -95,6 +97,9 @@ RESULTS_SCHEMA: dict[str, Any] = {
                 "curve": {"type": "array", "items": {
                     "type": "object", "required": ["env_steps", "mean_return", "tag"],
                     "properties": {"env_steps": _INT, "mean_return": _NUM, "tag": {"type": "string"}}}},
+                "carried_from": {"type": "object", "required": ["results", "code_version", "machine", "created"],
+                                 "properties": {"results": {"type": "string"}, "code_version": {"type": "string"},
+                                                "machine": {"type": "object"}, "created": {"type": "string"}}},
             }}},
         "random": {"type": "object", "additionalProperties": _EVAL},
     },
@@ -230,8 +235,10 @@ def runs_code_version(specs: Iterable[Any]) -> str:
     for runs that do not record it, the tree that gathered them, saying so."""
     seen: list[str] = []
     for s in specs:
+        carried = getattr(s, "carried", None)
         try:
-            versions = json.loads((Path(s.run_dir) / "run.json").read_text()).get("code_versions")
+            versions = (carried["carried_from"]["code_version"].split(", ") if carried else
+                        json.loads((Path(s.run_dir) / "run.json").read_text()).get("code_versions"))
         except (OSError, json.JSONDecodeError):
             versions = None
         if not versions:
@@ -260,9 +267,15 @@ def machine_info() -> dict[str, Any]:
 
 def gather(specs: Iterable[Any], *, command: Sequence[str], env_steps: int, wall_budget: float | None,
            jobs: int, threads: int, wall_time: float, random: Mapping[str, Any] | None = None) -> dict[str, Any]:
-    """results.json from RunSpec-like objects (task, label, variant, seed, run_dir)."""
+    """results.json from RunSpec-like objects (task, label, variant, seed, run_dir; `carried`: a
+    row finished elsewhere, taken as it is unless the run finished here too)."""
     specs = list(specs)
-    rows = [gather_run(s.task, s.label, s.variant, s.seed, s.run_dir) for s in specs]
+    rows = []
+    for s in specs:
+        row = gather_run(s.task, s.label, s.variant, s.seed, s.run_dir)
+        carried = getattr(s, "carried", None)
+        done_here = row["status"] in ("finished", "wall_budget") and row["final"] is not None
+        rows.append(carried if carried is not None and not done_here else row)
     return {"schema": SCHEMA_ID, "command": [str(c) for c in command], "code_version": runs_code_version(specs),
             "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "machine": machine_info(),
             "budgets": {"env_steps": int(env_steps), "wall_budget_s": wall_budget, "jobs": int(jobs),
@@ -386,13 +399,26 @@ def aggregate_rows(summary: Mapping[str, Any]) -> tuple[list[str], list[list[str
 def format_report(doc: Mapping[str, Any]) -> str:
     s = summarize(doc)
     out = [f"results of {' '.join(doc['command'])}", f"code {doc['code_version']}; "
-           f"{_machine_line(doc['machine'])}; grid wall time {doc['wall_time_s'] / 60:.1f} min", "",
+           f"{_machine_line(doc['machine'])}; grid wall time {doc['wall_time_s'] / 60:.1f} min"
+           + carried_sentence(doc), "",
            _text_table(*table_rows(doc, s)), "", "over tasks (test contexts; stratified bootstrap):",
            _text_table(*aggregate_rows(s))]
     anchor = anchor_rows(doc)
     if anchor[1]:
         out += ["", "anchor vs DreamerV2's published seeds (standard task):", _text_table(*anchor)]
     return "\n".join(out)
+
+
+def carried_sentence(doc: Mapping[str, Any]) -> str:
+    """' N of the runs finished elsewhere: ...' for rows taken over by --from-results, else ''."""
+    origins: dict[str, list[str]] = {}
+    for r in doc["runs"]:
+        c = r.get("carried_from")
+        if c:
+            key = f"{c['results']} ({_machine_line(c['machine'])}; code {c['code_version']})"
+            origins.setdefault(key, []).append(f"{r['label']}/seed{r['seed']}")
+    return "".join(f". {', '.join(runs)} finished elsewhere and came from {where}"
+                   for where, runs in origins.items())
 
 
 def _machine_line(m: Mapping[str, Any]) -> str:
@@ -548,7 +574,7 @@ def markdown_section(doc: Mapping[str, Any], image: str | None = None, source: s
              f"Machine: {_machine_line(doc['machine'])}. Code: {doc['code_version']}. "
              f"Budget {b['env_steps']:,} env steps per run{wall}; {b['jobs']} runs at once, "
              f"{b['threads_per_run']} torch thread(s) each; the grid took {doc['wall_time_s'] / 60:.0f} min "
-             f"of wall time. Run endings: {', '.join(statuses)}.", "",
+             f"of wall time{carried_sentence(doc)}. Run endings: {', '.join(statuses)}.", "",
              _md_table(*table_rows(doc, s)), ""]
     if s["aggregates"] and max(a["tasks"] for a in s["aggregates"]) > 1:
         lines += ["Over tasks (test contexts; 95% stratified bootstrap intervals):", "",

@@ -54,6 +54,9 @@ def test_grid_runs_in_parallel_resumes_after_ctrl_c_and_reports(tmp_path, spawn)
     for d in run_dirs:
         assert json.loads((d / "run.json").read_text())["result"]["status"] == "interrupted"
         assert not (d / "eval" / "final.json").exists()
+    # cut short, the grid still says where each run stands
+    cut = R.load_results(out / "results.json")
+    assert [(r["status"], r["final"]) for r in cut["runs"]] == [("interrupted", None)] * 4
 
     second = spawn("compare2", *grid_args(out))
     wait_until(lambda: not second.alive(), 400, "the resumed grid to finish")
@@ -217,6 +220,41 @@ def test_a_grid_whose_parent_is_killed_twice_resumes_to_completion(tmp_path, spa
         assert read_counters(d)["env_steps"] == 2 * steps >= 500
 
     ship_the_best_policy(out, tmp_path)
+    continue_the_grid_on_another_machine(out, args, tmp_path, spawn)
+
+
+def continue_the_grid_on_another_machine(out: Path, args: list[str], tmp_path: Path, spawn) -> None:
+    """Only results.json travels (the run directories stay behind): `--from-results` takes its
+    finished runs as done, runs only the new seed, and the report says where the others came
+    from. A results.json of other run arguments is refused before anything runs."""
+    import subprocess
+
+    committed = tmp_path / "committed.json"
+    committed.write_bytes((out / "results.json").read_bytes())
+    out.rename(tmp_path / "first-machine")
+    elsewhere = tmp_path / "elsewhere"
+    more = [x if x != str(out) else str(elsewhere) for x in args]
+    more[more.index("--seeds") + 1:more.index("--seeds") + 3] = ["0", "1", "2"]
+    grid = spawn("carried", *more[:more.index("--")], "--from-results", str(committed), *more[more.index("--"):])
+    wait_until(lambda: not grid.alive(), 400, "the continued grid to finish")
+    log = grid.output()
+    assert grid.p.returncode == 0, log[-3000:]
+    assert "2 finished run(s) carried" in log and log.count("(fresh)") == 1 and "seed2 (fresh)" in log
+    before = {r["seed"]: r for r in R.load_results(committed)["runs"]}
+    doc = R.load_results(elsewhere / "results.json")
+    assert [r["seed"] for r in doc["runs"]] == [0, 1, 2]
+    for r in doc["runs"][:2]:
+        assert {k: v for k, v in r.items() if k != "carried_from"} == before[r["seed"]]
+        assert r["carried_from"]["results"] == str(committed)
+    assert "carried_from" not in doc["runs"][2] and doc["runs"][2]["status"] == "finished"
+    assert not (elsewhere / "pendulum_swingup" / "dreamer" / "seed0").exists()
+    assert f"dreamer/seed0, dreamer/seed1 finished elsewhere and came from {committed}" in \
+        R.markdown_section(doc)
+
+    other = [*more[:more.index("--")], "--from-results", str(committed), *more[more.index("--"):],
+             "--updates-per-episode", "3"]
+    r = subprocess.run([sys.executable, *other], capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert r.returncode == 2 and "--from-results" in r.stderr and "run arguments" in r.stderr, r.stderr
 
 
 def ship_the_best_policy(out: Path, tmp_path: Path) -> None:
