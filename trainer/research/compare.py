@@ -169,23 +169,23 @@ def _die_with_parent() -> None:
     os.setpgid(0, 0)   # Ctrl-C in the terminal reaches only us; we forward it once
 
 
-def latest_env_steps(run_dir: Path) -> int:
-    """The newest env-step count a run has logged (metrics.jsonl), for progress."""
+def latest_progress(run_dir: Path) -> tuple[int, int]:
+    """The newest (env steps, updates) a run has logged (metrics.jsonl), for progress."""
     path = Path(run_dir) / "metrics.jsonl"
     try:
         with open(path, "rb") as f:
             f.seek(max(0, path.stat().st_size - 4096))
             lines = f.read().decode(errors="replace").splitlines()
     except OSError:
-        return 0
+        return 0, 0
     for line in reversed(lines):
         try:
             row = json.loads(line)
         except json.JSONDecodeError:
             continue
         if "env_steps" in row:
-            return int(row["env_steps"])
-    return 0
+            return int(row["env_steps"]), int(row.get("update", 0))
+    return 0, 0
 
 
 def run_grid(specs: Sequence[RunSpec], a: GridSettings, on_finished: Callable[[], None] = lambda: None) -> int:
@@ -211,7 +211,8 @@ def run_grid(specs: Sequence[RunSpec], a: GridSettings, on_finished: Callable[[]
     print(f"[compare] {len(todo)} of {len(specs)} runs to go, {remaining:,} env steps in all, "
           f"{a.jobs} at once; the estimated wall time follows a first timing of "
           f"{min(a.status_every, FIRST_ESTIMATE_S):.0f} s", flush=True)
-    started = {}   # id(spec) -> (monotonic time, env steps) when this invocation first saw it run
+    updates = {id(s): 0 for s in specs}
+    started = {}   # id(spec) -> (monotonic time, updates) when this invocation first saw it train
     with runs.StopFlag() as stop:
         try:
             while (todo or running) and not stop.stop:
@@ -226,7 +227,7 @@ def run_grid(specs: Sequence[RunSpec], a: GridSettings, on_finished: Callable[[]
                           f"{s.device}", flush=True)
                 time.sleep(1.0)
                 for pid, (s, p, log) in list(running.items()):
-                    steps = latest_env_steps(s.run_dir)
+                    steps, updates[id(s)] = latest_progress(s.run_dir)
                     bar.update(max(0, steps - done_steps[id(s)]))
                     done_steps[id(s)] = max(done_steps[id(s)], steps)
                     if p.poll() is None:
@@ -241,12 +242,13 @@ def run_grid(specs: Sequence[RunSpec], a: GridSettings, on_finished: Callable[[]
                           + ("" if ok else f" (see {s.run_dir / 'online.log'})"), flush=True)
                     on_finished()
                 for s, _, _ in running.values():
-                    started.setdefault(id(s), (time.monotonic(), done_steps[id(s)]))
+                    if updates[id(s)] > 0:   # training, prefill over: its pace is the grid's
+                        started.setdefault(id(s), (time.monotonic(), updates[id(s)]))
                 if running and time.monotonic() - last_status > a.status_every:
                     last_status = time.monotonic()
                     print("[compare] " + ", ".join(f"{s.label}/seed{s.seed}: {done_steps[id(s)]}"
                                                    for s, _, _ in running.values())
-                          + grid_estimate(specs, running, started, done_steps, a), flush=True)
+                          + grid_estimate(specs, running, started, done_steps, updates, a), flush=True)
         finally:
             for s, p, log in running.values():
                 if p.poll() is None:
@@ -270,20 +272,26 @@ def run_grid(specs: Sequence[RunSpec], a: GridSettings, on_finished: Callable[[]
 FIRST_ESTIMATE_S = 120.0
 
 
-def grid_estimate(specs, running, started, done_steps, a) -> str:
-    """'; about 3h10m left' from the env steps/s the running runs made since this invocation
-    started them (evaluations and all), the grid's remaining steps, and a.jobs at once."""
+def grid_estimate(specs, running, started, done_steps, updates, a) -> str:
+    """'; about 3h10m left' from the updates/s the running runs made since this invocation saw
+    them train and the updates the grid has left (env steps left x C per episode, from the
+    runs' protocol in run.json), a.jobs at once. Updates are the cost: prefill (random actions,
+    seconds) would make a rate of env steps promise hours too few; evaluations are not counted."""
     now = time.monotonic()
-    rates = [(done_steps[id(s)] - started[id(s)][1]) / max(1e-9, now - started[id(s)][0])
+    rates = [(updates[id(s)] - started[id(s)][1]) / max(1e-9, now - started[id(s)][0])
              for s, _, _ in running.values()
              if id(s) in started and now - started[id(s)][0] > min(30.0, a.status_every)]
     rates = [r for r in rates if r > 0]
-    if not rates:
+    protocol = next((p for p in (runs.read_run_json(s.run_dir).get("protocol") for s, _, _ in running.values())
+                     if p), None)
+    if not rates or not protocol:
         return "; no estimate yet"
+    per_step = float(protocol["updates_per_episode"]) / float(protocol["time_limit"])
+    prefill = int(protocol["prefill_episodes"]) * int(protocol["time_limit"])
+    left = sum(max(0, a.env_steps - max(done_steps[id(s)], prefill)) * per_step for s in specs)
     per_run = sum(rates) / len(rates)
-    left = sum(max(0, a.env_steps - done_steps[id(s)]) for s in specs)
     seconds = left / (per_run * min(a.jobs, max(1, len(running))))
-    return f"; about {runs.format_duration(seconds)} left ({per_run:.1f} env steps/s per run)"
+    return f"; about {runs.format_duration(seconds)} left ({per_run:.2f} updates/s per run)"
 
 
 def earlier_grid_wall_time(out: Path) -> float:

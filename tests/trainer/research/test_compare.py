@@ -63,7 +63,7 @@ def test_grid_runs_in_parallel_resumes_after_ctrl_c_and_reports(tmp_path, spawn)
     log = second.output()
     assert second.p.returncode == 0, log
     # status lines carry the grid's estimated wall time once the runs have been timed
-    assert re.search(r"about \S+ left \([\d.]+ env steps/s per run\)", log), log
+    assert re.search(r"about \S+ left \([\d.]+ updates/s per run\)", log), log
     for d in run_dirs:
         c = saved[d]
         run_log = (d / "online.log").read_text()
@@ -328,3 +328,30 @@ def test_the_variants_of_a_seed_are_planned_side_by_side():
     assert [(s.label, s.seed) for s in specs] == [
         ("protocad", 0), ("dreamer", 0), ("protocad", 1), ("dreamer", 1), ("protocad", 2), ("dreamer", 2),
         ("dreamer_standard", 0)]
+
+
+def test_the_wall_time_estimate_counts_updates_not_the_seconds_of_prefill(tmp_path, monkeypatch):
+    """Just after prefill (2,000 random env steps in seconds) the grid's estimate is the updates
+    it has left at the pace the runs train: 2 runs x 58,000 env steps x C=100 per 1,000-step
+    episode at 0.15 updates/s each, both at once, is 10h44m (a rate of env steps would have
+    said minutes)."""
+    from trainer import runs
+    from trainer.research import compare
+
+    a = compare.GridSettings(tasks=["walker_walk"], variants=["dreamer"], seeds=[0, 1], env_steps=60_000,
+                             jobs=2, status_every=600, out=str(tmp_path))
+    specs = compare.plan(a)
+    for s in specs:
+        s.run_dir.mkdir(parents=True)
+        runs.atomic_write_json(s.run_dir / "run.json", {"protocol": {
+            "updates_per_episode": 100, "time_limit": 1000, "prefill_episodes": 2}})
+    now = 1000.0
+    monkeypatch.setattr(compare.time, "monotonic", lambda: now)
+    running = {i: (s, None, None) for i, s in enumerate(specs)}
+    started = {id(s): (now - 600.0, 10) for s in specs}            # 90 updates in 600 s
+    done_steps = {id(s): 2000 for s in specs}
+    updates = {id(s): 100 for s in specs}
+    assert compare.grid_estimate(specs, running, started, done_steps, updates, a) == \
+        "; about 10h44m left (0.15 updates/s per run)"
+    started = {id(s): (now - 1.0, 100) for s in specs}             # not timed long enough yet
+    assert compare.grid_estimate(specs, running, started, done_steps, updates, a) == "; no estimate yet"
