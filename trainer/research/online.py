@@ -22,6 +22,9 @@ from them. The replay buffer IS that dataset (disk-backed uint8 store, see train
 Resume (`--resume`): weights, optimizers, RNG, sampler state and counters come from the last
 checkpoint; bags on disk are re-indexed (from the cache). Environments restart with fresh
 episodes (a simulator mid-episode is not checkpointed), seeded differently from the first run.
+Before the first new episode the resume makes what the interruption cut short: the updates the
+episodes on disk are owed and an evaluation that was due (at the env step it was due), so an
+interrupted run follows the same schedule as one that never was.
 
 Under torchrun (`torchrun --nproc_per_node N --no-python protocad-online ...`, see
 trainer/learn/distributed.py) every rank collects with its own envs (seeded by rank) into its own bags
@@ -617,10 +620,11 @@ class OnlineRun:
             bar.set_description("env steps")
         # at the budget the final evaluation comes instead
         if sched.eval_due(c.env_steps, c.next_eval) and not self._stopped(stop) and c.env_steps < s.env_steps:
-            c.next_eval = sched.next_eval_after(c.env_steps, c.next_eval)
             self.evaluate(f"eval_{c.env_steps:08d}", self.periodic_contexts, s.eval_episodes, stop)
-            c.evals += 1
-            trainer.save()
+            if not self._stopped(stop):   # cut short, it stays due: the resume makes it
+                c.next_eval = sched.next_eval_after(c.env_steps, c.next_eval)
+                c.evals += 1
+                trainer.save()
 
     def _collect_and_train(self, stream, stop: runs.StopFlag) -> str:
         """The loop: step every env, record, and after each finished episode train and evaluate
@@ -628,6 +632,11 @@ class OnlineRun:
         c, s = self.c, self.s
         bar = runs.progress(s.env_steps, initial=c.env_steps, desc="env steps",
                             disable=True if s.no_progress or not self.main_rank else None, unit="step")
+        if s.resume and c.env_steps < s.env_steps:
+            # What the interruption cut short comes first: the updates the episodes on disk are
+            # owed and an evaluation still due, before the next episode is collected, so the
+            # run's schedule is the one it would have had without the interruption.
+            self._after_episodes([], stop, bar)
         while self._keep_going(stop):
             obs, actions, feats = next(stream)
             prefill, steps_before = self.prefilling(), c.env_steps

@@ -188,6 +188,47 @@ def test_sigkill_at_any_point_then_resume_completes_with_counters_from_the_data(
 
 
 @pytest.mark.process
+def test_ctrl_c_while_training_costs_the_run_neither_updates_nor_an_evaluation(tmp_path, spawn):
+    """Ctrl-C in the updates that follow an episode (an evaluation due after them): the resume
+    first makes the owed updates and the evaluation, at the step it was due, and only then
+    collects the next episode, as if nothing had happened."""
+    import signal
+
+    from helpers import wait_until
+    from protocad_ros.checkpoint import read_checkpoint
+
+    run = tmp_path / "run"
+    # 40 env steps per episode, prefill 2, C = 200: 200 updates after episode 2, 400 after
+    # episode 3, whose 120 env steps make an evaluation due; the budget ends with episode 4.
+    args = ["-m", "trainer.research.online", "--task", "pendulum_swingup", *TINY, "--time-limit", "40",
+            "--prefill-episodes", "2", "--updates-per-episode", "200", "--eval-every", "120",
+            "--eval-episodes", "1", "--eval-max-contexts", "1", "--final-episodes", "1",
+            "--final-max-contexts", "1", "--eval-workers", "0", "--log-every", "1", "--no-progress",
+            "--env-steps", "160", "--run-dir", str(run)]
+
+    def rows():
+        text = (run / "metrics.jsonl").read_text() if (run / "metrics.jsonl").exists() else ""
+        return [json.loads(x) for x in text.splitlines()[:-1]]   # the last line may be half written
+
+    p = spawn("first", *args)
+    wait_until(lambda: any(r.get("kind") == "train" and r.get("env_steps") == 120 for r in rows())
+               or not p.alive(), 300, "the updates after episode 3")
+    assert p.stop(signal.SIGINT, timeout=120) == 0, p.output()[-3000:]
+    assert json.loads((run / "run.json").read_text())["result"]["status"] == "interrupted"
+    cut = int(read_checkpoint(run / "checkpoints" / "latest.pt")["modules"]["updates"])
+    logged = (run / "eval.jsonl").read_text() if (run / "eval.jsonl").exists() else ""
+    assert cut < 400 or "eval_00000120" not in logged, "the interruption came too late to test anything"
+
+    r = run_cli("trainer.research.online", "--run-dir", run, "--resume", "--no-progress", timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    evals = [json.loads(x) for x in (run / "eval.jsonl").read_text().splitlines()]
+    assert [(e["tag"], e["env_steps"], e["updates"]) for e in evals] == [
+        ("eval_00000120", 120, 400), ("final", 160, 600)]
+    episode4 = [r for r in rows() if r.get("kind") == "episode" and r["episodes"] == 4]
+    assert [r["update"] for r in episode4] == [400]   # collected by the agent of all 400 updates
+
+
+@pytest.mark.process
 @pytest.mark.disk_size("1m")
 @pytest.mark.parametrize("full", ["run_dir", "cache"])
 def test_a_full_disk_is_one_line_with_the_cause_and_the_run_resumes_after_space_is_freed(tmp_path, small_disk, full):
