@@ -108,7 +108,10 @@ def carry_finished_runs(specs: Sequence[RunSpec], a: GridSettings) -> int:
     wanted = {(s.task, s.label, s.seed): s for s in specs}
     n = 0
     for path in a.from_results:
-        doc = R.load_results(path)
+        try:
+            doc = R.load_results(path)
+        except OSError as exc:
+            raise ValueError(f"--from-results {path}: cannot read it ({exc.strerror or exc})") from None
         b = doc["budgets"]
         theirs = online_args_of(doc["command"])
         if (b["env_steps"], b["wall_budget_s"]) != (a.env_steps, a.wall_budget) or theirs != a.online_args:
@@ -413,10 +416,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             out_dir = Path(a.report).parent
         else:
             out_dir = Path(a.out or time.strftime("runs/compare-%Y%m%d-%H%M%S"))
-            out_dir.mkdir(parents=True, exist_ok=True)
             a = dataclasses.replace(a, out=str(out_dir))
             specs = plan(a)
-            carried = carry_finished_runs(specs, a)
+            carried = carry_finished_runs(specs, a)   # a file it cannot take: refused before anything is made
+            out_dir.mkdir(parents=True, exist_ok=True)
             if a.from_results:
                 print(f"[compare] {carried} finished run(s) carried from {', '.join(a.from_results)}",
                       flush=True)

@@ -410,7 +410,8 @@ def format_report(doc: Mapping[str, Any]) -> str:
 
 
 def carried_sentence(doc: Mapping[str, Any]) -> str:
-    """' N of the runs finished elsewhere: ...' for rows taken over by --from-results, else ''."""
+    """'. LABEL/seedS, ... finished elsewhere and came from FILE (machine; code)' for the rows
+    taken over by --from-results, one sentence per file; '' when there are none."""
     origins: dict[str, list[str]] = {}
     for r in doc["runs"]:
         c = r.get("carried_from")

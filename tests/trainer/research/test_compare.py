@@ -255,6 +255,13 @@ def continue_the_grid_on_another_machine(out: Path, args: list[str], tmp_path: P
              "--updates-per-episode", "3"]
     r = subprocess.run([sys.executable, *other], capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert r.returncode == 2 and "--from-results" in r.stderr and "run arguments" in r.stderr, r.stderr
+    missing = tmp_path / "not-committed.json"
+    gone = tmp_path / "never-made"
+    r = subprocess.run([sys.executable, "-m", "trainer.research.compare", "--tasks", "pendulum_swingup", "--seeds",
+                        "0", "--env-steps", "500", "--out", str(gone), "--from-results", str(missing)],
+                       capture_output=True, text=True, cwd=ROOT, timeout=300)
+    assert r.returncode == 2 and f"--from-results {missing}: cannot read it" in r.stderr, r.stderr
+    assert not gone.exists()
 
 
 def ship_the_best_policy(out: Path, tmp_path: Path) -> None:
