@@ -21,8 +21,10 @@ across resumes) reaches `--wall-budget`; either way it then runs the final evalu
 test contexts and saves its checkpoint and curves. results.json records which budget ended
 each run and the env steps it reached.
 
-Runs that span machines: OUT/results.json is rewritten each time a run finishes (and when the
-grid is interrupted), so the rows of the finished runs can be committed at any time. Another
+Runs that span machines: OUT/results.json is rewritten each time a run finishes, at each status
+line and when the grid is interrupted, so the rows of the finished runs can be committed at any
+time, and `--report OUT/results.json` shows how far the others got (env steps, updates, latest
+evaluation). Another
 machine then continues the grid with `--from-results THAT.json`: the finished runs recorded
 there count as done (their rows are kept as they are, with where they came from) and only the
 others run. Their budgets and the arguments after `--` must be this grid's.
@@ -191,9 +193,11 @@ def latest_progress(run_dir: Path) -> tuple[int, int]:
     return 0, 0
 
 
-def run_grid(specs: Sequence[RunSpec], a: GridSettings, on_finished: Callable[[], None] = lambda: None) -> int:
-    """Runs every unfinished spec, at most a.jobs at once, calling on_finished after each run
-    ends. Returns the number that failed (-1: interrupted)."""
+def run_grid(specs: Sequence[RunSpec], a: GridSettings,
+             on_progress: Callable[[dict[Path, tuple[int, int]]], None] = lambda running: None) -> int:
+    """Runs every unfinished spec, at most a.jobs at once, calling on_progress(running: run dir
+    -> (env steps, updates) of the runs going on) after each run ends and at each status line.
+    Returns the number that failed (-1: interrupted)."""
     todo = []
     for s in specs:
         st = s.state(a.env_steps, a.wall_budget)
@@ -215,6 +219,7 @@ def run_grid(specs: Sequence[RunSpec], a: GridSettings, on_finished: Callable[[]
           f"{a.jobs} at once; the estimated wall time follows a first timing of "
           f"{min(a.status_every, FIRST_ESTIMATE_S):.0f} s", flush=True)
     updates = {id(s): 0 for s in specs}
+    live = lambda: {s.run_dir: (done_steps[id(s)], updates[id(s)]) for s, _, _ in running.values()}  # noqa: E731
     started = {}   # id(spec) -> (monotonic time, updates) when this invocation first saw it train
     with runs.StopFlag() as stop:
         try:
@@ -243,7 +248,7 @@ def run_grid(specs: Sequence[RunSpec], a: GridSettings, on_finished: Callable[[]
                     print(f"[compare] {s.task}/{s.label}/seed{s.seed}: exit {p.returncode}, "
                           f"{res.get('status', 'no result')} at {res.get('env_steps', '?')} env steps"
                           + ("" if ok else f" (see {s.run_dir / 'online.log'})"), flush=True)
-                    on_finished()
+                    on_progress(live())
                 for s, _, _ in running.values():
                     if updates[id(s)] > 0:   # training, prefill over: its pace is the grid's
                         started.setdefault(id(s), (time.monotonic(), updates[id(s)]))
@@ -252,6 +257,7 @@ def run_grid(specs: Sequence[RunSpec], a: GridSettings, on_finished: Callable[[]
                     print("[compare] " + ", ".join(f"{s.label}/seed{s.seed}: {done_steps[id(s)]}"
                                                    for s, _, _ in running.values())
                           + grid_estimate(specs, running, started, done_steps, updates, a), flush=True)
+                    on_progress(live())
         finally:
             for s, p, log in running.values():
                 if p.poll() is None:
@@ -428,15 +434,17 @@ def main(argv: Sequence[str] | None = None) -> int:
             earlier, t0 = earlier_grid_wall_time(out_dir), time.monotonic()
             command = ["protocad-compare", *(sys.argv[1:] if argv is None else argv)]
 
-            def save(random: dict) -> dict:
+            def save(random: dict, running: dict | None = None) -> dict:
                 doc = R.gather(specs, command=command, env_steps=a.env_steps, wall_budget=a.wall_budget,
                                jobs=a.jobs, threads=a.threads, wall_time=earlier + time.monotonic() - t0,
-                               random=random)
+                               random=random, running=running)
                 R.save_results(doc, out_dir / "results.json")
                 return doc
 
-            # Rewritten as runs finish and when cut short: what finished can be committed anytime.
-            failed = run_grid(specs, a, on_finished=lambda: save(random_baselines(a, evaluate=False)))
+            # Rewritten as runs finish, at each status line and when cut short: what finished can
+            # be committed anytime, and `--report` shows where the others stand.
+            failed = run_grid(specs, a, on_progress=lambda running: save(random_baselines(a, evaluate=False),
+                                                                         running))
             save_grid_wall_time(out_dir, earlier + time.monotonic() - t0)
             if failed < 0:
                 save(random_baselines(a, evaluate=False))

@@ -17,6 +17,8 @@ Schema (RESULTS_SCHEMA, checked on every save and load):
      "budgets": {"env_steps", "wall_budget_s", "jobs", "threads_per_run"},
      "wall_time_s": seconds the grid ran (summed over invocations),
      "runs": [{"task", "label", "variant", "seed", "run_dir", "status", "env_steps", "updates",
+               (status: finished | wall_budget | running | interrupted | failed | missing;
+               'running' only in a results.json written while its grid runs)
                "wall_time_s", "precision", "preset", "eval_split",
                "final": {"mean_return", "episodes", "per_context": {"m=0.2": return, ...}} | null,
                "curve": [{"env_steps", "mean_return", "tag"}],
@@ -89,7 +91,7 @@ RESULTS_SCHEMA: dict[str, Any] = {
             "properties": {
                 "task": {"type": "string"}, "label": {"type": "string"}, "variant": {"type": "string"},
                 "seed": _INT, "run_dir": {"type": "string"},
-                "status": {"enum": ["finished", "wall_budget", "interrupted", "failed", "missing"]},
+                "status": {"enum": ["finished", "wall_budget", "running", "interrupted", "failed", "missing"]},
                 "env_steps": _INT, "updates": _INT, "wall_time_s": _NUM,
                 "precision": {"type": "string"}, "preset": {"type": "string"},
                 "eval_split": {"enum": ["test", "train"]},
@@ -266,13 +268,20 @@ def machine_info() -> dict[str, Any]:
 
 
 def gather(specs: Iterable[Any], *, command: Sequence[str], env_steps: int, wall_budget: float | None,
-           jobs: int, threads: int, wall_time: float, random: Mapping[str, Any] | None = None) -> dict[str, Any]:
+           jobs: int, threads: int, wall_time: float, random: Mapping[str, Any] | None = None,
+           running: Mapping[Path, tuple[int, int]] | None = None) -> dict[str, Any]:
     """results.json from RunSpec-like objects (task, label, variant, seed, run_dir; `carried`: a
-    row finished elsewhere, taken as it is unless the run finished here too)."""
+    row finished elsewhere, taken as it is unless the run finished here too). `running`: run
+    directory -> (env steps, updates) its metrics show now, for the runs still going (their
+    run.json still holds how the previous invocation ended)."""
     specs = list(specs)
     rows = []
     for s in specs:
         row = gather_run(s.task, s.label, s.variant, s.seed, s.run_dir)
+        if running and s.run_dir in running:
+            steps, updates = running[s.run_dir]
+            row.update(status="running", env_steps=max(row["env_steps"], int(steps)),
+                       updates=max(row["updates"], int(updates)))
         carried = getattr(s, "carried", None)
         done_here = row["status"] in ("finished", "wall_budget") and row["final"] is not None
         rows.append(carried if carried is not None and not done_here else row)
@@ -396,6 +405,22 @@ def aggregate_rows(summary: Mapping[str, Any]) -> tuple[list[str], list[list[str
     return head, rows
 
 
+def progress_rows(doc: Mapping[str, Any]) -> tuple[list[str], list[list[str]]]:
+    """The runs without a final evaluation yet (running, cut short, failed): how far each got
+    and its latest evaluation, so a grid that spans sessions shows where it stands."""
+    head = ["task", "variant", "seed", "status", "env steps", "updates", "latest evaluation"]
+    budget = int(doc["budgets"]["env_steps"])
+    rows = []
+    for r in sorted(doc["runs"], key=lambda r: (r["task"], r["label"], r["seed"])):
+        if r["final"] is not None:
+            continue
+        last = r["curve"][-1] if r["curve"] else None
+        rows.append([r["task"], r["label"], str(r["seed"]), r["status"], f"{r['env_steps']:,} of {budget:,}",
+                     f"{r['updates']:,}",
+                     "-" if last is None else f"{last['mean_return']:.1f} at {last['env_steps']:,} env steps"])
+    return head, rows
+
+
 def format_report(doc: Mapping[str, Any]) -> str:
     s = summarize(doc)
     out = [f"results of {' '.join(doc['command'])}", f"code {doc['code_version']}; "
@@ -403,6 +428,10 @@ def format_report(doc: Mapping[str, Any]) -> str:
            + carried_sentence(doc), "",
            _text_table(*table_rows(doc, s)), "", "over tasks (test contexts; stratified bootstrap):",
            _text_table(*aggregate_rows(s))]
+    progress = progress_rows(doc)
+    if progress[1]:
+        out += ["", f"not finished ({len(progress[1])} of {len(doc['runs'])} runs; as of {doc['created']}):",
+                _text_table(*progress)]
     anchor = anchor_rows(doc)
     if anchor[1]:
         out += ["", "anchor vs DreamerV2's published seeds (standard task):", _text_table(*anchor)]
@@ -577,6 +606,10 @@ def markdown_section(doc: Mapping[str, Any], image: str | None = None, source: s
              f"{b['threads_per_run']} torch thread(s) each; the grid took {doc['wall_time_s'] / 60:.0f} min "
              f"of wall time{carried_sentence(doc)}. Run endings: {', '.join(statuses)}.", "",
              _md_table(*table_rows(doc, s)), ""]
+    progress = progress_rows(doc)
+    if progress[1]:
+        lines += [f"Not finished yet ({len(progress[1])} of {len(doc['runs'])} runs; as of {doc['created']}):", "",
+                  _md_table(*progress), ""]
     if s["aggregates"] and max(a["tasks"] for a in s["aggregates"]) > 1:
         lines += ["Over tasks (test contexts; 95% stratified bootstrap intervals):", "",
                   _md_table(*aggregate_rows(s)), ""]

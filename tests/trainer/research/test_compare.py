@@ -46,6 +46,15 @@ def test_grid_runs_in_parallel_resumes_after_ctrl_c_and_reports(tmp_path, spawn)
              "a checkpoint in every run directory")
     pids = set(re.findall(r"started \S+ \(fresh\) pid (\d+)", first.output()))
     assert len(pids) == 4, first.output()
+
+    def rows_now() -> list[dict]:
+        try:
+            return R.load_results(out / "results.json")["runs"]
+        except (OSError, ValueError):
+            return []
+    # results.json is rewritten at each status line while the grid runs: every run shows as going
+    wait_until(lambda: [r["status"] for r in rows_now()] == ["running"] * 4
+               and all(r["env_steps"] > 0 for r in rows_now()), 60, "results.json showing four runs going")
     # what the grid has to do, said before it starts
     assert "4 of 4 runs to go, 3,200 env steps in all, 4 at once" in first.output()
     assert first.stop(signal.SIGINT, timeout=120) == 130, first.output()
@@ -57,6 +66,14 @@ def test_grid_runs_in_parallel_resumes_after_ctrl_c_and_reports(tmp_path, spawn)
     # cut short, the grid still says where each run stands
     cut = R.load_results(out / "results.json")
     assert [(r["status"], r["final"]) for r in cut["runs"]] == [("interrupted", None)] * 4
+    # ... and the report says how far each got: env steps of the budget, updates, as in its checkpoint
+    report = R.format_report(cut)
+    assert f"not finished (4 of 4 runs; as of {cut['created']}):" in report, report
+    for r in cut["runs"]:
+        c = saved[Path(r["run_dir"])]
+        assert re.search(rf"{r['label']}\s+{r['seed']}\s+interrupted\s+{c['env_steps']:,} of 800\s+"
+                         rf"{c['updates']:,}\s", report), report
+    assert "Not finished yet (4 of 4 runs; as of " in R.markdown_section(cut)
 
     second = spawn("compare2", *grid_args(out))
     wait_until(lambda: not second.alive(), 400, "the resumed grid to finish")
