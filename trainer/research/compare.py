@@ -196,8 +196,9 @@ def latest_progress(run_dir: Path) -> tuple[int, int]:
 def run_grid(specs: Sequence[RunSpec], a: GridSettings,
              on_progress: Callable[[dict[Path, tuple[int, int]]], None] = lambda running: None) -> int:
     """Runs every unfinished spec, at most a.jobs at once, calling on_progress(running: run dir
-    -> (env steps, updates) of the runs going on) after each run ends and at each status line.
-    Returns the number that failed (-1: interrupted)."""
+    -> (env steps, updates) of the runs going on) after each run ends and at each status line;
+    an OSError or ValueError from it is reported and the runs go on. Returns the number that
+    failed (-1: interrupted)."""
     todo = []
     for s in specs:
         st = s.state(a.env_steps, a.wall_budget)
@@ -219,7 +220,13 @@ def run_grid(specs: Sequence[RunSpec], a: GridSettings,
           f"{a.jobs} at once; the estimated wall time follows a first timing of "
           f"{min(a.status_every, FIRST_ESTIMATE_S):.0f} s", flush=True)
     updates = {id(s): 0 for s in specs}
-    live = lambda: {s.run_dir: (done_steps[id(s)], updates[id(s)]) for s, _, _ in running.values()}  # noqa: E731
+
+    def progress() -> None:
+        try:
+            on_progress({s.run_dir: (done_steps[id(s)], updates[id(s)]) for s, _, _ in running.values()})
+        except (OSError, ValueError) as exc:   # a full disk, say: the runs matter more than the file
+            print(f"[compare] could not write the grid's results ({exc}); the runs go on, and it is "
+                  "tried again at the next status line", file=sys.stderr, flush=True)
     started = {}   # id(spec) -> (monotonic time, updates) when this invocation first saw it train
     with runs.StopFlag() as stop:
         try:
@@ -248,7 +255,7 @@ def run_grid(specs: Sequence[RunSpec], a: GridSettings,
                     print(f"[compare] {s.task}/{s.label}/seed{s.seed}: exit {p.returncode}, "
                           f"{res.get('status', 'no result')} at {res.get('env_steps', '?')} env steps"
                           + ("" if ok else f" (see {s.run_dir / 'online.log'})"), flush=True)
-                    on_progress(live())
+                    progress()
                 for s, _, _ in running.values():
                     if updates[id(s)] > 0:   # training, prefill over: its pace is the grid's
                         started.setdefault(id(s), (time.monotonic(), updates[id(s)]))
@@ -257,7 +264,7 @@ def run_grid(specs: Sequence[RunSpec], a: GridSettings,
                     print("[compare] " + ", ".join(f"{s.label}/seed{s.seed}: {done_steps[id(s)]}"
                                                    for s, _, _ in running.values())
                           + grid_estimate(specs, running, started, done_steps, updates, a), flush=True)
-                    on_progress(live())
+                    progress()
         finally:
             for s, p, log in running.values():
                 if p.poll() is None:

@@ -118,6 +118,33 @@ def test_grid_runs_in_parallel_resumes_after_ctrl_c_and_reports(tmp_path, spawn)
     assert (out / "curves.rrd").stat().st_size > 0
 
 
+@pytest.mark.process
+def test_results_that_cannot_be_written_do_not_stop_the_runs(tmp_path, capsys):
+    """The grid's results.json is rewritten while it runs; a write that fails (a full disk,
+    injected here: it cannot be made on demand) is said on stderr and the run still finishes."""
+    from trainer.research import compare as C
+    from trainer.settings import build
+
+    out = tmp_path / "grid"
+    a = build(C.GridSettings, vars(C.build_parser().parse_args(
+        ["--tasks", "pendulum_swingup", "--variants", "dreamer", "--seeds", "0", "--env-steps", "400",
+         "--jobs", "1", "--out", str(out), "--status-every", "1", "--", *TINY])))
+    a.online_args = a.online_args[1:] if a.online_args[:1] == ["--"] else a.online_args
+    calls = []
+
+    def disk_full(running):
+        calls.append(dict(running))
+        raise OSError(28, "No space left on device (injected)")
+
+    assert C.run_grid(C.plan(a), a, on_progress=disk_full) == 0
+    assert json.loads((out / "pendulum_swingup" / "dreamer" / "seed0" / "run.json").read_text())["result"][
+        "status"] == "finished"
+    assert len(calls) >= 2 and calls[-1] == {}          # status lines, then the run's end
+    assert any(out / "pendulum_swingup" / "dreamer" / "seed0" in c for c in calls[:-1])
+    err = capsys.readouterr().err
+    assert "could not write the grid's results" in err and "No space left on device" in err
+
+
 def test_results_schema_rejects_a_broken_document(tmp_path):
     doc = json.loads((ROOT / "msgs_docs" / "results" / "pendulum_cpu.json").read_text())
     R.validate(doc)
