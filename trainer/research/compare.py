@@ -6,6 +6,7 @@ directory, run as parallel worker processes, gathered into one `results.json` an
         --anchor-seeds 0 -- --preset small --updates-per-episode 25
     protocad-compare --out runs/compare-pend ...same flags...   # resumes every unfinished run
     protocad-compare --report runs/compare-pend/results.json --markdown   # README section
+    protocad-compare --report anchor/results.json compare/results.json   # two grids in one report
 
 Each run is `python -m trainer.research.online --run-dir OUT/TASK/LABEL/seedS ...` with its own torch
 thread budget (`--threads`) and device (`--devices`, assigned round robin), its output in
@@ -371,8 +372,9 @@ class GridSettings:
     """devices assigned to runs round robin (cpu, cuda, cuda:N)"""
     out: str | None = arg(None, group="output")
     """directory of the grid (default runs/compare-STAMP)"""
-    report: str | None = arg(None, metavar="RESULTS_JSON", group="output")
-    """only report from this results.json (no runs)"""
+    report: list[str] = arg([], nargs="+", metavar="RESULTS_JSON", group="output")
+    """only report from these results.json files (no runs): each file's tables in turn, one
+    plot of all their curves (the anchor's grid and the comparison's, say)"""
     markdown: bool = arg(False, group="output")
     """print the README results section (generated from results.json)"""
     update_readme: str | None = arg(None, metavar="README", group="output")
@@ -425,8 +427,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         if a.report:
             from trainer.research import results as R
 
-            doc = R.load_results(a.report)
-            out_dir = Path(a.report).parent
+            if a.ship and len(a.report) > 1:
+                raise ValueError("--ship takes the best run of one results.json: give --report one file")
+            docs, sources = [R.load_results(p) for p in a.report], list(a.report)
+            R.combined(docs, sources)   # a run in two of the files: refused before anything is written
         else:
             out_dir = Path(a.out or time.strftime("runs/compare-%Y%m%d-%H%M%S"))
             a = dataclasses.replace(a, out=str(out_dir))
@@ -457,33 +461,33 @@ def main(argv: Sequence[str] | None = None) -> int:
                 save(random_baselines(a, evaluate=False))
                 print(f"[compare] results of the finished runs so far: {out_dir / 'results.json'}", flush=True)
                 return 130
-            doc = save(random_baselines(a) if a.random_baseline else {})
-            print(f"[compare] {len(specs)} runs, {failed} failed; results: {out_dir / 'results.json'}",
-                  flush=True)
-        print(R.format_report(doc), flush=True)
+            docs = [save(random_baselines(a) if a.random_baseline else {})]
+            sources = [str(out_dir / "results.json")]
+            print(f"[compare] {len(specs)} runs, {failed} failed; results: {sources[0]}", flush=True)
+        print("\n\n".join(R.format_report(d) for d in docs), flush=True)
+        everything = R.combined(docs, sources)
         # A grid writes its plot and recording beside results.json; --report only where asked.
         # (never into the directory of a results.json it was only asked to read: that may be
         # the source tree, msgs_docs/results/)
-        png = (R.plot_curves(doc, a.image) if a.image else "not written (--image PNG)") if a.report \
-            else R.plot_curves(doc, out_dir / "curves.png")
+        png = (R.plot_curves(everything, a.image) if a.image else "not written (--image PNG)") if a.report \
+            else R.plot_curves(everything, out_dir / "curves.png")
         if a.image and not a.report:
             shutil.copyfile(png, a.image)
         rrd_path = a.rrd or (None if a.report else out_dir / "curves.rrd")
         try:
-            rrd = R.log_curves_rerun(doc, rrd_path) if rrd_path else "not written (--rrd PATH)"
+            rrd = R.log_curves_rerun(everything, rrd_path) if rrd_path else "not written (--rrd PATH)"
         except ImportError:   # rerun-sdk absent (the GPU machine's bare Python)
             rrd = "not written (rerun-sdk is not installed)"
         print(f"[compare] plot: {png}\n[compare] rerun: {rrd}", flush=True)
-        source = a.report or str(out_dir / "results.json")
         if a.markdown:
-            print(R.markdown_section(doc, image=a.image, source=source))
+            print(R.markdown_section(docs, image=a.image, sources=sources))
         if a.update_readme:
-            R.update_readme(Path(a.update_readme), R.markdown_section(doc, image=a.image, source=source))
+            R.update_readme(Path(a.update_readme), R.markdown_section(docs, image=a.image, sources=sources))
             print(f"[compare] updated the results section of {a.update_readme}", flush=True)
         if a.ship:
             from trainer.research.ship import ship_best
 
-            path, prov = ship_best(doc, a.ship, source, label=a.ship_label, evaluation=a.ship_evaluation)
+            path, prov = ship_best(docs[0], a.ship, sources[0], label=a.ship_label, evaluation=a.ship_evaluation)
             unseen = prov.get("unseen_evaluation")
             print(f"[compare] shipped {prov['what']} (final {prov['results_entry']['final']['mean_return']:.1f}"
                   + (f"; unseen contexts {unseen['mean_return']:.1f}, random {unseen['random_mean_return']:.1f}"

@@ -589,18 +589,32 @@ def log_curves_rerun(doc: Mapping[str, Any], path: str | Path) -> Path:
 BEGIN, END = "<!-- protocad-compare results: begin -->", "<!-- protocad-compare results: end -->"
 
 
-def markdown_section(doc: Mapping[str, Any], image: str | None = None, source: str | None = None) -> str:
-    """The README's results section: everything in it comes from `doc` (and the given image
-    link and results.json path), so it regenerates byte-identically."""
+def combined(docs: Sequence[Mapping[str, Any]], sources: Sequence[str] | None = None) -> dict[str, Any]:
+    """The runs and random baselines of several results.json documents in one (for the plot and
+    the rerun recording): the anchor's grid and the comparison's, say. A run (task, label, seed)
+    in two of them is refused: its curve would count twice."""
+    names = list(sources) if sources else [f"document {i + 1}" for i in range(len(docs))]
+    seen: dict[tuple[str, str, int], str] = {}
+    runs, random = [], {}
+    for doc, name in zip(docs, names):
+        for r in doc["runs"]:
+            key = (r["task"], r["label"], r["seed"])
+            if key in seen:
+                raise ValueError(f"{key[0]}/{key[1]}/seed{key[2]} is in both {seen[key]} and {name}; "
+                                 "report a run from one results.json (continue a grid with --from-results)")
+            seen[key] = name
+            runs.append(r)
+        for task, entry in doc["random"].items():
+            random.setdefault(task, entry)
+    return {"runs": runs, "random": random, "created": max(d["created"] for d in docs)}
+
+
+def _section_body(doc: Mapping[str, Any]) -> list[str]:
     s = summarize(doc)
     b = doc["budgets"]
     wall = f", wall budget {b['wall_budget_s'] / 60:.0f} min per run" if b["wall_budget_s"] else ""
     statuses = sorted({r["status"] for r in doc["runs"]})
-    lines = [BEGIN,
-             f"*Generated from `{source or 'results.json'}` by `protocad-compare --report "
-             f"{source or 'results.json'}{f' --image {image}' if image else ''} --update-readme README.md`; "
-             "do not edit by hand.*", "",
-             "```bash", " ".join(doc["command"]), "```", "",
+    lines = ["```bash", " ".join(doc["command"]), "```", "",
              f"Machine: {_machine_line(doc['machine'])}. Code: {doc['code_version']}. "
              f"Budget {b['env_steps']:,} env steps per run{wall}; {b['jobs']} runs at once, "
              f"{b['threads_per_run']} torch thread(s) each; the grid took {doc['wall_time_s'] / 60:.0f} min "
@@ -619,6 +633,24 @@ def markdown_section(doc: Mapping[str, Any], image: str | None = None, source: s
                   "unrandomized task) against DreamerV2's five published seeds on standard DMC "
                   "(danijar/dreamerv2 `scores/dmc-vision-dreamerv2.json` @07d906e; black squares "
                   "and their range in the plot):", "", _md_table(*anchor), ""]
+    return lines
+
+
+def markdown_section(docs: Sequence[Mapping[str, Any]], image: str | None = None,
+                     sources: Sequence[str] | None = None) -> str:
+    """The README's results section from one or more results.json documents (`sources`: their
+    paths, in the same order): per document its command, machine, budget and tables, then the
+    plot of all their curves. Everything in it comes from `docs` (and the given image link and
+    paths), so it regenerates byte-identically."""
+    names = list(sources) if sources else ["results.json"] * len(docs)
+    lines = [BEGIN,
+             f"*Generated from {' and '.join(f'`{n}`' for n in names)} by `protocad-compare --report "
+             f"{' '.join(names)}{f' --image {image}' if image else ''} --update-readme README.md`; "
+             "do not edit by hand.*", ""]
+    for doc, name in zip(docs, names):
+        if len(docs) > 1:
+            lines += [f"**`{name}`**", ""]
+        lines += _section_body(doc)
     if image:
         lines += [f"![test-context return vs env steps]({image})", ""]
     lines.append(END)

@@ -73,7 +73,7 @@ def test_grid_runs_in_parallel_resumes_after_ctrl_c_and_reports(tmp_path, spawn)
         c = saved[Path(r["run_dir"])]
         assert re.search(rf"{r['label']}\s+{r['seed']}\s+interrupted\s+{c['env_steps']:,} of 800\s+"
                          rf"{c['updates']:,}\s", report), report
-    assert "Not finished yet (4 of 4 runs; as of " in R.markdown_section(cut)
+    assert "Not finished yet (4 of 4 runs; as of " in R.markdown_section([cut])
 
     second = spawn("compare2", *grid_args(out))
     wait_until(lambda: not second.alive(), 400, "the resumed grid to finish")
@@ -184,7 +184,7 @@ def test_iqm_and_aggregates_match_hand_computed_values():
 def test_readme_results_section_regenerates_byte_identically_from_the_committed_json():
     source = "msgs_docs/results/walker_anchor_cpu.json"
     doc = R.load_results(ROOT / source)
-    section = R.markdown_section(doc, image="msgs_docs/results/walker_anchor_cpu.png", source=source)
+    section = R.markdown_section([doc], image="msgs_docs/results/walker_anchor_cpu.png", sources=[source])
     assert R.readme_section(ROOT / "README.md") == section
     assert (ROOT / "msgs_docs" / "results" / "walker_anchor_cpu.png").exists()
     # the anchor's verdicts, from the committed curves and DreamerV2's committed points
@@ -229,6 +229,39 @@ def test_a_report_writes_only_where_it_is_told(tmp_path):
     r = subprocess.run([sys.executable, "-m", "trainer.research.compare", "--report", str(src / "results.json"),
                         "--image", str(tmp_path / "c.png")], capture_output=True, text=True, timeout=120)
     assert r.returncode == 0 and (tmp_path / "c.png").stat().st_size > 0
+
+
+@pytest.mark.process
+def test_a_report_of_two_grids_shows_each_and_plots_both(tmp_path):
+    """The README section from the anchor's grid and another grid's results.json (budgets,
+    machines and commands of their own): each file's command and table, one plot of both; the
+    same run in two files, or --ship over two, is one error line before anything is written."""
+    import subprocess
+
+    anchor, other = "msgs_docs/results/walker_anchor_cpu.json", "msgs_docs/results/pendulum_cpu.json"
+    png = tmp_path / "both.png"
+    r = subprocess.run([sys.executable, "-m", "trainer.research.compare", "--report", anchor, other,
+                        "--markdown", "--image", str(png)], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert r.returncode == 0, r.stderr
+    section = r.stdout[r.stdout.index(R.BEGIN):]
+    assert f"*Generated from `{anchor}` and `{other}` by `protocad-compare --report {anchor} {other} " \
+           f"--image {png} --update-readme README.md`" in section
+    docs = [R.load_results(ROOT / anchor), R.load_results(ROOT / other)]
+    for doc, name in zip(docs, (anchor, other)):
+        part = section[section.index(f"**`{name}`**"):]
+        assert " ".join(doc["command"]) in part and f"Budget {doc['budgets']['env_steps']:,} env steps" in part
+    assert "| walker_walk | 30,000 | 133.3 (n=2) | 130 (83-239) | yes |" in section      # the anchor's verdict
+    assert "| pendulum_swingup | protocad | 3 |" in section                              # the other grid's row
+    import matplotlib.image
+
+    assert matplotlib.image.imread(png).shape[1] > 1.8 * matplotlib.image.imread(png).shape[0]   # two panels
+
+    for argv, says in (([anchor, anchor], "walker_walk/dreamer_standard/seed0 is in both"),
+                       ([anchor, other, "--ship", str(tmp_path / "p.pt")], "--ship takes the best run of one")):
+        r = subprocess.run([sys.executable, "-m", "trainer.research.compare", "--report", *argv,
+                            "--image", str(tmp_path / "x.png")], capture_output=True, text=True, cwd=ROOT, timeout=120)
+        assert r.returncode == 2 and says in r.stderr, r.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["both.png"]
 
 
 @pytest.mark.process
@@ -293,7 +326,7 @@ def continue_the_grid_on_another_machine(out: Path, args: list[str], tmp_path: P
     assert "carried_from" not in doc["runs"][2] and doc["runs"][2]["status"] == "finished"
     assert not (elsewhere / "pendulum_swingup" / "dreamer" / "seed0").exists()
     assert f"dreamer/seed0, dreamer/seed1 finished elsewhere and came from {committed}" in \
-        R.markdown_section(doc)
+        R.markdown_section([doc])
 
     other = [*more[:more.index("--")], "--from-results", str(committed), *more[more.index("--"):],
              "--updates-per-episode", "3"]
