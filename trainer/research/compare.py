@@ -430,7 +430,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             if a.ship and len(a.report) > 1:
                 raise ValueError("--ship takes the best run of one results.json: give --report one file")
             docs, sources = [R.load_results(p) for p in a.report], list(a.report)
-            R.combined(docs, sources)   # a run in two of the files: refused before anything is written
+            everything = R.combined(docs, sources)   # a run in two files: refused before anything is written
         else:
             out_dir = Path(a.out or time.strftime("runs/compare-%Y%m%d-%H%M%S"))
             a = dataclasses.replace(a, out=str(out_dir))
@@ -463,9 +463,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                 return 130
             docs = [save(random_baselines(a) if a.random_baseline else {})]
             sources = [str(out_dir / "results.json")]
+            everything = R.combined(docs, sources)
             print(f"[compare] {len(specs)} runs, {failed} failed; results: {sources[0]}", flush=True)
         print("\n\n".join(R.format_report(d) for d in docs), flush=True)
-        everything = R.combined(docs, sources)
         # A grid writes its plot and recording beside results.json; --report only where asked.
         # (never into the directory of a results.json it was only asked to read: that may be
         # the source tree, msgs_docs/results/)
