@@ -102,7 +102,13 @@ def run_entry_point(threads: int, device: str, body: Callable[[DistContext, str]
     runs.setup_torch(threads)
     ctx, device = init(runs.resolve_device(device))
     try:
-        return body(ctx, device)
+        code = body(ctx, device)
+        # Leave together: a rank that tears down gloo while its peer still has a pair open
+        # to it can make the peer's transport thread abort at exit ("terminate called without
+        # an active exception", SIGABRT). Only after a normal return: a peer that failed never
+        # reaches the barrier.
+        barrier_if(ctx)
+        return code
     finally:
         shutdown(ctx)
 
