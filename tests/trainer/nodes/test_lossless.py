@@ -19,8 +19,9 @@ import yaml
 
 from helpers import wait_until
 from helpers.ros import Probe, Responder
+from sim_bridge.bridge.params import LOSSLESS_FLUSH_TIMEOUT_S
 from sim_bridge.contract import topics as T
-from sim_bridge.nodekit.rosnode import flush_publishers
+from sim_bridge.nodekit.rosnode import SHUTDOWN_BUDGET_S, flush_publishers
 from trainer.bag import mcap_io as M
 
 pytestmark = [pytest.mark.ros, pytest.mark.process]
@@ -55,6 +56,8 @@ def clock_stamps(bag) -> list[int]:
 #: that the recorder's old KEEP_LAST(1000) readers could hold (what they lost on waking).
 FROZEN_STEPS = 1100
 FROZEN_S = 6.0
+#: The lossless bridge's own close budget (flush wait + shutdown), and slack for a loaded machine.
+BRIDGE_CLOSE_S = LOSSLESS_FLUSH_TIMEOUT_S + SHUTDOWN_BUDGET_S + 10.0
 
 
 def test_lockstep_recorder_frozen_6s_records_every_message_of_every_topic(spawn, tmp_path):
@@ -77,7 +80,9 @@ def test_lockstep_recorder_frozen_6s_records_every_message_of_every_topic(spawn,
         rec.p.send_signal(signal.SIGCONT)
         resumed_at = len(resp.steps)
         wait_until(lambda: len(resp.steps) >= resumed_at + 100, 120, "100 more steps")
-        assert bridge.stop() == 0, bridge.output()[-2000:]     # SIGINT: waits for every reader's acks
+        # SIGINT: the bridge waits for every reader's acks (the woken recorder's whole backlog),
+        # so it is given the close budget it grants itself, not a default stop timeout.
+        assert bridge.stop(timeout=BRIDGE_CLOSE_S) == 0, bridge.output()[-2000:] + rec.output()[-2000:]
         assert flush_publishers([resp.pub], 30.0) == []
         assert rec.stop() == 0, rec.output()[-2000:]
     finally:
