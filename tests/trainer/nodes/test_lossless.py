@@ -97,7 +97,7 @@ def test_lockstep_recorder_frozen_6s_records_every_message_of_every_topic(spawn,
     for rel in (T.IMAGE, T.STEP_INFO, T.CONTEXT):
         stamps = bag_stamps(bag, rel)
         assert sorted(set(stamps)) == expected and len(stamps) == published + repeats, \
-            (rel, len(stamps), published, repeats)
+            (rel, len(stamps), published, repeats, rec.output()[-3000:], out[-3000:])
     clock = clock_stamps(bag)
     assert sorted(set(clock)) == expected and len(clock) == published + repeats, (len(clock), published)
     assert set(bag_stamps(bag, T.ACTION)) == set(resp.answered)
