@@ -24,6 +24,7 @@ import time
 from datetime import datetime
 from typing import Any, Mapping, Sequence
 
+from sim_bridge.nodekit.fastdds_profile import participant_lease
 from sim_bridge.nodekit.publisher_watch import PublisherWatch
 from sim_bridge.nodekit.rosbase import ProtocadNode
 from sim_bridge.nodekit.rosnode import ConfigError, KeyThrottle, run_node
@@ -44,6 +45,10 @@ DRAIN_LIMIT_S = 10.0
 DEFAULT_QUEUE_DEPTH = 0
 #: rclpy wants a depth even for KEEP_ALL; Fast DDS ignores it there.
 KEEP_ALL_DEPTH = 1000
+#: The DDS lease the recorder's participant announces (s): how long its writers keep it matched,
+#: and keep what it has not acknowledged, while it does not run (sim_bridge/nodekit/
+#: fastdds_profile.py). Fast DDS's 20 s default lost the whole backlog of a longer stall.
+DEFAULT_LEASE_S = 120.0
 
 
 def default_topics(namespace: str = T.DEFAULT_NAMESPACE) -> list[str]:
@@ -550,6 +555,15 @@ def build_parser() -> argparse.ArgumentParser:
                         "(never holds a writer back; drops the oldest of a deeper backlog, counted)")
     g.add_argument("--status-interval", type=float, default=0.0,
                    help="log message counts every this many seconds (0: off)")
+    g.add_argument("--lease-duration", type=float, default=DEFAULT_LEASE_S, metavar="S",
+                   help="the DDS participant lease the recorder announces: a stall (SIGSTOP, a "
+                        "debugger, an overloaded machine) shorter than this loses nothing, since "
+                        "reliable KEEP_ALL writers (a lock-step bridge) keep what it has not "
+                        "acknowledged (and pause after 5,000 samples); a longer one makes the "
+                        "writers drop it and its backlog, which the recorder counts as LOST when "
+                        "the next sample comes. A recorder killed outright stays in the graph "
+                        "this long. 0: Fast DDS's own (20 s, or the profile's). Command line "
+                        f"only: it must be known before the node exists (default {DEFAULT_LEASE_S:g})")
     g = ap.add_argument_group("`ros2 bag record` options this recorder does not have (refused, "
                               "with the reason)")
     for opt in UNSUPPORTED_OPTIONS:
@@ -592,19 +606,22 @@ def start_recorder(args: argparse.Namespace) -> RecorderNode:
         compression = args.compression or STORAGE_PRESETS.get(args.storage_preset_profile or "none", "zstd")
         qos_overrides = load_qos_overrides(args.qos_profile_overrides_path) \
             if args.qos_profile_overrides_path else None
-        node = RecorderNode(
-            output=args.output, topics=[*args.topics, *args.topics_opt],
-            namespace=args.namespace, all_topics=args.all_topics, regex=args.regex,
-            exclude_regex=args.exclude_regex, exclude_topics=args.exclude_topics,
-            include_hidden_topics=args.include_hidden_topics, no_discovery=args.no_discovery,
-            qos_overrides=qos_overrides, custom_data=parse_custom_data(args.custom_data),
-            compression=compression,
-            chunk_size=args.chunk_size, max_bagfile_size=args.max_bagfile_size,
-            max_bagfile_duration=args.max_bagfile_duration, flush_interval=args.flush_interval,
-            queue_depth=args.queue_depth, discovery_interval=args.polling_interval / 1000.0,
-            status_interval=args.status_interval, node_name=args.node_name)
+        with participant_lease(args.lease_duration):
+            node = RecorderNode(
+                output=args.output, topics=[*args.topics, *args.topics_opt],
+                namespace=args.namespace, all_topics=args.all_topics, regex=args.regex,
+                exclude_regex=args.exclude_regex, exclude_topics=args.exclude_topics,
+                include_hidden_topics=args.include_hidden_topics, no_discovery=args.no_discovery,
+                qos_overrides=qos_overrides, custom_data=parse_custom_data(args.custom_data),
+                compression=compression,
+                chunk_size=args.chunk_size, max_bagfile_size=args.max_bagfile_size,
+                max_bagfile_duration=args.max_bagfile_duration, flush_interval=args.flush_interval,
+                queue_depth=args.queue_depth, discovery_interval=args.polling_interval / 1000.0,
+                status_interval=args.status_interval, node_name=args.node_name)
     except (mcap_io.BagWriteError, ValueError) as exc:
         raise ConfigError(str(exc)) from None
+    if args.lease_duration > 0:
+        node.get_logger().info(f"DDS lease {args.lease_duration:g} s: a stall shorter than that loses nothing")
     print(f"recorder: recording to {node.writer.bag_dir}", flush=True)
     return node
 
