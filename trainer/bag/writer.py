@@ -2,7 +2,7 @@
 
 Written by hand, on the mcap library's record layer: the mcap Writer cannot write a bag that
 stays valid when the disk fills or the process is killed mid-way (checked writes with a kept
-reserve, a cut to the last complete record, DataEnd + footer), split files by size/duration,
+reserve, a cut to the last complete chunk and index, DataEnd + footer), split files by size/duration,
 nor the metadata record and ``metadata.yaml`` rosbag2 writes. Layout: msgs_docs/mcap_layout.md.
 """
 from __future__ import annotations
@@ -137,13 +137,11 @@ _FOOTER = b"\x02" + (20).to_bytes(8, "little") + bytes(20) + b"\x89MCAP0\r\n"
 class _CheckedFile:
     """An unbuffered file for the mcap Writer that never writes a record half-way silently:
     a short write is retried until complete or an OSError, and `good` is the end of the last
-    complete write (the mcap Writer writes each chunk, index and summary record in one call),
-    so that after a failure the file can be cut back to whole records."""
+    complete write (the mcap Writer writes each chunk, index and summary record in one call)."""
 
     def __init__(self, path: Path):
         self._f = open(path, "xb", buffering=0)
         self.good = 0
-        self.data_end: int | None = None
 
     def write(self, data) -> int:
         view = memoryview(data).cast("B")
@@ -384,12 +382,15 @@ class BagWriter:
         self._snapshot()
 
     def _snapshot(self) -> None:
+        """The counts, and the end of the file they describe. A failure cuts the file back to
+        that end, not to its last complete write: a chunk can be on disk with its message index
+        refused (a disk that fills between the two), and the counts never included it."""
         self._committed = (self._count, {n: t.message_count for n, t in self._topics.items()},
-                           self._files[-1].message_count)
+                           self._files[-1].message_count, self._stream.good)
 
     def _uncommit(self) -> None:
         """After a failure: the counts go back to what the file holds; the rest is lost."""
-        total, per_topic, in_file = self._committed
+        total, per_topic, in_file, _ = self._committed
         self.lost_after_failure += self._count - total
         self._count = total
         for n, t in self._topics.items():
@@ -408,7 +409,8 @@ class BagWriter:
         """Finish the current file (summary + footer) and write metadata.yaml. Idempotent.
 
         After a write error (self.failure) it salvages instead: the reserve beside the bag is
-        freed, the current file is cut back to its last complete record and ended with a
+        freed, the current file is cut back to the end of the last chunk whose index was
+        written too (what the counts describe) and ended with a
         DataEnd and a footer without summary (valid MCAP: readers scan it), and metadata.yaml
         is written with the failure and the loss in custom_data (or salvage_notes says why it
         could not be). Never raises OSError."""
@@ -495,12 +497,12 @@ class BagWriter:
             return
         try:
             fd = stream.fileno()
-            cut = stream.data_end if stream.data_end is not None else stream.good
+            cut = self._committed[3]
             os.ftruncate(fd, cut)
             os.lseek(fd, cut, os.SEEK_SET)
             os.write(fd, _DATA_END + _FOOTER)
             os.fsync(fd)
-            self.salvage_notes.append(f"{self.files[-1].name} cut back to its last complete record "
+            self.salvage_notes.append(f"{self.files[-1].name} cut back to its last complete chunk and index "
                                       f"({cut} bytes) and ended without a summary")
         except OSError as exc:
             self.salvage_notes.append(f"{self.files[-1].name} could not be ended ({exc}): readers "
@@ -552,7 +554,6 @@ class BagWriter:
 
     def _close_file(self) -> None:
         self._write_metadata_record()
-        self._stream.data_end = self._stream.good   # a failed finish() is cut back to here
         self._mcap.finish()
         os.fsync(self._stream.fileno())
         self._stream.close()
