@@ -23,6 +23,12 @@ def best_run(doc: Mapping[str, Any], task: str | None = None, label: str | None 
     test split (unseen contexts), or, where `label` names them, among that label's runs
     whatever their split (the anchor's final is on its training context). ValueError when there
     is none."""
+    rows = candidates(doc, task, label)
+    return max(rows, key=lambda r: r["final"]["mean_return"])
+
+
+def candidates(doc: Mapping[str, Any], task: str | None = None, label: str | None = None) -> list[dict[str, Any]]:
+    """The runs best_run chooses among (ValueError when there is none)."""
     rows = [r for r in doc["runs"] if r.get("final") and r.get("status") in ("finished", "wall_budget")
             and (task is None or r["task"] == task) and (label is None or r["label"] == label)
             and (label is not None or r.get("eval_split", "test") == "test")]
@@ -31,7 +37,7 @@ def best_run(doc: Mapping[str, Any], task: str | None = None, label: str | None 
         raise ValueError("no finished run with a final evaluation"
                          + (" on unseen (test) contexts" if label is None else "")
                          + (f" for {what}" if what else "") + " in results.json")
-    return max(rows, key=lambda r: r["final"]["mean_return"])
+    return rows
 
 
 def _sha256(path: Path) -> str:
@@ -72,6 +78,7 @@ def ship_best(doc: Mapping[str, Any], out: str | Path, results_path: str | Path,
     """Write the best run's policy file to `out`; returns (path, its provenance). `evaluation`:
     a protocad-evaluate --json file of that run's checkpoint on unseen contexts, kept in the
     provenance."""
+    among = candidates(doc, task, label)
     row = best_run(doc, task, label)
     ckpt = existing_checkpoint_file(row["run_dir"])
     try:
@@ -79,11 +86,15 @@ def ship_best(doc: Mapping[str, Any], out: str | Path, results_path: str | Path,
     except CheckpointError as err:
         raise ValueError(f"cannot ship {row['run_dir']}: {err}") from None
     info = runs.read_run_json(row["run_dir"])
+    where = ("unseen contexts" if row.get("eval_split", "test") == "test"
+             else f"its {row.get('eval_split')} context(s)")
+    kind = f"{label} run" if label else "run"
     provenance = {
-        "what": f"{row['task']} {row['label']} seed {row['seed']}: the best final return on "
-                + ("unseen contexts" if row.get("eval_split", "test") == "test"
-                   else f"its {row.get('eval_split')} context(s)")
-                + f" among the finished {label + ' ' if label else ''}runs of {Path(results_path).name}",
+        "what": f"{row['task']} {row['label']} seed {row['seed']}: "
+                + (f"the only finished {kind} of {Path(results_path).name} (final evaluated on {where})"
+                   if len(among) == 1 else
+                   f"the best final return on {where} among the {len(among)} finished {kind}s of "
+                   f"{Path(results_path).name}"),
         "results_json": str(results_path),
         "results_entry": {k: row[k] for k in ("task", "label", "variant", "seed", "env_steps",
                                                "updates", "preset", "precision", "final")},

@@ -363,6 +363,7 @@ def ship_the_best_policy(out: Path, tmp_path: Path) -> None:
     prov = read_provenance(policy)
     assert prov["results_entry"]["seed"] == best["seed"] and prov["results_entry"]["final"] == best["final"]
     assert prov["run_command"] and prov["code_versions"]
+    assert f"among the {len(doc['runs'])} finished runs of results.json" in prov["what"], prov["what"]
     assert json.loads(policy.with_suffix(".json").read_text())["provenance"] == prov
     assert f"seed {best['seed']}" in r.stdout and str(policy) in r.stdout
 
