@@ -19,6 +19,7 @@ seconds after --freeze-at steps, alternately (--runs pairs). Printed per run:
     python scripts/bench_recorder_stall.py                  # 4000 steps, 6 s stall, 2 pairs
     python scripts/bench_recorder_stall.py --stall-s 17     # towards Fast DDS's 5000-sample writer limit
     python scripts/bench_recorder_stall.py --queue-depth 1000   # the recorder's old KEEP_LAST(1000)
+    python scripts/bench_recorder_stall.py --stall-s 25 --lease-duration 0   # past DDS's default lease
 """
 from __future__ import annotations
 
@@ -110,7 +111,8 @@ def run(args, logdir: Path, stall: bool, index: int) -> dict:
     clock = f"{ns}/clock"
     topics = [T.topic_name(ns, rel) for rel in (T.IMAGE, T.STEP_INFO, T.CONTEXT, T.ACTION)] + [clock]
     rec = spawn(f"recorder{index}", logdir, "-m", "trainer.nodes.recorder", "-o", str(bag), *topics,
-                "--status-interval", "0.2", "--queue-depth", str(args.queue_depth))
+                "--status-interval", "0.2", "--queue-depth", str(args.queue_depth),
+                "--lease-duration", str(args.lease_duration))
     bridge = None
     samples: list[tuple[float, float]] = []
     try:
@@ -184,6 +186,8 @@ def main() -> None:
     ap.add_argument("--runs", type=int, default=2, help="pairs (no stall, stall)")
     ap.add_argument("--queue-depth", type=int, default=0,
                     help="the recorder's --queue-depth (0: KEEP_ALL, the default; 1000: the old KEEP_LAST(1000))")
+    ap.add_argument("--lease-duration", type=float, default=120.0,
+                    help="the recorder's --lease-duration (s; 0: Fast DDS's 20 s, which a longer stall outlasts)")
     ap.add_argument("--logdir", default="/tmp/bench_recorder_stall")
     args = ap.parse_args()
     logdir = Path(args.logdir)
