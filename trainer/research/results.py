@@ -533,7 +533,7 @@ def plot_curves(doc: Mapping[str, Any], path: str | Path) -> Path:
             name = f"{label} (n={n}" + (f", {standard_context(task)} only)" if split == "train" else ")")
             line, = ax.plot(x, m, marker="o", ms=3, label=name, gid=f"curve:{label}")
             ax.fill_between(x, lo, hi, color=line.get_color(), alpha=0.2, linewidth=0)
-        if any(r["task"] == task and r["label"] == ANCHOR_LABEL for r in doc["runs"]):
+        if any(r["task"] == task and r.get("base_label", r["label"]) == ANCHOR_LABEL for r in doc["runs"]):
             x, m, lo, hi = dreamerv2_reference(task)
             if x.size:   # the anchor's reference: DreamerV2's seeds, their range as the band
                 until = max(r["env_steps"] for r in doc["runs"] if r["task"] == task)
@@ -574,12 +574,12 @@ def log_curves_rerun(doc: Mapping[str, Any], path: str | Path) -> Path:
             x, m, _, _ = curves(doc, task, label)
             for st, v in zip(x, m):
                 rec.set_time("env_steps", sequence=int(st))
-                rec.log(f"curves/{task}/{label}/mean", rr.Scalars(float(v)))
+                rec.log(["curves", task, label, "mean"], rr.Scalars(float(v)))   # parts: escaped by rerun
             for r in doc["runs"]:
                 if r["task"] == task and r["label"] == label:
                     for c in r["curve"]:
                         rec.set_time("env_steps", sequence=int(c["env_steps"]))
-                        rec.log(f"curves/{task}/{label}/seed{r['seed']}", rr.Scalars(float(c["mean_return"])))
+                        rec.log(["curves", task, label, f"seed{r['seed']}"], rr.Scalars(float(c["mean_return"])))
     rec.flush()
     rec.disconnect()
     return path
@@ -591,13 +591,21 @@ BEGIN, END = "<!-- protocad-compare results: begin -->", "<!-- protocad-compare 
 
 def combined(docs: Sequence[Mapping[str, Any]], sources: Sequence[str] | None = None) -> dict[str, Any]:
     """The runs and random baselines of several results.json documents in one (for the plot and
-    the rerun recording): the anchor's grid and the comparison's, say. A run (task, label, seed)
-    in two of them is refused: its curve would count twice."""
+    the rerun recording): the anchor's grid and the comparison's, say. A variant trained at
+    several presets (the anchor at the small preset and at DreamerV2's sizes) is one curve per
+    preset, labelled `LABEL (PRESET preset)`; `base_label` keeps the variant's own. A run (task,
+    label, preset, seed) in two of them is refused: its curve would count twice."""
     names = list(sources) if sources else [f"document {i + 1}" for i in range(len(docs))]
+    presets: dict[tuple[str, str], set[str]] = {}
+    for doc in docs:
+        for r in doc["runs"]:
+            presets.setdefault((r["task"], r["label"]), set()).add(r["preset"])
     seen: dict[tuple[str, str, int], str] = {}
     runs, random = [], {}
     for doc, name in zip(docs, names):
         for r in doc["runs"]:
+            if len(presets[(r["task"], r["label"])]) > 1:
+                r = {**r, "label": f"{r['label']} ({r['preset']} preset)", "base_label": r["label"]}
             key = (r["task"], r["label"], r["seed"])
             if key in seen:
                 raise ValueError(f"{key[0]}/{key[1]}/seed{key[2]} is in both {seen[key]} and {name}; "

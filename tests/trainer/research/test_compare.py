@@ -234,6 +234,36 @@ def test_a_report_writes_only_where_it_is_told(tmp_path):
     assert r.returncode == 0 and (tmp_path / "c.png").stat().st_size > 0
 
 
+def test_an_anchor_at_two_presets_reports_as_two_curves(tmp_path):
+    """The small-preset anchor beside the same grid at DreamerV2's sizes (same task, label and
+    seeds, another preset): one curve per preset in the plot and the rerun recording; the same
+    preset in two files is still refused (its curve would count twice)."""
+    import copy
+
+    from trainer.viz.rerun_log import read_recording
+
+    small = R.load_results(ROOT / "msgs_docs" / "results" / "walker_anchor_cpu.json")
+    paper = copy.deepcopy(small)
+    for r in paper["runs"]:
+        r["preset"] = "paper"
+        for c in r["curve"]:
+            c["mean_return"] += 50.0
+    both = R.combined([small, paper], ["small.json", "paper.json"])
+    names = ["dreamer_standard (paper preset)", "dreamer_standard (small preset)"]
+    assert R.labels_of(both, "walker_walk") == names
+    assert {r["base_label"] for r in both["runs"]} == {R.ANCHOR_LABEL}
+    _, m_small, _, _ = R.curves(small, "walker_walk", R.ANCHOR_LABEL)
+    _, m_paper, _, _ = R.curves(both, "walker_walk", names[0])
+    assert np.allclose(m_paper, m_small + 50.0)
+    assert R.plot_curves(both, tmp_path / "both.png").stat().st_size > 0
+    held = read_recording(R.log_curves_rerun(both, tmp_path / "both.rrd"))
+    for name in names:
+        part = name.replace(" ", "\\ ").replace("(", "\\(").replace(")", "\\)")
+        assert f"/curves/walker_walk/{part}/mean" in held, sorted(held)
+    with pytest.raises(ValueError, match="walker_walk/dreamer_standard/seed0 is in both small.json and again.json"):
+        R.combined([small, copy.deepcopy(small)], ["small.json", "again.json"])
+
+
 @pytest.mark.process
 def test_a_report_of_two_grids_shows_each_and_plots_both(tmp_path):
     """The README section from the anchor's grid and another grid's results.json (budgets,
