@@ -490,7 +490,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "(NAME/NAME_0.mcap ... + metadata.yaml). Options follow `ros2 bag record` of "
                     "Jazzy (same names, same meanings: -e/--regex includes, --exclude-regex "
                     "excludes); its options this recorder lacks are refused with the reason. Every "
-                    "option is also a ROS parameter (--ros-args -p name:=value). SIGINT/SIGTERM close "
+                    "option is also a ROS parameter (--ros-args -p name:=value), except "
+                    "--lease-duration (needed before the node exists). SIGINT/SIGTERM close "
                     "the bag cleanly; a write error (disk full) closes it and exits 3.",
         formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("-o", "--output", default=None,
