@@ -607,7 +607,7 @@ def start_recorder(args: argparse.Namespace) -> RecorderNode:
         compression = args.compression or STORAGE_PRESETS.get(args.storage_preset_profile or "none", "zstd")
         qos_overrides = load_qos_overrides(args.qos_profile_overrides_path) \
             if args.qos_profile_overrides_path else None
-        with participant_lease(args.lease_duration):
+        with participant_lease(args.lease_duration) as lease_profile:
             node = RecorderNode(
                 output=args.output, topics=[*args.topics, *args.topics_opt],
                 namespace=args.namespace, all_topics=args.all_topics, regex=args.regex,
@@ -621,7 +621,7 @@ def start_recorder(args: argparse.Namespace) -> RecorderNode:
                 status_interval=args.status_interval, node_name=args.node_name)
     except (mcap_io.BagWriteError, ValueError) as exc:
         raise ConfigError(str(exc)) from None
-    if args.lease_duration > 0:
+    if lease_profile is not None:   # not with another rmw, nor with 0 (the profile's own)
         node.get_logger().info(f"DDS lease {args.lease_duration:g} s: a stall shorter than that loses nothing")
     print(f"recorder: recording to {node.writer.bag_dir}", flush=True)
     return node
