@@ -63,7 +63,9 @@ setup(
                   "protocad_ros": ["policies/*.pt", "policies/*.json"]},   # shipped policies
     python_requires=">=3.11,<3.12",
     install_requires=INSTALL_REQUIRES,
-    extras_require={"test": ["pytest==9.2.0", "pytest-timeout==2.4.0", "hypothesis==6.170.17",
+    extras_require={"test": ["pytest==9.2.0", "pytest-timeout==2.4.0",
+                             "pytest-xdist==3.8.0",   # scripts/protocad test: one worker per core
+                             "hypothesis==6.170.17",
                              "grimp==3.20",   # tests/docs/test_architecture.py: the import graph
                              "rosbags==0.11.9",   # another tool's bag reader and writer, for the tests
                              "ruff==0.17.5"],   # tests/docs/test_lint.py: ruff.toml's rules

@@ -10,6 +10,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import zlib
 from pathlib import Path
 
 import pytest
@@ -21,10 +22,22 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from helpers import ROOT, Proc
 
+
+def ros_domain_id() -> int:
+    """A domain of its own for this run, and under pytest-xdist for each of its workers (the
+    workers of one run share PYTEST_XDIST_TESTRUNUID; their numbers gw0, gw1... tell them apart)."""
+    worker = os.environ.get("PYTEST_XDIST_WORKER")
+    if not worker:
+        return 10 + os.getpid() % 90
+    n = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
+    run = zlib.crc32(os.environ.get("PYTEST_XDIST_TESTRUNUID", "").encode())
+    return 10 + (run % (90 // n)) * n + int(worker.removeprefix("gw"))
+
+
 # Set before anything imports rclpy. LOCALHOST keeps discovery off external interfaces;
 # a per-run domain keeps concurrent test runs (and users) apart.
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-os.environ["ROS_DOMAIN_ID"] = str(10 + os.getpid() % 90)
+os.environ["ROS_DOMAIN_ID"] = str(ros_domain_id())
 os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
 os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(ROOT / "sim_bridge" / "fastdds_discovery.xml"))
 os.environ.setdefault("MUJOCO_GL", "egl")
