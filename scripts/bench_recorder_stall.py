@@ -157,6 +157,7 @@ def run(args, logdir: Path, stall: bool, index: int) -> dict:
                "steps": n_end, "published": published, "bag_complete": ok, "recorder_peak_rss_mb": rec_peak}
         text = (logdir / f"recorder{index}.log").read_text(errors="replace")
         out["recorder_lost"] = "LOST" in text
+        out["recorder_stalled"] = "STALLED past the DDS lease" in text   # said even where no gap shows
         if stall:
             backlog = n_cont - n_freeze
             out.update(backlog_steps=backlog, frozen_steps_per_s=backlog / (t_cont - t_freeze),
@@ -214,7 +215,9 @@ def main() -> None:
                   + "; bridge RSS +" + ", ".join(f"{r['bridge_rss_growth_mb']:.0f}" for r in rs) + " MB ("
                   + ", ".join(f"{r['kb_per_backlog_step']:.1f}" for r in rs) + " KB/step)") if stall else "")
               + "; recorder peak RSS " + ", ".join(f"{r['recorder_peak_rss_mb']:.0f}" for r in rs) + " MB"
-              + "; bag complete " + ", ".join(str(r["bag_complete"] and not r["recorder_lost"]) for r in rs), flush=True)
+              + "; bag complete " + ", ".join(str(r["bag_complete"] and not r["recorder_lost"]) for r in rs)
+              + "; recorder reported LOST " + ", ".join(str(r["recorder_lost"]) for r in rs)
+              + ", STALLED past its lease " + ", ".join(str(r["recorder_stalled"]) for r in rs), flush=True)
 
 
 if __name__ == "__main__":

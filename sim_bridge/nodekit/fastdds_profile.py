@@ -12,11 +12,13 @@ node still leaves the graph in 20 s.
 The lease is part of the participant, created with the process's first node, and Fast DDS reads
 it from the XML profile named by FASTRTPS_DEFAULT_PROFILES_FILE: the environment's profile
 (sim_bridge/fastdds_discovery.xml, or the user's) is copied with the lease set, and the process
-points the variable at the copy before its first node exists.
+points the variable at the copy before its first node exists. `announced_lease` says which lease
+a process so started announces, for a recorder that reports its own stalls past it.
 """
 from __future__ import annotations
 
 import contextlib
+import math
 import os
 import tempfile
 import xml.etree.ElementTree as ET
@@ -27,6 +29,8 @@ PROFILES_ENV = "FASTRTPS_DEFAULT_PROFILES_FILE"   # the only name Fast DDS 2.14 
 #: The element path, under the default participant profile, of the lease a participant announces.
 LEASE_PATH = ("rtps", "builtin", "discovery_config", "leaseDuration")
 FASTDDS_XMLNS = "http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles"
+#: Fast DDS's lease when no profile sets one (s).
+FASTDDS_DEFAULT_LEASE_S = 20.0
 
 
 def _local(elem: ET.Element) -> str:
@@ -64,6 +68,47 @@ def profile_with_lease(text: str | None, lease_s: float) -> str:
     ET.SubElement(node, "sec").text = str(sec)
     ET.SubElement(node, "nanosec").text = str(int(round((lease_s - sec) * 1e9)))
     return '<?xml version="1.0" encoding="UTF-8" ?>\n' + ET.tostring(root, encoding="unicode") + "\n"
+
+
+def profile_lease(text: str | None) -> float | None:
+    """The lease (s) the default participant profile of the Fast DDS XML profile `text`
+    announces: inf for Fast DDS's DURATION_INFINITY keywords; None where it sets none (Fast
+    DDS's default applies) or the value is not a number of seconds."""
+    root = ET.fromstring(text) if text and text.strip() else None
+    if root is None:
+        return None
+    for participant in (e for e in root.iter() if _local(e) == "participant"
+                        and e.get("is_default_profile") == "true"):
+        node: ET.Element | None = participant
+        for name in LEASE_PATH:
+            node = next((e for e in node if _local(e) == name), None) if node is not None else None
+        if node is None:
+            continue
+        parts = {_local(e): (e.text or "").strip() for e in node}
+        if any(v.startswith("DURATION_INFINI") for v in parts.values()):
+            return math.inf
+        try:
+            return float(parts.get("sec") or 0) + float(parts.get("nanosec") or 0) / 1e9
+        except ValueError:
+            return None
+    return None
+
+
+def announced_lease(lease_s: float) -> float | None:
+    """The lease (s) the participant of a process started with `participant_lease(lease_s)`
+    announces: `lease_s` itself, or with 0 the environment's profile's or Fast DDS's default;
+    None for another rmw (its lease is not read here) or a profile that cannot be read."""
+    rmw = os.environ.get("RMW_IMPLEMENTATION") or "rmw_fastrtps_cpp"
+    if not rmw.startswith("rmw_fastrtps"):
+        return None
+    if lease_s > 0:
+        return float(lease_s)
+    base = os.environ.get(PROFILES_ENV)
+    try:
+        found = profile_lease(Path(base).read_text()) if base else None
+    except (OSError, ET.ParseError):
+        return None
+    return found if found is not None else FASTDDS_DEFAULT_LEASE_S
 
 
 @contextlib.contextmanager

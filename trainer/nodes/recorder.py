@@ -17,14 +17,15 @@ from __future__ import annotations
 import argparse
 import functools
 import importlib
+import math
 import re
 import sys
 import threading
 import time
 from datetime import datetime
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
-from sim_bridge.nodekit.fastdds_profile import participant_lease
+from sim_bridge.nodekit.fastdds_profile import announced_lease, participant_lease
 from sim_bridge.nodekit.publisher_watch import PublisherWatch
 from sim_bridge.nodekit.rosbase import ProtocadNode
 from sim_bridge.nodekit.rosnode import ConfigError, KeyThrottle, run_node
@@ -49,6 +50,34 @@ KEEP_ALL_DEPTH = 1000
 #: and keep what it has not acknowledged, while it does not run (sim_bridge/nodekit/
 #: fastdds_profile.py). Fast DDS's 20 s default lost the whole backlog of a longer stall.
 DEFAULT_LEASE_S = 120.0
+
+
+class StallWatch:
+    """Notices when this process did not run for longer than its DDS lease (SIGSTOP, Ctrl-Z, a
+    debugger, a swap storm, a machine too loaded to schedule it): its writers may then have
+    dropped the recorder with every sample it had not acknowledged, a loss that shows as a
+    sequence gap only if a later sample reaches it. A thread, not a node timer: a busy
+    executor is no stall (DDS's own threads keep announcing the participant); a process that
+    does not run at all stops this thread too."""
+
+    def __init__(self, lease_s: float, on_stall: Callable[[float], None], interval_s: float = 0.5):
+        self.lease_s = lease_s
+        self._on_stall, self._interval = on_stall, interval_s
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._watch, name="stall-watch", daemon=True)
+        self._thread.start()
+
+    def _watch(self) -> None:
+        last = time.monotonic()   # CLOCK_MONOTONIC runs on while the process is stopped
+        while not self._stop.wait(self._interval):
+            now = time.monotonic()
+            if now - last > self.lease_s:
+                self._on_stall(now - last)
+            last = now
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
 
 
 def default_topics(namespace: str = T.DEFAULT_NAMESPACE) -> list[str]:
@@ -211,6 +240,9 @@ class RecorderNode(ProtocadNode):
         self.untracked: set[str] = set()
         self._last_seq: dict[str, int] = {}
         self._subs: dict[str, Any] = {}
+        # Stalls longer than the participant's lease (watch_stalls): seconds each.
+        self.stalls: list[float] = []
+        self.stall_watch: StallWatch | None = None
         # A recorded topic with several writers mixes their samples in the bag (an impostor, a
         # second bridge): marked in the bag's metadata as soon as it is seen.
         self.publisher_watch = PublisherWatch(self._on_new_publisher)
@@ -348,11 +380,26 @@ class RecorderNode(ProtocadNode):
                                    f"them (sequence {last} -> {seq}; {self.lost[topic]} on this topic so far)")
         self._last_seq[topic] = seq
 
+    def watch_stalls(self, lease_s: float) -> None:
+        """Report every stall of this process longer than `lease_s`, its participant's lease."""
+        self.stall_watch = StallWatch(lease_s, self._on_stall)
+
+    def _on_stall(self, seconds: float) -> None:
+        with self._lock:
+            self.stalls.append(round(seconds, 1))
+        self.get_logger().warning(
+            f"the recorder did not run for {seconds:.1f} s, longer than its DDS lease "
+            f"({self.stall_watch.lease_s:g} s): writers may have dropped it with what it had not "
+            "taken; that loss is counted only where a later sample shows the gap")
+
     def loss_summary(self) -> dict[str, str]:
         """The loss as metadata.yaml custom_data (rosbag2 keeps str -> str)."""
         import json
 
         out = {}
+        if self.stalls:
+            out["protocad_stalls_past_lease"] = json.dumps(
+                {"lease_s": self.stall_watch.lease_s, "stalls_s": self.stalls})
         if self.lost:
             out["protocad_lost_messages"] = json.dumps(self.lost, sort_keys=True)
         if self.missed_before_subscribing:
@@ -403,6 +450,8 @@ class RecorderNode(ProtocadNode):
         executor = self.executor
         if executor is not None and not self.done.is_set() and self.context.ok():
             self.drain(executor)
+        if self.stall_watch is not None:
+            self.stall_watch.stop()
         with self._lock:
             marks = {**self.loss_summary(), **self.publishers_summary()}
             if marks:
@@ -426,6 +475,10 @@ class RecorderNode(ProtocadNode):
                 f"{t}: {n}" for t, n in sorted(self.missed_before_subscribing.items())))
         if self.untracked:
             lines.append(f"  loss not tracked (several publishers): {', '.join(sorted(self.untracked))}")
+        if self.stalls:
+            lines.append(f"  STALLED past the DDS lease ({self.stall_watch.lease_s:g} s): "
+                         f"{', '.join(f'{x:g} s' for x in self.stalls)}; samples sent meanwhile may be "
+                         "lost, counted above only where a later sample showed the gap")
         several = self.publisher_watch.ever
         if several:
             lines.append("  SEVERAL PUBLISHERS (marked in the metadata): " + ", ".join(
@@ -562,7 +615,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "reliable KEEP_ALL writers (a lock-step bridge) keep what it has not "
                         "acknowledged (and pause after 5,000 samples); a longer one makes the "
                         "writers drop it and its backlog, which the recorder counts as LOST when "
-                        "the next sample comes. A recorder killed outright stays in the graph "
+                        "the next sample comes; the stall itself is reported (STALLED, metadata "
+                        "protocad_stalls_past_lease). A recorder killed outright stays in the graph "
                         "this long. 0: Fast DDS's own (20 s, or the profile's). Command line "
                         f"only: it must be known before the node exists (default {DEFAULT_LEASE_S:g})")
     g = ap.add_argument_group("`ros2 bag record` options this recorder does not have (refused, "
@@ -623,6 +677,9 @@ def start_recorder(args: argparse.Namespace) -> RecorderNode:
         raise ConfigError(str(exc)) from None
     if lease_profile is not None:   # not with another rmw, nor with 0 (the profile's own)
         node.get_logger().info(f"DDS lease {args.lease_duration:g} s: a stall shorter than that loses nothing")
+    lease = announced_lease(args.lease_duration)
+    if lease is not None and math.isfinite(lease):
+        node.watch_stalls(lease)
     print(f"recorder: recording to {node.writer.bag_dir}", flush=True)
     return node
 

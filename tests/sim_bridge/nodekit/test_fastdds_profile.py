@@ -9,7 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from sim_bridge.nodekit.fastdds_profile import PROFILES_ENV, participant_lease, profile_with_lease
+from sim_bridge.nodekit.fastdds_profile import (FASTDDS_DEFAULT_LEASE_S, PROFILES_ENV, announced_lease,
+                                                participant_lease, profile_lease, profile_with_lease)
 
 ROOT = Path(__file__).resolve().parents[3]
 NS = "{http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles}"
@@ -65,3 +66,24 @@ def test_participant_lease_points_fast_dds_at_the_copy_only_while_the_node_is_ma
     monkeypatch.setenv(PROFILES_ENV, str(tmp_path / "missing.xml"))
     with pytest.raises(ValueError, match="cannot read"), participant_lease(90):
         pass
+
+
+def test_the_lease_a_process_announces_is_read_back(tmp_path, monkeypatch):
+    """What the recorder's stall watch measures against: the lease it asked for, or with 0 the
+    environment profile's, or Fast DDS's 20 s; unknown under another rmw."""
+    project = (ROOT / "sim_bridge" / "fastdds_discovery.xml").read_text()
+    assert profile_lease(profile_with_lease(project, 42.25)) == 42.25
+    assert profile_lease(project) is None and profile_lease(None) is None
+    infinite = profile_with_lease(None, 5).replace("<sec>5</sec>", "<sec>DURATION_INFINITY</sec>")
+    assert profile_lease(infinite) == float("inf")
+    monkeypatch.delenv("RMW_IMPLEMENTATION", raising=False)
+    mine = tmp_path / "mine.xml"
+    mine.write_text(profile_with_lease(project, 7))
+    monkeypatch.setenv(PROFILES_ENV, str(mine))
+    assert announced_lease(30) == 30 and announced_lease(0) == 7
+    monkeypatch.delenv(PROFILES_ENV)
+    assert announced_lease(0) == FASTDDS_DEFAULT_LEASE_S
+    with participant_lease(90):
+        assert announced_lease(0) == 90
+    monkeypatch.setenv("RMW_IMPLEMENTATION", "rmw_cyclonedds_cpp")
+    assert announced_lease(30) is None

@@ -1,6 +1,7 @@
 """The recorder node as a separate process, fed by real DDS traffic from this process."""
 from __future__ import annotations
 
+import contextlib
 import json
 import signal
 import subprocess
@@ -286,6 +287,20 @@ def test_include_and_exclude_regex_select_topics_as_ros2_bag_record(ros, tmp_pat
     assert M.BagReader(bag).report.counts == {"/a/keep": 20}
 
 
+@contextlib.contextmanager
+def frozen_recorder(*args: str):
+    """A recorder process the test freezes (SIGSTOP) and stops, reading its output at the end;
+    continued and killed should the test fail first."""
+    rec = subprocess.Popen([sys.executable, "-m", "trainer.nodes.recorder", *args],
+                           stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    try:
+        yield rec
+    finally:
+        if rec.poll() is None:
+            rec.send_signal(signal.SIGCONT)
+            rec.kill()
+
+
 @pytest.mark.ros
 @pytest.mark.process
 def test_loss_while_frozen_is_counted_exactly_and_shown_by_the_dataset(ros, tmp_path):
@@ -302,9 +317,7 @@ def test_loss_while_frozen_is_counted_exactly_and_shown_by_the_dataset(ros, tmp_
     q.depth = 50
     pub = ros.create_publisher(JointState, T.STEP_INFO, q)
     bag = tmp_path / "frozen"
-    rec = subprocess.Popen([sys.executable, "-m", "trainer.nodes.recorder", "-o", str(bag), T.topic_name(NS, T.STEP_INFO),
-                            "-p", "100"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    try:
+    with frozen_recorder("-o", str(bag), T.topic_name(NS, T.STEP_INFO), "-p", "100") as rec:
         wait_until(lambda: pub.get_subscription_count() >= 1, 60, "the recorder's subscription")
         time.sleep(0.5)
         n = 3000
@@ -321,10 +334,6 @@ def test_loss_while_frozen_is_counted_exactly_and_shown_by_the_dataset(ros, tmp_
         time.sleep(2.0)
         rec.send_signal(signal.SIGINT)
         out, _ = rec.communicate(timeout=60)
-    finally:
-        if rec.poll() is None:
-            rec.send_signal(signal.SIGCONT)
-            rec.kill()
     assert rec.returncode == 0, out
     recorded = M.BagReader(bag).report.counts[T.topic_name(NS, T.STEP_INFO)]
     info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
@@ -333,6 +342,41 @@ def test_loss_while_frozen_is_counted_exactly_and_shown_by_the_dataset(ros, tmp_
     assert f"LOST before the recorder took them (sequence gaps): {lost}" in out
     ds_report = MCAPDataset([bag], seq_len=4, cache_dir=tmp_path / "cache").report.summary()
     assert "the recorder reported lost messages" in ds_report and str(lost) in ds_report
+
+
+@pytest.mark.ros
+@pytest.mark.process
+def test_a_stall_past_the_lease_is_reported_though_no_later_sample_shows_a_gap(ros, tmp_path):
+    """Frozen (SIGSTOP) past its lease (--lease-duration 3) with nothing published after it,
+    no sequence gap can show a loss: the stall itself is reported, in the log, the summary,
+    metadata.yaml and the dataset report. A freeze shorter than the lease is not."""
+    import yaml
+    from sensor_msgs.msg import JointState
+
+    from sim_bridge.contract import qos
+    from trainer.data.dataset import MCAPDataset
+
+    pub = ros.create_publisher(JointState, T.STEP_INFO, qos.observation_qos())
+    bag = tmp_path / "stalled"
+    with frozen_recorder("-o", str(bag), "--lease-duration", "3", T.topic_name(NS, T.STEP_INFO), "-p", "100") as rec:
+        wait_until(lambda: pub.get_subscription_count() >= 1, 60, "the recorder's subscription")
+        for i in range(20):
+            pub.publish(T.fill_step_info(JointState(), T.StepInfo(0.0, 1.0, i == 0, False, False, 0, i), stamp(i)))
+        for frozen in (0.5, 6.0):
+            rec.send_signal(signal.SIGSTOP)
+            time.sleep(frozen)
+            rec.send_signal(signal.SIGCONT)
+            time.sleep(1.0)
+        rec.send_signal(signal.SIGINT)
+        out, _ = rec.communicate(timeout=60)
+    assert rec.returncode == 0, out
+    info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    marked = json.loads(info["custom_data"]["protocad_stalls_past_lease"])
+    assert marked["lease_s"] == 3 and len(marked["stalls_s"]) == 1 and 6 <= marked["stalls_s"][0] < 20, marked
+    assert "longer than its DDS lease (3 s)" in out and "STALLED past the DDS lease (3 s)" in out, out
+    assert "protocad_lost_messages" not in info["custom_data"]     # no later sample, no gap to count
+    ds_report = MCAPDataset([bag], seq_len=4, cache_dir=tmp_path / "cache").report.summary()
+    assert "the recorder reported stalls past lease" in ds_report, ds_report
 
 
 class ImportSpy:
