@@ -38,6 +38,11 @@ def ros_domain_id() -> int:
 # a per-run domain keeps concurrent test runs (and users) apart.
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ["ROS_DOMAIN_ID"] = str(ros_domain_id())
+if os.environ.get("PYTEST_XDIST_WORKER"):
+    # Workers side by side share the cores: torch's one thread per core in each (and in the
+    # processes they start) would only make them wait on each other. Before torch is imported.
+    os.environ.setdefault("OMP_NUM_THREADS", str(max(1, (os.cpu_count() or 1)
+                                                     // int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1")))))
 os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
 os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(ROOT / "sim_bridge" / "fastdds_discovery.xml"))
 os.environ.setdefault("MUJOCO_GL", "egl")
