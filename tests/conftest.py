@@ -31,7 +31,7 @@ def ros_domain_id() -> int:
         return 10 + os.getpid() % 90
     n = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
     run = zlib.crc32(os.environ.get("PYTEST_XDIST_TESTRUNUID", "").encode())
-    return 10 + (run % (90 // n)) * n + int(worker.removeprefix("gw"))
+    return 10 + (run % max(1, 90 // n)) * n + int(worker.removeprefix("gw"))
 
 
 # Set before anything imports rclpy. LOCALHOST keeps discovery off external interfaces;

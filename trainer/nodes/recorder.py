@@ -242,6 +242,7 @@ class RecorderNode(ProtocadNode):
         self._subs: dict[str, Any] = {}
         # Stalls longer than the participant's lease (watch_stalls): seconds each.
         self.stalls: list[float] = []
+        self.stall_lease_s = 0.0
         self.stall_watch: StallWatch | None = None
         # A recorded topic with several writers mixes their samples in the bag (an impostor, a
         # second bridge): marked in the bag's metadata as soon as it is seen.
@@ -382,6 +383,7 @@ class RecorderNode(ProtocadNode):
 
     def watch_stalls(self, lease_s: float) -> None:
         """Report every stall of this process longer than `lease_s`, its participant's lease."""
+        self.stall_lease_s = lease_s   # before the thread starts: it may report at once
         self.stall_watch = StallWatch(lease_s, self._on_stall)
 
     def _on_stall(self, seconds: float) -> None:
@@ -389,7 +391,7 @@ class RecorderNode(ProtocadNode):
             self.stalls.append(round(seconds, 1))
         self.get_logger().warning(
             f"the recorder did not run for {seconds:.1f} s, longer than its DDS lease "
-            f"({self.stall_watch.lease_s:g} s): writers may have dropped it with what it had not "
+            f"({self.stall_lease_s:g} s): writers may have dropped it with what it had not "
             "taken; that loss is counted only where a later sample shows the gap")
 
     def loss_summary(self) -> dict[str, str]:
@@ -399,7 +401,7 @@ class RecorderNode(ProtocadNode):
         out = {}
         if self.stalls:
             out["protocad_stalls_past_lease"] = json.dumps(
-                {"lease_s": self.stall_watch.lease_s, "stalls_s": self.stalls})
+                {"lease_s": self.stall_lease_s, "stalls_s": self.stalls})
         if self.lost:
             out["protocad_lost_messages"] = json.dumps(self.lost, sort_keys=True)
         if self.missed_before_subscribing:
@@ -476,7 +478,7 @@ class RecorderNode(ProtocadNode):
         if self.untracked:
             lines.append(f"  loss not tracked (several publishers): {', '.join(sorted(self.untracked))}")
         if self.stalls:
-            lines.append(f"  STALLED past the DDS lease ({self.stall_watch.lease_s:g} s): "
+            lines.append(f"  STALLED past the DDS lease ({self.stall_lease_s:g} s): "
                          f"{', '.join(f'{x:g} s' for x in self.stalls)}; samples sent meanwhile may be "
                          "lost, counted above only where a later sample showed the gap")
         several = self.publisher_watch.ever
