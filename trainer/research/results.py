@@ -22,6 +22,9 @@ Schema (RESULTS_SCHEMA, checked on every save and load):
                "wall_time_s", "precision", "preset", "eval_split",
                "final": {"mean_return", "episodes", "per_context": {"m=0.2": return, ...}} | null,
                "curve": [{"env_steps", "mean_return", "tag"}],
+               "render_quality": "fast" | "default"  (optional: how its envs rendered, from
+               its config.yaml; absent in files written before 2026-12-04, whose runs all
+               rendered "fast"),
                "carried_from": {"results", "code_version", "machine", "created"}  (optional: a
                run finished elsewhere, taken over by `--from-results`)}],
      "random": {task: {"mean_return", "episodes", "per_context"}}}
@@ -95,6 +98,7 @@ RESULTS_SCHEMA: dict[str, Any] = {
                 "env_steps": _INT, "updates": _INT, "wall_time_s": _NUM,
                 "precision": {"type": "string"}, "preset": {"type": "string"},
                 "eval_split": {"enum": ["test", "train"]},
+                "render_quality": {"enum": ["fast", "default"]},
                 "final": {"oneOf": [{"type": "null"}, _EVAL]},
                 "curve": {"type": "array", "items": {
                     "type": "object", "required": ["env_steps", "mean_return", "tag"],
@@ -206,12 +210,26 @@ def gather_run(task: str, label: str, variant: str, seed: int, run_dir: Path) ->
     except (OSError, json.JSONDecodeError, KeyError):
         pass
     proto = info.get("protocol") or {}
-    return {"task": task, "label": label, "variant": variant, "seed": int(seed), "run_dir": str(run_dir),
+    row = {"task": task, "label": label, "variant": variant, "seed": int(seed), "run_dir": str(run_dir),
             "status": res.get("status", "missing" if not info else "failed"),
             "env_steps": int(res.get("env_steps", 0)), "updates": int(res.get("updates", 0)),
             "wall_time_s": float(res.get("wall_time", 0.0)), "precision": str(res.get("precision", "")),
             "preset": str(info.get("preset", "")), "eval_split": proto.get("eval_split") or "test",
             "final": final, "curve": curve}
+    quality = render_quality(run_dir)
+    return {**row, "render_quality": quality} if quality else row
+
+
+def render_quality(run_dir: Path) -> str | None:
+    """train.render_quality of a run's saved config.yaml, or None where there is none to read."""
+    import yaml
+
+    try:
+        cfg = yaml.safe_load((Path(run_dir) / "config.yaml").read_text()) or {}
+    except (OSError, yaml.YAMLError):
+        return None
+    quality = (cfg.get("train") or {}).get("render_quality") if isinstance(cfg, dict) else None
+    return str(quality) if quality else None
 
 
 def code_version(where: Path | None = None) -> str:
@@ -591,21 +609,26 @@ BEGIN, END = "<!-- protocad-compare results: begin -->", "<!-- protocad-compare 
 
 def combined(docs: Sequence[Mapping[str, Any]], sources: Sequence[str] | None = None) -> dict[str, Any]:
     """The runs and random baselines of several results.json documents in one (for the plot and
-    the rerun recording): the anchor's grid and the comparison's, say. A variant trained at
-    several presets (the anchor at the small preset and at DreamerV2's sizes) is one curve per
-    preset, labelled `LABEL (PRESET preset)`; `base_label` keeps the variant's own. A run (task,
-    label, preset, seed) in two of them is refused: its curve would count twice."""
+    the rerun recording): the anchor's grid and the comparison's, say. A variant trained in
+    several setups (the anchor at the small preset and at DreamerV2's sizes, or rendered
+    'fast' and with dm_control's default look) is one curve per setup, labelled with what
+    differs: `LABEL (PRESET preset)`, `LABEL (QUALITY render)` or both; `base_label` keeps the
+    variant's own. A run (task, label, setup, seed) in two of them is refused: its curve would
+    count twice."""
     names = list(sources) if sources else [f"document {i + 1}" for i in range(len(docs))]
-    presets: dict[tuple[str, str], set[str]] = {}
+    setups: dict[tuple[str, str], set[tuple[str, str]]] = {}
     for doc in docs:
         for r in doc["runs"]:
-            presets.setdefault((r["task"], r["label"]), set()).add(r["preset"])
+            setups.setdefault((r["task"], r["label"]), set()).add(_setup(r))
     seen: dict[tuple[str, str, int], str] = {}
     runs, random = [], {}
     for doc, name in zip(docs, names):
         for r in doc["runs"]:
-            if len(presets[(r["task"], r["label"])]) > 1:
-                r = {**r, "label": f"{r['label']} ({r['preset']} preset)", "base_label": r["label"]}
+            both = setups[(r["task"], r["label"])]
+            differs = [f"{value} {what}" for i, (what, value) in enumerate(zip(("preset", "render"), _setup(r)))
+                       if len({setup[i] for setup in both}) > 1]
+            if differs:
+                r = {**r, "label": f"{r['label']} ({', '.join(differs)})", "base_label": r["label"]}
             key = (r["task"], r["label"], r["seed"])
             if key in seen:
                 raise ValueError(f"{key[0]}/{key[1]}/seed{key[2]} is in both {seen[key]} and {name}; "
@@ -615,6 +638,12 @@ def combined(docs: Sequence[Mapping[str, Any]], sources: Sequence[str] | None = 
         for task, entry in doc["random"].items():
             random.setdefault(task, entry)
     return {"runs": runs, "random": random, "created": max(d["created"] for d in docs)}
+
+
+def _setup(run: Mapping[str, Any]) -> tuple[str, str]:
+    """(preset, render quality) of a results.json row; rows written before the render quality was
+    recorded rendered 'fast', the only look runs had then."""
+    return (str(run["preset"]), str(run.get("render_quality") or "fast"))
 
 
 def _section_body(doc: Mapping[str, Any]) -> list[str]:

@@ -264,6 +264,39 @@ def test_an_anchor_at_two_presets_reports_as_two_curves(tmp_path):
         R.combined([small, copy.deepcopy(small)], ["small.json", "again.json"])
 
 
+def test_an_anchor_rendered_two_ways_reports_as_two_curves(tmp_path):
+    """The same anchor rendered with dm_control's default look beside the committed one (same
+    preset, a file that predates the field: it rendered 'fast'): one curve per look; a grid
+    gathered from run directories records the look its config.yaml names."""
+    import copy
+
+    from protocad_ros.model.config import make_config
+
+    fast = R.load_results(ROOT / "msgs_docs" / "results" / "walker_anchor_cpu.json")
+    assert all("render_quality" not in r for r in fast["runs"])
+    looks = copy.deepcopy(fast)
+    looks["runs"] = [{**r, "render_quality": "default"} for r in looks["runs"][:1]]
+    R.validate(looks)
+    both = R.combined([fast, looks], ["fast.json", "default.json"])
+    names = ["dreamer_standard (default render)", "dreamer_standard (fast render)"]
+    assert R.labels_of(both, "walker_walk") == names
+    assert [r["seed"] for r in both["runs"] if r["label"] == names[0]] == [0]
+    assert R.plot_curves(both, tmp_path / "looks.png").stat().st_size > 0
+    paper = copy.deepcopy(looks)
+    paper["runs"][0]["preset"] = "paper"
+    assert R.labels_of(R.combined([fast, paper]), "walker_walk") == [
+        "dreamer_standard (paper preset, default render)", "dreamer_standard (small preset, fast render)"]
+
+    run_dir = tmp_path / "walker_walk" / "dreamer_standard" / "seed0"
+    run_dir.mkdir(parents=True)
+    cfg = make_config("walker_walk", preset="small", variant="dreamer")
+    cfg.train.render_quality = "default"
+    cfg.save(run_dir / "config.yaml")
+    row = R.gather_run("walker_walk", R.ANCHOR_LABEL, "dreamer", 0, run_dir)
+    assert row["render_quality"] == "default"
+    assert "render_quality" not in R.gather_run("walker_walk", R.ANCHOR_LABEL, "dreamer", 1, tmp_path / "none")
+
+
 @pytest.mark.process
 def test_a_report_of_two_grids_shows_each_and_plots_both(tmp_path):
     """The README section from the anchor's grid and another grid's results.json (budgets,
