@@ -471,10 +471,7 @@ class Loop:
         bar = runs.progress(target, initial=self.trainer.updates, desc="train",
                             disable=True if self.a.no_progress else None, unit="upd")
         try:
-            done = self.trainer.train(target, stop=stop, checkpoint_every=self.a.checkpoint_every, bar=bar,
-                                      save=False)
-            self._counters()
-            self.trainer.save()
+            done = self.trainer.train(target, stop=stop, checkpoint_every=self.a.checkpoint_every, bar=bar)
         finally:
             bar.close()
         m = self.trainer.last_metrics

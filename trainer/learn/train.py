@@ -178,7 +178,9 @@ class Trainer:
               bar=None, on_update: Callable[[int, dict], None] | None = None, save: bool = True) -> bool:
         """Update until the agent's counter reaches target_updates (a total, not a delta).
         Checkpoints every `checkpoint_every` updates and at the end (unless save=False and not
-        stopped). Returns False when stopped early by `stop` (a checkpoint is written then)."""
+        stopped; a multiple of `checkpoint_every` that is the target is then still saved, else a
+        driver with C a multiple of it would never checkpoint between its evaluations). Returns
+        False when stopped early by `stop` (a checkpoint is written then)."""
         completed = True
         while self.updates < target_updates:
             # Ranks stop together (one would wait forever for the others' gradients).
@@ -193,7 +195,8 @@ class Trainer:
                                      if k in m}, refresh=False)
             if on_update is not None:
                 on_update(self.updates, m)
-            if checkpoint_every and self.updates % checkpoint_every == 0 and self.updates < target_updates:
+            if checkpoint_every and self.updates % checkpoint_every == 0 and (self.updates < target_updates
+                                                                             or not save):
                 self.save()
         if save or not completed:
             self.save()

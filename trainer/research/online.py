@@ -632,10 +632,11 @@ class OnlineRun:
         c, s = self.c, self.s
         bar = runs.progress(s.env_steps, initial=c.env_steps, desc="env steps",
                             disable=True if s.no_progress or not self.main_rank else None, unit="step")
-        if s.resume and c.env_steps < s.env_steps:
+        if s.resume:
             # What the interruption cut short comes first: the updates the episodes on disk are
             # owed and an evaluation still due, before the next episode is collected, so the
-            # run's schedule is the one it would have had without the interruption.
+            # run's schedule is the one it would have had without the interruption. At the
+            # budget too: the final evaluation is of the agent of all its updates.
             self._after_episodes([], stop, bar)
         while self._keep_going(stop):
             obs, actions, feats = next(stream)

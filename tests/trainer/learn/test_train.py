@@ -295,3 +295,26 @@ def test_logs_with_test_split_episodes_are_refused_unless_accepted(tmp_path):
     assert len(line) == 1 and "2 episode(s) of the test split" in line[0] and "--accept-test-split" in line[0]
     r = run_cli("trainer.learn.train", *args, "--run-dir", tmp_path / "accepted", "--accept-test-split")
     assert r.returncode == 0 and "WARNING: the logs hold 2 episode(s) of the test split" in r.stdout, r.stderr
+
+
+def test_updates_that_end_on_a_checkpoint_multiple_are_saved_when_the_caller_saves_later(tmp_path):
+    """protocad-online trains C updates per episode with save=False (it saves at evaluations):
+    a checkpoint_every that divides C must still checkpoint each episode's updates, else a kill
+    between evaluations loses them all (what C = 100 with --checkpoint-every 100 did)."""
+    from protocad_ros.checkpoint import read_checkpoint
+    from protocad_ros.model.config import make_config
+    from trainer.data.dataset import MCAPDataset
+    from trainer.learn.train import Trainer
+
+    write_bag(tmp_path / "bag", make_steps(2, 12))
+    ds = MCAPDataset([tmp_path / "bag"], seq_len=8, cache_dir=tmp_path / "cache")
+    cfg = make_config("pendulum_swingup", "small", "dreamer", **{
+        "train.batch_size": 2, "train.seq_len": 8, "world_model.deter": 16, "world_model.hidden": 16,
+        "world_model.cnn_depth": 4, "world_model.mlp_units": 16, "behavior.actor_units": 16,
+        "behavior.critic_units": 16, "behavior.horizon": 3})
+    tr = Trainer(cfg, tmp_path / "run", ds)
+    saved = lambda: int(read_checkpoint(tr.checkpoint_path)["modules"]["updates"])  # noqa: E731
+    assert tr.train(2, checkpoint_every=2, save=False) and saved() == 2
+    assert tr.train(3, checkpoint_every=2, save=False) and saved() == 2    # 3 is no multiple: not saved
+    assert tr.train(4, checkpoint_every=2) and saved() == 4
+    tr.close()

@@ -191,7 +191,8 @@ def test_sigkill_at_any_point_then_resume_completes_with_counters_from_the_data(
 def test_ctrl_c_while_training_costs_the_run_neither_updates_nor_an_evaluation(tmp_path, spawn):
     """Ctrl-C in the updates that follow an episode (an evaluation due after them): the resume
     first makes the owed updates and the evaluation, at the step it was due, and only then
-    collects the next episode, as if nothing had happened."""
+    collects the next episode, as if nothing had happened. Ctrl-C again in the updates after
+    the last episode (the budget reached): the final evaluation is of all the updates."""
     import signal
 
     from helpers import wait_until
@@ -219,11 +220,20 @@ def test_ctrl_c_while_training_costs_the_run_neither_updates_nor_an_evaluation(t
     logged = (run / "eval.jsonl").read_text() if (run / "eval.jsonl").exists() else ""
     assert cut < 400 or "eval_00000120" not in logged, "the interruption came too late to test anything"
 
-    r = run_cli("trainer.research.online", "--run-dir", run, "--resume", "--no-progress", timeout=300)
+    resume = ["-m", "trainer.research.online", "--run-dir", str(run), "--resume", "--no-progress"]
+    p = spawn("second", *resume)
+    wait_until(lambda: any(r.get("kind") == "train" and r.get("env_steps") == 160 for r in rows())
+               or not p.alive(), 300, "the updates after episode 4")
+    assert p.stop(signal.SIGINT, timeout=120) == 0, p.output()[-3000:]
+    cut = int(read_checkpoint(run / "checkpoints" / "latest.pt")["modules"]["updates"])
+    assert cut < 600 and not (run / "eval" / "final.json").exists(), "the interruption came too late"
+
+    r = run_cli("trainer.research.online", *resume[2:], timeout=300)
     assert r.returncode == 0, r.stdout + r.stderr
     evals = [json.loads(x) for x in (run / "eval.jsonl").read_text().splitlines()]
     assert [(e["tag"], e["env_steps"], e["updates"]) for e in evals] == [
         ("eval_00000120", 120, 400), ("final", 160, 600)]
+    assert int(read_checkpoint(run / "checkpoints" / "latest.pt")["modules"]["updates"]) == 600
     episode4 = [r for r in rows() if r.get("kind") == "episode" and r["episodes"] == 4]
     assert [r["update"] for r in episode4] == [400]   # collected by the agent of all 400 updates
 
