@@ -6,9 +6,12 @@ that the real ros2cli resolves (AMENT_PREFIX_PATH = the install prefix):
   share/<pkg>/package.xml
   lib/<pkg>/<executable>                            (kept executable by pip)
 """
+import importlib.util
+import json
 from pathlib import Path
 
 from setuptools import find_packages, setup
+from setuptools.command.build_py import build_py
 
 ROS_PACKAGES = ("sim_bridge", "protocad_ros", "trainer")
 
@@ -23,6 +26,25 @@ def ament_data_files():
     files.append(("share/sim_bridge", ["sim_bridge/fastdds_discovery.xml"]))   # scripts/env.sh
     files.append(("share/trainer/launch", ["trainer/ros_launch/protocad.launch.py"]))   # ros2 launch
     return files
+
+
+def _provenance():
+    spec = importlib.util.spec_from_file_location("provenance", Path(__file__).parent / "trainer" / "provenance.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+class BuildPyRecordingTheCommit(build_py):
+    """Writes trainer/build_info.json: the install is not editable, so a run's provenance must
+    name the commit that was installed, not the one its checkout has moved on to since."""
+
+    def run(self):
+        super().run()
+        root = Path(__file__).resolve().parent
+        provenance = _provenance()
+        info = {"commit": provenance.git_commit(root), "source": str(root)}
+        Path(self.build_lib, "trainer", provenance.BUILD_INFO).write_text(json.dumps(info) + "\n")
 
 
 # Exact pins where the platform demands them (msgs_docs/environment.md): an unpinned torch
@@ -71,6 +93,7 @@ setup(
                              "ruff==0.17.5"],   # tests/docs/test_lint.py: ruff.toml's rules
                     "bench": ["py-spy==0.4.3"]},   # scripts/bench_ros_loop.py --profile
     data_files=ament_data_files(),
+    cmdclass={"build_py": BuildPyRecordingTheCommit},
     entry_points={
         "console_scripts": [
             "ros2 = trainer.ros2cli:main",

@@ -9,7 +9,8 @@
   launch/    starting the nodes: the collect-train-reload loop, stacks, fleets, discovery
   ros2cli/   the `ros2` front-end for environments without ros2cli
   (here)     runs.py: run directories, metrics files, CLI helpers every command uses;
-             settings.py: typed run settings and the command lines generated from them
+             settings.py: typed run settings and the command lines generated from them;
+             provenance.py: the commit a run trains with (stdlib only: setup.py loads it)
 
 May import: protocad_ros.atomic, protocad_ros.model, sim_bridge.contract
 """

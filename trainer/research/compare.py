@@ -432,6 +432,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             docs, sources = [R.load_results(p) for p in a.report], list(a.report)
             everything = R.combined(docs, sources)   # a run in two files: refused before anything is written
         else:
+            from trainer.provenance import stale_install
+
+            if warning := stale_install():
+                print(f"[compare] warning: {warning}", file=sys.stderr, flush=True)
             out_dir = Path(a.out or time.strftime("runs/compare-%Y%m%d-%H%M%S"))
             a = dataclasses.replace(a, out=str(out_dir))
             specs = plan(a)

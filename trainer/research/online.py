@@ -488,8 +488,10 @@ class OnlineRun:
             self.s = dataclasses.replace(s, train_context=get_task(self.cfg.task).validate(s.train_context, "train"))
 
     def _write_run_json(self) -> None:
-        from trainer.research.results import code_version
+        from trainer.provenance import code_version, stale_install
 
+        if self.main_rank and (warning := stale_install()):
+            print(f"[online] warning: {warning}", file=sys.stderr, flush=True)
         s, tr, rj = self.s, self.cfg.train, self.run_json
         versions = list(rj.get("code_versions", []))
         if code_version() not in versions:   # every invocation's code, resumes included

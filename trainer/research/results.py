@@ -34,13 +34,14 @@ from __future__ import annotations
 import json
 import os
 import platform
-import subprocess
 import sys
 import time
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
+
+from trainer.provenance import code_version
 
 SCHEMA_ID = "protocad-compare/1"
 
@@ -230,24 +231,6 @@ def render_quality(run_dir: Path) -> str | None:
         return None
     quality = (cfg.get("train") or {}).get("render_quality") if isinstance(cfg, dict) else None
     return str(quality) if quality else None
-
-
-def code_version(where: Path | None = None) -> str:
-    """The git commit of the working tree (with '+dirty' for uncommitted changes), or 'unknown'."""
-    for cwd in (where, Path.cwd(), Path(__file__).resolve().parents[2]):
-        if cwd is None:
-            continue
-        try:
-            head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=cwd, capture_output=True, text=True,
-                                  timeout=10)
-            if head.returncode != 0:
-                continue
-            dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=cwd,
-                                   capture_output=True, text=True, timeout=10).stdout.strip()
-            return head.stdout.strip() + ("+dirty" if dirty else "")
-        except (OSError, subprocess.SubprocessError):
-            continue
-    return "unknown"
 
 
 def runs_code_version(specs: Iterable[Any]) -> str:
