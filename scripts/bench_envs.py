@@ -81,6 +81,9 @@ def main() -> None:
                         help="VectorEnv worker processes; 0 skips the VectorEnv runs (default 2)")
     parser.add_argument("--split", default="train", choices=("train", "test"))
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--frames", type=Path, metavar="PNG",
+                        help="also save four frames of the same states in both looks, per task two rows "
+                             "(fast above default), 3x enlarged")
     args = parser.parse_args()
 
     print(f"# {cpu_model()}, nproc={os.cpu_count()}, MUJOCO_GL={os.environ.get('MUJOCO_GL')}, "
@@ -91,6 +94,7 @@ def main() -> None:
               + f" {'speed-up':>8} {'pixel diff':>10}")
     print(header)
     print("-" * len(header))
+    strips = []
     for task in args.tasks:
         rng = np.random.default_rng(args.seed)
         probe = ContextDMCEnv(task, args.split, args.seed)
@@ -106,8 +110,16 @@ def main() -> None:
         if vrate:
             row += f" {vrate['default']:13.1f} {vrate['fast']:10.1f}"
         print(row + f" {rate['fast'] / rate['default']:7.1f}x {diff:10.2f}", flush=True)
+        picks = np.linspace(len(actions) // 10, len(actions) - 1, 4).astype(int)
+        strips += [np.concatenate(list(frames[q][picks]), axis=1) for q in ("fast", "default")]
     print("# steps/s = agent steps per second (x2 env steps); vecN = all N workers together; "
           "pixel diff = mean |default - fast| on the same states, 0-255")
+    if args.frames:
+        from PIL import Image
+
+        grid = np.concatenate(strips, axis=0)
+        Image.fromarray(grid).resize((grid.shape[1] * 3, grid.shape[0] * 3), Image.NEAREST).save(args.frames)
+        print(f"# frames: {args.frames}")
 
 
 if __name__ == "__main__":
