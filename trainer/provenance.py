@@ -29,9 +29,10 @@ def build_info() -> dict[str, str] | None:
     """What setup.py recorded when it installed this copy (`commit`, `source`: the checkout), or
     None when this code runs from its checkout."""
     try:
-        return json.loads((Path(__file__).resolve().parent / BUILD_INFO).read_text())
+        info = json.loads((Path(__file__).resolve().parent / BUILD_INFO).read_text())
     except (OSError, json.JSONDecodeError):
         return None
+    return info if isinstance(info, dict) else None
 
 
 def code_version() -> str:

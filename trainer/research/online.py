@@ -493,9 +493,9 @@ class OnlineRun:
         if self.main_rank and (warning := stale_install()):
             print(f"[online] warning: {warning}", file=sys.stderr, flush=True)
         s, tr, rj = self.s, self.cfg.train, self.run_json
-        versions = list(rj.get("code_versions", []))
-        if code_version() not in versions:   # every invocation's code, resumes included
-            versions.append(code_version())
+        versions, version = list(rj.get("code_versions", [])), code_version()
+        if version not in versions:   # every invocation's code, resumes included
+            versions.append(version)
         runs.record_invocation(rj, s.resume, self.argv)
         rj.update(kind="online", code_versions=versions, task=self.cfg.task, variant=self.cfg.variant,
                   preset=self.cfg.preset, seed=tr.seed, device=self.device,

@@ -313,7 +313,10 @@ def test_updates_that_end_on_a_checkpoint_multiple_are_saved_when_the_caller_sav
         "world_model.cnn_depth": 4, "world_model.mlp_units": 16, "behavior.actor_units": 16,
         "behavior.critic_units": 16, "behavior.horizon": 3})
     tr = Trainer(cfg, tmp_path / "run", ds)
-    saved = lambda: int(read_checkpoint(tr.checkpoint_path)["modules"]["updates"])  # noqa: E731
+
+    def saved() -> int:
+        return int(read_checkpoint(tr.checkpoint_path)["modules"]["updates"])
+
     assert tr.train(2, checkpoint_every=2, save=False) and saved() == 2
     assert tr.train(3, checkpoint_every=2, save=False) and saved() == 2    # 3 is no multiple: not saved
     assert tr.train(4, checkpoint_every=2) and saved() == 4
