@@ -73,6 +73,7 @@ class DreamerProPrototypes(nn.Module):
         self.ema_encoder = copy.deepcopy(encoder).requires_grad_(False)
         self.ema_obs_proj = copy.deepcopy(self.obs_proj).requires_grad_(False)
         self.register_buffer("ema_updates", torch.zeros((), dtype=torch.long))
+        self.freeze_prototypes_steps = max(0, c.freeze_prototypes_updates)   # -1 (auto) unresolved: 0
 
     @torch.no_grad()
     def normalize_prototypes(self) -> None:
@@ -82,7 +83,7 @@ class DreamerProPrototypes(nn.Module):
         return F.normalize(self.prototypes.detach(), dim=-1)
 
     def mask_frozen_prototype_grad(self, step: int) -> bool:
-        if step < self.cfg.freeze_prototypes_updates:
+        if step < self.freeze_prototypes_steps:
             self.prototypes.grad = None
             return True
         return False
@@ -111,7 +112,7 @@ class DreamerProPrototypes(nn.Module):
              step: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """embed (2B, T, E), feat (2B, T, S), images (2B, T, 3, 64, 64) of the two views."""
         cfg = self.cfg
-        c = self.prototypes.detach() if step < cfg.freeze_prototypes_updates else self.prototypes
+        c = self.prototypes.detach() if step < self.freeze_prototypes_steps else self.prototypes
         keep = slice(min(cfg.drop_first_steps, embed.shape[1] - 1), embed.shape[1])
         obs = self.obs_proj(embed).float()
         feat_p = self.feat_proj(feat).float()
@@ -495,6 +496,12 @@ class Agent(AgentBase):
         pred = self._decode(torch.stack(feats, 1).float()).numpy()
         truth = b["image"][:, context_steps:context_steps + H].cpu().numpy()
         return {"truth": truth, "prediction": pred}
+
+    def set_prototype_freeze(self, updates: int) -> bool:
+        mods = [m for m in (self.wm.context, self.wm.dreamerpro) if m is not None]
+        for m in mods:
+            m.freeze_prototypes_steps = max(0, int(updates))
+        return bool(mods)
 
     def prototypes(self) -> torch.Tensor | None:
         """(K, D) unit-norm prototypes (ProtoCAD variants and DreamerPro), else None."""

@@ -109,6 +109,11 @@ class AgentBase(nn.Module):
         """(K, D) unit-norm prototypes, or None for agents without any."""
         return None
 
+    def set_prototype_freeze(self, updates: int) -> bool:
+        """Prototypes get no gradient while the update counter is below `updates` (the run's
+        resolved freeze); False for agents without prototypes."""
+        return False
+
     def _adam(self, params, lr: float, eps: float = 1e-8, wd: float = 0.0,
               betas: tuple[float, float] = (0.9, 0.999)) -> torch.optim.Optimizer:
         # DreamerV2 applies decoupled decay var *= (1 - wd) per step, independent of lr;

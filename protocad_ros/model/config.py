@@ -137,7 +137,15 @@ class ContextConfig:
     # Paper value. DreamerPro overrides this to 0.0125 for DMC; keep configurable.
     sinkhorn_eps: float = 0.05
     ema: float = 0.05              # eta, target-projector momentum fraction (full copy first)
-    freeze_prototypes_updates: int = 10000  # DreamerPro freeze_prototypes_iters
+    # Prototypes get no gradient for their first updates, so that early, meaningless projections
+    # do not drag them around (DreamerPro freeze_prototypes_iters: 10k of its ~100k updates).
+    # -1 = auto: freeze_prototypes_fraction of the run's planned updates, resolved by the
+    # trainer from the run's own schedule (resolve_prototype_freeze); a count = exactly that.
+    freeze_prototypes_updates: int = -1
+    freeze_prototypes_fraction: float = 0.1
+    # A run whose prototypes would stay frozen for more than MAX_FREEZE_SHARE of its updates is
+    # refused unless this says it is meant (e.g. to measure fixed random prototypes).
+    allow_long_freeze: bool = False
     drop_first_steps: int = 1      # DreamerPro rssm.warm_up: first step out of the SwAV scores
     swav_scale: float = 1.0        # DreamerPro loss_scales.swav
     aug_pad: int = 3               # DreamerPro aug.max_delta: random shift +-3 px, bilinear
@@ -295,7 +303,7 @@ class Config:
         """Inverse of to_dict. Missing keys take defaults; unknown keys raise ConfigError."""
         if not isinstance(d, Mapping):
             raise ConfigError(f"config must be a mapping, got {type(d).__name__}")
-        cfg = _build(cls, d, "")
+        cfg = _build(cls, _migrate(d), "")
         cfg.validate()
         return cfg
 
@@ -380,6 +388,8 @@ class Config:
 # Value ranges: every numeric field, checked before anything is built
 # ------------------------------------------------------------------------------------------------
 _INF = float("inf")
+#: context.freeze_prototypes_updates for "a fraction of the run's planned updates".
+FREEZE_AUTO = -1
 #: field -> (low, high, low inclusive): sizes positive and bounded by what one process can hold,
 #: probabilities in [0, 1], learning rates in [0, 1] (0 freezes a part), eps and clips positive. Fields not listed only need to be finite.
 RANGES: dict[str, tuple[float, float, bool]] = {
@@ -396,7 +406,8 @@ RANGES: dict[str, tuple[float, float, bool]] = {
     "context.num_prototypes": (1, 1_000_000, True), "context.proto_dim": (1, 16384, True),
     "context.temperature": (0, 1e6, False), "context.sinkhorn_iters": (1, 1000, True),
     "context.sinkhorn_eps": (0, 1e6, False), "context.ema": (0, 1, False),
-    "context.freeze_prototypes_updates": (0, 1e12, True), "context.drop_first_steps": (0, 1000, True),
+    "context.freeze_prototypes_updates": (FREEZE_AUTO, 1e12, True),
+    "context.freeze_prototypes_fraction": (0, 1, True), "context.drop_first_steps": (0, 1000, True),
     "context.swav_scale": (0, 1e6, True), "context.aug_pad": (0, 32, True),
     "context.dreamerpro_num_prototypes": (1, 1_000_000, True),
     "context.dreamerpro_temp_scale": (0, 1e6, True), "context.dreamerpro_norm_scale": (0, 1e6, True),
@@ -484,6 +495,55 @@ def check_train_memory(cfg: "Config") -> None:
                           f"weights, optimiser state and one update's activations) and the limit is "
                           f"{limit / 2**30:,.1f} GB; make it smaller (batch_size, seq_len, "
                           f"behavior.horizon, sizes) or raise --set train.memory_limit_gb=N")
+
+
+# ------------------------------------------------------------------------------------------------
+# The prototype freeze, scaled to the run
+# ------------------------------------------------------------------------------------------------
+#: The largest share of a run's updates its prototypes may stay frozen for without
+#: context.allow_long_freeze: past it the run mostly measures fixed random prototypes.
+MAX_FREEZE_SHARE = 0.25
+
+
+def resolve_prototype_freeze(ctx: ContextConfig, end_updates: int) -> int:
+    """The update count below which the prototypes get no gradient, for a run whose agent's
+    update counter ends at `end_updates`: the configured count, or (auto) its fraction of them."""
+    if ctx.freeze_prototypes_updates == FREEZE_AUTO:
+        return int(round(ctx.freeze_prototypes_fraction * max(end_updates, 0)))
+    return int(ctx.freeze_prototypes_updates)
+
+
+def check_prototype_freeze(ctx: ContextConfig, freeze: int, start: int, end: int) -> None:
+    """ConfigError when the updates start..end would keep the prototypes frozen (below
+    `freeze`) for more than MAX_FREEZE_SHARE of them, unless context.allow_long_freeze."""
+    planned = end - start
+    frozen = max(0, min(freeze, end) - start)
+    if planned > 0 and frozen > MAX_FREEZE_SHARE * planned and not ctx.allow_long_freeze:
+        raise ConfigError(
+            f"the prototypes would stay frozen for {frozen:,} of this run's {planned:,} updates "
+            f"(context.freeze_prototypes_updates={freeze:,}): set it to -1 (auto, "
+            f"{ctx.freeze_prototypes_fraction:.0%} of the run) or a smaller count, or "
+            f"context.allow_long_freeze=true if that is meant")
+
+
+def plan_prototype_freeze(cfg: "Config", start: int, end: int) -> int | None:
+    """The resolved and checked freeze of a run whose update counter goes from `start` to
+    `end`; None for variants without prototypes."""
+    if cfg.spec.representation == "none" or cfg.spec.family != "world_model":
+        return None
+    freeze = resolve_prototype_freeze(cfg.context, end)
+    check_prototype_freeze(cfg.context, freeze, start, end)
+    return freeze
+
+
+def _migrate(d: Mapping[str, Any]) -> Mapping[str, Any]:
+    """Configs written before the freeze scaled to the run recorded DreamerPro's 10,000 as a
+    default, not a choice (no run here was that long): read it as auto."""
+    ctx = d.get("context")
+    if (isinstance(ctx, Mapping) and "freeze_prototypes_fraction" not in ctx
+            and ctx.get("freeze_prototypes_updates") == 10000):
+        return {**d, "context": {**ctx, "freeze_prototypes_updates": FREEZE_AUTO}}
+    return d
 
 
 # ------------------------------------------------------------------------------------------------

@@ -177,8 +177,10 @@ class ContextModule(nn.Module):
         sinkhorn_iters / sinkhorn_eps: Sinkhorn-Knopp iterations / epsilon (3 / 0.05; the paper's
             eps, DreamerPro uses 0.0125 on DMC).
         ema: eta, fraction the target projector moves towards the online one per update (0.05).
-        freeze_prototypes_steps: prototypes get zero gradient for the first this many updates
-            (DreamerPro: 10k), so the early, meaningless projections do not drag them around.
+        freeze_prototypes_steps: prototypes get zero gradient for the first this many updates, so
+            the early, meaningless projections do not drag them around (DreamerPro: 10k of its
+            ~100k). A trainer sets it from the run's plan (Agent.set_prototype_freeze); the
+            config's -1 (auto, not yet resolved) builds with 0.
         temporal_consistency: True -> TC-SwAV (eq. 5); False -> in-place ablation.
         drop_first_steps: leading time steps left out of the SwAV loss (DreamerPro drops 1:
             the posterior at a sequence's first step has seen one frame and no transition, so
@@ -202,7 +204,7 @@ class ContextModule(nn.Module):
 
     def __init__(self, state_dim: int, proj_dim: int = 32, num_prototypes: int = 100,
                  temperature: float = 0.1, sinkhorn_iters: int = 3, sinkhorn_eps: float = 0.05,
-                 ema: float = 0.05, freeze_prototypes_steps: int = 10000,
+                 ema: float = 0.05, freeze_prototypes_steps: int = 0,
                  temporal_consistency: bool = True, drop_first_steps: int = 1):
         super().__init__()
         if not 0.0 < ema <= 1.0:
@@ -215,7 +217,7 @@ class ContextModule(nn.Module):
         self.temperature = temperature
         self.sinkhorn_iters, self.sinkhorn_eps = sinkhorn_iters, sinkhorn_eps
         self.ema = ema
-        self.freeze_prototypes_steps = freeze_prototypes_steps
+        self.freeze_prototypes_steps = max(0, int(freeze_prototypes_steps))
         self.temporal_consistency = temporal_consistency
         self.drop_first_steps = drop_first_steps
 

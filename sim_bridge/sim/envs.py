@@ -100,13 +100,17 @@ class ContextDMCEnv:
     into a framebuffer of the image size (10-15x faster with Mesa's llvmpipe; the pixels
     differ by a mean of 1-14 of 255, see scripts/bench_envs.py); 'default' keeps the suite's
     look, pixel-identical to dm_control's ``physics.render`` as used by Dreamer/DreamerPro.
+    ``first_episode`` (an episode number) seeds each episode on its own instead: episode k's
+    context draw and initial state come from (seed, k) alone, so two runs with one seed see
+    the same episodes whatever they did before, and a resumed run (built again with the number
+    of its next episode) sees the episodes an uninterrupted one would have.
     """
 
     def __init__(self, task: str, split: str = "train", seed: int | np.random.SeedSequence = 0,
                  action_repeat: int = 2, image_size: int = 64,
                  render_quality: RenderQuality = "fast",
                  context: Mapping[str, float] | None = None, time_limit: int = 1000,
-                 scale_inertia: bool = False):
+                 scale_inertia: bool = False, first_episode: int | None = None):
         self.spec, self._fixed_context = check_env_args(
             task, split, seed, action_repeat=action_repeat, image_size=image_size,
             render_quality=render_quality, context=context, time_limit=time_limit)
@@ -125,6 +129,7 @@ class ContextDMCEnv:
                                                         spawn_key=(*seq.spawn_key, k))
                                  for k in (0, 1))
         self._rng = np.random.default_rng(context_seq)
+        self._seq, self._first_episode = seq, first_episode
         # The episode length is ours to count (in env steps); dm_control's own limit is a float
         # division of seconds by control_timestep, which we keep out of the way.
         self._env = suite.load(self.spec.domain, self.spec.task, task_kwargs={
@@ -184,6 +189,8 @@ class ContextDMCEnv:
     def reset(self, context: Mapping[str, float] | None = None) -> Observation:
         """Start an episode with ``context`` (must be in this env's split), the fixed context,
         or a uniform draw from the split; returns the is_first observation."""
+        if self._first_episode is not None:
+            self._seed_episode(self._first_episode + self._episode + 1)
         if context is not None:
             context = self.spec.validate(context, self.split)
         else:
@@ -197,6 +204,14 @@ class ContextDMCEnv:
         self._step = self._env_steps = 0
         self._done = False
         return self._observe(0.0, 1.0, is_first=True, is_last=False, is_terminal=False)
+
+    def _seed_episode(self, k: int) -> None:
+        """Episode k's own streams: its context draw (2, k) and dm_control's initial state (3, k)."""
+        seq = self._seq
+        key = lambda *extra: np.random.SeedSequence(seq.entropy, pool_size=seq.pool_size,  # noqa: E731
+                                                    spawn_key=(*seq.spawn_key, *extra))
+        self._rng = np.random.default_rng(key(2, k))
+        self._env.task.random.seed(int(key(3, k).generate_state(1)[0]))
 
     def step(self, action: Sequence[float] | np.ndarray) -> Observation:
         """Apply ``action`` (shape (A,), finite, clipped to [-1, 1]) for action_repeat env steps."""

@@ -38,6 +38,7 @@ from pathlib import Path
 from dataclasses import dataclass
 from typing import Any, Sequence
 
+from protocad_ros.model.config import plan_prototype_freeze
 from sim_bridge.contract import topics as T
 from trainer.launch import discovery
 from trainer import runs, settings
@@ -151,6 +152,11 @@ class LoopSettings:
 DEMO_POLICY_TASKS = ("walker_walk", "cheetah_run")
 
 
+def planned_updates(a: LoopSettings) -> int:
+    """The updates a loop makes in all: C once after the prefill and per collected episode."""
+    return Schedule(N=a.prefill_episodes, C=a.updates_per_episode).target_updates(a.cycles * a.episodes_per_cycle)
+
+
 def with_shipped_policy(s: LoopSettings, model: settings.ModelChoice) -> LoopSettings:
     """The demo: start from a shipped policy (of --task if given, else the first of
     DEMO_POLICY_TASKS the package ships) unless --init-policy names one."""
@@ -230,6 +236,8 @@ class Loop:
         else:
             self.cfg = self._policy_config() if a.init_policy else self.model.to_config(self.config_args, self.prog)
             self.cfg.train.device = self.device
+            # a refused plan leaves no run directory behind
+            plan_prototype_freeze(self.cfg, 0, planned_updates(a.resolved(self.cfg.train)))
             self.run_dir = runs.new_run_dir(a.run_dir, "loop", self.cfg.task, self.cfg.variant)
             self.run_dir.mkdir(parents=True, exist_ok=True)
             self.cfg.save(self.run_dir / "config.yaml")
@@ -500,6 +508,11 @@ class Loop:
             self.trainer = Trainer(cfg, self.run_dir, self.ds, device=self.device, callbacks=callbacks,
                                    log_every=a.log_every, action_dim=len(task_actuators(cfg.task)),
                                    agent=self._agent_from_policy() if a.init_policy else None)
+        freeze = self.trainer.plan_prototype_freeze(planned_updates(a))
+        if freeze is not None:
+            print(f"[loop] prototypes frozen for the first {freeze:,} updates", flush=True)
+            self.run_json["prototype_freeze"] = freeze
+            runs.atomic_write_json(self.run_dir / "run.json", self.run_json)
         server, start_server = discovery.from_args(a)
         self.stack = RosStack(self.run_dir / "logs", domain_id=a.domain_id, discovery_server=server,
                               start_discovery_server=start_server)

@@ -38,6 +38,12 @@ class Schedule:
         collected with the agent after it: C (k + 1)."""
         return self.C * (max(collected_episodes, 0) + 1)
 
+    def planned_updates(self, env_steps: int, time_limit: int, episodes_per_round: int = 1) -> int:
+        """The updates due at an `env_steps` budget of episodes of `time_limit` env steps that
+        end `episodes_per_round` at a time (vectorized envs x ranks): what a whole run makes."""
+        rounds = -(-max(env_steps, 0) // max(time_limit * episodes_per_round, 1))
+        return self.target_updates(rounds * episodes_per_round - self.N) if rounds * episodes_per_round >= self.N else 0
+
     def first_eval(self) -> int:
         return self.eval_every
 

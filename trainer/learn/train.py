@@ -33,6 +33,7 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import numpy as np
 
+from protocad_ros.model.config import plan_prototype_freeze
 from trainer.learn import distributed
 
 from trainer import runs, settings
@@ -93,6 +94,8 @@ class Trainer:
         self.rank_fingerprints: list[dict[str, str]] = []
         self.progress: RunCounters | None = None
         self.counters["updates"] = int(agent.counters()["updates"])
+        if "prototype_freeze" in self.counters:   # resolved when the run started: kept on resume
+            agent.set_prototype_freeze(int(self.counters["prototype_freeze"]))
         self._last_saved: int | None = None
         self.log_every = max(1, int(log_every))
         if resumed and self.dist.is_main:  # lines logged after the checkpoint will be logged again
@@ -140,6 +143,28 @@ class Trainer:
     @property
     def checkpoint_path(self) -> Path:
         return runs.checkpoint_path(self.run_dir)
+
+    @property
+    def prototype_freeze(self) -> int | None:
+        """The update count below which the prototypes get no gradient (None: no prototypes,
+        or not planned yet)."""
+        value = self.counters.get("prototype_freeze")
+        return None if value is None else int(value)
+
+    def plan_prototype_freeze(self, end_updates: int) -> int | None:
+        """Resolve the prototype freeze from the run's plan: its agent's update counter goes
+        from here to `end_updates`. Refuses (ConfigError) a plan that keeps the prototypes
+        frozen for more than a quarter of it unless the config allows it. Once resolved the
+        count travels in the checkpoints, so a resume with a longer plan never re-freezes
+        prototypes that have started to train. None for agents without prototypes."""
+        if not self.agent.set_prototype_freeze(0):
+            return None
+        freeze = self.prototype_freeze
+        if freeze is None:
+            freeze = plan_prototype_freeze(self.cfg, self.updates, end_updates) or 0
+            self.counters["prototype_freeze"] = freeze
+        self.agent.set_prototype_freeze(freeze)
+        return freeze
 
     # ------------------------------------------------------------------ training
     def update(self) -> dict[str, float]:
@@ -437,6 +462,7 @@ def _train(s: TrainSettings, model: settings.ModelChoice, config_args: list[str]
             raise ValueError(f"--resume: cannot read {run_dir / 'config.yaml'}: {exc}") from None
     else:
         cfg = model.to_config(config_args, prog)
+        plan_prototype_freeze(cfg, 0, s.updates or 1000)   # a refused plan leaves no run directory
         # One directory for every rank (the default name has a time stamp): rank 0's.
         run_dir = Path(distributed.gather_objects(
             str(runs.new_run_dir(s.run_dir, "train", cfg.task, cfg.variant)) if ctx.is_main else None, ctx)[0])
@@ -468,13 +494,14 @@ def _train(s: TrainSettings, model: settings.ModelChoice, config_args: list[str]
     if trainer.dataset.action_dim != trainer.agent.action_dim:
         raise ValueError(f"the logs have {trainer.dataset.action_dim}-d actions but the agent "
                          f"{trainer.agent.action_dim}-d")
+    freeze = trainer.plan_prototype_freeze(target)
     namespaces = [n for n in (s.namespace or []) if n] or None
     run_json.update(kind="train", argv=sys.argv, logs=[str(Path(p).resolve()) for p in s.logs],
                     topics_args=list(s.topic), namespace=namespaces,
                     cache_dir=str(Path(s.cache_dir).resolve()) if s.cache_dir else None, task=cfg.task,
                     variant=cfg.variant, preset=cfg.preset, seed=cfg.train.seed, device=device, updates=target,
                     checkpoint_every=s.checkpoint_every, log_every=s.log_every,
-                    rerun=str(rrd) if rrd else None, topics=ds.topics.as_dict(), world_size=ctx.world_size,
+                    rerun=str(rrd) if rrd else None, prototype_freeze=freeze, topics=ds.topics.as_dict(), world_size=ctx.world_size,
                     accept_multiple_publishers=s.accept_multiple_publishers,
                     accept_test_split=s.accept_test_split,
                     settings={"train": settings.as_data(s), "model": settings.as_data(model)})

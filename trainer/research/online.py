@@ -47,6 +47,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from protocad_ros.model.config import plan_prototype_freeze
 from sim_bridge.contract import topics as T
 from trainer import runs, settings
 from trainer.data.dataset import MCAPDataset, TopicMap
@@ -217,6 +218,9 @@ class OnlineSettings:
     (every m and every d equally often; sim_bridge.contract.contexts.TaskSpec.stratified); 0: all.
     8 contexts x 2 episodes = 1.6x the training interaction every 10k env steps, where all
     64 x 5 of walker were 32x"""
+    final_train_contexts: bool = arg(False, group="protocol")
+    """also evaluate the final agent on every training context (--final-episodes each, into
+    eval/final_train.json): the other half of the unseen/train ratio"""
     final_max_contexts: int = arg(0, group="protocol")
     """the final evaluation (and --random-baseline): 0 = every context of the split, the paper
     protocol; K = the stratified subset of K"""
@@ -413,6 +417,27 @@ class Evaluator:
             runs.atomic_write_json(self.eval_dir / "random.json", rnd.to_dict())
             print(format_table(rnd), flush=True)
 
+    def on_train_contexts(self, episodes: int, stop: runs.StopFlag) -> Any:
+        """The final agent on every context of the training split: eval/final_train.json
+        (outside eval.jsonl, whose rows are the test curve)."""
+        from trainer.learn.evaluate import evaluate_checkpoint, format_table, select_contexts
+
+        if not self.ctx.is_main:
+            distributed.barrier_if(self.ctx)
+            return None
+        res = evaluate_checkpoint(None, agent=self.trainer.agent, task=self.task, episodes=episodes,
+                                  contexts=select_contexts(self.task, "train", None, 0), split="train",
+                                  seed=self.seed, device=self.device, workers=self.workers,
+                                  counters=self.c.as_dict(), progress=self.progress, stop=stop)
+        res.policy = f"{self.variant}@{self.c.env_steps}"
+        distributed.barrier_if(self.ctx)
+        if not stop.stop:
+            d = res.to_dict()
+            d.update(env_steps=self.c.env_steps, updates=self.trainer.updates, tag="final_train")
+            runs.atomic_write_json(self.eval_dir / "final_train.json", d)
+            print(format_table(res), flush=True)
+        return res
+
     def log(self, result: Any, tag: str) -> None:
         t, env_steps = self.trainer, self.c.env_steps
         d = result.to_dict()
@@ -469,6 +494,9 @@ class OnlineRun:
         else:
             self.cfg = self.model.to_config(self.config_args, self.prog, s.config_overrides())
             self.cfg.train.device = self.device
+            planned = self._plan(self.cfg).planned_updates(s.env_steps, self.cfg.train.time_limit, s.num_envs * self.world)
+            # before the run directory exists: a refused plan leaves nothing behind
+            plan_prototype_freeze(self.cfg, 0, planned)
             self.run_dir = Path(distributed.gather_objects(   # rank 0's (the default name has a stamp)
                 str(runs.new_run_dir(s.run_dir, "online", self.cfg.task, self.cfg.variant))
                 if self.main_rank else None, ctx)[0])
@@ -476,8 +504,7 @@ class OnlineRun:
                 self.run_dir.mkdir(parents=True, exist_ok=True)
                 self.cfg.save(self.run_dir / "config.yaml")
             distributed.barrier_if(ctx)
-        tr = self.cfg.train
-        self.schedule = Schedule(N=tr.prefill_episodes, C=tr.collect_interval, eval_every=s.eval_every)
+        self.schedule = self._plan(self.cfg)
         self.bags_dir = self.run_dir / "bags"
         self.bags_dir.mkdir(parents=True, exist_ok=True)
         self.cache_dir = Path(s.cache_dir) if s.cache_dir else self.run_dir / "cache"
@@ -486,6 +513,10 @@ class OnlineRun:
             from sim_bridge.contract.contexts import get_task
 
             self.s = dataclasses.replace(s, train_context=get_task(self.cfg.task).validate(s.train_context, "train"))
+
+    def _plan(self, cfg) -> Schedule:
+        tr = cfg.train
+        return Schedule(N=tr.prefill_episodes, C=tr.collect_interval, eval_every=self.s.eval_every)
 
     def _write_run_json(self) -> None:
         from trainer.provenance import code_version, stale_install
@@ -506,7 +537,8 @@ class OnlineRun:
                             "eval_episodes": s.eval_episodes, "eval_max_contexts": s.eval_max_contexts,
                             "final_max_contexts": s.final_max_contexts, "final_episodes": s.final_episodes,
                             "wall_budget": s.wall_budget, "train_context": s.train_context,
-                            "eval_split": s.eval_split, "eval_contexts": s.eval_contexts, "world_size": self.world})
+                            "eval_split": s.eval_split, "eval_contexts": s.eval_contexts, "world_size": self.world,
+                            "env_draws": "per_episode"})
         if self.main_rank:
             runs.atomic_write_json(self.run_dir / "run.json", rj)
 
@@ -541,6 +573,10 @@ class OnlineRun:
                                    log_every=s.log_every, action_dim=len(task_actuators(self.cfg.task)), dist_ctx=ctx)
             self.c = RunCounters(next_eval=self.schedule.first_eval())
         self.trainer.progress = self.c
+        freeze = self.trainer.plan_prototype_freeze(self.schedule.planned_updates(
+            s.env_steps, tr.time_limit, s.num_envs * self.world))
+        if freeze is not None:
+            self.say(f"[online] prototypes frozen for the first {freeze:,} updates", flush=True)
         if s.resume:
             # The data is the truth: every bag on disk counts, also those written after the last
             # checkpoint (their updates are made up by the schedule, which counts from episodes).
@@ -572,11 +608,14 @@ class OnlineRun:
         from sim_bridge.sim.vector import VectorEnv
 
         s, tr, c = self.s, self.cfg.train, self.c
-        seed = distributed.rank_seed(tr.seed * 1000 + c.resumes, self.ctx.rank)
+        # Episode-keyed draws: every run of a seed (each variant of a paired comparison, a
+        # resumed run) meets the same contexts and initial states in the same episodes.
+        seed = distributed.rank_seed(tr.seed * 1000, self.ctx.rank)
         self.venv = VectorEnv(self.cfg.task, s.num_envs, split="train", seed=seed, action_repeat=tr.action_repeat,
                               render_quality=tr.render_quality, time_limit=tr.time_limit,
-                              image_size=tr.image_size, context=s.train_context)
-        random_policy = RandomPolicy(self.venv.action_dim, seed=tr.seed + 1000 * c.resumes)
+                              image_size=tr.image_size, context=s.train_context,
+                              first_episode=c.episodes // (s.num_envs * self.world))
+        random_policy = RandomPolicy(self.venv.action_dim, seed=tr.seed * 1_000_003 + c.episodes)
         agent_policy = Policy(self.trainer.agent, device=self.device, mode="sample",
                               exploration_noise=tr.expl_noise, seed=tr.seed + c.episodes)
         agent_policy.reset(s.num_envs)
@@ -679,6 +718,10 @@ class OnlineRun:
                     if self.main_rank and not stop.stop:
                         print(f"[online] final mean return on {len(final.per_context)} test contexts: "
                               f"{final.mean:.1f}", flush=True)
+                    if self.s.final_train_contexts and not stop.stop:
+                        self.evaluate.on_train_contexts(self.s.final_episodes, stop)
+                    if stop.stop:   # an evaluation cut short: the resume makes it
+                        status = "interrupted"
             except BaseException as exc:
                 cause = exc   # the real error: the clean-up below must neither hide nor replace it
                 raise
@@ -699,7 +742,7 @@ class OnlineRun:
         errors += close_quietly([("closing the metrics", trainer.close)])
         result = {"status": status, "env_steps": c.env_steps, "updates": trainer.updates, "episodes": c.episodes,
                   "wall_time": round(trainer.metrics.wall_time, 1), "precision": self.cfg.train.precision,
-                  "resumes": c.resumes}
+                  "resumes": c.resumes, "prototype_freeze": trainer.prototype_freeze}
         if cause is not None and not isinstance(cause, (KeyboardInterrupt, SystemExit)):
             result["error"] = f"{type(cause).__name__}: {cause}"
         self.run_json["result"] = result

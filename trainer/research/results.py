@@ -25,6 +25,12 @@ Schema (RESULTS_SCHEMA, checked on every save and load):
                "render_quality": "fast" | "default"  (optional: how its envs rendered, from
                its config.yaml; absent in files written before 2026-12-04, whose runs all
                rendered "fast"),
+               "reference", "collect_interval" (C), "prototype_freeze" (the effective count of
+               updates the prototypes were frozen for; null for variants without them)
+               (optional: absent in files written before the freeze was scaled to the run),
+               "final_train": the final evaluation on the training contexts (optional:
+               protocad-online --final-train-contexts),
+               "superseded": why a row no longer counts (optional),
                "carried_from": {"results", "code_version", "machine", "created"}  (optional: a
                run finished elsewhere, taken over by `--from-results`)}],
      "random": {task: {"mean_return", "episodes", "per_context"}}}
@@ -100,6 +106,10 @@ RESULTS_SCHEMA: dict[str, Any] = {
                 "precision": {"type": "string"}, "preset": {"type": "string"},
                 "eval_split": {"enum": ["test", "train"]},
                 "render_quality": {"enum": ["fast", "default"]},
+                "reference": {"type": "string"}, "collect_interval": _INT,
+                "prototype_freeze": {"type": ["integer", "null"]},
+                "final_train": _EVAL,
+                "superseded": {"type": "string"},
                 "final": {"oneOf": [{"type": "null"}, _EVAL]},
                 "curve": {"type": "array", "items": {
                     "type": "object", "required": ["env_steps", "mean_return", "tag"],
@@ -217,20 +227,33 @@ def gather_run(task: str, label: str, variant: str, seed: int, run_dir: Path) ->
             "wall_time_s": float(res.get("wall_time", 0.0)), "precision": str(res.get("precision", "")),
             "preset": str(info.get("preset", "")), "eval_split": proto.get("eval_split") or "test",
             "final": final, "curve": curve}
-    quality = render_quality(run_dir)
-    return {**row, "render_quality": quality} if quality else row
+    try:
+        row["final_train"] = _eval_entry(json.loads((run_dir / "eval" / "final_train.json").read_text()))
+    except (OSError, json.JSONDecodeError, KeyError):
+        pass
+    if "prototype_freeze" in res:
+        row["prototype_freeze"] = res["prototype_freeze"]
+    if "updates_per_episode" in proto:
+        row["collect_interval"] = int(proto["updates_per_episode"])
+    cfg = _saved_config(run_dir)
+    quality = (cfg.get("train") or {}).get("render_quality")
+    if quality:
+        row["render_quality"] = str(quality)
+    if cfg.get("reference"):
+        row["reference"] = str(cfg["reference"])
+    return row
 
 
-def render_quality(run_dir: Path) -> str | None:
-    """train.render_quality of a run's saved config.yaml, or None where there is none to read."""
+def _saved_config(run_dir: Path) -> dict[str, Any]:
+    """A run's saved config.yaml as a mapping ({} where there is none to read)."""
     import yaml
 
     try:
         cfg = yaml.safe_load((Path(run_dir) / "config.yaml").read_text()) or {}
     except (OSError, yaml.YAMLError):
-        return None
-    quality = (cfg.get("train") or {}).get("render_quality") if isinstance(cfg, dict) else None
-    return str(quality) if quality else None
+        return {}
+    return cfg if isinstance(cfg, dict) else {}
+
 
 
 def runs_code_version(specs: Iterable[Any]) -> str:

@@ -57,7 +57,9 @@ def test_config_defaults_are_the_paper_tables():
         (32, 0.1, 3, 0.05, 0.05)
     # DreamerPro dmc config
     assert (wm.deter, wm.hidden, wm.stoch, wm.discrete, wm.cnn_depth) == (200, 200, 32, 0, 48)
-    assert (wm.kl_balance, wm.kl_free, ctx.freeze_prototypes_updates) == (0.8, 1.0, 10000)
+    assert (wm.kl_balance, wm.kl_free) == (0.8, 1.0)
+    # DreamerPro's 10,000 of its ~100k updates, as a share of the run (-1 = auto)
+    assert (ctx.freeze_prototypes_updates, ctx.freeze_prototypes_fraction) == (-1, 0.1)
     assert (bh.actor_grad, bh.actor_entropy, bh.slow_critic_update, bh.lambda_) == \
         ("dynamics", 1e-4, 100, 0.95)
     assert wm.discount_head is False
@@ -179,7 +181,7 @@ def test_losses_reach_projector_and_prototypes_only_as_the_paper_says(real_batch
     agent = Agent(tiny(variant), action_dim=1)
     ctx = agent.wm.context
     batch = agent.to_batch(real_batch)
-    step = agent.cfg.context.freeze_prototypes_updates  # past the freeze window
+    step = ctx.freeze_prototypes_steps  # past the freeze window
     _, terms, _, _ = agent.wm.loss(batch, step)
     proj, protos = ctx.projector.weight, ctx.prototypes
     # Reward head reads s only (eq. 7); KL involves only the RSSM.

@@ -19,8 +19,9 @@ DREAMERPRO_DMC = {
     ("world_model", "discrete"): 0, ("context", "sinkhorn_eps"): 0.0125,
     ("context", "drop_first_steps"): 1, ("context", "dreamerpro_num_prototypes"): 2500,
     ("context", "proto_dim"): 32, ("context", "temperature"): 0.1, ("context", "sinkhorn_iters"): 3,
-    # freeze_prototypes_iters 10000, ema_update_fraction 0.05, aug.max_delta 3
-    ("context", "freeze_prototypes_updates"): 10000, ("context", "ema"): 0.05, ("context", "aug_pad"): 3,
+    # freeze_prototypes_iters 10000 of its 100k updates (1M env steps / A 2 / train_every 5): a
+    # tenth of the run, here auto (-1) at 0.1; ema_update_fraction 0.05, aug.max_delta 3
+    ("context", "freeze_prototypes_updates"): -1, ("context", "freeze_prototypes_fraction"): 0.1, ("context", "ema"): 0.05, ("context", "aug_pad"): 3,
     # loss_scales {swav 1, temp 1, norm 1, kl 1, reward 1}; dmc kl.free 1.0; kl balance 0.8, free_avg
     ("context", "swav_scale"): 1.0, ("context", "dreamerpro_temp_scale"): 1.0,
     ("context", "dreamerpro_norm_scale"): 1.0, ("world_model", "kl_scale"): 1.0,

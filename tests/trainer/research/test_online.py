@@ -19,9 +19,17 @@ ARGS = ["--task", "pendulum_swingup", *TINY, "--time-limit", "40", "--prefill-ep
 def test_online_runs_end_to_end_and_resumes(tmp_path):
     run = tmp_path / "run"
     r = run_cli("trainer.research.online", *ARGS, "--env-steps", "160", "--num-envs", "2", "--run-dir", run,
-                "--random-baseline", timeout=300)
+                "--random-baseline", "--final-train-contexts", timeout=300)
     assert r.returncode == 0, r.stdout + r.stderr
     assert "finished: 160 env steps, 4 episodes" in r.stdout
+    # the freeze is a tenth of the planned updates (6, below), recorded where results read it
+    info = json.loads((run / "run.json").read_text())
+    assert info["result"]["prototype_freeze"] == 1 and "prototypes frozen for the first 1 updates" in r.stdout
+    from trainer.research.results import gather_run
+
+    row = gather_run("pendulum_swingup", "protocad", "protocad", 0, run)
+    assert (row["prototype_freeze"], row["collect_interval"]) == (1, 2)
+    assert len(row["final_train"]["per_context"]) == 11 and row["final_train"]["episodes"] == 11
     bags = sorted(p for p in (run / "bags").iterdir())
     assert len(bags) == 4                                # one bag per episode per env
     # the bags are real MCAP: the mcap library's own reader with the ros2 decoder reads them
