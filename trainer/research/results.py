@@ -354,7 +354,7 @@ def final_scores(doc: Mapping[str, Any]) -> dict[tuple[str, str], list[dict]]:
     """(task, label) -> the runs that have a final evaluation, in seed order."""
     out: dict[tuple[str, str], list[dict]] = {}
     for r in sorted(doc["runs"], key=lambda r: (r["task"], r["label"], r["seed"])):
-        if r["final"] is not None:
+        if r["final"] is not None and not r.get("superseded"):
             out.setdefault((r["task"], r["label"]), []).append(r)
     return out
 
@@ -369,7 +369,7 @@ def summarize(doc: Mapping[str, Any], reps: int = 10_000) -> dict[str, Any]:
         lo, hi = bootstrap_ci([scores], aggregate_mean, reps=reps)
         paper = PAPER_TABLE1.get(task, {}).get(label)
         rows.append({"task": task, "label": label, "n": len(rs), "mean": float(scores.mean()),
-                     "ci": (lo, hi), "env_steps": sorted({r["env_steps"] for r in rs}),
+                     "ci": (lo, hi), "range": (float(scores.min()), float(scores.max())), "env_steps": sorted({r["env_steps"] for r in rs}),
                      "updates": sorted({r["updates"] for r in rs}), "paper": paper,
                      "statuses": sorted({r["status"] for r in rs}),
                      "eval_split": rs[0]["eval_split"]})
@@ -389,6 +389,66 @@ def _ci(v: float, ci: tuple[float, float]) -> str:
     return f"{v:.1f} [{ci[0]:.1f}, {ci[1]:.1f}]"
 
 
+#: Below this many seeds a percentile bootstrap of the mean is little more than [min, max]
+#: (with 3 seeds exactly that): tables show the range and call it one.
+MIN_SEEDS_FOR_CI = 5
+
+
+def _mean_and_spread(r: Mapping[str, Any]) -> str:
+    if r["n"] < MIN_SEEDS_FOR_CI:
+        return f"{r['mean']:.1f} (range {r['range'][0]:.1f}-{r['range'][1]:.1f})"
+    return _ci(r["mean"], r["ci"])
+
+
+def paired_difference(doc: Mapping[str, Any], task: str, a: str = "protocad", b: str = "dreamer",
+                      confidence: float = 0.95) -> dict[str, Any] | None:
+    """The primary metric of a paired comparison: per seed that both labels finished, the final
+    return of `a` minus that of `b`; their mean with a Student-t interval over the seeds (None
+    with fewer than 2 pairs)."""
+    from scipy import stats
+
+    scores = final_scores(doc)
+    by_seed = [{r["seed"]: r["final"]["mean_return"] for r in scores.get((task, lab), [])} for lab in (a, b)]
+    seeds = sorted(set(by_seed[0]) & set(by_seed[1]))
+    if len(seeds) < 2:
+        return None
+    diffs = np.array([by_seed[0][s] - by_seed[1][s] for s in seeds])
+    half = stats.t.ppf((1 + confidence) / 2, len(diffs) - 1) * diffs.std(ddof=1) / np.sqrt(len(diffs))
+    mean = float(diffs.mean())
+    return {"task": task, "a": a, "b": b, "seeds": seeds, "diffs": [float(d) for d in diffs],
+            "mean": mean, "ci": (mean - float(half), mean + float(half))}
+
+
+def unseen_train_ratio(doc: Mapping[str, Any], task: str, label: str) -> dict[str, Any] | None:
+    """Mean over seeds of (final return on unseen contexts) / (final return on training
+    contexts), for the runs evaluated on both (protocad-online --final-train-contexts)."""
+    ratios = [r["final"]["mean_return"] / r["final_train"]["mean_return"]
+              for r in final_scores(doc).get((task, label), [])
+              if r.get("final_train") and r["final_train"]["mean_return"] > 0]
+    if not ratios:
+        return None
+    return {"task": task, "label": label, "n": len(ratios), "mean": float(np.mean(ratios)),
+            "range": (float(min(ratios)), float(max(ratios)))}
+
+
+def paired_lines(doc: Mapping[str, Any]) -> list[str]:
+    """The paired difference and the unseen/train ratios, one line each, where the runs have them."""
+    out = []
+    tasks = sorted({r["task"] for r in doc["runs"]})
+    for task in tasks:
+        d = paired_difference(doc, task)
+        if d is not None:
+            verdict = ("ahead" if d["ci"][0] > 0 else "behind" if d["ci"][1] < 0 else "no difference shown")
+            out.append(f"{task}: {d['a']} - {d['b']} paired over seeds {d['seeds']}: {d['mean']:+.1f} "
+                       f"[95% t-interval {d['ci'][0]:+.1f}, {d['ci'][1]:+.1f}] ({verdict})")
+        for label in sorted({r["label"] for r in doc["runs"] if r["task"] == task}):
+            q = unseen_train_ratio(doc, task, label)
+            if q is not None:
+                out.append(f"{task}: {label} unseen/train ratio {q['mean']:.2f} over {q['n']} seed(s) "
+                           f"(range {q['range'][0]:.2f}-{q['range'][1]:.2f})")
+    return out
+
+
 def _steps(values: Sequence[int]) -> str:
     return f"{values[0]:,}" if len(values) == 1 else f"{values[0]:,}-{values[-1]:,}"
 
@@ -398,7 +458,8 @@ def _paper(p: tuple[float, float] | None) -> str:
 
 
 def table_rows(doc: Mapping[str, Any], summary: Mapping[str, Any]) -> tuple[list[str], list[list[str]]]:
-    head = ["task", "variant", "seeds", "env steps", "updates", "final return, mean [95% CI]",
+    head = ["task", "variant", "seeds", "env steps", "updates",
+            f"final return, mean [95% CI] (range below {MIN_SEEDS_FOR_CI} seeds)",
             "random policy", f"paper ({PAPER_ENV_STEPS // 1_000_000}M steps)"]
     rows = []
     for r in summary["rows"]:
@@ -406,7 +467,7 @@ def table_rows(doc: Mapping[str, Any], summary: Mapping[str, Any]) -> tuple[list
         ctx = standard_context(r["task"])
         label = r["label"] + ("" if r["eval_split"] == "test" else f" (train and eval on {ctx})")
         rows.append([r["task"], label, str(r["n"]), _steps(r["env_steps"]), _steps(r["updates"]),
-                     _ci(r["mean"], r["ci"]), "-" if rnd is None else f"{rnd['mean_return']:.1f}",
+                     _mean_and_spread(r), "-" if rnd is None else f"{rnd['mean_return']:.1f}",
                      _paper(r["paper"])])
     return head, rows
 
@@ -452,6 +513,12 @@ def format_report(doc: Mapping[str, Any]) -> str:
            + carried_sentence(doc), "",
            _text_table(*table_rows(doc, s)), "", "over tasks (test contexts; stratified bootstrap):",
            _text_table(*aggregate_rows(s))]
+    paired = paired_lines(doc)
+    if paired:
+        out += ["", "paired (the primary metric of msgs_docs/results.md):", *paired]
+    superseded = superseded_lines(doc)
+    if superseded:
+        out += ["", "superseded (kept as measured, counted nowhere):", *superseded]
     progress = progress_rows(doc)
     if progress[1]:
         out += ["", f"not finished ({len(progress[1])} of {len(doc['runs'])} runs; as of {doc['created']}):",
@@ -484,7 +551,8 @@ def _machine_line(m: Mapping[str, Any]) -> str:
 def curves(doc: Mapping[str, Any], task: str, label: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Env steps, mean over seeds and a 95% bootstrap interval of the test return at every
     env-step count that every seed of (task, label) evaluated at."""
-    rs = [r for r in doc["runs"] if r["task"] == task and r["label"] == label and r["curve"]]
+    rs = [r for r in doc["runs"] if r["task"] == task and r["label"] == label and r["curve"]
+          and not r.get("superseded")]
     if not rs:
         return (np.zeros(0),) * 4
     per_run = [{c["env_steps"]: c["mean_return"] for c in r["curve"]} for r in rs]
@@ -535,7 +603,14 @@ def anchor_rows(doc: Mapping[str, Any]) -> tuple[list[str], list[list[str]]]:
 
 
 def labels_of(doc: Mapping[str, Any], task: str) -> list[str]:
-    return sorted({r["label"] for r in doc["runs"] if r["task"] == task})
+    return sorted({r["label"] for r in doc["runs"] if r["task"] == task and not r.get("superseded")})
+
+
+def superseded_lines(doc: Mapping[str, Any]) -> list[str]:
+    """One line per superseded row: kept as measured, counted nowhere."""
+    return [f"{r['task']} {r['label']} seed {r['seed']}"
+            + (f" ({r['final']['mean_return']:.1f})" if r["final"] else "") + f": {r['superseded']}"
+            for r in sorted(doc["runs"], key=lambda r: (r["task"], r["label"], r["seed"])) if r.get("superseded")]
 
 
 def plot_curves(doc: Mapping[str, Any], path: str | Path) -> Path:
@@ -661,8 +736,17 @@ def _section_body(doc: Mapping[str, Any]) -> list[str]:
              f"Machine: {_machine_line(doc['machine'])}. Code: {doc['code_version']}. "
              f"Budget {b['env_steps']:,} env steps per run{wall}; {b['jobs']} runs at once, "
              f"{b['threads_per_run']} torch thread(s) each; the grid took {doc['wall_time_s'] / 60:.0f} min "
-             f"of wall time{carried_sentence(doc)}. Run endings: {', '.join(statuses)}.", "",
-             _md_table(*table_rows(doc, s)), ""]
+             f"of wall time{carried_sentence(doc)}. Run endings: {', '.join(statuses)}.", ""]
+    head, rows = table_rows(doc, s)
+    if rows:
+        lines += [_md_table(head, rows), ""]
+    paired = paired_lines(doc)
+    if paired:
+        lines += ["Paired (the primary metric of [results.md](msgs_docs/results.md)):", "",
+                  *(f"- {p}" for p in paired), ""]
+    superseded = superseded_lines(doc)
+    if superseded:
+        lines += ["Superseded (kept as measured, counted nowhere):", "", *(f"- {x}" for x in superseded), ""]
     progress = progress_rows(doc)
     if progress[1]:
         lines += [f"Not finished yet ({len(progress[1])} of {len(doc['runs'])} runs; as of {doc['created']}):", "",

@@ -166,6 +166,28 @@ def test_seed_reproduces_contexts_and_frames():
     assert not np.array_equal(runs[0][0][1], runs[2][0][1])
 
 
+def test_episode_keyed_draws_do_not_depend_on_what_came_before():
+    """Paired runs and resumes: episode k of a seed is the same episode whether the env was
+    built at episode 0 and ran k episodes (each a different length) or built at k."""
+    def episode(env, steps):
+        obs = env.reset()
+        for _ in range(steps):
+            env.step(np.full(env.action_dim, 0.3))
+        return obs.context, obs.image, env.physics.data.qpos.copy()
+
+    with ContextDMCEnv("walker_walk", seed=7, first_episode=0) as env:
+        history = [episode(env, steps) for steps in (1, 5, 2, 0)]
+    with ContextDMCEnv("walker_walk", seed=7, first_episode=2) as env:
+        resumed = [episode(env, 0), episode(env, 0)]
+    for (c1, f1, q1), (c2, f2, q2) in zip(history[2:], resumed):
+        assert c1 == c2
+        np.testing.assert_array_equal(f1, f2)          # same initial state and first frame
+    assert len({tuple(sorted(c.items())) for c, _, _ in history}) > 1   # episodes still differ
+    with ContextDMCEnv("walker_walk", seed=8, first_episode=2) as env:
+        _, other_frame, other_qpos = episode(env, 0)
+    assert not np.array_equal(other_qpos, resumed[0][2])   # another seed, another episode 2
+
+
 def test_step_repeats_actions_and_sums_rewards_like_dm_control(make_env):
     from dm_control import suite
     env = make_env("cheetah_run", "train")

@@ -168,6 +168,36 @@ def test_bootstrap_interval_matches_the_exact_bootstrap_distribution():
         R.bootstrap_ci([scores], R.aggregate_mean, reps=500, seed=3)
 
 
+def _paired_doc(a: list[float], b: list[float]) -> dict:
+    """A results document of two labels on walker_walk with these final returns per seed."""
+    doc = json.loads((ROOT / "msgs_docs" / "results" / "pendulum_cpu.json").read_text())
+    template = doc["runs"][0]
+    doc["runs"] = [{**template, "task": "walker_walk", "label": label, "variant": label, "seed": seed,
+                    "final": {"mean_return": v, "episodes": 320, "per_context": {}},
+                    "final_train": {"mean_return": 2 * v, "episodes": 125, "per_context": {}}}
+                   for label, values in (("protocad", a), ("dreamer", b)) for seed, v in enumerate(values)]
+    R.validate(doc)
+    return doc
+
+
+def test_the_paired_difference_is_the_mean_of_per_seed_differences_with_a_t_interval():
+    doc = _paired_doc([10, 20, 30, 40, 50], [5, 25, 20, 30, 45])
+    d = R.paired_difference(doc, "walker_walk")
+    # differences 5, -5, 10, 10, 5: mean 5, sd sqrt(150 / 4), t(0.975, 4) = 2.7764
+    half = 2.7764451 * np.sqrt(150 / 4) / np.sqrt(5)
+    assert d["diffs"] == [5, -5, 10, 10, 5] and d["mean"] == pytest.approx(5)
+    assert d["ci"] == pytest.approx((5 - half, 5 + half), abs=1e-4)
+    assert R.unseen_train_ratio(doc, "walker_walk", "protocad")["mean"] == pytest.approx(0.5)
+    assert "no difference shown" in R.paired_lines(doc)[0]
+    # a superseded row and a seed only one label finished are not pairs
+    doc["runs"][0]["superseded"] = "its prototypes never trained"
+    doc["runs"] = [r for r in doc["runs"] if not (r["label"] == "dreamer" and r["seed"] == 4)]
+    assert R.paired_difference(doc, "walker_walk")["seeds"] == [1, 2, 3]
+    # below 5 seeds a table shows the range, and calls it one
+    head, rows = R.table_rows(doc, R.summarize(doc, reps=100))
+    assert "(range 20.0-50.0)" in rows[1][5] and "range below 5 seeds" in head[5]
+
+
 def test_iqm_and_aggregates_match_hand_computed_values():
     # 8 scores: IQM drops the 2 lowest and the 2 highest and averages the middle 4.
     assert R.iqm(np.array([0, 1, 2, 3, 4, 5, 6, 100.0])) == pytest.approx((2 + 3 + 4 + 5) / 4)

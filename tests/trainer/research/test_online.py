@@ -273,3 +273,15 @@ def test_a_full_disk_is_one_line_with_the_cause_and_the_run_resumes_after_space_
     grow()   # free space, then the same run to completion
     r = run_cli("trainer.research.online", "--run-dir", run, "--resume", "--no-progress", timeout=300)
     assert r.returncode == 0 and "finished: 240 env steps" in r.stdout, r.stdout + r.stderr
+
+
+@pytest.mark.process
+def test_a_run_whose_prototypes_would_stay_frozen_is_refused_before_it_starts(tmp_path):
+    run = tmp_path / "run"
+    # 6 planned updates (4 episodes of 40 env steps, N=2, C=2), a freeze of 100: never trained
+    r = run_cli("trainer.research.online", *ARGS, "--env-steps", "160", "--num-envs", "2", "--run-dir", run,
+                "--set", "context.freeze_prototypes_updates=100", timeout=120)
+    assert r.returncode == 2, r.stdout + r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "frozen for 6 of this run's 6 updates" in lines[0], r.stderr
+    assert not run.exists()                  # nothing to clean up
