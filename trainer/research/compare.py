@@ -378,10 +378,11 @@ class GridSettings:
     markdown: bool = arg(False, group="output")
     """print the README results section (generated from results.json)"""
     update_readme: str | None = arg(None, metavar="README", group="output")
-    """replace the generated results section of this README in place"""
+    """replace the generated results section of this markdown file (README.md, or
+    msgs_docs/results.md where the CPU results live) in place"""
     image: str | None = arg(None, metavar="PNG", group="output")
     """also write the learning-curve plot here, and link it from the markdown section (a path
-    relative to the README)"""
+    from the repository root; the link is made relative to --update-readme's file)"""
     rrd: str | None = arg(None, metavar="RRD", group="output")
     """write the curves' rerun recording here (a grid also writes OUT/curves.rrd)"""
     random_baseline: bool = arg(False, group="output")
@@ -486,7 +487,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         if a.markdown:
             print(R.markdown_section(docs, image=a.image, sources=sources))
         if a.update_readme:
-            R.update_readme(Path(a.update_readme), R.markdown_section(docs, image=a.image, sources=sources))
+            R.update_readme(Path(a.update_readme), R.markdown_section(docs, image=a.image, sources=sources,
+                                                                      target=a.update_readme))
             print(f"[compare] updated the results section of {a.update_readme}", flush=True)
         if a.ship:
             from trainer.research.ship import ship_best

@@ -764,22 +764,24 @@ def _section_body(doc: Mapping[str, Any]) -> list[str]:
 
 
 def markdown_section(docs: Sequence[Mapping[str, Any]], image: str | None = None,
-                     sources: Sequence[str] | None = None) -> str:
-    """The README's results section from one or more results.json documents (`sources`: their
-    paths, in the same order): per document its command, machine, budget and tables, then the
-    plot of all their curves. Everything in it comes from `docs` (and the given image link and
+                     sources: Sequence[str] | None = None, target: str = "README.md") -> str:
+    """The generated results section of `target` (a markdown file, paths relative to the
+    repository root) from one or more results.json documents (`sources`: their paths, in the
+    same order): per document its command, machine, budget and tables, then the plot of all
+    their curves, linked relative to `target`. Everything in it comes from `docs` (and the given
     paths), so it regenerates byte-identically."""
     names = list(sources) if sources else ["results.json"] * len(docs)
     lines = [BEGIN,
              f"*Generated from {' and '.join(f'`{n}`' for n in names)} by `protocad-compare --report "
-             f"{' '.join(names)}{f' --image {image}' if image else ''} --update-readme README.md`; "
+             f"{' '.join(names)}{f' --image {image}' if image else ''} --update-readme {target}`; "
              "do not edit by hand.*", ""]
     for doc, name in zip(docs, names):
         if len(docs) > 1:
             lines += [f"**`{name}`**", ""]
         lines += _section_body(doc)
     if image:
-        lines += [f"![test-context return vs env steps]({image})", ""]
+        link = image if os.path.isabs(image) else os.path.relpath(image, Path(target).parent)
+        lines += [f"![test-context return vs env steps]({link})", ""]
     lines.append(END)
     return "\n".join(lines)
 

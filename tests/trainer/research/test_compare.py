@@ -211,14 +211,16 @@ def test_iqm_and_aggregates_match_hand_computed_values():
     assert lo == hi == 5.0
 
 
-def test_readme_results_section_regenerates_byte_identically_from_the_committed_json():
-    # the files and plot it names in its own first line, regenerated: the README says what they hold
-    section = R.readme_section(ROOT / "README.md")
-    named = re.search(r"by `protocad-compare --report (.+?) --image (\S+) --update-readme README.md`", section)
+def test_the_generated_results_section_regenerates_byte_identically_from_the_committed_json():
+    # the files and plot it names in its own first line, regenerated: the page says what they hold
+    target = "msgs_docs/results.md"
+    section = R.readme_section(ROOT / target)
+    named = re.search(rf"by `protocad-compare --report (.+?) --image (\S+) --update-readme {target}`", section)
     sources, image = named.group(1).split(), named.group(2)
     assert "msgs_docs/results/walker_anchor_cpu.json" in sources
     docs = [R.load_results(ROOT / s) for s in sources]
-    assert section == R.markdown_section(docs, image=image, sources=sources)
+    assert section == R.markdown_section(docs, image=image, sources=sources, target=target)
+    assert "![test-context return vs env steps](results/walker_cpu.png)" in section   # relative to the page
     assert (ROOT / image).exists()
     # the anchor's verdicts, from the committed curves and DreamerV2's committed points
     assert "| walker_walk | 30,000 | 133.3 (n=2) | 130 (83-239) | yes |" in section
