@@ -1,177 +1,59 @@
-"""The rosbag2 (Jazzy) MCAP writer: BagWriter and the QoS profiles it records.
+"""The rosbag2 (Jazzy) MCAP writer: BagWriter.
 
 Written by hand, on the mcap library's record layer: the mcap Writer cannot write a bag that
 stays valid when the disk fills or the process is killed mid-way (checked writes with a kept
-reserve, a cut to the last complete chunk and index, DataEnd + footer), split files by size/duration,
-nor the metadata record and ``metadata.yaml`` rosbag2 writes. Layout: msgs_docs/mcap_layout.md.
+reserve, a cut to the last complete chunk and index, DataEnd + footer: trainer/bag/disk_safety.py),
+split files by size/duration, nor the metadata record and ``metadata.yaml`` rosbag2 writes
+(trainer/bag/bag_info.py). Layout: msgs_docs/mcap_layout.md.
 """
 from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass
-from importlib.metadata import PackageNotFoundError, version as _pkg_version
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Mapping
 
-
-from trainer.bag.rosmsg import (TypeSupportError, _try_type_hash, encode,
-                            message_definition_with_encoding, normalize_type)
+from protocad_ros.atomic import atomic_write_text, remove_stale_temporaries
+from trainer.bag.bag_info import (DEFAULT_OFFERED_QOS, INT64_MAX, METADATA_VERSION, FileInfo, TopicInfo,
+                                  bag_metadata, library_string, plain_type, qos_profile, qos_yaml, topic_info)
+from trainer.bag.disk_safety import CheckedFile as _CheckedFile
+from trainer.bag.disk_safety import FailureRecovery, drop_reserve, make_reserve
+from trainer.bag.rosmsg import encode
 from trainer.bag.yamlcpp import yaml_cpp_dump
 
-METADATA_VERSION = 9            # rosbag2 Jazzy's rosbag2_bagfile_information version
+__all__ = ["BagWriter", "BagWriteError", "DEFAULT_CHUNK_SIZE", "DEFAULT_OFFERED_QOS", "MCAP_MAGIC",
+           "METADATA_VERSION", "MIN_SPLIT_SIZE", "ROS_DISTRO_DEFAULT", "qos_profile", "qos_yaml"]
+
 ROS_DISTRO_DEFAULT = "jazzy"    # written when $ROS_DISTRO is unset (PyPI ROS has no setup.bash)
 MIN_SPLIT_SIZE = 1024           # rosbag2 MCAPStorage::get_minimum_split_file_size()
 DEFAULT_CHUNK_SIZE = 768 * 1024  # mcap C++ DefaultChunkSize, what rosbag2 uses
-INT64_MAX = 2**63 - 1           # rosbag2's "no time yet" (std::chrono::nanoseconds::max())
 MCAP_MAGIC = b"\x89MCAP0\r\n"
+_COMPRESSION = {"zstd": "ZSTD", "lz4": "LZ4", "none": "NONE", "": "NONE", None: "NONE"}
 
 
 class BagWriteError(RuntimeError):
     """Misuse of BagWriter (write after close, unknown topic, existing bag directory...)."""
 
 
-# ---------------------------------------------------------------------------------------------
-# QoS profiles as rosbag2 serializes them (metadata version 9: enum names, {sec, nsec})
-# ---------------------------------------------------------------------------------------------
-
-INFINITE_NS = INT64_MAX  # RMW_DURATION_INFINITE = {9223372036, 854775807}
-
-
-def _duration(ns: int) -> dict[str, int]:
-    sec, nsec = divmod(int(ns), 1_000_000_000)
-    return {"sec": sec, "nsec": nsec}
-
-
-def qos_profile(history: str = "unknown", depth: int = 0, reliability: str = "reliable",
-                durability: str = "volatile", deadline_ns: int = INFINITE_NS,
-                lifespan_ns: int = INFINITE_NS, liveliness: str = "automatic",
-                liveliness_lease_duration_ns: int = INFINITE_NS,
-                avoid_ros_namespace_conventions: bool = False) -> dict[str, Any]:
-    """One offered QoS profile in rosbag2's v9 form. Defaults = what the ROS graph reports for a
-    reliable, volatile publisher (DDS does not propagate history: 'unknown', depth 0)."""
-    return {
-        "history": history, "depth": int(depth), "reliability": reliability,
-        "durability": durability, "deadline": _duration(deadline_ns),
-        "lifespan": _duration(lifespan_ns), "liveliness": liveliness,
-        "liveliness_lease_duration": _duration(liveliness_lease_duration_ns),
-        "avoid_ros_namespace_conventions": bool(avoid_ros_namespace_conventions),
-    }
+def check_options(compression: str | None, chunk_size: int, max_bagfile_size: int,
+                  max_bagfile_duration_s: float, flush_interval_s: float,
+                  custom_data: Mapping[str, str] | None) -> None:
+    """ValueError for options rosbag2 would refuse (its own message for a too small split)."""
+    if compression not in _COMPRESSION:
+        raise ValueError(f"compression {compression!r}; valid: 'zstd', 'lz4', 'none'")
+    if chunk_size <= 0:
+        raise ValueError(f"chunk_size must be > 0, got {chunk_size}")
+    if max_bagfile_size and max_bagfile_size < MIN_SPLIT_SIZE:
+        raise ValueError(f"Invalid bag splitting size given. Please provide a value greater "
+                         f"than {MIN_SPLIT_SIZE}. Specified value of {max_bagfile_size}")
+    if max_bagfile_size < 0 or max_bagfile_duration_s < 0 or flush_interval_s < 0:
+        raise ValueError("split sizes, durations and flush interval must be >= 0")
+    for k, v in (custom_data or {}).items():
+        if not isinstance(k, str) or not isinstance(v, str):
+            raise ValueError(f"custom_data must map str to str, got {k!r}: {v!r}")
 
 
-DEFAULT_OFFERED_QOS = (qos_profile(),)
-
-
-def qos_yaml(profiles: Sequence[Mapping[str, Any]]) -> str:
-    """The channel metadata value rosbag2 writes (serialize_rclcpp_qos_vector)."""
-    return yaml_cpp_dump(list(profiles))
-
-
-def _parse_qos(qos: Any) -> list[dict[str, Any]]:
-    if qos is None:
-        return []
-    if isinstance(qos, str):
-        import yaml
-        loaded = yaml.safe_load(qos) if qos.strip() else []
-        if not isinstance(loaded, list):
-            raise ValueError(f"offered_qos_profiles YAML must be a list, got {type(loaded)}")
-        return [dict(x) for x in loaded]
-    if isinstance(qos, Mapping):
-        return [dict(qos)]
-    return [dict(x) for x in qos]
-
-
-# ---------------------------------------------------------------------------------------------
-# BagWriter
-# ---------------------------------------------------------------------------------------------
-
-def _library_string() -> str:
-    def ver(name: str) -> str:
-        try:
-            return _pkg_version(name)
-        except PackageNotFoundError:
-            return "unknown"
-    return f"protocad-ros {ver('protocad-ros')} trainer.bag.mcap_io; mcap-python {ver('mcap')}"
-
-
-@dataclass
-class _TopicInfo:
-    name: str
-    msgtype: str
-    serialization_format: str
-    qos: list[dict[str, Any]]
-    type_hash: str
-    encoding: str
-    definition: str
-    message_count: int = 0
-
-    def metadata(self) -> dict[str, Any]:
-        return {"topic_metadata": {
-            "name": self.name, "type": self.msgtype,
-            "serialization_format": self.serialization_format,
-            "offered_qos_profiles": self.qos, "type_description_hash": self.type_hash},
-            "message_count": self.message_count}
-
-
-@dataclass
-class _FileInfo:
-    path: str
-    starting_time: int = INT64_MAX
-    end_time: int = 0
-    message_count: int = 0
-
-    def metadata(self) -> dict[str, Any]:
-        dur = self.end_time - self.starting_time if self.message_count else 0
-        return {"path": self.path, "starting_time": {"nanoseconds_since_epoch": self.starting_time},
-                "duration": {"nanoseconds": dur}, "message_count": self.message_count}
-
-
-_COMPRESSION = {"zstd": "ZSTD", "lz4": "LZ4", "none": "NONE", "": "NONE", None: "NONE"}
-
-
-RESERVE_BYTES = 64 * 1024   # kept free beside the bag, to close it validly on a full disk
-_DATA_END = b"\x0f" + (4).to_bytes(8, "little") + (0).to_bytes(4, "little")
-_FOOTER = b"\x02" + (20).to_bytes(8, "little") + bytes(20) + b"\x89MCAP0\r\n"
-
-
-class _CheckedFile:
-    """An unbuffered file for the mcap Writer that never writes a record half-way silently:
-    a short write is retried until complete or an OSError, and `good` is the end of the last
-    complete write (the mcap Writer writes each chunk, index and summary record in one call)."""
-
-    def __init__(self, path: Path):
-        self._f = open(path, "xb", buffering=0)
-        self.good = 0
-
-    def write(self, data) -> int:
-        view = memoryview(data).cast("B")
-        done = 0
-        while done < len(view):
-            n = self._f.write(view[done:])
-            if not n:
-                raise OSError(28, "No space left on device (short write)")
-            done += n
-        self.good = self._f.tell()
-        return done
-
-    def tell(self) -> int:
-        return self._f.tell()
-
-    def flush(self) -> None:
-        pass
-
-    def fileno(self) -> int:
-        return self._f.fileno()
-
-    def close(self) -> None:
-        self._f.close()
-
-    @property
-    def closed(self) -> bool:
-        return self._f.closed
-
-
-class BagWriter:
+class BagWriter(FailureRecovery):
     """Write a rosbag2 (Jazzy, MCAP storage) bag directory.
 
     BagWriter(bag_dir, compression='zstd'|'lz4'|'none', chunk_size=768 KiB, max_bagfile_size=0
@@ -190,19 +72,10 @@ class BagWriter:
                  chunk_size: int = DEFAULT_CHUNK_SIZE, max_bagfile_size: int = 0,
                  max_bagfile_duration_s: float = 0, flush_interval_s: float = 0,
                  custom_data: Mapping[str, str] | None = None, ros_distro: str | None = None):
-        import mcap.writer as mw
-        if compression not in _COMPRESSION:
-            raise ValueError(f"compression {compression!r}; valid: 'zstd', 'lz4', 'none'")
-        if chunk_size <= 0:
-            raise ValueError(f"chunk_size must be > 0, got {chunk_size}")
-        if max_bagfile_size and max_bagfile_size < MIN_SPLIT_SIZE:
-            raise ValueError(f"Invalid bag splitting size given. Please provide a value greater "
-                             f"than {MIN_SPLIT_SIZE}. Specified value of {max_bagfile_size}")
-        if max_bagfile_size < 0 or max_bagfile_duration_s < 0 or flush_interval_s < 0:
-            raise ValueError("split sizes, durations and flush interval must be >= 0")
-        for k, v in (custom_data or {}).items():
-            if not isinstance(k, str) or not isinstance(v, str):
-                raise ValueError(f"custom_data must map str to str, got {k!r}: {v!r}")
+        import mcap.writer as mw   # deliberately lazy: the mcap library only where bags are written
+
+        check_options(compression, chunk_size, max_bagfile_size, max_bagfile_duration_s, flush_interval_s,
+                      custom_data)
         self.bag_dir = Path(bag_dir)
         if self.bag_dir.exists() and (not self.bag_dir.is_dir() or any(self.bag_dir.iterdir())):
             raise BagWriteError(f"Bag directory already exists ({self.bag_dir}), "
@@ -217,9 +90,9 @@ class BagWriter:
         self.flush_interval_s = float(flush_interval_s)
         self.custom_data = dict(custom_data) if custom_data else None
         self.ros_distro = ros_distro or os.environ.get("ROS_DISTRO") or ROS_DISTRO_DEFAULT
-        self.library = _library_string()
-        self._topics: dict[str, _TopicInfo] = {}
-        self._files: list[_FileInfo] = []
+        self.library = library_string()
+        self._topics: dict[str, TopicInfo] = {}
+        self._files: list[FileInfo] = []
         self._start = INT64_MAX
         self._end = 0
         self._count = 0
@@ -235,15 +108,13 @@ class BagWriter:
         self.failure: str | None = None
         self.lost_after_failure = 0  # write() calls refused after the failure
         self.salvage_notes: list[str] = []
-        from protocad_ros.atomic import remove_stale_temporaries
-
         remove_stale_temporaries(self.bag_dir / "metadata.yaml")
         self._reserve = self.bag_dir / ".protocad-reserve"
-        self._make_reserve()
+        make_reserve(self._reserve, self.salvage_notes)
         try:
             self._open_file()
         except OSError as exc:
-            self._drop_reserve()
+            drop_reserve(self._reserve)
             raise BagWriteError(f"cannot start a bag in {self.bag_dir}: {exc}") from exc
 
     # -- public API ----------------------------------------------------------------------------
@@ -276,24 +147,14 @@ class BagWriter:
         self._check_open()
         if not name.startswith("/"):
             raise ValueError(f"topic name must be absolute, got {name!r}")
-        try:
-            norm = normalize_type(msgtype)
-        except TypeSupportError:
-            norm = msgtype
+        norm = plain_type(msgtype)
         if name in self._topics:
             if self._topics[name].msgtype != norm:
                 raise BagWriteError(f"topic {name} already added with type "
                                     f"{self._topics[name].msgtype}, not {norm}")
             return
-        if definition is None:
-            try:
-                definition = message_definition_with_encoding(norm)
-            except TypeSupportError:
-                definition = ("unknown", "")  # MessageDefinition::empty_message_definition_for
-        info = _TopicInfo(name=name, msgtype=norm, serialization_format=serialization_format,
-                          qos=_parse_qos(qos_yaml),
-                          type_hash=_try_type_hash(norm) if type_hash is None else type_hash,
-                          encoding=definition[0], definition=definition[1])
+        info = topic_info(name, norm, qos_yaml, type_hash=type_hash,
+                          serialization_format=serialization_format, definition=definition)
         self._topics[name] = info
         self._register(info)
 
@@ -338,10 +199,7 @@ class BagWriter:
             self._last_flush = time.monotonic()
         else:
             self._pending += len(data) + 31
-        f = self._files[-1]
-        f.starting_time = min(f.starting_time, log_time_ns)
-        f.end_time = max(f.end_time, log_time_ns)
-        f.message_count += 1
+        self._files[-1].count(log_time_ns)
         self._start = min(self._start, log_time_ns)
         self._end = max(self._end, log_time_ns)
         self._count += 1
@@ -372,30 +230,6 @@ class BagWriter:
             raise BagWriteError(f"flushing {self.bag_dir} failed: {exc}") from exc
         self._pending = 0
         self._last_flush = time.monotonic()
-
-    def _commit(self) -> None:
-        """Remember the counts of what is on disk: a failure loses only the open chunk. A bag
-        file deleted while recording takes writes without an error (its inode lives on), so
-        that is checked here too and treated as a write failure."""
-        if self._files and os.fstat(self._stream.fileno()).st_nlink == 0:
-            raise OSError(2, f"{self.files[-1]} was removed while recording")
-        self._snapshot()
-
-    def _snapshot(self) -> None:
-        """The counts, and the end of the file they describe. A failure cuts the file back to
-        that end, not to its last complete write: a chunk can be on disk with its message index
-        refused (a disk that fills between the two), and the counts never included it."""
-        self._committed = (self._count, {n: t.message_count for n, t in self._topics.items()},
-                           self._files[-1].message_count, self._stream.good)
-
-    def _uncommit(self) -> None:
-        """After a failure: the counts go back to what the file holds; the rest is lost."""
-        total, per_topic, in_file, _ = self._committed
-        self.lost_after_failure += self._count - total
-        self._count = total
-        for n, t in self._topics.items():
-            t.message_count = per_topic.get(n, 0)
-        self._files[-1].message_count = in_file
 
     def flush_if_due(self) -> bool:
         if self._closed or not self.flush_interval_s or not self._pending:
@@ -430,7 +264,7 @@ class BagWriter:
             self.salvage_notes.append(f"metadata.yaml not written: {exc}")
             for tmp in self.bag_dir.glob(".metadata.yaml.*.tmp"):
                 tmp.unlink(missing_ok=True)
-        self._drop_reserve()
+        drop_reserve(self._reserve)
 
     def __enter__(self) -> "BagWriter":
         return self
@@ -440,20 +274,8 @@ class BagWriter:
 
     def metadata(self) -> dict[str, Any]:
         """The bag info (the dict under rosbag2_bagfile_information)."""
-        return {
-            "version": METADATA_VERSION,
-            "storage_identifier": "mcap",
-            "duration": {"nanoseconds": self._end - self._start if self._count else 0},
-            "starting_time": {"nanoseconds_since_epoch": self._start},
-            "message_count": self._count,
-            "topics_with_message_count": [t.metadata() for t in self._topics.values()],
-            "compression_format": "",  # chunk compression is internal to the MCAP storage
-            "compression_mode": "",
-            "relative_file_paths": [f.path for f in self._files],
-            "files": [f.metadata() for f in self._files],
-            "custom_data": self.custom_data,
-            "ros_distro": self.ros_distro,
-        }
+        return bag_metadata(list(self._topics.values()), self._files, start=self._start, end=self._end,
+                            count=self._count, custom_data=self.custom_data, ros_distro=self.ros_distro)
 
     # -- internals -----------------------------------------------------------------------------
     def _check_open(self) -> None:
@@ -469,50 +291,6 @@ class BagWriter:
         return bool(self.max_bagfile_duration_ns
                     and t_ns - f.starting_time > self.max_bagfile_duration_ns)
 
-    def _make_reserve(self) -> None:
-        try:
-            with open(self._reserve, "wb") as f:
-                f.write(bytes(RESERVE_BYTES))
-                f.flush()
-                os.fsync(f.fileno())
-        except OSError as exc:
-            self._reserve.unlink(missing_ok=True)
-            self.salvage_notes.append(f"no space reserve ({exc})")
-
-    def _drop_reserve(self) -> None:
-        try:
-            self._reserve.unlink(missing_ok=True)
-        except OSError:
-            pass
-
-    def _fail(self, exc: OSError) -> None:
-        if self.failure is None:
-            self.failure = f"{type(exc).__name__}: {exc}"
-
-    def _salvage(self) -> None:
-        self._drop_reserve()
-        self._uncommit()
-        stream = self._stream
-        if stream is None or stream.closed:
-            return
-        try:
-            fd = stream.fileno()
-            cut = self._committed[3]
-            os.ftruncate(fd, cut)
-            os.lseek(fd, cut, os.SEEK_SET)
-            os.write(fd, _DATA_END + _FOOTER)
-            os.fsync(fd)
-            self.salvage_notes.append(f"{self.files[-1].name} cut back to its last complete chunk and index "
-                                      f"({cut} bytes) and ended without a summary")
-        except OSError as exc:
-            self.salvage_notes.append(f"{self.files[-1].name} could not be ended ({exc}): readers "
-                                      "recover its complete chunks")
-        finally:
-            try:
-                stream.close()
-            except OSError:
-                pass
-
     def _open_file(self) -> None:
         name = f"{self.bag_dir.name}_{len(self._files)}.mcap"
         path = self.bag_dir / name
@@ -521,7 +299,7 @@ class BagWriter:
             self._mcap = self._mw.Writer(self._stream, chunk_size=self.chunk_size,
                                          compression=self._compression, enable_crcs=True)
             self._mcap.start(profile="ros2", library=self.library)
-            self._files.append(_FileInfo(name))
+            self._files.append(FileInfo(name))
             self._channel_ids, self._schema_ids = {}, {}
             self._pending = 0
             self._write_metadata_record()
@@ -538,7 +316,7 @@ class BagWriter:
                 self._files.pop()
             raise
 
-    def _register(self, info: _TopicInfo) -> None:
+    def _register(self, info: TopicInfo) -> None:
         sid = self._schema_ids.get(info.msgtype)
         if sid is None:
             sid = self._mcap.register_schema(name=info.msgtype, encoding=info.encoding,
@@ -564,8 +342,6 @@ class BagWriter:
         self._open_file()
 
     def _write_metadata_yaml(self) -> None:
-        from protocad_ros.atomic import atomic_write_text
-
         info = self.metadata()
         if self.failure is not None:
             info["custom_data"] = {**(info["custom_data"] or {}), "protocad_write_error": self.failure,
