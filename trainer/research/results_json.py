@@ -1,0 +1,265 @@
+"""results.json itself: its schema (described in trainer/research/results.py), the paper's
+figures it is read against, gathering a grid's run directories into it, and reading and
+writing it checked against the schema."""
+from __future__ import annotations
+
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+from typing import Any, Iterable, Mapping, Sequence
+
+from trainer.provenance import code_version
+
+SCHEMA_ID = "protocad-compare/1"
+
+# Paper Table 1 ("compare"): unseen dynamics at 2M env steps, mean (std over seeds).
+PAPER_TABLE1: dict[str, dict[str, tuple[float, float]]] = {
+    "cheetah_run": {"protocad": (537.9, 46.7), "dreamer": (450.9, 57.5), "dreamerpro": (394.3, 60.2),
+                    "dreamer_context": (528.0, 52.4), "drq": (471.1, 49.0)},
+    "finger_spin": {"protocad": (585.0, 162.1), "dreamer": (453.0, 58.3), "dreamerpro": (458.5, 74.0),
+                    "dreamer_context": (428.0, 43.0), "drq": (592.3, 48.4)},
+    "hopper_hop": {"protocad": (176.6, 95.2), "dreamer": (112.6, 31.2), "dreamerpro": (148.2, 73.1),
+                   "dreamer_context": (148.6, 77.5), "drq": (73.7, 16.2)},
+    "hopper_stand": {"protocad": (829.6, 53.0), "dreamer": (818.1, 121.1), "dreamerpro": (644.2, 62.4),
+                     "dreamer_context": (725.2, 110.4), "drq": (781.0, 175.4)},
+    "pendulum_swingup": {"protocad": (802.0, 15.3), "dreamer": (712.8, 82.7), "dreamerpro": (737.0, 49.9),
+                         "dreamer_context": (794.0, 14.0), "drq": (504.0, 272.1)},
+    "quadruped_run": {"protocad": (529.0, 36.5), "dreamer": (444.1, 21.7), "dreamerpro": (502.6, 59.3),
+                      "dreamer_context": (501.9, 39.7), "drq": (251.0, 184.6)},
+    "walker_run": {"protocad": (447.1, 38.4), "dreamer": (392.9, 31.1), "dreamerpro": (378.0, 34.9),
+                   "dreamer_context": (427.6, 30.7), "drq": (378.7, 50.1)},
+    "walker_walk": {"protocad": (858.5, 15.4), "dreamer": (825.6, 24.4), "dreamerpro": (815.5, 53.6),
+                    "dreamer_context": (845.5, 12.8), "drq": (927.1, 17.7)},
+}
+PAPER_ENV_STEPS = 2_000_000
+#: protocad-compare's label of the anchor (Dreamer on the unrandomized task).
+ANCHOR_LABEL = "dreamer_standard"
+
+_NUM = {"type": "number"}
+_INT = {"type": "integer"}
+_EVAL = {"type": "object", "required": ["mean_return", "episodes", "per_context"],
+         "properties": {"mean_return": _NUM, "episodes": _INT,
+                        "per_context": {"type": "object", "additionalProperties": _NUM}}}
+RESULTS_SCHEMA: dict[str, Any] = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "type": "object",
+    "required": ["schema", "command", "code_version", "created", "machine", "budgets", "wall_time_s",
+                 "runs", "random"],
+    "properties": {
+        "schema": {"const": SCHEMA_ID},
+        "command": {"type": "array", "items": {"type": "string"}},
+        "code_version": {"type": "string"},
+        "created": {"type": "string"},
+        "machine": {"type": "object", "required": ["cpu", "cores", "cpu_capability", "torch", "gpu"]},
+        "budgets": {"type": "object", "required": ["env_steps", "wall_budget_s", "jobs", "threads_per_run"],
+                    "properties": {"env_steps": _INT, "wall_budget_s": {"type": ["number", "null"]},
+                                   "jobs": _INT, "threads_per_run": _INT}},
+        "wall_time_s": _NUM,
+        "runs": {"type": "array", "items": {
+            "type": "object",
+            "required": ["task", "label", "variant", "seed", "run_dir", "status", "env_steps", "updates",
+                         "wall_time_s", "precision", "preset", "eval_split", "final", "curve"],
+            "properties": {
+                "task": {"type": "string"}, "label": {"type": "string"}, "variant": {"type": "string"},
+                "seed": _INT, "run_dir": {"type": "string"},
+                "status": {"enum": ["finished", "wall_budget", "running", "interrupted", "failed", "missing"]},
+                "env_steps": _INT, "updates": _INT, "wall_time_s": _NUM,
+                "precision": {"type": "string"}, "preset": {"type": "string"},
+                "eval_split": {"enum": ["test", "train"]},
+                "render_quality": {"enum": ["fast", "default"]},
+                "reference": {"type": "string"}, "collect_interval": _INT,
+                "prototype_freeze": {"type": ["integer", "null"]},
+                "final_train": _EVAL,
+                "superseded": {"type": "string"},
+                "final": {"oneOf": [{"type": "null"}, _EVAL]},
+                "curve": {"type": "array", "items": {
+                    "type": "object", "required": ["env_steps", "mean_return", "tag"],
+                    "properties": {"env_steps": _INT, "mean_return": _NUM, "tag": {"type": "string"}}}},
+                "carried_from": {"type": "object", "required": ["results", "code_version", "machine", "created"],
+                                 "properties": {"results": {"type": "string"}, "code_version": {"type": "string"},
+                                                "machine": {"type": "object"}, "created": {"type": "string"}}},
+            }}},
+        "random": {"type": "object", "additionalProperties": _EVAL},
+    },
+}
+
+
+def _read_jsonl(path: Path) -> list[dict]:
+    rows = []
+    try:
+        with open(path) as f:
+            for line in f:
+                try:
+                    rows.append(json.loads(line))
+                except json.JSONDecodeError:
+                    pass   # a torn last line after a kill
+    except OSError:
+        pass
+    return rows
+
+
+def _eval_entry(d: Mapping[str, Any]) -> dict[str, Any]:
+    from trainer.learn.evaluate import context_label
+
+    return {"mean_return": round(float(d["mean_return"]), 3),
+            "episodes": int(d.get("episodes", 0)),
+            "per_context": {context_label(pc["context"]): round(float(pc["mean_return"]), 3)
+                            for pc in d.get("per_context", [])}}
+
+
+def gather_run(task: str, label: str, variant: str, seed: int, run_dir: Path) -> dict[str, Any]:
+    """One run directory of protocad-online as a results.json row."""
+    run_dir = Path(run_dir)
+    try:
+        info = json.loads((run_dir / "run.json").read_text())
+    except (OSError, json.JSONDecodeError):
+        info = {}
+    res = info.get("result") or {}
+    curve, seen = [], set()
+    for row in _read_jsonl(run_dir / "eval.jsonl"):
+        if row.get("policy", "").startswith("random") or "mean_return" not in row:
+            continue
+        key = (int(row["env_steps"]), row.get("tag", ""))
+        if key in seen:       # an evaluation repeated after a resume: keep the newest
+            curve = [c for c in curve if (c["env_steps"], c["tag"]) != key]
+        seen.add(key)
+        curve.append({"env_steps": int(row["env_steps"]), "mean_return": round(float(row["mean_return"]), 3),
+                      "tag": str(row.get("tag", ""))})
+    curve.sort(key=lambda c: (c["env_steps"], c["tag"] == "final"))
+    final = None
+    try:
+        final = _eval_entry(json.loads((run_dir / "eval" / "final.json").read_text()))
+    except (OSError, json.JSONDecodeError, KeyError):
+        pass
+    proto = info.get("protocol") or {}
+    row = {"task": task, "label": label, "variant": variant, "seed": int(seed), "run_dir": str(run_dir),
+            "status": res.get("status", "missing" if not info else "failed"),
+            "env_steps": int(res.get("env_steps", 0)), "updates": int(res.get("updates", 0)),
+            "wall_time_s": float(res.get("wall_time", 0.0)), "precision": str(res.get("precision", "")),
+            "preset": str(info.get("preset", "")), "eval_split": proto.get("eval_split") or "test",
+            "final": final, "curve": curve}
+    try:
+        row["final_train"] = _eval_entry(json.loads((run_dir / "eval" / "final_train.json").read_text()))
+    except (OSError, json.JSONDecodeError, KeyError):
+        pass
+    if "prototype_freeze" in res:
+        row["prototype_freeze"] = res["prototype_freeze"]
+    if "updates_per_episode" in proto:
+        row["collect_interval"] = int(proto["updates_per_episode"])
+    cfg = _saved_config(run_dir)
+    quality = (cfg.get("train") or {}).get("render_quality")
+    if quality:
+        row["render_quality"] = str(quality)
+    if cfg.get("reference"):
+        row["reference"] = str(cfg["reference"])
+    return row
+
+
+def _saved_config(run_dir: Path) -> dict[str, Any]:
+    """A run's saved config.yaml as a mapping ({} where there is none to read)."""
+    import yaml
+
+    try:
+        cfg = yaml.safe_load((Path(run_dir) / "config.yaml").read_text()) or {}
+    except (OSError, yaml.YAMLError):
+        return {}
+    return cfg if isinstance(cfg, dict) else {}
+
+
+
+def runs_code_version(specs: Iterable[Any]) -> str:
+    """The code the runs were trained with (run.json `code_versions`, every invocation's), or,
+    for runs that do not record it, the tree that gathered them, saying so."""
+    seen: list[str] = []
+    for s in specs:
+        carried = getattr(s, "carried", None)
+        try:
+            versions = (carried["carried_from"]["code_version"].split(", ") if carried else
+                        json.loads((Path(s.run_dir) / "run.json").read_text()).get("code_versions"))
+        except (OSError, json.JSONDecodeError):
+            versions = None
+        if not versions:
+            return f"{code_version()} (the gathering tree: the runs do not record their code)"
+        seen += [v for v in versions if v not in seen]
+    return ", ".join(seen) if seen else code_version()
+
+
+def machine_info() -> dict[str, Any]:
+    import torch
+
+    from protocad_ros.model.precision import cpu_capability
+
+    cpu = platform.processor() or "unknown"
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else None
+    return {"cpu": cpu, "cores": os.cpu_count() or 1, "cpu_capability": cpu_capability(),
+            "torch": torch.__version__, "gpu": gpu, "platform": platform.platform()}
+
+
+def gather(specs: Iterable[Any], *, command: Sequence[str], env_steps: int, wall_budget: float | None,
+           jobs: int, threads: int, wall_time: float, random: Mapping[str, Any] | None = None,
+           running: Mapping[Path, tuple[int, int]] | None = None) -> dict[str, Any]:
+    """results.json from RunSpec-like objects (task, label, variant, seed, run_dir; `carried`: a
+    row finished elsewhere, taken as it is unless the run finished here too). `running`: run
+    directory -> (env steps, updates) its metrics show now, for the runs still going (their
+    run.json still holds how the previous invocation ended)."""
+    specs = list(specs)
+    rows = []
+    for s in specs:
+        row = gather_run(s.task, s.label, s.variant, s.seed, s.run_dir)
+        if running and s.run_dir in running:
+            steps, updates = running[s.run_dir]
+            row.update(status="running", env_steps=max(row["env_steps"], int(steps)),
+                       updates=max(row["updates"], int(updates)))
+        carried = getattr(s, "carried", None)
+        done_here = row["status"] in ("finished", "wall_budget") and row["final"] is not None
+        rows.append(carried if carried is not None and not done_here else row)
+    return {"schema": SCHEMA_ID, "command": [str(c) for c in command], "code_version": runs_code_version(specs),
+            "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "machine": machine_info(),
+            "budgets": {"env_steps": int(env_steps), "wall_budget_s": wall_budget, "jobs": int(jobs),
+                        "threads_per_run": int(threads)},
+            "wall_time_s": round(float(wall_time), 1),
+            "runs": rows,
+            "random": {k: _eval_entry(v) for k, v in (random or {}).items()}}
+
+
+def validate(doc: Mapping[str, Any]) -> None:
+    """jsonschema validation against RESULTS_SCHEMA (ValueError with the first problem)."""
+    try:
+        import jsonschema
+    except ImportError:   # the GPU machine's bare Python: say so, check again where it is installed
+        print(f"[results] jsonschema is not installed: {SCHEMA_ID} not checked here", file=sys.stderr)
+        return
+    try:
+        jsonschema.validate(doc, RESULTS_SCHEMA)
+    except jsonschema.ValidationError as exc:
+        where = "/".join(str(p) for p in exc.absolute_path) or "(top level)"
+        raise ValueError(f"results.json does not match {SCHEMA_ID} at {where}: {exc.message}") from None
+
+
+def save_results(doc: Mapping[str, Any], path: Path) -> Path:
+    from protocad_ros.atomic import atomic_write_text
+
+    validate(doc)
+    atomic_write_text(Path(path), json.dumps(doc, indent=1) + "\n")
+    return Path(path)
+
+
+def load_results(path: str | Path) -> dict[str, Any]:
+    try:
+        doc = json.loads(Path(path).read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"{path} is not JSON: {exc}") from None
+    validate(doc)
+    return doc
+
+
