@@ -148,12 +148,12 @@ def _write(path: Path, payload: Mapping[str, Any]) -> None:
         f.write(buf.getbuffer())
 
 
-def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
-    """The raw checkpoint dict (tensors on CPU), after format and version checks."""
+def read_checkpoint(path: str | os.PathLike, data: bytes | None = None) -> dict[str, Any]:
+    """The raw checkpoint dict (tensors on CPU), after format and version checks. `data`: the
+    file's bytes as the caller read (and verified) them; then the file is not read again."""
     path = Path(path)
-    if not path.is_file():
-        raise CheckpointError(f"{path}: no such checkpoint file")
-    data = path.read_bytes()
+    if data is None:
+        data = _read_file(path)
     if not data:
         raise CheckpointError(f"{path}: empty file (an interrupted write?)")
     if not zipfile.is_zipfile(io.BytesIO(data)):
@@ -176,6 +176,12 @@ def read_checkpoint(path: str | os.PathLike) -> dict[str, Any]:
         if key not in payload:
             raise CheckpointError(f"{path}: checkpoint is missing {key!r}")
     return payload
+
+
+def _read_file(path: Path) -> bytes:
+    if not path.is_file():
+        raise CheckpointError(f"{path}: no such checkpoint file")
+    return path.read_bytes()
 
 
 def _config(path: Path, payload: Mapping[str, Any]) -> Config:
@@ -249,16 +255,17 @@ def _check_weights_fit(path: Path, cfg: Config, action_dim: int, payload: Mappin
 def load_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu",
                     action_dim: int | None = None, *,
                     fits: Callable[[Config, int], None] | None = None,
-                    restore_rng: bool = True) -> tuple[AgentBase, dict[str, Any]]:
+                    restore_rng: bool = True, data: bytes | None = None) -> tuple[AgentBase, dict[str, Any]]:
     """Rebuild the agent from a checkpoint. Returns (agent, counters).
 
     action_dim, if given, must match the checkpoint's (e.g. the environment's). fits(config,
     action_dim), if given, is called before anything is built and raises (CheckpointMismatch)
     to refuse the file. restore_rng: set torch's global RNG from the file (the trainer's
-    exact resume); False for anything that only serves or evaluates it.
+    exact resume); False for anything that only serves or evaluates it. data: the file's bytes,
+    already read (and verified) by the caller: loaded from, the file is not read again.
     """
     path = Path(path)
-    payload = read_checkpoint(path)
+    payload = read_checkpoint(path, data)
     cfg = _config(path, payload)
     ckpt_dim = _action_dim(path, payload)
     if action_dim is not None and int(action_dim) != ckpt_dim:

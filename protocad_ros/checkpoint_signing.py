@@ -37,11 +37,13 @@ from protocad_ros.atomic import atomic_open
 __all__ = ["Manifest", "SignatureRejected", "SigningError", "TrustedKeys", "generate_keypair",
            "key_id", "load_private_key", "load_trusted_keys", "next_seq", "sign_manifest",
            "verify_manifest", "signature_path", "write_signature_file", "read_signature_file",
-           "verify_file", "sign_file", "keygen_main", "sign_main"]
+           "verify_file", "sign_file", "sign_bytes", "keygen_main", "sign_main"]
 
 MANIFEST_FORMAT = "protocad-ros/checkpoint-manifest/1"
 SIGNATURE_FILE_FORMAT = "protocad-ros/checkpoint-signature"
 SIG_SUFFIX = ".sig"
+#: The top-level fields of FILE.sig: anything else refuses it (a .sig carries nothing unsigned).
+SIGNATURE_FILE_FIELDS = frozenset({"format", "manifest", "signature"})
 #: Anything longer in a signature file is not one of ours (a manifest with 16384 chunk hashes
 #: is about 1.1 MB).
 MAX_SIGNATURE_FILE_BYTES = 4 << 20
@@ -88,6 +90,9 @@ class Manifest:
             raise ValueError("manifest must be an object")
         ints = ("size", "updates", "seq", "chunk_size")
         strs = ("sha256", "task", "variant", "preset", "key_id")
+        unknown = sorted(set(d) - {*ints, *strs, "chunk_sha256"}, key=str)
+        if unknown:   # what no signer of ours writes: nothing unsigned rides along
+            raise ValueError(f"manifest has field(s) this code does not know: {unknown[:5]}")
         for k in ints:
             if type(d.get(k)) is not int:
                 raise ValueError(f"manifest {k} must be a whole number, got {d.get(k)!r}")
@@ -241,6 +246,9 @@ def read_signature_file(checkpoint: str | os.PathLike) -> tuple[Manifest, str]:
         d = json.loads(data)
         if not isinstance(d, dict) or d.get("format") != SIGNATURE_FILE_FORMAT:
             raise ValueError(f"format is not {SIGNATURE_FILE_FORMAT!r}")
+        unknown = sorted(set(d) - SIGNATURE_FILE_FIELDS, key=str)
+        if unknown:
+            raise ValueError(f"field(s) this code does not know: {unknown[:5]}")
         signature = d.get("signature")
         if not isinstance(signature, str):
             raise ValueError("signature must be a string")
@@ -263,11 +271,17 @@ def verify_file(checkpoint: str | os.PathLike, sha256: str, size: int,
 
 def sign_file(checkpoint: str | os.PathLike, key: Ed25519PrivateKey, seq: int | None = None) -> Manifest:
     """Write FILE.sig for a checkpoint file (its task, variant, preset, updates from the file)."""
+    checkpoint = Path(checkpoint)
+    return sign_bytes(checkpoint, checkpoint.read_bytes(), key, seq)
+
+
+def sign_bytes(checkpoint: str | os.PathLike, data: bytes, key: Ed25519PrivateKey,
+               seq: int | None = None) -> Manifest:
+    """Write FILE.sig for `data`, the bytes of the checkpoint FILE (read once by the caller)."""
     from protocad_ros.checkpoint import read_checkpoint
 
-    checkpoint = Path(checkpoint)
-    data = checkpoint.read_bytes()
-    payload = read_checkpoint(checkpoint)   # never vouch for something that is not a checkpoint
+    # never vouch for something that is not a checkpoint: the same bytes are checked
+    payload = read_checkpoint(checkpoint, data=data)
     cfg = payload.get("config", {})
     manifest = Manifest(hashlib.sha256(data).hexdigest(), len(data), str(cfg.get("task", "")),
                         str(cfg.get("variant", "")), str(cfg.get("preset", "")),

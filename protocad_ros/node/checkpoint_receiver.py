@@ -12,16 +12,17 @@ publisher's transient-local history brings them again.
 
 When a version's chunks are all there it wakes the node's checkpoint thread, which calls
 `install_received`: the version is verified (`Transfer.verify`: size, sha256) and installed
-(`install`: written beside the node's own checkpoint file, loaded from there with the node's
-file-reload code, and only then moved over that file, with its signature as FILE.sig), so the
-file the node serves from is always a whole, loadable checkpoint and a restart serves it again.
-A version that fails is rejected with one error line (which version, why) and counted.
+(`install`: loaded from the very bytes that were verified, with the node's file-reload code,
+then written beside the node's own checkpoint file and moved over it, with its signature as
+FILE.sig), so the file the node serves from is always a whole, loadable checkpoint and a restart
+serves it again. A version that fails is rejected and counted; its error line is rate-limited
+(protocad_ros/node/refusal_log.py: one line per cause per interval, with a count).
 """
 from __future__ import annotations
 
-import collections
 import hashlib
 import os
+import re
 import threading
 import time
 from dataclasses import dataclass
@@ -33,12 +34,19 @@ from std_msgs.msg import String, UInt8MultiArray
 from protocad_ros.atomic import atomic_open, fsync_dir
 from protocad_ros.checkpoint_signing import (Manifest, SignatureRejected, TrustedKeys, signature_path,
                                              verify_manifest, write_signature_file)
+from protocad_ros.node.refusal_log import RefusalLog
 from sim_bridge.contract import qos, topics
 
 #: max_checkpoint_bytes' default: 3x a paper-preset checkpoint with its optimizer states.
 DEFAULT_MAX_BYTES = 512 << 20
-#: Refused versions remembered, so a re-delivered one is counted but logged once.
-REFUSALS_REMEMBERED = 64
+#: Version ids, key ids, sizes: what varies between refusals of one cause (refusal_cause).
+_VARYING = re.compile(r"[0-9a-f]{6,}|\d+")
+
+
+def refusal_cause(counter: str | None, reason: str) -> str:
+    """The rate-limiting key of a refusal: its counter and the start of its reason, with the
+    numbers and ids that a flood would vary taken out."""
+    return f"{counter or CheckpointReceiver.REJECTED}: {_VARYING.sub('#', reason)[:24]}"
 
 
 class TransferRejected(Exception):
@@ -78,28 +86,30 @@ def manifest_of(a: topics.CheckpointAnnouncement) -> Manifest:
                     a.chunk_size, tuple(a.chunk_sha256))
 
 
-def install(data: bytes, path: str | os.PathLike, load: Callable[[str], Any],
+#: How a received version is named in load errors (it has no file of its own yet).
+RECEIVED = "the received file"
+
+
+def install(data: bytes, path: str | os.PathLike, load: Callable[[str, bytes], Any],
             before_replace: Callable[[], None] = lambda: None) -> Any:
-    """Write `data` atomically to a staging file beside `path`, `load(staging)` it, call
-    `before_replace()` (e.g. write its signature beside `path`), then move it over `path` (so
-    the file keeps the (mtime, inode, size) signature the load saw). Returns what `load`
-    returned; a load that fails is TransferRejected('not a checkpoint')."""
+    """`load(RECEIVED, data)`: the verified bytes themselves, never a file read back; then write
+    them atomically to a staging file beside `path`, call `before_replace()` (e.g. write its
+    signature beside `path`) and move it over `path`. Returns what `load` returned; a load that
+    fails is TransferRejected('not a usable checkpoint'), and nothing is written."""
     from protocad_ros.checkpoint import CheckpointMismatch
 
     path = Path(path)
+    try:
+        loaded = load(RECEIVED, data)
+    except Exception as e:  # noqa: BLE001 (CheckpointError, a config that does not fit)
+        if isinstance(e, CheckpointMismatch):
+            raise TransferRejected(f"does not fit: {e}", CheckpointReceiver.MISMATCH) from None
+        raise TransferRejected(f"not a usable checkpoint: {e}") from None
     # Named like atomic_open's temporaries (.NAME.PID.*.tmp): remove_stale_temporaries(path)
     # clears what a killed install left, and two processes never share one.
     staging = path.with_name(f".{path.name}.{os.getpid()}.received.tmp")
     with atomic_open(staging, "wb") as f:
         f.write(data)
-    try:
-        loaded = load(str(staging))
-    except Exception as e:  # noqa: BLE001 (CheckpointError, a config that does not fit)
-        staging.unlink(missing_ok=True)
-        reason = str(e).replace(str(staging), "the received file")
-        if isinstance(e, CheckpointMismatch):
-            raise TransferRejected(f"does not fit: {reason}", CheckpointReceiver.MISMATCH) from None
-        raise TransferRejected(f"not a usable checkpoint: {reason}") from None
     try:
         before_replace()
     except BaseException:
@@ -142,7 +152,8 @@ class CheckpointReceiver:
                  next_sha: Callable[[], str | None], serving: Callable[[], str],
                  count: Callable[..., None], max_bytes: int = DEFAULT_MAX_BYTES,
                  trusted: TrustedKeys | None = None, newest_seq: Callable[[], int] = lambda: -1,
-                 fits: Callable[[topics.CheckpointAnnouncement], str | None] = lambda a: None):
+                 fits: Callable[[topics.CheckpointAnnouncement], str | None] = lambda a: None,
+                 refusals: RefusalLog | None = None):
         self.node, self.timeout_s, self.max_bytes, self.trusted = node, timeout_s, max_bytes, trusted
         self._wake, self._next_sha, self._serving, self._count = wake, next_sha, serving, count
         self._newest_seq, self._fits = newest_seq, fits
@@ -154,7 +165,7 @@ class CheckpointReceiver:
         self._parts: dict[int, bytes] = {}   # the announced version's chunks so far
         self._buffered = 0                   # their bytes
         self._refetch = False   # chunks of no announced version were dropped (maybe early ones)
-        self._refused: collections.OrderedDict[tuple[str, str], None] = collections.OrderedDict()
+        self.refusals = refusals or RefusalLog(node.get_logger().error)
         self.sub_announce = node.create_subscription(String, topic, self._on_announcement,
                                                      qos.announcement_qos())
         self.topic = self.sub_announce.topic_name
@@ -170,6 +181,7 @@ class CheckpointReceiver:
         self.node.destroy_subscription(self.sub_chunks)
         self.node.destroy_timer(self.timer)
         self._forget_parts()
+        self.refusals.flush(force=True)
 
     def buffered_bytes(self) -> int:
         """Bytes held for versions not installed yet: the one coming in plus one whole one."""
@@ -211,14 +223,10 @@ class CheckpointReceiver:
         self._count(self.REJECTED)
         if counter is not None:
             self._count(counter)
-        # One line per refused version and reason: the same one heard again is only counted.
-        if (a.sha256, reason) in self._refused:
-            return
-        self._refused[(a.sha256, reason)] = None
-        while len(self._refused) > REFUSALS_REMEMBERED:
-            self._refused.popitem(last=False)
-        self.node.get_logger().error(f"checkpoint version {a.short_id} (updates={a.updates}) from "
-                                     f"{self.topic} rejected: {reason}; still serving {self._serving()}")
+        # One line per cause per interval: a flood of fresh version ids is counted, not logged.
+        self.refusals.refuse(refusal_cause(counter, reason),
+                             f"checkpoint version {a.short_id} (updates={a.updates}) from "
+                             f"{self.topic} rejected: {reason}; still serving {self._serving()}")
 
     def progress(self) -> str:
         """'' when idle, else e.g. '3fa9c2d1e4b0 12/50' (for diagnostics)."""
@@ -361,6 +369,7 @@ class CheckpointReceiver:
         self._on_reject(a, reason)
 
     def _check_timeout(self) -> None:
+        self.refusals.flush()
         a = self.announced
         # Silence, not total time: a slow link that keeps delivering is waited for.
         if a is not None and time.monotonic() - self._progress_at > self.timeout_s:

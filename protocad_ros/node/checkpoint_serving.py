@@ -10,9 +10,13 @@ so no step waits for a load and no episode is served by two models.
 
 With `trusted_keys` nothing is served that a trusted key did not sign: the file needs its
 detached signature FILE.sig (protocad_ros.checkpoint_signing), received versions a signed
-announcement (the receiver checks it), and each new version a sequence number above the served
-one. Whatever the source, a checkpoint is checked against what the node serves (task, action and
-image size; with a served checkpoint its variant and architecture) before anything is built.
+announcement (the receiver checks it), and each new version a sequence number above the newest
+one held, which the node also keeps apart from the served file (rollback_floor.py), so that
+losing FILE.sig does not lower it. A file is read once: those bytes are verified and loaded,
+never a second read of the path. With `checkpoint_topic` and no trusted keys the node refuses
+to start unless `allow_unsigned`. Whatever the source, a checkpoint is checked against what the
+node serves (task, action and image size, variant and architecture: the random agent's too)
+before anything is built. Refusals are counted, their lines rate-limited (refusal_log.py).
 
 It works on the node's own state: `params`, `counters`, `_lock` (guards `_pending_policy` and
 the counters), `_stop` / `_wake` (events), `receiver`, `policy`, `ckpt_counters`, `ckpt_sha`,
@@ -24,11 +28,15 @@ from __future__ import annotations
 import time
 from typing import Any
 
-from protocad_ros.atomic import file_sha256, file_signature
+import hashlib
+from pathlib import Path
+
+from protocad_ros.atomic import file_signature
 from protocad_ros.node.checkpoint_receiver import CheckpointReceiver
 from protocad_ros.checkpoint_signing import (SignatureRejected, SigningError, load_trusted_keys,
                                              parse_key_list, read_signature_file, signature_path,
                                              verify_file)
+from protocad_ros.node.rollback_floor import RollbackFloor, RollbackStateError, default_state_path
 from sim_bridge.contract.contexts import task_actuators
 from sim_bridge.nodekit.rosnode import ConfigError
 
@@ -49,13 +57,14 @@ class CheckpointServing:
         return dict(device=p["device"], mode=p["mode"], exploration_noise=p["exploration_noise"],
                     seed=p["seed"], state_mean=p["state_mean"])
 
-    def _load(self, path: str, fits=None):
+    def _load(self, path: str, fits=None, data: bytes | None = None):
+        """The policy from `data`, the bytes of `path` as read (and verified) once."""
         from protocad_ros.checkpoint import load_checkpoint
         from protocad_ros.policy import Policy
 
         # Never the file's RNG state: a served checkpoint must not reseed this process.
         agent, counters = load_checkpoint(path, device=self.params["device"], fits=fits,
-                                          restore_rng=False)
+                                          restore_rng=False, data=data)
         # `updates` = the agent's own update counter (restored with the weights); the other
         # counters are the trainer's (env steps, episodes, ...), reported as checkpoint/<key>.
         counters = {**dict(counters or {}), "updates": int(agent.counters()["updates"])}
@@ -98,11 +107,12 @@ class CheckpointServing:
                     self._hand_over(policy, counters, self._watch_key(path), sha, what, seq)
             if poll > 0:
                 self._check_file(path)
+            self.refusals.flush()
 
-    def _load_checked(self, path: str):
-        """A checkpoint that replaces the served one: refused (CheckpointMismatch) before it is
-        built unless it fits what this node serves."""
-        return self._load(path, fits=self._fits_served)
+    def _load_checked(self, path: str, data: bytes):
+        """A checkpoint that replaces the served one, from its verified bytes: refused
+        (CheckpointMismatch) before it is built unless it fits what this node serves."""
+        return self._load(path, fits=self._fits_served, data=data)
 
     def _fits_served(self, cfg, action_dim: int) -> None:
         from protocad_ros.checkpoint import CheckpointMismatch, architecture_differences
@@ -114,39 +124,58 @@ class CheckpointServing:
             why.append(f"{action_dim}-d actions / {cfg.train.image_size}px images, but this node "
                        f"serves {self.action_dim}-d / {self.image_hw[0]}px")
         policy = self.policy
-        # A random agent's preset and variant are placeholders: the first checkpoint sets them.
-        if self.agent_kind == "checkpoint" and policy is not None:
+        # The random agent's too: its variant and preset (parameters) are what this node serves.
+        if policy is not None:
             why += architecture_differences(policy.agent.cfg, cfg)
         if why:
-            raise CheckpointMismatch("; ".join(why))
+            kind = "" if self.agent_kind == "checkpoint" else (
+                " (this node serves a random agent of its variant and preset parameters)")
+            raise CheckpointMismatch("; ".join(why) + kind)
 
     def _announced_fits(self, ann) -> str | None:
         """Why an announced version is not for this node (checked again on the file itself)."""
         if ann.task and ann.task != self.task:
             return f"it is for {ann.task}, this node serves {self.task}"
         policy = self.policy
-        if (self.agent_kind == "checkpoint" and policy is not None and ann.variant
-                and ann.variant != policy.agent.cfg.variant):
+        if policy is not None and ann.variant and ann.variant != policy.agent.cfg.variant:
             return f"it is a {ann.variant} agent, this node serves {policy.agent.cfg.variant}"
         return None
 
     # ------------------------------------------------------------------ trust
     def _load_trust(self) -> None:
-        """trusted_keys -> self.trusted (None: unsigned checkpoints are accepted, said loudly)."""
-        paths = parse_key_list(self.params["trusted_keys"])
-        self.trusted = None
+        """trusted_keys -> self.trusted and the rollback floor (None: unsigned checkpoints are
+        accepted: from the file said loudly, over checkpoint_topic only with allow_unsigned)."""
+        p = self.params
+        paths = parse_key_list(p["trusted_keys"])
+        self.trusted, self.rollback = None, None
         if paths:
             try:
                 self.trusted = load_trusted_keys(paths)
             except SigningError as e:
                 raise ConfigError(f"trusted_keys: {e}") from None
+            state = p["rollback_state"] or default_state_path(paths[0], p["checkpoint"] or "none")
+            try:
+                self.rollback = RollbackFloor(state, p["checkpoint"])
+            except RollbackStateError as e:
+                raise ConfigError(str(e)) from None
             self.get_logger().info(f"serving only checkpoints signed by trusted key(s) "
-                                   f"{', '.join(sorted(self.trusted))}")
-        elif self.params["checkpoint"] or self.params["checkpoint_topic"]:
-            source = (f"over {self.params['checkpoint_topic']}: anyone on this DDS domain can replace "
-                      "the served model" if self.params["checkpoint_topic"] else "from its file")
+                                   f"{', '.join(sorted(self.trusted))}; rollback floor "
+                                   f"{self.rollback.seq} ({self.rollback.path})")
+        elif p["checkpoint_topic"] and not p["allow_unsigned"]:
+            raise ConfigError(f"checkpoint_topic:={p['checkpoint_topic']} without trusted_keys: anyone on "
+                              "this DDS domain could replace the served model; give -p trusted_keys:="
+                              "LEARNER.pub (protocad-keygen makes the pair; the learner signs with it), "
+                              "or -p allow_unsigned:=true to accept unsigned checkpoints")
+        elif p["checkpoint"] or p["checkpoint_topic"]:
+            source = (f"over {p['checkpoint_topic']} (allow_unsigned:=true): anyone on this DDS "
+                      "domain can replace the served model" if p["checkpoint_topic"] else "from its file")
             self.get_logger().warning(f"no trusted_keys: this node accepts UNSIGNED checkpoints {source} "
                                       "(protocad-keygen makes a key pair; msgs_docs/security.md)")
+
+    @property
+    def unsigned_topic(self) -> bool:
+        """Unsigned checkpoints over ROS are accepted (allow_unsigned): shown in /diagnostics."""
+        return bool(self.params["checkpoint_topic"]) and self.trusted is None
 
     def _verified_seq(self, path: str, sha: str, size: int) -> int:
         """The sequence number FILE.sig vouches for (-1 without trusted keys); SignatureRejected
@@ -161,15 +190,24 @@ class CheckpointServing:
         return manifest.seq
 
     def _configure_seq(self, path: str, sha: str, size: int) -> None:
-        """At configure: the file must verify (a ConfigError otherwise); its number is the
-        rollback floor from now on, also after a restart (FILE.sig stays beside the file)."""
+        """At configure: the file must verify (a ConfigError otherwise) and not be below the
+        rollback floor kept apart from it; its number is the floor from now on."""
         self.ckpt_seq = -1
         if self.trusted is None:
             return
         try:
             self.ckpt_seq = verify_file(path, sha, size, self.trusted).seq
+            self.rollback.check_served(self.ckpt_seq, f"checkpoint {path}")
+            self.rollback.raise_to(self.ckpt_seq)
         except SignatureRejected as e:
             raise ConfigError(f"checkpoint {path} is not signed by a trusted key: {e}") from None
+        except RollbackStateError as e:
+            raise ConfigError(str(e)) from None
+
+    def _read_once(self, path: str) -> tuple[bytes, str]:
+        """The file's bytes and their sha256: the one read that is verified and loaded."""
+        data = Path(path).read_bytes()
+        return data, hashlib.sha256(data).hexdigest()
 
     def _watch_key(self, path: str) -> tuple | None:
         """What makes the poll look again: the file, and with trusted keys its FILE.sig."""
@@ -202,14 +240,14 @@ class CheckpointServing:
             return
         counter = None
         try:
-            sha = file_sha256(path)
+            data, sha = self._read_once(path)   # verified and loaded: never read again
             if sha == (pending[3] if pending is not None else self.ckpt_sha):
                 self._loaded_sig = key
                 return   # the same bytes again (rewritten, or re-signed): nothing new to serve
             if self.trusted is not None and self._awaiting_signature(path, sha, key):
                 return
-            seq = self._verified_seq(path, sha, key[0][2])
-            policy, counters = self._load_checked(path)
+            seq = self._verified_seq(path, sha, len(data))
+            policy, counters = self._load_checked(path, data)
             if self._watch_key(path) != key:
                 return   # replaced while we read it: take the newer one next poll
         except Exception as e:  # noqa: BLE001 (unsigned, corrupt, foreign, incompatible)
@@ -223,13 +261,18 @@ class CheckpointServing:
                 self.counters["checkpoint_load_errors"] += 1
                 if counter is not None:
                     self.counters[counter] += 1
-            self.get_logger().error(f"cannot load checkpoint {path}: {e}; still serving "
-                                    f"{self._describe_agent()}")
+            self.refusals.refuse(f"file: {counter or type(e).__name__}",
+                                 f"cannot load checkpoint {path}: {e}; still serving {self._describe_agent()}")
             return
         self._hand_over(policy, counters, key, sha, path, seq)
 
     def _hand_over(self, policy, counters: dict, key: tuple | None, sha: str, what: str,
                    seq: int) -> None:
+        if self.rollback is not None and seq >= 0:
+            try:   # held from now on (installed on disk): the floor survives losing FILE.sig
+                self.rollback.raise_to(seq)
+            except RollbackStateError as e:
+                self.get_logger().error(str(e))
         with self._lock:
             self._pending_policy = (policy, counters, key, sha, seq)
         self.get_logger().info(f"loaded checkpoint {what} (updates={counters.get('updates', '?')}); "
@@ -248,7 +291,8 @@ class CheckpointServing:
         """Sequence number of the newest signed version held (served or pending); -1: none."""
         with self._lock:
             pending = self._pending_policy
-        return max(self.ckpt_seq, pending[4] if pending is not None else -1)
+        floor = self.rollback.seq if self.rollback is not None else -1
+        return max(self.ckpt_seq, floor, pending[4] if pending is not None else -1)
 
     def _swap_if_pending(self) -> None:
         with self._lock:

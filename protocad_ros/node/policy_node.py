@@ -27,11 +27,12 @@ import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from sensor_msgs.msg import Image, JointState
 
-from protocad_ros.atomic import file_sha256, file_signature, remove_stale_temporaries
+from protocad_ros.atomic import file_signature, remove_stale_temporaries
 from protocad_ros.node.checkpoint_serving import CheckpointServing
 from protocad_ros.node.checkpoint_receiver import CheckpointReceiver
 from protocad_ros.live_view import LiveView
 from protocad_ros.node.policy_params import COUNTERS, PARAMS
+from protocad_ros.node.refusal_log import RefusalLog
 from sim_bridge.contract import qos, topics
 from sim_bridge.contract.contexts import task_actuators
 from sim_bridge.nodekit.lifecycle import ManagedNode
@@ -92,6 +93,7 @@ class PolicyNode(CheckpointServing, ManagedNode):
         if not self.params["remote_lifecycle"]:
             self.refuse_remote_transitions()
         self._throttle = KeyThrottle(self.get_logger())
+        self.refusals = RefusalLog(self.get_logger().error)   # refused checkpoints' lines
         self.latency = Percentiles()             # completing message -> action published
         self.act_time = Percentiles()            # model time (Policy.act)
         self._act_callbacks: list[Callable[[ActEvent], None]] = []
@@ -149,6 +151,7 @@ class PolicyNode(CheckpointServing, ManagedNode):
         self.ckpt_sha: str | None = None          # sha256 of the served checkpoint file
         self.ckpt_seq = -1                        # its signed sequence number (-1: unsigned)
         self.trusted = None                       # key id -> public key; None: unsigned accepted
+        self.rollback = None                      # RollbackFloor with trusted keys
         with self._lock:
             self._pending_policy: tuple | None = None   # (policy, counters, key, sha, seq) to swap in
         self.mismatch: str | None = None
@@ -182,12 +185,12 @@ class PolicyNode(CheckpointServing, ManagedNode):
         sig = file_signature(path) if path else None
         if sig is not None:
             try:
-                self.ckpt_sha = file_sha256(path)
+                data, self.ckpt_sha = self._read_once(path)   # verified and loaded, read once
             except OSError as e:
                 raise ConfigError(f"cannot read checkpoint {path}: {e}") from None
-            self._configure_seq(path, self.ckpt_sha, sig[2])
+            self._configure_seq(path, self.ckpt_sha, len(data))
             try:
-                self.policy, self.ckpt_counters = self._load(path)
+                self.policy, self.ckpt_counters = self._load(path, data=data)
             except Exception as e:  # noqa: BLE001 - CheckpointError and friends: a clear message, exit 2
                 raise ConfigError(f"cannot load checkpoint {path}: {e}") from None
             self._loaded_sig = self._watch_key(path)
@@ -231,7 +234,7 @@ class PolicyNode(CheckpointServing, ManagedNode):
                 self, topic, timeout_s=p["checkpoint_transfer_timeout_s"], wake=self._wake.set,
                 next_sha=self._next_sha, serving=self._describe_agent, count=self._count,
                 max_bytes=p["max_checkpoint_bytes"], trusted=self.trusted,
-                newest_seq=self._newest_seq, fits=self._announced_fits)
+                newest_seq=self._newest_seq, fits=self._announced_fits, refusals=self.refusals)
         if path and (p["reload_poll_s"] > 0 or topic):
             self._watcher = threading.Thread(target=self._watch, name="checkpoint_watcher",
                                              daemon=True)
@@ -490,6 +493,8 @@ class PolicyNode(CheckpointServing, ManagedNode):
             "checkpoint_buffered_bytes": self.receiver.buffered_bytes() if self.receiver is not None else 0,
             "checkpoint_seq": self.ckpt_seq,
             "checkpoint_trusted_keys": ",".join(sorted(self.trusted)) if self.trusted else "",
+            "checkpoint_rollback_floor": self.rollback.seq if self.rollback is not None else -1,
+            "unsigned_checkpoints_allowed": self.unsigned_topic,
             # The trainer's scalar counters only (env steps, episodes, ...): its sampler state
             # and bag list would be kilobytes on every diagnostics message.
             **{f"checkpoint/{k}": v for k, v in self.ckpt_counters.items()
@@ -512,12 +517,14 @@ class PolicyNode(CheckpointServing, ManagedNode):
         several = self.publisher_watch.summary()
         values["multiple_publishers"] = several
         values["multiple_publishers_detected"] = self.publisher_watch.detected
+        unsigned = self.unsigned_topic
         level = ("ERROR" if self.mismatch else
-                 "WARN" if bad or unknown or several or self.agent_kind == "random" else "OK")
+                 "WARN" if bad or unknown or several or unsigned or self.agent_kind == "random" else "OK")
         message = (f"not answering: {self.mismatch}" if self.mismatch else
                    f"several publishers on {several} (a second bridge? an impostor?)" if several else
                    f"unknown parameters ignored: {unknown}" if unknown else
                    f"{state}: not answering" if state != "active" else
+                   "accepting UNSIGNED checkpoints over checkpoint_topic (allow_unsigned)" if unsigned else
                    "random agent" if self.agent_kind == "random" else
                    "rejected inputs or checkpoint errors" if bad else "serving")
         arr = DiagnosticArray()

@@ -25,7 +25,16 @@ PARAMS: tuple[Param, ...] = (
           "NAME writes NAME.pub): only checkpoints signed by one of them are served, received "
           "over checkpoint_topic (signed announcement) or loaded from the checkpoint file "
           "(detached signature FILE.sig), and each version's sequence number must grow. Empty: "
-          "unsigned checkpoints are accepted (a WARNING at start)."),
+          "unsigned checkpoints are accepted from the file (a WARNING at start); with "
+          "checkpoint_topic the node refuses to start unless allow_unsigned."),
+    Param("allow_unsigned", False, "With checkpoint_topic and no trusted_keys: start anyway and "
+          "serve UNSIGNED checkpoints received over ROS (anyone on the DDS domain can replace the "
+          "model; a WARNING at start, diagnostics at WARN with unsigned_checkpoints_allowed=True). "
+          "Default: such a node refuses to start."),
+    Param("rollback_state", "", "With trusted_keys: the file that keeps the highest sequence "
+          "number this node held (its rollback floor), apart from the checkpoint, so that losing "
+          "FILE.sig does not lower it. Default: beside the first trusted key, "
+          "KEY.served-<hash of the checkpoint path>.json."),
     Param("max_checkpoint_bytes", 512 << 20, "Largest checkpoint accepted over checkpoint_topic: "
           "a bigger announced version is refused before any chunk is kept.",
           range=(4096, 1 << 40), units="bytes"),

@@ -114,7 +114,8 @@ class CheckpointPublisherNode(ProtocadNode):
 
         sig = file_signature(path)
         data = Path(path).read_bytes()
-        payload = read_checkpoint(path)   # format and version checks: never announce junk
+        # format and version checks on the bytes announced (never announce junk), not a reread
+        payload = read_checkpoint(path, data=data)
         if file_signature(path) != sig or len(data) != sig[2]:
             return None
         cfg = payload.get("config", {})
