@@ -2,14 +2,15 @@
 Discovery Server: M actor groups (a sim bridge and an actor each, in /protocad/robotK), and/or
 one recorder for the fleet's namespaces, and/or the server itself.
 
-    # machine A (server, recorder, the learner's checkpoints on /protocad/checkpoint)
-    protocad-fleet --start-discovery-server 0.0.0.0:11811 --robots 4 --no-actors \\
+    # machine A (server, recorder, the learner's checkpoints on /protocad/checkpoint, signed
+    # with the run key it makes in runs/fleet/keys/: copy keys/checkpoint.pub to B and C)
+    protocad-fleet --start-discovery-server 0.0.0.0:11811 --robots 4 --no-actors --run-dir runs/fleet \\
         --record runs/fleet/bags/session1 --publish-checkpoint runs/fleet/checkpoints/latest.pt
     # machines B and C: two actor groups each, robot0-1 and robot2-3, fed over ROS
     protocad-fleet --discovery-server A:11811 --robots 2 --first-robot 0 --task walker_walk \\
-        --checkpoint policy/latest.pt --checkpoint-topic /protocad/checkpoint
+        --checkpoint policy/latest.pt --checkpoint-topic /protocad/checkpoint --trusted-key checkpoint.pub
     protocad-fleet --discovery-server A:11811 --robots 2 --first-robot 2 --task walker_walk \\
-        --checkpoint policy/latest.pt --checkpoint-topic /protocad/checkpoint
+        --checkpoint policy/latest.pt --checkpoint-topic /protocad/checkpoint --trusted-key checkpoint.pub
     # A again: train on every robot's episodes
     protocad-train --logs runs/fleet/bags --namespace /protocad/robot0 /protocad/robot1 ...
 
@@ -18,7 +19,10 @@ server; robot names must not repeat across machines (--first-robot). The actor i
 on --checkpoint (it waits for the file and reloads it whenever it changes: a shared file system;
 or, with --checkpoint-topic, it receives every new version a checkpoint publisher announces,
 which the learner's machine runs with --publish-checkpoint) or, without one, uniform random
-actions. Each bridge runs lock-step and waits for --min-subscribers readers (default 2: its actor and a recorder, on whichever
+actions. Checkpoints over ROS are signed by default: the publisher signs with the run key
+(RUN_DIR/keys/checkpoint.key, mode 0600, made on first use, reused when --run-dir is given
+again) and every policy node trusts only its public key (--trusted-key, default this run's
+keys/checkpoint.pub); --allow-unsigned turns both off. Each bridge runs lock-step and waits for --min-subscribers readers (default 2: its actor and a recorder, on whichever
 machine) before its first step, so the bag misses nothing: start the recorder first. Ctrl-C
 stops every process (the recorder last, the server after it); with --episodes N the actor groups
 end by themselves after N episodes per robot. Node logs in --log-dir.
@@ -33,10 +37,11 @@ from pathlib import Path
 from typing import Sequence
 
 from sim_bridge.contract import topics as T
-from trainer.launch import discovery
-
-
+from protocad_ros.checkpoint_signing import SigningError
 from trainer import runs
+from trainer.launch import discovery, run_key
+
+
 def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="protocad-fleet", description=__doc__.split("\n\n")[0],
                                  epilog=__doc__.split("\n\n", 1)[1], formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -69,7 +74,18 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID, the same on every machine "
                                                                 "(default $ROS_DOMAIN_ID)")
-    ap.add_argument("--log-dir", default=None, help="node logs (default runs/fleet-STAMP/logs)")
+    ap.add_argument("--run-dir", default=None, help="the fleet's directory: its run key (keys/checkpoint.key, "
+                    "made on first use, reused on the next run) and the node logs (default: the parent of "
+                    "--log-dir, else runs/fleet-STAMP)")
+    ap.add_argument("--log-dir", default=None, help="node logs (default RUN_DIR/logs)")
+    ap.add_argument("--trusted-key", default=None, metavar="PUB",
+                    help="public key file the policy nodes trust: only checkpoints it signed are served "
+                         "(default: this run's keys/checkpoint.pub; on an actor machine, the learner "
+                         "machine's copy)")
+    ap.add_argument("--allow-unsigned", action="store_true",
+                    help="no signatures: the publisher does not sign and the policy nodes serve unsigned "
+                         "checkpoints received over --checkpoint-topic (anyone on the domain can replace "
+                         "the model; msgs_docs/security.md)")
     ap.add_argument("--ready-timeout", type=float, default=120.0, help="seconds each node may take to start")
     ap.add_argument("--open-control-plane", action="store_true",
                     help="let other processes reset episodes and change the nodes' lifecycle states "
@@ -88,7 +104,13 @@ def run(a: argparse.Namespace) -> int:
         print(f"protocad-fleet: error: {mismatch.replace('bridge.task', '--task')}", file=sys.stderr)
         return 2
     namespaces = robot_namespaces(T.DEFAULT_NAMESPACE, a.robots, first=a.first_robot)
-    log_dir = Path(a.log_dir or time.strftime("runs/fleet-%Y%m%d-%H%M%S/logs"))
+    run_dir = Path(a.run_dir or (Path(a.log_dir).parent if a.log_dir else time.strftime("runs/fleet-%Y%m%d-%H%M%S")))
+    log_dir = Path(a.log_dir or run_dir / "logs")
+    try:
+        signing_key, trusted = fleet_keys(a, run_dir)
+    except (SigningError, OSError) as exc:
+        print(f"protocad-fleet: error: {exc}", file=sys.stderr)
+        return 2
     server, start_server = discovery.from_args(a)
     stack = RosStack(log_dir, domain_id=a.domain_id, discovery_server=server, start_discovery_server=start_server,
                      ready_timeout=a.ready_timeout)
@@ -102,8 +124,11 @@ def run(a: argparse.Namespace) -> int:
                 print(f"[fleet] recording {len(namespaces)} robot(s) into {a.record}", flush=True)
             if a.publish_checkpoint:
                 topic = a.checkpoint_topic or "/" + T.DEFAULT_NAMESPACE.strip("/") + "/" + T.CHECKPOINT
-                stack.start_checkpoint_publisher(a.publish_checkpoint, topic=topic, ready_timeout=a.ready_timeout)
-                print(f"[fleet] publishing {a.publish_checkpoint} on {topic}", flush=True)
+                stack.start_checkpoint_publisher(a.publish_checkpoint, topic=topic, ready_timeout=a.ready_timeout,
+                                                 signing_key=signing_key.private if signing_key else None)
+                print(f"[fleet] publishing {a.publish_checkpoint} on {topic}"
+                      + (f", signed: {run_key.describe(signing_key)}" if signing_key else ", UNSIGNED (--allow-unsigned)"),
+                      flush=True)
             for i, ns in enumerate([] if a.no_actors else namespaces):
                 seed = a.seed + a.first_robot + i
                 if a.checkpoint:
@@ -111,7 +136,8 @@ def run(a: argparse.Namespace) -> int:
                         checkpoint=a.checkpoint, task=a.task, wait_for_checkpoint=True, reload_poll_s=1.0,
                         mode="sample", exploration_noise=a.exploration_noise, seed=seed,
                         ready_timeout=a.ready_timeout, ns=ns, checkpoint_topic=a.checkpoint_topic,
-                        closed_control=not a.open_control_plane)
+                        closed_control=not a.open_control_plane, trusted_keys=trusted,
+                        allow_unsigned=a.allow_unsigned)
                     if a.wait_for_checkpoint:
                         stack.wait_checkpoint_loaded(policy, a.ready_timeout, ns=ns)
                 else:
@@ -140,6 +166,27 @@ def run(a: argparse.Namespace) -> int:
             codes = stack.stop_all()
     print("[fleet] exit codes: " + ", ".join(f"{n} {c}" for n, c in codes.items()), flush=True)
     return 1 if failed else 0
+
+
+def fleet_keys(a: argparse.Namespace, run_dir: Path) -> tuple[run_key.RunKey | None, Path | None]:
+    """(the run key the publisher signs with, the public key the policy nodes trust): signed by
+    default wherever checkpoints travel over ROS; (None, None) with --allow-unsigned. A policy
+    node that receives checkpoints needs a key to trust: SigningError names the fix."""
+    if a.allow_unsigned:
+        return None, Path(a.trusted_key) if a.trusted_key else None
+    key = run_key.run_key(run_dir) if a.publish_checkpoint else None
+    trusted = Path(a.trusted_key) if a.trusted_key else key.public if key else None
+    if trusted is None and run_key.key_paths(run_dir)[1].is_file():
+        trusted = run_key.key_paths(run_dir)[1]
+    receives = a.checkpoint_topic and a.checkpoint and not a.no_actors
+    if receives and trusted is None:
+        raise SigningError("--checkpoint-topic needs the public key of the machine that publishes the "
+                           "checkpoints: --trusted-key FILE.pub (its RUN_DIR/keys/checkpoint.pub), or "
+                           "--allow-unsigned")
+    if trusted is not None and not trusted.is_file():
+        raise SigningError(f"--trusted-key {trusted}: no such file")
+    # A shared checkpoint file without the topic: signatures only when a key is named for it.
+    return key, trusted if receives or a.trusted_key else None
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -40,7 +40,8 @@ from typing import Any, Sequence
 
 from protocad_ros.model.config import plan_prototype_freeze
 from sim_bridge.contract import topics as T
-from trainer.launch import discovery
+from protocad_ros.checkpoint_signing import load_private_key, sign_file
+from trainer.launch import discovery, run_key
 from trainer import runs, settings
 from trainer.data.dataset import MCAPDataset, TopicMap
 from trainer.learn.schedule import Schedule
@@ -427,6 +428,7 @@ class Loop:
             proc = self.stack.procs.get(self.stack.key("policy", ns))
             if proc is None or not proc.alive():
                 self.stack.start_policy(checkpoint=runs.checkpoint_path(self.run_dir), task=cfg.task,
+                                        trusted_keys=self.key.public,
                                         wait_for_checkpoint=True, reload_poll_s=0.5, mode="sample",
                                         exploration_noise=a.exploration_noise, seed=cfg.train.seed + i,
                                         device=self.device, ns=ns)
@@ -513,12 +515,19 @@ class Loop:
             print(f"[loop] prototypes frozen for the first {freeze:,} updates", flush=True)
             self.run_json["prototype_freeze"] = freeze
             runs.atomic_write_json(self.run_dir / "run.json", self.run_json)
+        # Signed by default: every checkpoint this run writes gets FILE.sig from the run key, and
+        # its policy nodes serve only what that key signed (trainer/launch/run_key.py).
+        self.key = run_key.run_key(self.run_dir)
+        signer = load_private_key(self.key.private)
+        self.trainer.after_save.append(lambda path: sign_file(path, signer))
+        if ckpt.exists():   # resumed: signed anew (its FILE.sig may be missing, or another key's)
+            sign_file(ckpt, signer)
         server, start_server = discovery.from_args(a)
         self.stack = RosStack(self.run_dir / "logs", domain_id=a.domain_id, discovery_server=server,
                               start_discovery_server=start_server)
         print(f"[loop] {cfg.task} / {cfg.variant} / {cfg.preset} on {self.device}; run dir {self.run_dir}; "
               f"ROS_DOMAIN_ID={self.stack.domain_id}; {self.stack.describe_discovery()}; "
-              f"node logs in {self.stack.log_dir}", flush=True)
+              f"node logs in {self.stack.log_dir}; {run_key.describe(self.key)}", flush=True)
         print(f"[loop] plan: prefill {a.prefill_episodes} random episode(s), then {a.cycles} cycle(s) of "
               f"{a.episodes_per_cycle} episode(s) with C={a.updates_per_episode} updates per episode"
               + (f" (resuming: {self.collect_phases} cycle(s), {self.trainer.updates} updates done)" if a.resume else ""),

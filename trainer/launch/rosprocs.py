@@ -298,12 +298,17 @@ class RosStack:
                      reload_poll_s: float = 0.5, mode: str = "deterministic", exploration_noise: float = 0.0,
                      seed: int = 0, device: str = "cpu", preset: str | None = None, variant: str | None = None,
                      num_threads: int = 0, ready_timeout: float = 120.0, ns: str | None = None,
-                     checkpoint_topic: str | None = None, closed_control: bool = False) -> NodeProc:
+                     checkpoint_topic: str | None = None, closed_control: bool = False,
+                     trusted_keys: str | Path | None = None, allow_unsigned: bool = False) -> NodeProc:
+        """trusted_keys: the public key(s) whose signature a checkpoint needs (the run key's);
+        allow_unsigned: with checkpoint_topic and no keys, start anyway (said loudly)."""
         args = ["--ros-args", *self._params(
             checkpoint=str(checkpoint) if checkpoint else None, wait_for_checkpoint=wait_for_checkpoint,
             reload_poll_s=float(reload_poll_s), task=task, mode=mode, exploration_noise=float(exploration_noise),
             seed=seed, device=device, preset=preset, variant=variant, num_threads=num_threads,
-            checkpoint_topic=checkpoint_topic, **({"remote_lifecycle": False} if closed_control else {})),
+            checkpoint_topic=checkpoint_topic, trusted_keys=str(trusted_keys) if trusted_keys else None,
+            allow_unsigned=allow_unsigned or None,
+            **({"remote_lifecycle": False} if closed_control else {})),
             *self._ns_args(ns)]
         proc = self._spawn(self.key("policy", ns), "protocad_ros.node.policy_node", args)
         self.wait_active(proc, "policy", ready_timeout, ns=ns)
@@ -323,13 +328,16 @@ class RosStack:
         return self.wait_until(proc, loaded, f"{fqn} to hold a checkpoint", timeout)
 
     def start_checkpoint_publisher(self, checkpoint: str | Path, *, topic: str = T.CHECKPOINT,
-                                   ready_timeout: float = 60.0) -> NodeProc:
-        """The learner side of checkpoints over ROS (trainer/nodes/checkpoint_publisher.py) on `checkpoint`."""
+                                   ready_timeout: float = 60.0, signing_key: str | Path | None = None) -> NodeProc:
+        """The learner side of checkpoints over ROS (trainer/nodes/checkpoint_publisher.py) on
+        `checkpoint`, signing with `signing_key` (the run key's private half)."""
         node_ns = "/" + self.namespace.strip("/")
         announce = topic if topic.startswith("/") else f"{node_ns}/{topic}"
         wants = [(announce, "pub")]
         old = self.graph.snapshot("checkpoint_publisher", node_ns, wants)
-        args = ["--ros-args", *self._params(checkpoint=str(checkpoint), topic=topic), *self._ns_args(None)]
+        args = ["--ros-args", *self._params(checkpoint=str(checkpoint), topic=topic,
+                                            signing_key=str(signing_key) if signing_key else None),
+                *self._ns_args(None)]
         proc = self._spawn("checkpoint_publisher", "trainer.nodes.checkpoint_publisher", args)
         self.wait_endpoints(proc, "checkpoint_publisher", node_ns, wants, ready_timeout, old=old)
         return proc

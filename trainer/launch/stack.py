@@ -20,8 +20,9 @@ step and every action from stamp 0. Each node logs to LOG_DIR/NAME.log (default 
 bag, else runs/stack-STAMP/logs) and to this terminal with a `[name]` prefix. The stack ends
 when the bridge finishes (`max_episodes`), a node fails, or on Ctrl-C; the nodes stop in that
 order: bridge, policy, recorder (it drains and closes its bag). Exit 0 when every node exited 0.
-A policy checkpoint whose task or image size differs from the bridge's is refused before any
-node starts (exit 2); a policy that refuses its bridge while running (its diagnostics at
+A policy checkpoint whose task or image size differs from the bridge's, or a policy with a
+checkpoint_topic but no trusted_keys (nor allow_unsigned: true), is refused before any node
+starts (exit 2); a policy that refuses its bridge while running (its diagnostics at
 ERROR, e.g. after reloading another task's checkpoint) stops the stack with exit 1.
 The ROS domain is $ROS_DOMAIN_ID (or `--domain-id`); DDS stays on this machine.
 """
@@ -105,6 +106,17 @@ def checkpoint_mismatch(doc: dict[str, Any]) -> str | None:
     return (f"policy.checkpoint {path} ({cfg.get('variant')}) does not fit this bridge: "
             + "; ".join(why) + f". Set bridge.task: {cfg.get('task')} or give a checkpoint of "
             f"{bridge['task']}.")
+
+
+def unsigned_topic(doc: dict[str, Any]) -> str | None:
+    """Why the policy of this stack file would refuse to start: it receives checkpoints over ROS
+    (checkpoint_topic) but trusts no key and does not allow unsigned ones; None if it is fine."""
+    policy = doc.get("policy") or {}
+    if not policy.get("checkpoint_topic") or policy.get("trusted_keys") or policy.get("allow_unsigned") is True:
+        return None
+    return (f"policy.checkpoint_topic {policy['checkpoint_topic']} without policy.trusted_keys: set "
+            "policy.trusted_keys to the learner's public key (protocad-keygen; its publisher signs with "
+            "the private key), or policy.allow_unsigned: true to serve unsigned checkpoints")
 
 
 def ros_params(params: dict[str, Any]) -> list[str]:
@@ -235,7 +247,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as exc:
         print(f"protocad-stack: error: {exc}", file=sys.stderr)
         return 2
-    mismatch = checkpoint_mismatch(doc)
+    mismatch = checkpoint_mismatch(doc) or unsigned_topic(doc)
     if mismatch:
         print(f"protocad-stack: error: {mismatch}", file=sys.stderr)
         return 2

@@ -97,6 +97,8 @@ class Trainer:
         if "prototype_freeze" in self.counters:   # resolved when the run started: kept on resume
             agent.set_prototype_freeze(int(self.counters["prototype_freeze"]))
         self._last_saved: int | None = None
+        #: called with the path after each checkpoint is written (protocad-loop signs it)
+        self.after_save: list = []
         self.log_every = max(1, int(log_every))
         if resumed and self.dist.is_main:  # lines logged after the checkpoint will be logged again
             runs.truncate_metrics(self.run_dir / "metrics.jsonl", self.counters["updates"])
@@ -261,6 +263,8 @@ class Trainer:
         try:
             out = save_checkpoint(target, self.agent, counters, rng_state=True)
             self._last_saved = self.updates
+            for fn in self.after_save:
+                fn(out)
             return out
         except OSError as exc:   # disk full, quota, permission: the previous file is untouched
             if target.exists():
