@@ -24,13 +24,14 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from std_msgs.msg import String, UInt8MultiArray
 
-from protocad_ros.node.checkpoint_receiver import CheckpointReceiver, manifest_of
+from protocad_ros.node.checkpoint_receiver import CheckpointReceiver
 from protocad_ros.checkpoint_signing import (generate_keypair, load_private_key, next_seq,
-                                             sign_file, sign_manifest, signature_path)
+                                             sign_file, signature_path)
 from helpers import Proc, wait_until
 from helpers.ros import Probe
 from sim_bridge.contract import qos, topics
 from helpers.agents import save_agent
+from helpers.checkpoints import FakeCheckpointPublisher, chunks as _chunks, sign as _sign
 from helpers.policy import START, TASK, Feeder, policy_args
 
 TIMEOUT_S = 5.0   # the policy's checkpoint_transfer_timeout_s: how long a version may be partial
@@ -41,47 +42,6 @@ def probe():
     p = Probe("checkpoint_delivery_probe")
     yield p
     p.close()
-
-
-class FakeCheckpointPublisher:
-    """A FAKE sender, named as such: a healthy DDS link neither corrupts nor drops a reliable
-    chunk, so the faults a receiver must survive (a flipped byte, a short chunk, bytes that are
-    no checkpoint, a sender that stops half-way) are made here. It speaks the publisher's
-    protocol (sim_bridge.contract.topics helpers, the same QoS) but announces whatever it is told."""
-
-    def __init__(self, probe: Probe):
-        self.probe = probe
-        self.announce = probe.publisher(topics.CHECKPOINT, String, qos.announcement_qos())
-        self.chunk_pub = None
-
-    def send(self, ann: topics.CheckpointAnnouncement, chunks: list[bytes],
-             labels: list[tuple[int, int]] | None = None) -> None:
-        """Chunks first (so receivers must read them again after the announcement), `labels`
-        the (index, n_chunks) each one claims (default: as sent)."""
-        node = self.probe.node
-        if self.chunk_pub is not None:
-            node.destroy_publisher(self.chunk_pub)
-        self.chunk_pub = node.create_publisher(
-            UInt8MultiArray, self.probe.topic(topics.chunks_topic(topics.CHECKPOINT)),
-            qos.checkpoint_chunks_qos(len(chunks)))
-        for i, piece in enumerate(chunks):
-            index, n = labels[i] if labels else (i, ann.n_chunks)
-            self.chunk_pub.publish(topics.fill_checkpoint_chunk(UInt8MultiArray(), ann.sha256, index,
-                                                                n, piece))
-        self.announce_only(ann)
-
-    def announce_only(self, ann: topics.CheckpointAnnouncement | str) -> None:
-        text = ann if isinstance(ann, str) else topics.checkpoint_announcement_json(ann)
-        self.announce.publish(String(data=text))
-
-    def close(self) -> None:
-        for pub in (self.announce, self.chunk_pub):
-            if pub is not None:
-                self.probe.node.destroy_publisher(pub)
-
-
-def _chunks(data: bytes, size: int) -> list[bytes]:
-    return [data[i:i + size] for i in range(0, len(data), size)]
 
 
 @dataclasses.dataclass
@@ -119,6 +79,7 @@ def _first_version_reaches_a_late_policy(spawn, probe, tmp_path) -> _Delivery:
     served = robot / "served.pt"
     f = Feeder(probe)
     policy = spawn("policy", *policy_args(f"checkpoint:={served}", "checkpoint_topic:=checkpoint",
+                                          "allow_unsigned:=true",
                                           f"checkpoint_transfer_timeout_s:={TIMEOUT_S}"), cwd=robot)
     assert not any(str(learner.parent) in a for a in policy.args)
     run = _Delivery(probe, f, publisher, policy, learner, robot, served)
@@ -211,8 +172,8 @@ def _a_restarted_policy_serves_its_last_version_at_once(run: _Delivery, spawn, v
     probe, f = run.probe, run.feeder
     wait_until(lambda: probe.node_diag("checkpoint_publisher").get("subscribers") == "0", 30,
                "the first policy to leave the graph")
-    again = spawn("policy_again", *policy_args(f"checkpoint:={run.served}", "checkpoint_topic:=checkpoint"),
-                  cwd=run.robot)
+    again = spawn("policy_again", *policy_args(f"checkpoint:={run.served}", "checkpoint_topic:=checkpoint",
+                                               "allow_unsigned:=true"), cwd=run.robot)
     wait_until(lambda: run.diag().get("checkpoint_announced") == hashlib.sha256(v2).hexdigest(),
                START, "the publisher's announcement to reach the restarted policy")
     f.obs(70, 0, episode=0, is_first=True)
@@ -548,7 +509,8 @@ def receiving_policy(tmp_path_factory):
     path = tmp_path_factory.mktemp("robot") / "agent.pt"
     node = PolicyNode(namespace="/fuzz_ckpt", context=ctx, parameter_overrides=[
         Parameter("task", value=TASK), Parameter("num_threads", value=1),
-        Parameter("checkpoint", value=str(path)), Parameter("checkpoint_topic", value="checkpoint")])
+        Parameter("checkpoint", value=str(path)), Parameter("checkpoint_topic", value="checkpoint"),
+        Parameter("allow_unsigned", value=True)])
     yield node
     node.close()
     node.destroy_node()
@@ -581,13 +543,6 @@ def test_no_announcement_or_chunk_breaks_the_receiver(receiving_policy, text, la
     chunk.layout.dim = [MultiArrayDimension(label=label, size=len(data), stride=len(data))]
     receiver._on_chunk(chunk)
     assert receiving_policy.callback_errors == 0
-
-
-def _sign(ann: topics.CheckpointAnnouncement, key, seq: int | None = None) -> topics.CheckpointAnnouncement:
-    """The announcement as a publisher with `key` signs it (seq: the next one by default)."""
-    ann = dataclasses.replace(ann, seq=next_seq() if seq is None else seq)
-    manifest, signature = sign_manifest(manifest_of(ann), key)
-    return dataclasses.replace(ann, key_id=manifest.key_id, signature=signature)
 
 
 @pytest.fixture(scope="module")
