@@ -164,6 +164,8 @@ def run(a: argparse.Namespace) -> int:
             failed = False
         finally:
             codes = stack.stop_all()
+    if stack.forged_note():
+        print(f"[fleet] {stack.forged_note()}", file=sys.stderr, flush=True)
     print("[fleet] exit codes: " + ", ".join(f"{n} {c}" for n, c in codes.items()), flush=True)
     return 1 if failed else 0
 

@@ -571,6 +571,8 @@ class Loop:
                     status = "interrupted"
             finally:
                 self.stack.stop_all()
+                if self.stack.forged_note():
+                    print(f"[loop] {self.stack.forged_note()}", file=sys.stderr, flush=True)
                 self._counters()
                 if self.trainer.updates:
                     self.trainer.save()

@@ -10,6 +10,15 @@ are for people):
   of the same name not counted (their graph entries may outlive it for a moment);
 - what a node serves (the policy's checkpoint update counter) is read from its /diagnostics.
 
+Only from the nodes this launcher started (`expect(fqn, pid)`): anyone on the domain can publish
+a /diagnostics status under any name, so each message is taken with its writer's GID
+(trainer/launch/sender_gid.py) and a status is believed only when that writer belongs to the
+process started for the status's node (its process id in the GID, this machine's host bytes)
+and, once the graph knows the writer, to a node of that name. Anything else is ignored and
+counted (`forged`), with one line on stderr per name. A managed node is ready when its
+get_state answers `active` and its own diagnostics say so too (a stranger can answer
+get_state as well).
+
 `RosGraph` is one rclpy node in its own Context, in the launcher's process, on the stack's
 domain (DDS on this machine only). It spins only inside its calls, so a launcher that trains
 between calls runs no ROS thread.
@@ -17,6 +26,7 @@ between calls runs no ROS thread.
 from __future__ import annotations
 
 import os
+import sys
 from typing import Callable, Iterable
 
 from sim_bridge.contract import topics as T
@@ -53,17 +63,23 @@ class RosGraph:
         self.node = Node(name, context=self.ctx, start_parameter_services=False)
         self.executor = SingleThreadedExecutor(context=self.ctx)
         self.executor.add_node(self.node)
+        from trainer.launch.sender_gid import SenderSubscription
+
         self._clients: dict[str, object] = {}
         self._diag: dict[str, tuple[float, dict[str, str]]] = {}   # name -> (stamp s, values)
         self._diag_status: dict[str, tuple[int, str]] = {}          # name -> (level, message)
-        self.node.create_subscription(DiagnosticArray, T.DIAGNOSTICS, self._on_diag,
-                                      qos.diagnostics_qos())
+        self._own: dict[str, list[int]] = {}   # node fqn -> process ids started for it, newest last
+        self._host: tuple[int, ...] | None = None
+        self.forged: dict[str, int] = {}       # node fqn -> statuses from a stranger, ignored
+        self._diag_sub = SenderSubscription(self.node, DiagnosticArray, T.DIAGNOSTICS,
+                                            qos.diagnostics_qos())
 
     def close(self) -> None:
         import rclpy
 
         try:
             self.executor.shutdown(timeout_sec=1.0)
+            self._diag_sub.destroy()
             self.node.destroy_node()
         finally:
             rclpy.try_shutdown(context=self.ctx)
@@ -71,6 +87,19 @@ class RosGraph:
     def spin(self, seconds: float = 0.05) -> None:
         """Handle what arrived (diagnostics, service answers) for up to `seconds`."""
         self.executor.spin_once(timeout_sec=seconds)
+        for msg, gid in self._diag_sub.take():
+            self._on_diag(msg, gid)
+
+    def expect(self, node_fqn: str, pid: int) -> None:
+        """`node_fqn` is the node of process `pid`, started by this launcher: its diagnostics
+        are believed from now on (an earlier process's are dropped quietly)."""
+        self._own.setdefault(node_fqn, []).append(int(pid))
+        self._diag.pop(node_fqn, None)
+        self._diag_status.pop(node_fqn, None)
+
+    @property
+    def forged_total(self) -> int:
+        return sum(self.forged.values())
 
     # ------------------------------------------------------------------ lifecycle
     def lifecycle_state(self, node_fqn: str, timeout: float = GET_STATE_TIMEOUT_S) -> str | None:
@@ -113,9 +142,50 @@ class RosGraph:
         return all(self.gids(node_name, node_ns, topic, kind) - old for topic, kind in wants)
 
     # ------------------------------------------------------------------ diagnostics
-    def _on_diag(self, msg) -> None:
+    def _own_host(self) -> tuple[int, ...] | None:
+        """This machine's host bytes in a GID (from this launcher's own writers), once known."""
+        if self._host is None:
+            from trainer.launch.sender_gid import gid_pid
+
+            me = os.getpid() & 0xFFFF
+            for topic in ("/rosout", "/parameter_events"):
+                for e in self.node.get_publishers_info_by_topic(topic):
+                    gid = tuple(e.endpoint_gid)
+                    if e.node_name == self.node.get_name() and gid_pid(gid) == me:
+                        self._host = gid[2:4]
+        return self._host
+
+    def _sender(self, name: str, gid: tuple[int, ...]) -> str | None:
+        """'own', 'old' (an earlier process of ours), or None (a stranger, or not a node we
+        started) for a status named `name` written by `gid`."""
+        from trainer.launch.sender_gid import gid_pid
+
+        pids = self._own.get(name)
+        if not pids:
+            return None
+        host = self._own_host()
+        if host is not None and gid[2:4] != host:
+            return None
+        node_ns, _, node_name = name.rpartition("/")
+        for e in self.node.get_publishers_info_by_topic(T.DIAGNOSTICS):
+            if tuple(e.endpoint_gid)[:len(gid)] == gid and (
+                    e.node_name != node_name or e.node_namespace != (node_ns or "/")):
+                return None   # the graph knows this writer: another node's
+        pid = gid_pid(gid)
+        return "own" if pid == pids[-1] & 0xFFFF else "old" if pid in {p & 0xFFFF for p in pids} else None
+
+    def _on_diag(self, msg, gid: tuple[int, ...]) -> None:
         stamp = msg.header.stamp.sec + msg.header.stamp.nanosec * 1e-9
         for st in msg.status:
+            sender = self._sender(st.name, gid)
+            if sender != "own":
+                if sender is None and st.name in self._own:
+                    n = self.forged[st.name] = self.forged.get(st.name, 0) + 1
+                    if n == 1:
+                        print(f"[launcher] ignored a /diagnostics status claiming to be {st.name} from "
+                              f"a process this launcher did not start (writer {bytes(gid).hex()}); such "
+                              "statuses are counted, not believed", file=sys.stderr, flush=True)
+                continue
             self._diag[st.name] = (stamp, {kv.key: kv.value for kv in st.values})
             level = st.level[0] if isinstance(st.level, (bytes, bytearray)) else int(st.level)
             self._diag_status[st.name] = (level, st.message)

@@ -165,6 +165,7 @@ class RosStack:
         self.log_dir.mkdir(parents=True, exist_ok=True)
         self.procs: dict[str, NodeProc] = {}
         self._graph = None
+        self.forged: dict[str, int] = {}   # node fqn -> statuses from strangers (RosGraph)
         if start_discovery_server is not None:
             discovery_server = self._start_discovery_server(*start_discovery_server, timeout=ready_timeout)
         #: the Discovery Server every node uses (None: the usual discovery, no server)
@@ -213,7 +214,20 @@ class RosStack:
     def close_graph(self) -> None:
         if self._graph is not None:
             graph, self._graph = self._graph, None
+            for name, n in graph.forged.items():
+                self.forged[name] = self.forged.get(name, 0) + n
             graph.close()
+
+    def forged_note(self) -> str | None:
+        """One line on the statuses strangers sent under the names of this stack's nodes."""
+        if self._graph is not None:
+            forged = {k: self.forged.get(k, 0) + v for k, v in self._graph.forged.items()}
+        else:
+            forged = self.forged
+        if not forged:
+            return None
+        return (f"{sum(forged.values())} forged /diagnostics status(es) ignored (sent by processes this "
+                "launcher did not start, under the names " + ", ".join(sorted(forged)) + ")")
 
     def node_fqn(self, node_name: str, ns: str | None = None) -> str:
         return T.topic_name(ns or self.namespace, node_name)
@@ -239,10 +253,16 @@ class RosStack:
 
     def wait_active(self, proc: NodeProc, node_name: str, timeout: float, stop=None,
                     ns: str | None = None) -> bool:
-        """A managed node: wait until its lifecycle state is `active` (get_state)."""
+        """A managed node: wait until its lifecycle state is `active`: get_state says so, and
+        so do its own diagnostics (RosGraph believes only the process `proc`'s)."""
         fqn = self.node_fqn(node_name, ns)
-        return self.wait_until(proc, lambda: self.graph.lifecycle_state(fqn) == "active",
-                          f"lifecycle state active of {fqn}", timeout, stop)
+        self.graph.expect(fqn, proc.pid)
+
+        def active() -> bool:
+            return (self.graph.lifecycle_state(fqn) == "active"
+                    and (self.graph.diagnostics(fqn) or {}).get("lifecycle_state") == "active")
+
+        return self.wait_until(proc, active, f"lifecycle state active of {fqn}", timeout, stop)
 
     def wait_endpoints(self, proc: NodeProc, node_name: str, node_ns: str,
                        wants: Sequence[tuple[str, str]], timeout: float, stop=None,

@@ -219,6 +219,8 @@ def run(doc: dict[str, Any], *, log_dir: Path, domain_id: int | None, ready_time
             time.sleep(0.3)
             follower.flush()
             follower.stop.set()
+    if stack.forged_note():
+        print(f"[stack] {stack.forged_note()}", file=sys.stderr, flush=True)
     print("[stack] exit codes: " + ", ".join(f"{n} {c}" for n, c in codes.items()), flush=True)
     if refused:
         print(f"[stack] failed: {refused}", file=sys.stderr, flush=True)

@@ -113,6 +113,7 @@ def test_actor_groups_placed_like_on_other_machines(tmp_path, spawn):
     groups = [spawn(f"machine_{m}", "-m", "trainer.launch.fleet", "--discovery-server", f"127.0.0.1:{port}",
                     "--robots", "1", "--first-robot", str(i), "--episodes", "1", "--episode-length", "12",
                     "--checkpoint", str(own[m]), "--checkpoint-topic", topic, "--wait-for-checkpoint",
+                    "--trusted-key", str(tmp_path / "keys" / "checkpoint.pub"),   # A's run key (RUN_DIR = tmp_path)
                     "--log-dir", str(tmp_path / f"logs_{m}"), *dom) for i, m in enumerate("bc")]
     for g in groups:
         wait_until(lambda g=g: not g.alive(), 180, f"{g.args} to finish")
@@ -121,6 +122,7 @@ def test_actor_groups_placed_like_on_other_machines(tmp_path, spawn):
         assert own[m].read_bytes() == learner.read_bytes()   # from the first episode on
         log = (tmp_path / f"logs_{m}" / f"policy_robot{'bc'.index(m)}.log").read_text()
         assert f"now serving checkpoint {own[m]} (updates=3)" in log, log
+        assert "serving only checkpoints signed by trusted key(s)" in log, log   # signed by default
     assert a.stop() == 0, a.output()
     assert "exit codes: recorder 0, checkpoint_publisher 0, discovery_server 0" in a.output(), a.output()
     check_robot_episodes(bag, ROBOTS, episode_length=12)

@@ -55,6 +55,7 @@ def test_two_collect_train_reload_cycles_through_ros(tmp_path):
     # every bag is a complete, cleanly closed rosbag2 bag without any problem to report
     for p in phases:
         assert (run / "bags" / p["bag"] / "metadata.yaml").exists() and not p["problems"], p
+    signed_by_default(run, r.stdout, log)
 
     continue_from_a_policy_file(run, tmp_path)
 
@@ -117,3 +118,22 @@ def test_two_robots_in_one_loop(tmp_path):
                 "--cache-dir", tmp_path / "cache", timeout=300)
     assert t.returncode == 0, t.stdout + t.stderr
     assert "/protocad/robot0" in t.stdout and "/protocad/robot1" in t.stdout, t.stdout
+
+
+def signed_by_default(run, stdout: str, policy_log: str) -> None:
+    """The loop made its run key (0600), signed every checkpoint with it, and its policy node
+    served only what that key signed (it trusted nothing else, and refused nothing)."""
+    import hashlib
+    import stat
+
+    from protocad_ros.checkpoint_signing import load_trusted_keys, verify_file
+
+    key, pub = run / "keys" / "checkpoint.key", run / "keys" / "checkpoint.pub"
+    assert stat.S_IMODE(key.stat().st_mode) == 0o600 and "checkpoints signed with the run key" in stdout
+    (kid,) = load_trusted_keys([pub])
+    ckpt = run / "checkpoints" / "latest.pt"
+    data = ckpt.read_bytes()
+    assert verify_file(ckpt, hashlib.sha256(data).hexdigest(), len(data), load_trusted_keys([pub])).key_id == kid
+    assert f"serving only checkpoints signed by trusted key(s) {kid}" in policy_log
+    assert "cannot load checkpoint" not in policy_log, policy_log
+
