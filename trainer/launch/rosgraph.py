@@ -30,6 +30,7 @@ import sys
 from typing import Callable, Iterable
 
 from sim_bridge.contract import topics as T
+from trainer.launch.sender_gid import SenderSubscription, gid_pid
 from trainer.runs import wait_until
 
 #: How long one get_state call may take before it is asked again.
@@ -63,8 +64,6 @@ class RosGraph:
         self.node = Node(name, context=self.ctx, start_parameter_services=False)
         self.executor = SingleThreadedExecutor(context=self.ctx)
         self.executor.add_node(self.node)
-        from trainer.launch.sender_gid import SenderSubscription
-
         self._clients: dict[str, object] = {}
         self._diag: dict[str, tuple[float, dict[str, str]]] = {}   # name -> (stamp s, values)
         self._diag_status: dict[str, tuple[int, str]] = {}          # name -> (level, message)
@@ -145,8 +144,6 @@ class RosGraph:
     def _own_host(self) -> tuple[int, ...] | None:
         """This machine's host bytes in a GID (from this launcher's own writers), once known."""
         if self._host is None:
-            from trainer.launch.sender_gid import gid_pid
-
             me = os.getpid() & 0xFFFF
             for topic in ("/rosout", "/parameter_events"):
                 for e in self.node.get_publishers_info_by_topic(topic):
@@ -158,8 +155,6 @@ class RosGraph:
     def _sender(self, name: str, gid: tuple[int, ...]) -> str | None:
         """'own', 'old' (an earlier process of ours), or None (a stranger, or not a node we
         started) for a status named `name` written by `gid`."""
-        from trainer.launch.sender_gid import gid_pid
-
         pids = self._own.get(name)
         if not pids:
             return None
