@@ -38,6 +38,7 @@ from typing import Sequence
 
 from sim_bridge.contract import topics as T
 from protocad_ros.checkpoint_signing import SigningError
+from protocad_ros.model.config import DEFAULT_CLI_PRESET, PRESETS, VARIANTS
 from trainer import runs
 from trainer.launch import discovery, run_key
 
@@ -52,6 +53,12 @@ def build_parser() -> argparse.ArgumentParser:
     ap.add_argument("--no-actors", action="store_true", help="start no actor group (e.g. only the recorder)")
     ap.add_argument("--record", default=None, metavar="BAG", help="also record the robots' topics into this bag")
     ap.add_argument("--task", default="pendulum_swingup")
+    ap.add_argument("--variant", default=None, choices=VARIANTS,
+                    help="the learner's variant (default: the policy node's, protocad): the policy's random "
+                         "agent until a checkpoint arrives, and checkpoints of another variant are refused")
+    ap.add_argument("--preset", default=None, choices=PRESETS,
+                    help=f"the learner's model preset (default: the policy node's, {DEFAULT_CLI_PRESET}): "
+                         "checkpoints of other layer sizes are refused while the random agent serves")
     ap.add_argument("--checkpoint", default=None, help="the policy nodes' checkpoint (default: random actions); "
                                                        "with --checkpoint-topic their own copy of what they receive")
     ap.add_argument("--checkpoint-topic", default=None, metavar="TOPIC",
@@ -135,6 +142,7 @@ def run(a: argparse.Namespace) -> int:
                     policy = stack.start_policy(
                         checkpoint=a.checkpoint, task=a.task, wait_for_checkpoint=True, reload_poll_s=1.0,
                         mode="sample", exploration_noise=a.exploration_noise, seed=seed,
+                        variant=a.variant, preset=a.preset,
                         ready_timeout=a.ready_timeout, ns=ns, checkpoint_topic=a.checkpoint_topic,
                         closed_control=not a.open_control_plane, trusted_keys=trusted,
                         allow_unsigned=a.allow_unsigned)
