@@ -104,6 +104,7 @@ setup(
             "protocad-online = trainer.research.online:main",
             "protocad-visualize = trainer.viz.visualize:main",
             "protocad-compare = trainer.research.compare:main",
+            "protocad-probe = trainer.research.probe:main",
             "protocad-stack = trainer.launch.stack:main",
             "protocad-checkpoint-publisher = trainer.nodes.checkpoint_publisher:main",
             "protocad-keygen = protocad_ros.checkpoint_signing:keygen_main",

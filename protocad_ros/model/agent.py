@@ -470,11 +470,14 @@ class Agent(AgentBase):
 
     @torch.no_grad()
     def open_loop(self, batch: Mapping[str, Any], context_steps: int = 5,
-                  horizon: int = 50) -> dict[str, np.ndarray]:
+                  horizon: int = 50, images: bool = True) -> dict[str, np.ndarray]:
         """Observe `context_steps` frames, then predict the next frames from the prior with
         the batch's actions (the paper's Figure of 5 context + 50 predicted frames).
 
-        Returns truth and prediction, uint8 (B, H, 64, 64, 3), H = min(horizon, T - context).
+        Returns truth and prediction, uint8 (B, H, 64, 64, 3), H = min(horizon, T - context),
+        and the rewards that arrived with those frames beside the reward head's prediction,
+        reward_truth and reward_prediction float32 (B, H). images=False leaves the frames out
+        (the only way to ask a variant without a decoder, DreamerPro, for its rewards).
         """
         self.eval()
         b = self.to_batch(batch)
@@ -493,9 +496,15 @@ class Agent(AgentBase):
             for t in range(context_steps, context_steps + H):
                 state = self.wm.rssm.img_step(state, b["action"][:, t], sample=False)
                 feats.append(self.wm.rssm.get_feat(state))
-        pred = self._decode(torch.stack(feats, 1).float()).numpy()
-        truth = b["image"][:, context_steps:context_steps + H].cpu().numpy()
-        return {"truth": truth, "prediction": pred}
+            s = torch.stack(feats, 1).float()
+            reward = self.wm.reward(s)
+        window = slice(context_steps, context_steps + H)
+        out = {"reward_truth": b["reward"][:, window].float().cpu().numpy(),
+               "reward_prediction": reward.float().cpu().numpy()}
+        if images:
+            out["prediction"] = self._decode(s).numpy()
+            out["truth"] = b["image"][:, window].cpu().numpy()
+        return out
 
     def set_prototype_freeze(self, updates: int) -> bool:
         mods = [m for m in (self.wm.context, self.wm.dreamerpro) if m is not None]

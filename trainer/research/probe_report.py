@@ -1,0 +1,213 @@
+"""What protocad-probe writes: its JSON (schema PROBE_SCHEMA, checked on every write), the text
+tables it prints, a PNG (R^2 bars per feature and setting, open-loop error curves) and a rerun
+recording of the window features coloured by context.
+
+Rerun entity paths (all static):
+
+=================================== ==========================================================
+/probe                              AnnotationContext: class id = context index, its label
+                                    ("test m=0.2 d=1.5") and a viridis colour of its log m
+/probe/<feature>/pca2d/<split>      Points2D: one per window, the 2-D PCA of <feature> (fitted
+                                    on both splits' windows), class id = its context
+/probe/<feature>/pca2d/contexts     Points2D: each context's mean position, labelled
+/probe/table                        TextDocument (markdown): the probe tables
+/open_loop/<split>/image_mse        Scalars on the 'horizon' timeline (1..H)
+/open_loop/<split>/reward_abs_err   Scalars on the 'horizon' timeline
+=================================== ==========================================================
+"""
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+
+from protocad_ros.atomic import atomic_write_text
+from sim_bridge.contract.contexts import context_label
+from trainer.research.probe_fit import SETTINGS, Windows
+from trainer.viz.context_view import colormap, project
+
+SCHEMA_ID = "protocad-probe/1"
+HEADLINE_HORIZONS = (1, 10, 25, 50)
+
+_NUM = {"type": "number"}
+_INT = {"type": "integer", "minimum": 0}
+_SCORE = {"type": "object", "required": ["r2", "spearman", "n_windows", "n_contexts"],
+          "properties": {"r2": _NUM, "spearman": {"type": ["number", "null"]}, "n_windows": _INT,
+                         "n_contexts": _INT}}
+_CURVE = {"type": "array", "items": _NUM}
+_OPEN_LOOP = {"type": "object", "required": ["horizons", "image_mse", "reward_abs_err", "n_segments"],
+              "properties": {"horizons": {"type": "array", "items": {"type": "integer", "minimum": 1}},
+                             "image_mse": {"oneOf": [{"type": "null"}, _CURVE]},
+                             "reward_abs_err": _CURVE, "n_segments": _INT}}
+PROBE_SCHEMA: dict[str, Any] = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "type": "object",
+    "required": ["schema", "checkpoint", "task", "variant", "updates", "env_steps", "settings", "features",
+                 "contexts", "probes", "skipped", "open_loop", "seconds"],
+    "properties": {
+        "schema": {"const": SCHEMA_ID},
+        "checkpoint": {"type": "string"},
+        "task": {"type": "string"},
+        "variant": {"type": "string"},
+        "updates": _INT,
+        "env_steps": {"type": ["integer", "null"]},
+        "settings": {"type": "object", "required": ["episodes", "steps", "skip", "window", "context_steps",
+                                                    "horizon", "max_contexts", "seed", "pixel_dim"]},
+        "features": {"type": "object", "additionalProperties": _INT},
+        "contexts": {"type": "array", "items": {
+            "type": "object", "required": ["split", "context", "windows"],
+            "properties": {"split": {"enum": ["train", "test"]},
+                           "context": {"type": "object", "additionalProperties": _NUM},
+                           "windows": _INT}}},
+        "probes": {"type": "object", "propertyNames": {"enum": list(SETTINGS)},
+                   "additionalProperties": {"type": "object", "additionalProperties": {
+                       "type": "object", "additionalProperties": _SCORE}}},
+        "skipped": {"type": "object", "additionalProperties": {
+            "oneOf": [{"type": "string"}, {"type": "object", "additionalProperties": {"type": "string"}}]}},
+        "open_loop": {"type": "object", "propertyNames": {"enum": ["train", "test"]},
+                      "additionalProperties": _OPEN_LOOP},
+        "seconds": _NUM,
+    },
+}
+
+
+def validate(doc: Mapping[str, Any]) -> None:
+    """jsonschema validation against PROBE_SCHEMA, plus finite numbers throughout (ValueError)."""
+    import jsonschema
+
+    try:
+        jsonschema.validate(doc, PROBE_SCHEMA)
+    except jsonschema.ValidationError as exc:
+        where = "/".join(str(p) for p in exc.absolute_path) or "(top level)"
+        raise ValueError(f"probe JSON does not match {SCHEMA_ID} at {where}: {exc.message}") from None
+
+
+def write_json(doc: Mapping[str, Any], path: Path) -> None:
+    validate(doc)
+    atomic_write_text(path, json.dumps(doc, indent=2, allow_nan=False) + "\n")
+
+
+# ----------------------------------------------------------------------------- text
+def _fmt(v: float | None, width: int = 6) -> str:
+    return "-".rjust(width) if v is None or not math.isfinite(v) else f"{v:{width}.2f}"
+
+
+def probe_table(probes: Mapping[str, Any], target: str) -> str:
+    """Rows = settings, columns = features: 'R2 (rank)' of the probe for `target`."""
+    rows = [(s, probes[s][target]) for s in SETTINGS if target in probes.get(s, {})]
+    if not rows:
+        return f"{target}: no probe (see 'skipped' in the JSON)"
+    feats = list(dict.fromkeys(f for _, r in rows for f in r))
+    head = f"{target:<14}" + "".join(f"{f:>16}" for f in feats)
+    lines = [head, "-" * len(head)]
+    for setting, r in rows:
+        cells = "".join(f"{_fmt(r[f]['r2'])} ({_fmt(r[f]['spearman'], 5)})".rjust(16) if f in r else " " * 16
+                        for f in feats)
+        lines.append(f"{setting:<14}{cells}")
+    return "\n".join(lines)
+
+
+def open_loop_table(open_loop: Mapping[str, Any], horizons: Sequence[int] = HEADLINE_HORIZONS) -> str:
+    """Image MSE and reward error at a few horizons, one row per split."""
+    lines = ["open loop     " + "".join(f"  k={k:<3} mse / |dr|" for k in horizons)]
+    for split, ol in open_loop.items():
+        cells = []
+        for k in horizons:
+            if k > len(ol["horizons"]):
+                cells.append(" " * 19)
+                continue
+            mse = "-" if ol["image_mse"] is None else f"{ol['image_mse'][k - 1]:.5f}"
+            cells.append(f"  {mse:>8} / {ol['reward_abs_err'][k - 1]:6.3f}")
+        lines.append(f"{split + ' (' + str(ol['n_segments']) + ' seg)':<14}" + "".join(cells))
+    return "\n".join(lines)
+
+
+def report_text(doc: Mapping[str, Any]) -> str:
+    targets = list(dict.fromkeys(t for s in doc["probes"].values() for t in s))
+    head = (f"{doc['task']} {doc['variant']} ({doc['updates']} updates): {doc['checkpoint']}\n"
+            "probes: R2 (Spearman) of ridge probes on window means, by setting and feature")
+    parts = [head] + [probe_table(doc["probes"], t) for t in targets] + [open_loop_table(doc["open_loop"])]
+    return "\n\n".join(parts)
+
+
+# ----------------------------------------------------------------------------- PNG
+def write_png(doc: Mapping[str, Any], path: Path) -> None:
+    """R^2 bars (one panel per target: settings on x, a bar per feature) above the open-loop
+    error curves of both splits."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    targets = list(dict.fromkeys(t for s in doc["probes"].values() for t in s))
+    fig, axes = plt.subplots(2, max(2, len(targets)), figsize=(6 * max(2, len(targets)), 8), squeeze=False)
+    for ax, target in zip(axes[0], targets):
+        _bars(ax, doc["probes"], target)
+    for ax in axes[0][len(targets):]:
+        ax.axis("off")
+    for ax, key, label in ((axes[1][0], "image_mse", "image MSE per pixel (0..1)"),
+                           (axes[1][1], "reward_abs_err", "|reward error|")):
+        for split, ol in doc["open_loop"].items():
+            if ol[key] is not None:
+                ax.plot(ol["horizons"], ol[key], label=f"{split} contexts", marker=".")
+        ax.set_xlabel("open-loop horizon (agent steps after 5 observed frames)")
+        ax.set_ylabel(label)
+        ax.legend()
+    for ax in axes[1][2:]:
+        ax.axis("off")
+    fig.suptitle(f"protocad-probe: {doc['task']} {doc['variant']}, {doc['updates']} updates")
+    fig.tight_layout()
+    fig.savefig(path, dpi=90)
+    plt.close(fig)
+
+
+def _bars(ax: Any, probes: Mapping[str, Any], target: str) -> None:
+    settings = [s for s in SETTINGS if target in probes.get(s, {})]
+    feats = list(dict.fromkeys(f for s in settings for f in probes[s][target]))
+    width = 0.8 / max(1, len(feats))
+    for i, f in enumerate(feats):
+        vals = [probes[s][target].get(f, {}).get("r2", np.nan) for s in settings]
+        # Far-negative R^2 (an extrapolation that misses) would squash every other bar.
+        ax.bar(np.arange(len(settings)) + i * width, np.clip(vals, -1.0, 1.0), width, label=f)
+    ax.set_xticks(np.arange(len(settings)) + 0.4 - width / 2, settings)
+    ax.set_ylim(-1.0, 1.0)
+    ax.axhline(0.0, color="black", linewidth=0.5)
+    ax.set_title(f"probe R^2 for {target} (clipped at -1)")
+    ax.legend(fontsize="small", ncol=2)
+
+
+# ----------------------------------------------------------------------------- rerun
+def write_rrd(doc: Mapping[str, Any], windows: Windows, contexts: Sequence[tuple[str, dict]], path: Path) -> None:
+    """The window features in 2-D PCA, coloured and labelled by context (see the table above)."""
+    import rerun as rr
+
+    rec = rr.RecordingStream("protocad_probe")
+    rec.save(str(path))
+    labels = [context_label(c, s) for s, c in contexts]
+    colours = colormap(np.log([c["m"] for _, c in contexts]))
+    rec.log("/probe", rr.AnnotationContext([rr.AnnotationInfo(id=i, label=lab, color=tuple(int(x) for x in col))
+                                            for i, (lab, col) in enumerate(zip(labels, colours))]), static=True)
+    for feat, X in windows.features.items():
+        Y, _ = project(X, 2, "pca")
+        for split in ("train", "test"):
+            mask = windows.split == split
+            rec.log(f"/probe/{feat}/pca2d/{split}", rr.Points2D(Y[mask], class_ids=windows.context[mask],
+                                                               radii=-3.0 if split == "test" else -2.0), static=True)
+        ids = np.unique(windows.context)
+        means = np.stack([Y[windows.context == i].mean(0) for i in ids])
+        rec.log(f"/probe/{feat}/pca2d/contexts", rr.Points2D(means, class_ids=ids, radii=-6.0,
+                                                            show_labels=False), static=True)
+    rec.log("/probe/table", rr.TextDocument("```\n" + report_text(doc) + "\n```", media_type="text/markdown"),
+            static=True)
+    for split, ol in doc["open_loop"].items():
+        for key in ("image_mse", "reward_abs_err"):
+            if ol[key] is None:
+                continue
+            for k, v in zip(ol["horizons"], ol[key]):
+                rec.set_time("horizon", sequence=k)
+                rec.log(f"/open_loop/{split}/{key}", rr.Scalars(v))
+    rec.flush()
+    rec.disconnect()
