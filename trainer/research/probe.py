@@ -41,7 +41,7 @@ from trainer.settings import arg
 class ProbeSettings:
     """What protocad-probe runs: which checkpoint, on how much of each split, and what it writes."""
 
-    checkpoint: str = arg("", "checkpoint", metavar="CHECKPOINT")
+    checkpoint: str = arg("", "checkpoint", nargs="?", metavar="CHECKPOINT")
     """checkpoint file, or a run directory holding checkpoints/latest.pt"""
     episodes: int = 1
     """episodes per context"""

@@ -182,9 +182,11 @@ def run_probes(w: Windows, seed: int = 0) -> tuple[dict, dict]:
     train, test = w.select(w.split == "train"), w.select(w.split == "test")
     probes: dict = {}
     skipped: dict = {}
-    grid_w = Windows({**test.features, CLUSTER_FEATURE: (test.mass > 1).astype(np.float64)[:, None]},
-                     test.targets, test.context, test.split, test.mass)
-    cases = {"test_grid": (grid_w, feats + [CLUSTER_FEATURE]),
+    heavy = (test.mass > 1).astype(np.float64)[:, None]
+    # The reference only where the grid has both clusters: a constant feature says nothing.
+    grid_feats = feats + [CLUSTER_FEATURE] if len(np.unique(heavy)) == 2 else feats
+    grid_w = Windows({**test.features, CLUSTER_FEATURE: heavy}, test.targets, test.context, test.split, test.mass)
+    cases = {"test_grid": (grid_w, grid_feats),
              "test_light": (test.select(test.mass < 1), feats),
              "test_heavy": (test.select(test.mass > 1), feats)}
     for setting, (part, names) in cases.items():

@@ -1,0 +1,131 @@
+"""protocad-probe: the probes score what they should on windows of known content, and the
+command on a tiny checkpoint writes JSON of its schema with finite R^2, open-loop errors of both
+splits at every horizon, a PNG and a rerun recording of the features by context."""
+from __future__ import annotations
+
+import json
+import math
+
+import numpy as np
+import pytest
+
+from helpers.agents import tiny_checkpoint
+
+
+def synthetic_windows(seed: int = 0):
+    """Pendulum-like splits: 11 train and 8 test masses (two clusters), 6 windows each; feature
+    `signal` = log m + noise, `noise` = noise only."""
+    from trainer.research.probe_fit import Windows
+
+    rng = np.random.default_rng(seed)
+    train_m = np.linspace(0.75, 1.25, 11)
+    test_m = np.array([0.2, 0.4, 0.5, 0.7, 1.3, 1.5, 1.6, 1.8])
+    masses = np.concatenate([train_m, test_m])
+    ctx = np.repeat(np.arange(len(masses)), 6)
+    m = masses[ctx]
+    signal = np.stack([np.log(m), rng.normal(size=len(m))], 1) + 0.02 * rng.normal(size=(len(m), 2))
+    return Windows({"signal": signal, "noise": rng.normal(size=(len(m), 3))}, {"log_m": np.log(m)},
+                   ctx, np.where(ctx < len(train_m), "train", "test"), m)
+
+
+def test_probes_find_the_signal_and_not_the_noise():
+    from trainer.research.probe_fit import run_probes
+
+    probes, skipped = run_probes(synthetic_windows())
+    assert set(probes) == {"test_grid", "test_light", "test_heavy", "train_to_test"} and skipped == {}
+    for setting, targets in probes.items():
+        sig, noise = targets["log_m"]["signal"], targets["log_m"]["noise"]
+        assert sig["r2"] > 0.9 and sig["spearman"] > 0.9, setting
+        assert noise["r2"] < 0.3, setting
+        assert sig["n_windows"] == (48 if setting in ("test_grid", "train_to_test") else 24)
+    # the reference that knows only light / heavy scores well on the whole grid: why the clusters
+    assert probes["test_grid"]["log_m"]["mass_cluster"]["r2"] > 0.5
+    assert "mass_cluster" not in probes["test_light"]["log_m"]
+
+
+def test_folds_keep_each_context_whole():
+    from trainer.research.probe_fit import group_folds
+
+    groups = np.repeat(np.arange(7), 4)
+    folds = group_folds(groups, 5, seed=3)
+    assert len(folds) == 5 and np.array_equal(np.sum(folds, 0), np.ones(len(groups)))
+    for scored in folds:
+        assert all(scored[groups == g].all() or not scored[groups == g].any() for g in range(7))
+
+
+def test_too_few_contexts_are_skipped_with_a_reason():
+    from trainer.research.probe_fit import run_probes
+
+    w = synthetic_windows()
+    keep = np.isin(w.context, [0, 5, 10, 11, 12, 17])    # 3 train, 2 light, 1 heavy test masses
+    probes, skipped = run_probes(w.select(keep))
+    assert "test_heavy" not in probes and "need" in skipped["test_heavy"]["log_m"]
+    assert "test_light" not in probes and "test_grid" in probes and "train_to_test" in probes
+
+
+@pytest.fixture(scope="module")
+def probed(tmp_path_factory):
+    """The command on a tiny untrained pendulum checkpoint: 6 contexts per split, 30 steps."""
+    from trainer.research import probe
+
+    tmp = tmp_path_factory.mktemp("probe")
+    ck = tiny_checkpoint(tmp / "ck.pt")
+    out = {"json": tmp / "probe.json", "plot": tmp / "probe.png", "rrd": tmp / "probe.rrd"}
+    rc = probe.main([str(ck), "--steps", "30", "--skip", "5", "--window", "5", "--horizon", "10",
+                     "--max-contexts", "6", "--threads", "1", "--no-progress",
+                     *(x for k, p in out.items() for x in (f"--{k}", str(p)))])
+    assert rc == 0
+    return out
+
+
+def test_the_json_matches_its_schema_with_finite_scores(probed):
+    import jsonschema
+
+    from trainer.research.probe_report import PROBE_SCHEMA
+
+    doc = json.loads(probed["json"].read_text())
+    jsonschema.validate(doc, PROBE_SCHEMA)
+    assert doc["task"] == "pendulum_swingup" and doc["variant"] == "protocad" and doc["updates"] == 0
+    assert doc["features"] == {"u": 8, "w": 8, "e": 8, "h": 32, "pixels": 32}
+    assert [c["split"] for c in doc["contexts"]] == ["train"] * 6 + ["test"] * 6
+    assert all(c["windows"] == 5 for c in doc["contexts"])     # (30 - 5) // 5
+    assert set(doc["probes"]) == {"test_grid", "test_light", "test_heavy", "train_to_test"}
+    for setting, targets in doc["probes"].items():
+        assert list(targets) == ["log_m"]                     # pendulum has no damping
+        for feature, s in targets["log_m"].items():
+            assert math.isfinite(s["r2"]), (setting, feature)
+            assert s["spearman"] is None or -1 <= s["spearman"] <= 1
+    assert set(doc["probes"]["test_grid"]["log_m"]) == {"u", "w", "e", "h", "pixels", "mass_cluster"}
+    for split in ("test", "train"):
+        ol = doc["open_loop"][split]
+        assert ol["horizons"] == list(range(1, 11))
+        assert len(ol["image_mse"]) == len(ol["reward_abs_err"]) == 10
+        assert all(math.isfinite(v) and v >= 0 for v in ol["image_mse"] + ol["reward_abs_err"])
+        assert ol["n_segments"] == 6 * 2                          # 30 steps: two 15-step segments
+
+
+def test_the_plot_and_the_recording_are_written(probed):
+    from trainer.viz.rerun_log import read_recording
+
+    assert probed["plot"].read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    rec = read_recording(probed["rrd"])
+    for feature in ("u", "w", "e", "h", "pixels"):
+        assert rec[f"/probe/{feature}/pca2d/test"]["rows"] >= 1
+        assert rec[f"/probe/{feature}/pca2d/contexts"]["rows"] >= 1
+    assert "horizon" in rec["/open_loop/test/image_mse"]["timelines"]
+
+
+def test_help_and_bad_input(capsys, tmp_path):
+    from trainer.research import probe
+
+    with pytest.raises(SystemExit) as exit_:
+        probe.main(["--help"])
+    assert exit_.value.code == 0
+    text = capsys.readouterr().out
+    assert "protocad-probe" in text and "--horizon" in text and "--max-contexts" in text
+    assert probe.main([str(tmp_path / "nothing.pt")]) == 2
+    assert "does not exist" in capsys.readouterr().err
+    assert probe.main([str(tmp_path / "nothing.pt"), "--steps", "20"]) == 2
+    assert "leaves no window" in capsys.readouterr().err
+    assert probe.main([str(tmp_path / "nothing.pt"), "--steps", "40", "--skip", "0", "--window", "10"]) == 2
+    assert "leaves no open-loop segment" in capsys.readouterr().err
