@@ -5,7 +5,8 @@ Three settings, each asking a different question of the same windows:
 
 * ``test_grid``: within the unseen (test) grid, grouped K-fold cross-validation by context
   (the windows of one context are never split between fitting and scoring, or the probe would
-  only recognise the episode);
+  only recognise the episode; the contexts are dealt to the folds in the order of the target,
+  so that each fold spans its range);
 * ``test_light`` / ``test_heavy``: the same inside one mass cluster of the test grid (m < 1,
   m > 1). The test masses come in two clusters, so a probe that only tells light from heavy
   already scores high on the whole grid; inside a cluster it has to read the value itself;
@@ -78,10 +79,17 @@ def ridge_path(X: np.ndarray, y: np.ndarray, Xq: np.ndarray, alphas: tuple[float
     return out
 
 
-def group_folds(groups: np.ndarray, k: int, seed: int = 0) -> list[np.ndarray]:
-    """The scored mask of each of min(k, #groups) folds: whole groups, shuffled by seed."""
+def group_folds(groups: np.ndarray, k: int, seed: int = 0, y: np.ndarray | None = None) -> list[np.ndarray]:
+    """The scored mask of each of min(k, #groups) folds of whole groups. With targets y the
+    groups are dealt out in the order of their mean target (ties shuffled by seed), so every
+    fold spans the range: with folds of random groups, a probe that has learned nothing
+    predicts each fold's complement mean, which runs against the fold's own (a negative rank
+    correlation out of nothing)."""
     uniq = np.unique(groups)
     order = np.random.default_rng(seed).permutation(len(uniq))
+    if y is not None:
+        means = np.array([y[groups == g].mean() for g in uniq])
+        order = order[np.argsort(means[order], kind="stable")]
     n = min(k, len(uniq))
     return [np.isin(groups, uniq[order[f::n]]) for f in range(n)]
 
@@ -92,7 +100,7 @@ def choose_alpha(X: np.ndarray, y: np.ndarray, groups: np.ndarray, seed: int = 0
     if len(np.unique(groups)) < 3:
         return DEFAULT_ALPHA
     err = np.zeros(len(ALPHAS))
-    for scored in group_folds(groups, FOLDS, seed):
+    for scored in group_folds(groups, FOLDS, seed, y):
         pred = ridge_path(X[~scored], y[~scored], X[scored], ALPHAS)
         err += ((pred - y[scored]) ** 2).sum(1)
     return float(ALPHAS[int(np.argmin(err))])
@@ -108,7 +116,7 @@ def grouped_cv_predict(X: np.ndarray, y: np.ndarray, groups: np.ndarray, seed: i
     """Out-of-fold predictions: each window predicted by a probe that saw no window of its
     context."""
     pred = np.empty(len(y))
-    for scored in group_folds(groups, FOLDS, seed):
+    for scored in group_folds(groups, FOLDS, seed, y):
         pred[scored] = fit_predict(X[~scored], y[~scored], groups[~scored], X[scored], seed)
     return pred
 

@@ -51,6 +51,21 @@ def test_folds_keep_each_context_whole():
     assert len(folds) == 5 and np.array_equal(np.sum(folds, 0), np.ones(len(groups)))
     for scored in folds:
         assert all(scored[groups == g].all() or not scored[groups == g].any() for g in range(7))
+    # dealt in the order of the target: each fold spans its range, so a probe that learned
+    # nothing is not scored against the complement's mean (a rank correlation out of nothing)
+    y = np.repeat([0.0, 0.0, 1.0, 1.0, 2.0, 2.0], 3)
+    folds = group_folds(np.repeat(np.arange(6), 3), 2, y=y)
+    assert [sorted(set(y[f])) for f in folds] == [[0.0, 1.0, 2.0]] * 2
+
+
+def test_an_unreadable_target_gets_no_rank_correlation_from_the_folds():
+    from trainer.research.probe_fit import grouped_cv_predict, spearman
+
+    rng = np.random.default_rng(1)
+    groups = np.repeat(np.arange(32), 8)
+    y = np.log(np.repeat(np.tile([0.2, 0.3, 0.4, 0.5, 1.5, 1.6, 1.7, 1.8], 4), 8))
+    rhos = [spearman(y, grouped_cv_predict(rng.normal(size=(len(y), 8)), y, groups, seed)) for seed in range(4)]
+    assert abs(np.mean([r or 0.0 for r in rhos])) < 0.2     # random folds of contexts: about -0.33
 
 
 def test_too_few_contexts_are_skipped_with_a_reason():
