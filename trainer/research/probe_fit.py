@@ -16,7 +16,10 @@ Three settings, each asking a different question of the same windows:
 The ridge penalty is chosen on the fitting part alone, by grouped cross-validation over its
 contexts, so the scored windows never inform it. Scores: R^2 (1 - SS_res / SS_tot around the
 scored windows' mean: negative when the probe is worse than that constant) and Spearman's rank
-correlation (None where it is undefined: a constant prediction or target).
+correlation (None where it is undefined: a constant prediction or target). Cross-validated, the
+rank correlation is taken within each fold and averaged: pooled over folds it would rank each
+fold's intercept too, and a probe that learned nothing predicts the other folds' mean, which
+runs against its own fold's (about -0.4 for random features on the walker's test grid).
 """
 from __future__ import annotations
 
@@ -112,13 +115,16 @@ def fit_predict(X: np.ndarray, y: np.ndarray, groups: np.ndarray, Xq: np.ndarray
     return ridge_path(X, y, Xq, (alpha,))[0]
 
 
-def grouped_cv_predict(X: np.ndarray, y: np.ndarray, groups: np.ndarray, seed: int = 0) -> np.ndarray:
-    """Out-of-fold predictions: each window predicted by a probe that saw no window of its
-    context."""
-    pred = np.empty(len(y))
-    for scored in group_folds(groups, FOLDS, seed, y):
+def grouped_cv_predict(X: np.ndarray, y: np.ndarray, groups: np.ndarray, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Out-of-fold predictions (each window predicted by a probe that saw no window of its
+    context) and the fold of each window."""
+    pred, fold = np.empty(len(y)), np.empty(len(y), int)
+    # At least 3 contexts in a fold where there are enough: the ranks are taken within folds.
+    k = max(2, min(FOLDS, len(np.unique(groups)) // 3))
+    for f, scored in enumerate(group_folds(groups, k, seed, y)):
         pred[scored] = fit_predict(X[~scored], y[~scored], groups[~scored], X[scored], seed)
-    return pred
+        fold[scored] = f
+    return pred, fold
 
 
 # ----------------------------------------------------------------------------- scores
@@ -139,8 +145,21 @@ def spearman(y: np.ndarray, pred: np.ndarray) -> float | None:
     return rho if math.isfinite(rho) else None
 
 
-def score(y: np.ndarray, pred: np.ndarray, groups: np.ndarray) -> dict:
-    return {"r2": r2_score(y, pred), "spearman": spearman(y, pred), "n_windows": int(len(y)),
+def fold_spearman(y: np.ndarray, pred: np.ndarray, fold: np.ndarray) -> float | None:
+    """Spearman's rank correlation within each fold, averaged with the folds' sizes as weights.
+    Pooled over folds, the ranks would mix in each fold's intercept: a probe that learned
+    nothing predicts the mean of the other folds, which runs against its own fold's."""
+    rhos = [(spearman(y[fold == f], pred[fold == f]), int((fold == f).sum())) for f in np.unique(fold)]
+    rhos = [(r, n) for r, n in rhos if r is not None]
+    if not rhos:
+        return None
+    return float(sum(r * n for r, n in rhos) / sum(n for _, n in rhos))
+
+
+def score(y: np.ndarray, pred: np.ndarray, groups: np.ndarray, fold: np.ndarray | None = None) -> dict:
+    """R^2 over all scored windows; Spearman pooled, or within folds where they are given."""
+    rho = spearman(y, pred) if fold is None else fold_spearman(y, pred, fold)
+    return {"r2": r2_score(y, pred), "spearman": rho, "n_windows": int(len(y)),
             "n_contexts": int(len(np.unique(groups)))}
 
 
@@ -155,6 +174,11 @@ def _scorable(w: Windows, target: str) -> str | None:
     return None
 
 
+def _cv(X: np.ndarray, y: np.ndarray, groups: np.ndarray, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    pred, fold = grouped_cv_predict(X, y, groups, seed)
+    return pred, groups, fold
+
+
 def cross_validated(w: Windows, features: list[str], seed: int) -> tuple[dict, dict]:
     """{target: {feature: scores}} by grouped CV within `w`, and {target: why} where not."""
     out, skipped = {}, {}
@@ -163,8 +187,7 @@ def cross_validated(w: Windows, features: list[str], seed: int) -> tuple[dict, d
         if why:
             skipped[target] = why
             continue
-        out[target] = {f: score(y, grouped_cv_predict(w.features[f], y, w.context, seed), w.context)
-                       for f in features}
+        out[target] = {f: score(y, *_cv(w.features[f], y, w.context, seed)) for f in features}
     return out, skipped
 
 

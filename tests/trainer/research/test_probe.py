@@ -35,7 +35,8 @@ def test_probes_find_the_signal_and_not_the_noise():
     assert set(probes) == {"test_grid", "test_light", "test_heavy", "train_to_test"} and skipped == {}
     for setting, targets in probes.items():
         sig, noise = targets["log_m"]["signal"], targets["log_m"]["noise"]
-        assert sig["r2"] > 0.9 and sig["spearman"] > 0.9, setting
+        # 2 contexts in a fold of a cluster: 6 tied targets each cap the ranks' agreement at 0.87
+        assert sig["r2"] > 0.9 and sig["spearman"] > 0.85, setting
         assert noise["r2"] < 0.3, setting
         assert sig["n_windows"] == (48 if setting in ("test_grid", "train_to_test") else 24)
     # the reference that knows only light / heavy scores well on the whole grid: why the clusters
@@ -59,13 +60,18 @@ def test_folds_keep_each_context_whole():
 
 
 def test_an_unreadable_target_gets_no_rank_correlation_from_the_folds():
-    from trainer.research.probe_fit import grouped_cv_predict, spearman
+    from trainer.research.probe_fit import fold_spearman, grouped_cv_predict, spearman
 
     rng = np.random.default_rng(1)
     groups = np.repeat(np.arange(32), 8)
     y = np.log(np.repeat(np.tile([0.2, 0.3, 0.4, 0.5, 1.5, 1.6, 1.7, 1.8], 4), 8))
-    rhos = [spearman(y, grouped_cv_predict(rng.normal(size=(len(y), 8)), y, groups, seed)) for seed in range(4)]
-    assert abs(np.mean([r or 0.0 for r in rhos])) < 0.2     # random folds of contexts: about -0.33
+    pooled, within = [], []
+    for seed in range(6):
+        pred, fold = grouped_cv_predict(rng.normal(size=(len(y), 8)), y, groups, seed)
+        pooled.append(spearman(y, pred))
+        within.append(fold_spearman(y, pred, fold))
+    assert abs(np.mean(within)) < 0.1
+    assert np.mean(pooled) < -0.05      # why within: pooled ranks the folds' intercepts too
 
 
 def test_too_few_contexts_are_skipped_with_a_reason():
