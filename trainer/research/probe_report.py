@@ -14,6 +14,8 @@ Rerun entity paths (all static):
 /open_loop/<split>/image_mse        Scalars on the 'horizon' timeline (1..H)
 /open_loop/<split>/reward_abs_err   Scalars on the 'horizon' timeline
 =================================== ==========================================================
+
+The recording carries its layout: tabs Features (a 2-D view per feature set), Open loop and Probes.
 """
 from __future__ import annotations
 
@@ -209,5 +211,18 @@ def write_rrd(doc: Mapping[str, Any], windows: Windows, contexts: Sequence[tuple
             for k, v in zip(ol["horizons"], ol[key]):
                 rec.set_time("horizon", sequence=k)
                 rec.log(f"/open_loop/{split}/{key}", rr.Scalars(v))
+    rec.send_blueprint(probe_blueprint(list(windows.features), list(doc["open_loop"])))
     rec.flush()
     rec.disconnect()
+
+
+def probe_blueprint(features: Sequence[str], splits: Sequence[str]):
+    """Tabs: the features (one 2-D view each, both splits and the context means), the open-loop
+    curves, the tables."""
+    import rerun.blueprint as rrb
+
+    views = [rrb.Spatial2DView(origin=f"/probe/{f}/pca2d", name=f"{f}: PCA, by context") for f in features]
+    curves = [rrb.TimeSeriesView(origin="/open_loop", name=name, contents=[f"/open_loop/{s}/{key}" for s in splits])
+              for key, name in (("image_mse", "open loop: image MSE"), ("reward_abs_err", "open loop: |reward error|"))]
+    return rrb.Blueprint(rrb.Tabs(rrb.Grid(*views, name="Features"), rrb.Horizontal(*curves, name="Open loop"),
+                                  rrb.TextDocumentView(origin="/probe/table", name="Probes")))

@@ -134,6 +134,7 @@ def test_the_plot_and_the_recording_are_written(probed):
         assert rec[f"/probe/{feature}/pca2d/test"]["rows"] >= 1
         assert rec[f"/probe/{feature}/pca2d/contexts"]["rows"] >= 1
     assert "horizon" in rec["/open_loop/test/image_mse"]["timelines"]
+    assert rec["__blueprints"]["rows"] >= 1          # its layout travels with it
 
 
 def test_help_and_bad_input(capsys, tmp_path):
