@@ -239,10 +239,14 @@ def test_inspection_api(real_batch):
     ol = agent.open_loop(real_batch, context_steps=5, horizon=50)
     assert ol["truth"].shape == ol["prediction"].shape == (B, T - 5, 64, 64, 3)
     assert np.array_equal(ol["truth"], real_batch["image"][:, 5:])
+    assert ol["reward_prediction"].shape == (B, T - 5)           # the reward head on the prior
+    assert np.array_equal(ol["reward_truth"], real_batch["reward"][:, 5:])
     dreamer = Agent(tiny("dreamer"), action_dim=1)
     assert dreamer.embed_sequences(real_batch)["u"] is None
     with pytest.raises(ValueError, match="no image decoder"):
         Agent(tiny("dreamerpro"), action_dim=1).reconstruct(real_batch)
+    rewards_only = Agent(tiny("dreamerpro"), action_dim=1).open_loop(real_batch, horizon=3, images=False)
+    assert set(rewards_only) == {"reward_truth", "reward_prediction"} and rewards_only["reward_prediction"].shape == (B, 3)
 
 
 # ---- policy --------------------------------------------------------------------------------------
