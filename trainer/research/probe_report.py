@@ -152,12 +152,15 @@ def write_png(doc: Mapping[str, Any], path: Path) -> None:
         ax.axis("off")
     for ax, key, label in ((axes[1][0], "image_mse", "image MSE per pixel (0..1)"),
                            (axes[1][1], "reward_abs_err", "|reward error|")):
-        for split, ol in doc["open_loop"].items():
-            if ol[key] is not None:
-                ax.plot(ol["horizons"], ol[key], label=f"{split} contexts", marker=".")
-        ax.set_xlabel("open-loop horizon (agent steps after 5 observed frames)")
+        curves = [(split, ol) for split, ol in doc["open_loop"].items() if ol[key] is not None]
+        for split, ol in curves:
+            ax.plot(ol["horizons"], ol[key], label=f"{split} contexts", marker=".")
+        ax.set_xlabel(f"open-loop horizon (agent steps after {doc['settings']['context_steps']} observed frames)")
         ax.set_ylabel(label)
-        ax.legend()
+        if curves:
+            ax.legend()
+        else:
+            ax.text(0.5, 0.5, f"{doc['variant']} has no image decoder", ha="center", transform=ax.transAxes)
     for ax in axes[1][2:]:
         ax.axis("off")
     fig.suptitle(f"protocad-probe: {doc['task']} {doc['variant']}, {doc['updates']} updates")
