@@ -31,6 +31,7 @@ import numpy as np
 
 from trainer import runs
 from trainer.learn.evaluate import select_contexts
+from trainer.provenance import code_version
 from trainer.research import probe_report
 from trainer.research.probe_collect import Collected, Plan, collect
 from trainer.research.probe_fit import Windows, run_probes
@@ -99,9 +100,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     from protocad_ros.checkpoint import CheckpointError
     from trainer import settings
 
-    s = settings.parse(build_parser(), argv, config_help=False).get(ProbeSettings)
+    parsed = settings.parse(build_parser(), argv, config_help=False)
     try:
-        return run(s)
+        return run(parsed.get(ProbeSettings), command=["protocad-probe", *parsed.argv])
     except (ValueError, CheckpointError) as exc:
         print(f"protocad-probe: error: {exc}", file=sys.stderr)
         return 2
@@ -129,7 +130,8 @@ def document(s: ProbeSettings, agent: Any, *, counters: dict[str, Any], path: Pa
     counts = np.bincount(windows.context, minlength=len(data.contexts))
     env_steps = counters.get("env_steps")
     return {
-        "schema": probe_report.SCHEMA_ID, "checkpoint": str(path), "task": cfg.task, "variant": cfg.variant,
+        "schema": probe_report.SCHEMA_ID, "command": [], "code_version": code_version(),
+        "checkpoint": str(path), "task": cfg.task, "variant": cfg.variant,
         "updates": int(agent.counters()["updates"]),
         "env_steps": int(env_steps) if env_steps is not None else None,
         "settings": {"episodes": s.episodes, "steps": s.steps, "skip": s.skip, "window": s.window,
@@ -149,8 +151,9 @@ def _params(task: str) -> tuple[str, ...]:
     return get_task(task).params
 
 
-def run(s: ProbeSettings) -> int:
-    """Probe as the settings say: print the tables, write what was asked for."""
+def run(s: ProbeSettings, command: Sequence[str] = ()) -> int:
+    """Probe as the settings say: print the tables, write what was asked for (`command`: the
+    argv the JSON records)."""
     t0 = time.monotonic()
     s.plan().check()
     runs.setup_torch(s.threads)
@@ -164,6 +167,7 @@ def run(s: ProbeSettings) -> int:
     data = collect(agent, policy, contexts, s.plan(), progress=False if s.no_progress else None)
     windows = data.windows(_params(agent.cfg.task))
     doc = document(s, agent, counters=counters, path=path, data=data, windows=windows)
+    doc["command"] = [str(c) for c in command]
     doc["seconds"] = round(time.monotonic() - t0, 2)
     print(probe_report.report_text(doc))
     if s.json:

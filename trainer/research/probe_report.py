@@ -47,10 +47,12 @@ _OPEN_LOOP = {"type": "object", "required": ["horizons", "image_mse", "reward_ab
 PROBE_SCHEMA: dict[str, Any] = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",
     "type": "object",
-    "required": ["schema", "checkpoint", "task", "variant", "updates", "env_steps", "settings", "features",
+    "required": ["schema", "command", "code_version", "checkpoint", "task", "variant", "updates", "env_steps", "settings", "features",
                  "contexts", "probes", "skipped", "open_loop", "seconds"],
     "properties": {
         "schema": {"const": SCHEMA_ID},
+        "command": {"type": "array", "items": {"type": "string"}},
+        "code_version": {"type": "string"},
         "checkpoint": {"type": "string"},
         "task": {"type": "string"},
         "variant": {"type": "string"},

@@ -151,3 +151,14 @@ def test_help_and_bad_input(capsys, tmp_path):
     assert "leaves no window" in capsys.readouterr().err
     assert probe.main([str(tmp_path / "nothing.pt"), "--steps", "40", "--skip", "0", "--window", "10"]) == 2
     assert "leaves no open-loop segment" in capsys.readouterr().err
+
+
+def test_the_committed_probe_of_the_shipped_policy_matches_its_schema_and_results_md():
+    from helpers import ROOT
+    from trainer.research.probe_report import validate
+
+    doc = json.loads((ROOT / "msgs_docs" / "results" / "walker_shipped_probe.json").read_text())
+    validate(doc)
+    u = doc["probes"]["test_grid"]["log_m"]["u"]
+    row = f"| log m, within the unseen grid | {u['r2']:.2f} ({u['spearman']:.2f}) |"
+    assert row in (ROOT / "msgs_docs" / "results.md").read_text()
