@@ -141,6 +141,7 @@ def document(s: ProbeSettings, agent: Any, *, counters: dict[str, Any], path: Pa
         "contexts": [{"split": sp, "context": c, "windows": int(n)} for (sp, c), n in zip(data.contexts, counts)],
         "probes": probes, "skipped": skipped,
         "open_loop": {split: data.open_loop[split].mean() for split in ("test", "train") if split in data.open_loop},
+        "assignment": data.assignment.mean(),
         "seconds": 0.0,
     }
 

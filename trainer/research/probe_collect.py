@@ -73,6 +73,29 @@ class OpenLoopSums:
 
 
 @dataclass
+class AssignmentSums:
+    """How sharply the steps pick a prototype: sums of max_k w_k and of the entropy of w."""
+
+    top: float = 0.0
+    entropy: float = 0.0
+    steps: int = 0
+    prototypes: int = 0
+
+    def add(self, w: np.ndarray) -> None:
+        self.top += float(w.max(-1).sum())
+        self.entropy += float(-(w * np.log(np.clip(w, 1e-12, None))).sum())
+        self.steps += len(w)
+        self.prototypes = w.shape[-1]
+
+    def mean(self) -> dict[str, Any] | None:
+        if not self.steps:
+            return None
+        return {"top_mean": self.top / self.steps, "entropy_mean": self.entropy / self.steps,
+                "uniform_entropy": float(np.log(self.prototypes)), "prototypes": self.prototypes,
+                "steps": self.steps}
+
+
+@dataclass
 class Collected:
     """Window features of both splits, the contexts they index, and open-loop errors."""
 
@@ -80,6 +103,7 @@ class Collected:
     rows: dict[str, list[np.ndarray]] = field(default_factory=dict)
     context_ids: list[np.ndarray] = field(default_factory=list)
     open_loop: dict[str, OpenLoopSums] = field(default_factory=dict)
+    assignment: AssignmentSums = field(default_factory=AssignmentSums)
     episodes: int = 0
 
     def windows(self, params: Sequence[str]) -> Windows:
@@ -116,17 +140,20 @@ def stack_trajectories(trajectories: Sequence[Trajectory]) -> dict[str, np.ndarr
 
 
 def feature_windows(agent: Any, batch: Mapping[str, np.ndarray], projection: np.ndarray,
-                    plan: Plan) -> list[dict[str, np.ndarray]]:
+                    plan: Plan) -> tuple[list[dict[str, np.ndarray]], np.ndarray | None]:
     """Per episode of the batch: {feature: (n_windows, F)} for u, w, e (where the variant has
-    them), h and pixels."""
+    them), h and pixels; and the prototype probabilities w of every step after `skip`, (N, K)
+    (None without a context module)."""
     emb = agent.embed_sequences(batch)
     deter = agent.wm.rssm.deter_dim
     frames = batch["image"].reshape(*batch["image"].shape[:2], PIXELS).astype(np.float32) / 255.0 - 0.5
     per_step = {k: emb[k] for k in CONTEXT_FEATURES if emb.get(k) is not None}
     per_step["h"] = emb["s"][..., -deter:]
     per_step["pixels"] = frames @ projection
-    return [{k: window_means(v[b], plan.skip, plan.window) for k, v in per_step.items()}
-            for b in range(len(batch["image"]))]
+    windows = [{k: window_means(v[b], plan.skip, plan.window) for k, v in per_step.items()}
+               for b in range(len(batch["image"]))]
+    w = emb.get("w")
+    return windows, None if w is None else w[:, plan.skip:].reshape(-1, w.shape[-1])
 
 
 def segments(batch: Mapping[str, np.ndarray], length: int) -> dict[str, np.ndarray]:
@@ -199,9 +226,12 @@ def collect(agent: Any, policy: Any, contexts: Mapping[str, Sequence[Mapping[str
 
 def _measure(agent: Any, batch: Mapping[str, np.ndarray], wave: Sequence[int], split: str, out: Collected, *,
              projection: np.ndarray, plan: Plan) -> None:
-    for ci, feats in zip(wave, feature_windows(agent, batch, projection, plan)):
+    windows, w = feature_windows(agent, batch, projection, plan)
+    for ci, feats in zip(wave, windows):
         for k, v in feats.items():
             out.rows.setdefault(k, []).append(v)
         out.context_ids.append(np.full(len(feats["h"]), ci))
+    if w is not None:
+        out.assignment.add(w)
     _add_open_loop(out.open_loop, split, open_loop_errors(agent, batch, plan))
     out.episodes += len(wave)

@@ -48,7 +48,7 @@ PROBE_SCHEMA: dict[str, Any] = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",
     "type": "object",
     "required": ["schema", "command", "code_version", "checkpoint", "task", "variant", "updates", "env_steps", "settings", "features",
-                 "contexts", "probes", "skipped", "open_loop", "seconds"],
+                 "contexts", "probes", "skipped", "open_loop", "assignment", "seconds"],
     "properties": {
         "schema": {"const": SCHEMA_ID},
         "command": {"type": "array", "items": {"type": "string"}},
@@ -73,6 +73,10 @@ PROBE_SCHEMA: dict[str, Any] = {
             "oneOf": [{"type": "string"}, {"type": "object", "additionalProperties": {"type": "string"}}]}},
         "open_loop": {"type": "object", "propertyNames": {"enum": ["train", "test"]},
                       "additionalProperties": _OPEN_LOOP},
+        "assignment": {"oneOf": [{"type": "null"}, {
+            "type": "object", "required": ["top_mean", "entropy_mean", "uniform_entropy", "prototypes", "steps"],
+            "properties": {"top_mean": _NUM, "entropy_mean": _NUM, "uniform_entropy": _NUM,
+                           "prototypes": _INT, "steps": _INT}}]},
         "seconds": _NUM,
     },
 }
@@ -134,6 +138,11 @@ def report_text(doc: Mapping[str, Any]) -> str:
     head = (f"{doc['task']} {doc['variant']} ({doc['updates']} updates): {doc['checkpoint']}\n"
             "probes: R2 (Spearman) of ridge probes on window means, by setting and feature")
     parts = [head] + [probe_table(doc["probes"], t) for t in targets] + [open_loop_table(doc["open_loop"])]
+    a = doc.get("assignment")
+    if a:
+        parts.append(f"prototype assignment w: top probability {a['top_mean']:.3f} on average (uniform: "
+                     f"{1 / a['prototypes']:.3f}), entropy {a['entropy_mean']:.2f} nats of at most "
+                     f"{a['uniform_entropy']:.2f}")
     return "\n\n".join(parts)
 
 

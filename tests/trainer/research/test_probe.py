@@ -123,6 +123,9 @@ def test_the_json_matches_its_schema_with_finite_scores(probed):
         assert len(ol["image_mse"]) == len(ol["reward_abs_err"]) == 10
         assert all(math.isfinite(v) and v >= 0 for v in ol["image_mse"] + ol["reward_abs_err"])
         assert ol["n_segments"] == 6 * 2                          # 30 steps: two 15-step segments
+    a = doc["assignment"]
+    assert a["prototypes"] == 8 and 1 / 8 <= a["top_mean"] <= 1 and 0 <= a["entropy_mean"] <= a["uniform_entropy"]
+    assert a["steps"] == 12 * 25
 
 
 def test_the_plot_and_the_recording_are_written(probed):
