@@ -165,3 +165,25 @@ def test_the_committed_probe_of_the_shipped_policy_matches_its_schema_and_result
     u = doc["probes"]["test_grid"]["log_m"]["u"]
     row = f"| log m, within the unseen grid | {u['r2']:.2f} ({u['spearman']:.2f}) |"
     assert row in (ROOT / "msgs_docs" / "results.md").read_text()
+
+
+@pytest.mark.parametrize("variant", ["dreamer", "dreamerpro"])
+def test_variants_without_context_features_get_h_and_the_floor(variant):
+    from helpers.agents import TINY_OVERRIDES
+    from protocad_ros.model.agent import Agent
+    from protocad_ros.model.config import make_config
+    from trainer.research.probe_collect import Plan, feature_windows, open_loop_errors, pixel_projection
+
+    agent = Agent(make_config("pendulum_swingup", "small", variant, **TINY_OVERRIDES), 1)
+    rng = np.random.default_rng(0)
+    B, T = 2, 20
+    batch = {"image": rng.integers(0, 256, (B, T, 64, 64, 3), dtype=np.uint8),
+             "action": rng.uniform(-1, 1, (B, T, 1)).astype(np.float32), "reward": np.zeros((B, T), np.float32),
+             "discount": np.ones((B, T), np.float32), "is_first": np.eye(1, T, dtype=bool).repeat(B, 0)}
+    plan = Plan(steps=T, skip=4, window=4, horizon=5, pixel_dim=6)
+    windows, w = feature_windows(agent, batch, pixel_projection(6, 0), plan)
+    assert w is None and [sorted(x) for x in windows] == [["h", "pixels"]] * B
+    assert windows[0]["h"].shape == (4, 32) and windows[0]["pixels"].shape == (4, 6)
+    image, reward = open_loop_errors(agent, batch, plan)
+    assert reward.shape == (B * 2, 5)                     # two 10-step segments per episode
+    assert (image is None) == (variant == "dreamerpro")   # DreamerPro has no decoder
