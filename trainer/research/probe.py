@@ -29,7 +29,8 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from trainer import runs
+from sim_bridge.contract.contexts import get_task
+from trainer import runs, settings
 from trainer.learn.evaluate import select_contexts
 from trainer.provenance import code_version
 from trainer.research import probe_report
@@ -86,9 +87,7 @@ class ProbeSettings:
 
 
 def build_parser():
-    from trainer.settings import settings_parser
-
-    return settings_parser(
+    return settings.settings_parser(
         "protocad-probe",
         "Probe a checkpoint's context features: linear probes of log m and log d from u, w, e, the "
         "RSSM state h and a pixel floor (within the test grid, within its mass clusters, train -> "
@@ -97,8 +96,8 @@ def build_parser():
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    # torch comes with the checkpoint module: --help answers without it.
     from protocad_ros.checkpoint import CheckpointError
-    from trainer import settings
 
     parsed = settings.parse(build_parser(), argv, config_help=False)
     try:
@@ -147,8 +146,6 @@ def document(s: ProbeSettings, agent: Any, *, counters: dict[str, Any], path: Pa
 
 
 def _params(task: str) -> tuple[str, ...]:
-    from sim_bridge.contract.contexts import get_task
-
     return get_task(task).params
 
 

@@ -24,6 +24,7 @@ import math
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
+import jsonschema
 import numpy as np
 
 from protocad_ros.atomic import atomic_write_text
@@ -83,9 +84,7 @@ PROBE_SCHEMA: dict[str, Any] = {
 
 
 def validate(doc: Mapping[str, Any]) -> None:
-    """jsonschema validation against PROBE_SCHEMA, plus finite numbers throughout (ValueError)."""
-    import jsonschema
-
+    """jsonschema validation against PROBE_SCHEMA (ValueError naming where it fails)."""
     try:
         jsonschema.validate(doc, PROBE_SCHEMA)
     except jsonschema.ValidationError as exc:
