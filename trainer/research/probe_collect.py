@@ -201,7 +201,8 @@ def collect(agent: Any, policy: Any, contexts: Mapping[str, Sequence[Mapping[str
     out = Collected()
     out.contexts = [(split, dict(c)) for split, ctxs in contexts.items() for c in ctxs]
     jobs = [(split, ci) for ci, (split, _) in enumerate(out.contexts) for _ in range(plan.episodes)]
-    bar = runs.progress(len(jobs) * plan.steps, desc=f"probe {cfg.task}", unit="step",
+    # rollout counts the steps after each episode's first observation
+    bar = runs.progress(len(jobs) * (plan.steps - 1), desc=f"probe {cfg.task}", unit="step",
                         disable=True if progress is False else None)
     try:
         for split_index, split in enumerate(contexts):
