@@ -44,7 +44,7 @@ def worker(spec: dict) -> dict:
     from trainer.learn.train import Trainer
 
     torch.set_num_threads(spec["threads"])
-    prec = resolve_precision(spec["precision"], "cpu").precision
+    prec = resolve_precision(spec["precision"], "cpu", explicit=True).precision
     cfg = make_config(spec["task"], spec["preset"], spec["variant"], **{"train.precision": prec})
     work = Path(tempfile.mkdtemp(prefix="bench_online_"))
     env = ContextDMCEnv(spec["task"], "train", seed=0, time_limit=2 * spec["steps"])
@@ -57,6 +57,7 @@ def worker(spec: dict) -> dict:
     env_only = spec["steps"] / (time.perf_counter() - t0)
     # 2. collection as protocad-online does it: env + Policy.act + the bag writer
     trainer = Trainer(cfg, work / "run", None, action_dim=env.action_dim)
+    trainer.agent.use_precision(prec)   # as the bench's command line asked, even where emulated
     policy = Policy(trainer.agent, mode="sample")
     policy.reset(1)
     writer = EpisodeBagWriter(work / "bags" / "ep0", env.action_names)

@@ -58,7 +58,7 @@ def update_gradients(agent, batch: dict[str, np.ndarray], precision: str, seed: 
     captured where data-parallel training would average them, so nothing differs but the
     precision and the seed."""
     a = copy.deepcopy(agent)
-    a.cfg.train.precision = "float32" if precision == "float32" else "bfloat16"
+    a.use_precision("float32" if precision == "float32" else "bfloat16")   # as asked, even if emulated
     if precision == "float16":  # DreamerV2's precision; autocast only here (no loss scaling)
         a._autocast = lambda: torch.autocast(a.device.type, dtype=torch.float16)
     names = {id(p): "world_model" for p in a.wm_opt.param_groups[0]["params"]}

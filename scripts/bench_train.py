@@ -78,6 +78,8 @@ def worker(spec: dict) -> dict:
     cfg = make_config(spec["task"], spec["preset"], spec["variant"], **overrides)
     A = 6
     agent = Agent(cfg, A, device=spec["device"])
+    if spec.get("precision") and hasattr(agent, "use_precision"):   # the bench's own command line:
+        agent.use_precision(spec["precision"])                    # kept even where bf16 is emulated
     B, T = cfg.train.batch_size, cfg.train.seq_len
     rng = np.random.default_rng(0)
     batch = {"image": rng.integers(0, 256, (B, T, 64, 64, 3), dtype=np.uint8),
@@ -319,7 +321,8 @@ def main(argv=None) -> int:
     signal.signal(signal.SIGTERM, _interrupt)
     from protocad_ros.model.precision import cpu_capability, resolve_precision
 
-    precisions = list(dict.fromkeys(resolve_precision(p, args.device).precision for p in args.precision))
+    precisions = list(dict.fromkeys(resolve_precision(p, args.device, explicit=True).precision
+                                    for p in args.precision))
     specs = []
     common = {"task": args.task, "device": args.device, "threads": args.threads,
               "updates": args.updates, "warmup": args.warmup, "profile": args.profile,

@@ -252,7 +252,9 @@ class ModelChoice:
     """torch threads"""
     precision: str | None = arg(None, choices=("auto", "float32", "bfloat16"))
     """train.precision; auto = bfloat16 where the device has bf16 arithmetic (AVX512-BF16/AMX
-    CPUs, Ampere+ GPUs), else float32; unset: the config's train.precision"""
+    CPUs, Ampere+ GPUs), else float32; bfloat16 given here is kept even where the device emulates
+    it (with a warning); unset: the config's train.precision, a request each process resolves
+    on its device (bfloat16 becomes float32 where it would be emulated)"""
 
     def to_config(self, config_args: Sequence[str] = (), prog: str = "protocad",
                   overrides: dict[str, Any] | None = None):
@@ -267,12 +269,8 @@ class ModelChoice:
         if self.seq_len is not None:
             settings["train.seq_len"] = self.seq_len
         settings["train.seed"] = self.seed
-        if self.precision:
-            from protocad_ros.model.precision import resolve_precision
-
-            choice = resolve_precision(self.precision, runs.resolve_device(self.device))
-            settings["train.precision"] = choice.precision
-            print(f"[config] {choice.describe()}", flush=True)
+        if self.precision:   # the request; resolved where the agent is built (agent.use_precision)
+            settings["train.precision"] = self.precision
         cfg = runs.build_config(self.task, self.variant, self.preset, self.config, settings)
         if config_args:
             flagged = runs.apply_config_flags(cfg, config_args, prog)

@@ -18,6 +18,7 @@ import torch
 import torch.nn as nn
 
 from protocad_ros.model.config import Config
+from protocad_ros.model.precision import PrecisionChoice, resolve_precision
 
 __all__ = ["AgentBase", "BATCH_KEYS", "frozen", "batch_to_device"]
 
@@ -90,6 +91,7 @@ class AgentBase(nn.Module):
         # Data-parallel training (trainer/learn/distributed.py) averages gradients across processes
         # here: called after every backward with the parameters about to be stepped.
         self.grad_sync: Callable[[list[nn.Parameter]], None] | None = None
+        self._precision: PrecisionChoice | None = None   # resolved on first use (`precision`)
 
     @property
     def device(self) -> torch.device:
@@ -125,9 +127,26 @@ class AgentBase(nn.Module):
             kw["foreach"] = True
         return torch.optim.AdamW(params, **kw)
 
+    @property
+    def precision(self) -> PrecisionChoice:
+        """What this agent computes in: cfg.train.precision resolved as a request on the agent's
+        device, unless `use_precision` was given a command line's choice."""
+        if self._precision is None:
+            self.use_precision(None)
+        return self._precision
+
+    def use_precision(self, command_line: str | None) -> PrecisionChoice:
+        """Resolve the precision on this agent's device: a command line's --precision (explicit:
+        bfloat16 is kept even where emulated) or, without one, cfg.train.precision (a request:
+        bfloat16 only where the device has bf16 arithmetic). Returns the choice (describe() it)."""
+        explicit = command_line is not None
+        self._precision = resolve_precision(command_line if explicit else self.cfg.train.precision,
+                                            str(self.device), explicit)
+        return self._precision
+
     def _autocast(self):
         return torch.autocast(self.device.type, dtype=torch.bfloat16,
-                              enabled=self.cfg.train.precision == "bfloat16")
+                              enabled=self.precision.precision == "bfloat16")
 
     def to_batch(self, batch: Mapping[str, Any]) -> dict[str, torch.Tensor]:
         """Validate a training batch (numpy or torch) and move it to the device."""

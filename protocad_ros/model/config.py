@@ -237,8 +237,10 @@ class TrainConfig:
     # shadows, reflections or MSAA (4x cheaper on a CPU; what every run here used), 'default' =
     # dm_control's own settings (the look the paper's frames had).
     render_quality: str = "fast"
-    # 'float32', or 'bfloat16' autocast (mixed precision; DreamerPro trains with precision 16,
-    # DreamerV3 with bf16).  Losses, KL and distributions are always computed in float32.
+    # A request, resolved by each process on its own device (protocad_ros.model.precision):
+    # 'float32', 'bfloat16' autocast (mixed precision; DreamerPro trains with precision 16,
+    # DreamerV3 with bf16; float32 where the device would emulate bf16) or 'auto' (bfloat16
+    # where the device has bf16 arithmetic). Losses, KL and distributions are always float32.
     precision: str = "float32"
     device: str = "cpu"
     seed: int = 0
@@ -369,8 +371,8 @@ class Config:
         check(bh.actor_grad in ("dynamics", "reinforce", "both"),
               f"behavior.actor_grad must be 'dynamics'|'reinforce'|'both', got {bh.actor_grad!r}")
         check(bh.horizon >= 1, "behavior.horizon must be >= 1")
-        check(tr.precision in ("float32", "bfloat16"),
-              f"train.precision must be 'float32'|'bfloat16', got {tr.precision!r}")
+        check(tr.precision in ("auto", "float32", "bfloat16"),
+              f"train.precision must be 'auto'|'float32'|'bfloat16', got {tr.precision!r}")
         check(tr.image_size == 64, "only 64x64 images are supported (train.image_size=64)")
         check(tr.render_quality in ("fast", "default"),
               f"train.render_quality must be 'fast'|'default', got {tr.render_quality!r}")

@@ -247,6 +247,8 @@ class PolicyNode(CheckpointServing, ManagedNode):
             f"noise {p['exploration_noise']}); {self.action_dim}-d actions {self.action_names}; "
             f"expects {self.image_hw[0]}x{self.image_hw[1]} rgb8 on "
             f"{self.resolve_topic_name(topics.IMAGE)}")
+        # The config's precision is a request: resolved here, on this node's device.
+        self.get_logger().info(self.policy.agent.precision.describe())
 
     def deactivate_node(self) -> None:
         # Halves of observations that arrived before: they will not be answered.

@@ -285,10 +285,8 @@ class Loop:
                              + ", ".join(other) + ": leave them out, the policy's config is the run's")
         train = {"train.seed": m.seed, **({"train.batch_size": m.batch_size} if m.batch_size else {}),
                  **({"train.seq_len": m.seq_len} if m.seq_len else {})}
-        if m.precision:
-            from protocad_ros.model.precision import resolve_precision
-
-            train["train.precision"] = resolve_precision(m.precision, self.device).precision
+        if m.precision:   # the request; the policy's own (a shipped bf16 one) is a request too
+            train["train.precision"] = m.precision
         cfg = apply_overrides(copy.deepcopy(policy_cfg), {**runs.parse_set(m.set), **train})
         if self.config_args:
             cfg = runs.apply_config_flags(cfg, self.config_args, self.prog)
@@ -491,15 +489,10 @@ class Loop:
         return done
 
     # ------------------------------------------------------------------ main
-    def run(self) -> int:
-        from trainer.launch.rosprocs import RosStack
-
-        self._setup()
+    def _open_trainer(self, callbacks=()) -> None:
+        """The trainer: from the run's checkpoint on a resume, else fresh (the --init-policy
+        weights); its precision resolved on this machine, said in one line and kept in run.json."""
         a, cfg = self.a, self.cfg
-        t_start = time.monotonic()
-        from trainer.viz.rerun_log import metrics_callbacks
-
-        callbacks = metrics_callbacks(a.rerun, self.run_dir, "protocad-loop")
         ckpt = runs.checkpoint_path(self.run_dir)
         if a.resume and ckpt.exists():
             self.trainer = Trainer.from_checkpoint(ckpt, self.run_dir, self.ds, device=self.device,
@@ -514,7 +507,21 @@ class Loop:
         if freeze is not None:
             print(f"[loop] prototypes frozen for the first {freeze:,} updates", flush=True)
             self.run_json["prototype_freeze"] = freeze
-            runs.atomic_write_json(self.run_dir / "run.json", self.run_json)
+        precision = self.trainer.agent.use_precision(self.model.precision)
+        print(f"[loop] {precision.describe()}", flush=True)
+        self.run_json["precision"] = precision.to_dict()
+        runs.atomic_write_json(self.run_dir / "run.json", self.run_json)
+
+    def run(self) -> int:
+        from trainer.launch.rosprocs import RosStack
+
+        self._setup()
+        a, cfg = self.a, self.cfg
+        t_start = time.monotonic()
+        from trainer.viz.rerun_log import metrics_callbacks
+
+        self._open_trainer(metrics_callbacks(a.rerun, self.run_dir, "protocad-loop"))
+        ckpt = runs.checkpoint_path(self.run_dir)
         # Signed by default: every checkpoint this run writes gets FILE.sig from the run key, and
         # its policy nodes serve only what that key signed (trainer/launch/run_key.py).
         self.key = run_key.run_key(self.run_dir)

@@ -495,6 +495,8 @@ def _train(s: TrainSettings, model: settings.ModelChoice, config_args: list[str]
         target = s.updates or 1000
         if ctx.is_main:
             cfg.save(run_dir / "config.yaml")
+    precision = trainer.agent.use_precision(model.precision)   # every rank, on its own device
+    say(f"[train] {precision.describe()}", flush=True)
     if trainer.dataset.action_dim != trainer.agent.action_dim:
         raise ValueError(f"the logs have {trainer.dataset.action_dim}-d actions but the agent "
                          f"{trainer.agent.action_dim}-d")
@@ -507,7 +509,7 @@ def _train(s: TrainSettings, model: settings.ModelChoice, config_args: list[str]
                     checkpoint_every=s.checkpoint_every, log_every=s.log_every,
                     rerun=str(rrd) if rrd else None, prototype_freeze=freeze, topics=ds.topics.as_dict(), world_size=ctx.world_size,
                     accept_multiple_publishers=s.accept_multiple_publishers,
-                    accept_test_split=s.accept_test_split,
+                    accept_test_split=s.accept_test_split, precision=precision.to_dict(),
                     settings={"train": settings.as_data(s), "model": settings.as_data(model)})
     if ctx.is_main:
         runs.atomic_write_json(run_dir / "run.json", run_json)

@@ -577,6 +577,8 @@ class OnlineRun:
             s.env_steps, tr.time_limit, s.num_envs * self.world))
         if freeze is not None:
             self.say(f"[online] prototypes frozen for the first {freeze:,} updates", flush=True)
+        # Resolved here, on this rank's device: a config from another machine asks, never forces.
+        self.run_json["precision"] = self.trainer.agent.use_precision(self.model.precision).to_dict()
         if s.resume:
             # The data is the truth: every bag on disk counts, also those written after the last
             # checkpoint (their updates are made up by the schedule, which counts from episodes).
@@ -626,16 +628,15 @@ class OnlineRun:
         return continuing_rollout(self.venv, lambda: random_policy if self.prefilling() else agent_policy)
 
     def _announce(self) -> None:
-        from protocad_ros.model.precision import cpu_capability
-
         s, cfg, tr, ctx = self.s, self.cfg, self.cfg.train, self.ctx
         wall = f", wall budget {runs.fmt_seconds(s.wall_budget)}" if s.wall_budget else ""
         self.say(f"[online] {cfg.task} / {cfg.variant} / {cfg.preset} on {self.device}: {s.num_envs} env(s)"
                  + (f" on each of {self.world} ranks ({ctx.backend})" if ctx.enabled else "") + ", "
                  f"budget {s.env_steps} env steps{wall}, prefill {tr.prefill_episodes} episodes, "
                  f"C={tr.collect_interval}, eval every {s.eval_every} env steps on {len(self.periodic_contexts)} "
-                 f"{s.eval_split} contexts; precision {tr.precision}, CPU capability {cpu_capability()}, "
-                 f"{runs.torch_threads()} torch thread(s); run dir {self.run_dir}", flush=True)
+                 f"{s.eval_split} contexts; {runs.torch_threads()} torch thread(s); run dir {self.run_dir}",
+                 flush=True)
+        self.say(f"[online] {self.trainer.agent.precision.describe()}", flush=True)
 
     # ------------------------------------------------------------------ Algorithm 1
     def prefilling(self) -> bool:
@@ -741,7 +742,7 @@ class OnlineRun:
             errors += close_quietly([("saving the checkpoint", trainer.save)])
         errors += close_quietly([("closing the metrics", trainer.close)])
         result = {"status": status, "env_steps": c.env_steps, "updates": trainer.updates, "episodes": c.episodes,
-                  "wall_time": round(trainer.metrics.wall_time, 1), "precision": self.cfg.train.precision,
+                  "wall_time": round(trainer.metrics.wall_time, 1), "precision": trainer.agent.precision.precision,
                   "resumes": c.resumes, "prototype_freeze": trainer.prototype_freeze}
         if cause is not None and not isinstance(cause, (KeyboardInterrupt, SystemExit)):
             result["error"] = f"{type(cause).__name__}: {cause}"

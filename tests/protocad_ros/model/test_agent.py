@@ -139,6 +139,7 @@ def test_discrete_latents_layernorm_and_bf16_run(real_batch):
                               "world_model.norm": "layer", "behavior.norm": "layer",
                               "world_model.act": "silu", "train.precision": "bfloat16"})
     agent = Agent(cfg, action_dim=1)
+    agent.use_precision("bfloat16")   # as --precision asks: the bf16 path also where it is emulated
     assert agent.wm.state_dim == 8 * 4 + 32
     for _ in range(2):
         m = agent.train_step(real_batch)

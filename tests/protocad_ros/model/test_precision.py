@@ -1,5 +1,6 @@
-"""Precision is chosen from the hardware, never silently: 'auto' picks bfloat16 only with bf16
-arithmetic, an explicit choice is honoured, and the benchmark times what was asked."""
+"""Precision is chosen from the hardware, never silently: 'auto' and a config's 'bfloat16' are
+bfloat16 only with bf16 arithmetic, a command line's choice is honoured, and the benchmark times
+what was asked."""
 from __future__ import annotations
 
 import subprocess
@@ -24,12 +25,30 @@ def test_auto_picks_bfloat16_only_with_bf16_arithmetic(monkeypatch, flags, expec
     assert "chosen automatically" in choice.describe() and "CPU capability" in choice.describe()
 
 
-def test_explicit_precision_is_honoured_and_unknown_is_refused(monkeypatch):
-    monkeypatch.setattr(P, "cpu_flags", lambda: set())
+def test_a_config_asks_and_only_a_command_line_forces_emulated_bfloat16(monkeypatch):
+    monkeypatch.setattr(P, "cpu_flags", lambda: {"avx2"})
+    asked = P.resolve_precision("bfloat16", "cpu")            # a config's value: a request
+    assert (asked.precision, asked.emulated) == ("float32", True)
+    assert asked.describe().startswith("precision float32: the config asks for bfloat16")
+    forced = P.resolve_precision("bfloat16", "cpu", explicit=True)   # --precision bfloat16
+    assert forced.precision == "bfloat16" and forced.describe().startswith("warning: ")
+    assert "as --precision asked" in P.resolve_precision("float32", "cpu", explicit=True).describe()
+    monkeypatch.setattr(P, "cpu_flags", lambda: {"avx2", "amx_bf16"})
     assert P.resolve_precision("bfloat16", "cpu").precision == "bfloat16"
-    assert "as requested" in P.resolve_precision("float32", "cpu").describe()
+    assert "as the config asks" in P.resolve_precision("bfloat16", "cpu").describe()
     with pytest.raises(ValueError, match="precision must be one of"):
         P.resolve_precision("fp16", "cpu")
+
+
+def test_the_environment_override_hides_the_bf16_flags(monkeypatch):
+    """$PROTOCAD_CPU_NO_BF16 (tests, diagnostics; inherited by child processes) makes any CPU
+    choose as an AVX2-only one would."""
+    monkeypatch.setenv(P.NO_BF16_ENV, "1")
+    assert not P.cpu_flags() & P.BF16_FLAGS
+    assert P.resolve_precision("auto", "cpu").precision == "float32"
+    assert f"hidden by ${P.NO_BF16_ENV}" in P.cpu_capability()
+    monkeypatch.setenv(P.NO_BF16_ENV, "0")
+    assert "hidden" not in P.cpu_capability()
 
 
 def bench_rows(*args: str) -> list[str]:

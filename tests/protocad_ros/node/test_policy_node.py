@@ -289,3 +289,28 @@ def test_two_bridges_in_one_namespace_are_reported_by_both(spawn, probe):
     d = probe.node_diag("policy")
     assert "/protocad/image (2)" in d["multiple_publishers"] and int(d["multiple_publishers_detected"]) >= 3, d
     assert d["_level"] >= 1 and policy.output().count("2 publishers on /protocad/bridge_info") == 1
+
+
+@pytest.mark.ros
+@pytest.mark.process
+def test_serves_the_shipped_bf16_policy_in_float32_on_a_cpu_without_bf16(spawn, probe):
+    """The shipped policy's config says bfloat16 (the machine that trained it had bf16): on a CPU
+    without bf16 arithmetic ($PROTOCAD_CPU_NO_BF16 makes this one such a CPU for the node's
+    process) the node loads its weights into float32, says so at start, and answers."""
+    from protocad_ros.model.precision import NO_BF16_ENV
+    from protocad_ros.policy import shipped_policy
+
+    path = shipped_policy("walker_walk")
+    if path is None:
+        pytest.skip("the package ships no walker_walk policy")
+    f = Feeder(probe)
+    args = policy_args(f"checkpoint:={path}")
+    args[args.index(f"task:={TASK}")] = "task:=walker_walk"
+    policy = spawn("policy", *args, env={NO_BF16_ENV: "1"})
+    wait_until(f.ready, START, "the policy's subscriptions and publishers to match")
+    said = "precision float32: the config asks for bfloat16, which cpu would emulate"
+    wait_until(lambda: said in policy.output(), 30, "the node's precision line")
+    assert f"hidden by ${NO_BF16_ENV}" in policy.output()
+    f.obs(1_000, 0, is_first=True)
+    f.wait_answers(1, "an answer")
+    assert policy.alive() and np.all(np.abs(np.asarray(f.actions[0].effort)) <= 1.0)
