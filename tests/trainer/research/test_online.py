@@ -207,10 +207,11 @@ def test_ctrl_c_while_training_costs_the_run_neither_updates_nor_an_evaluation(t
     from protocad_ros.checkpoint import read_checkpoint
 
     run = tmp_path / "run"
-    # 40 env steps per episode, prefill 2, C = 200: 200 updates after episode 2, 400 after
+    # 40 env steps per episode, prefill 2, C = 100: 100 updates after episode 2, 200 after
     # episode 3, whose 120 env steps make an evaluation due; the budget ends with episode 4.
+    # (C is the window each Ctrl-C must land in: 100 tiny updates, a second or more.)
     args = ["-m", "trainer.research.online", "--task", "pendulum_swingup", *TINY, "--time-limit", "40",
-            "--prefill-episodes", "2", "--updates-per-episode", "200", "--eval-every", "120",
+            "--prefill-episodes", "2", "--updates-per-episode", "100", "--eval-every", "120",
             "--eval-episodes", "1", "--eval-max-contexts", "1", "--final-episodes", "1",
             "--final-max-contexts", "1", "--eval-workers", "0", "--log-every", "1", "--no-progress",
             "--env-steps", "160", "--run-dir", str(run)]
@@ -226,7 +227,7 @@ def test_ctrl_c_while_training_costs_the_run_neither_updates_nor_an_evaluation(t
     assert json.loads((run / "run.json").read_text())["result"]["status"] == "interrupted"
     cut = int(read_checkpoint(run / "checkpoints" / "latest.pt")["modules"]["updates"])
     logged = (run / "eval.jsonl").read_text() if (run / "eval.jsonl").exists() else ""
-    assert cut < 400 or "eval_00000120" not in logged, "the interruption came too late to test anything"
+    assert cut < 200 or "eval_00000120" not in logged, "the interruption came too late to test anything"
 
     resume = ["-m", "trainer.research.online", "--run-dir", str(run), "--resume", "--no-progress"]
     p = spawn("second", *resume)
@@ -234,16 +235,16 @@ def test_ctrl_c_while_training_costs_the_run_neither_updates_nor_an_evaluation(t
                or not p.alive(), 300, "the updates after episode 4")
     assert p.stop(signal.SIGINT, timeout=120) == 0, p.output()[-3000:]
     cut = int(read_checkpoint(run / "checkpoints" / "latest.pt")["modules"]["updates"])
-    assert cut < 600 and not (run / "eval" / "final.json").exists(), "the interruption came too late"
+    assert cut < 300 and not (run / "eval" / "final.json").exists(), "the interruption came too late"
 
     r = run_cli("trainer.research.online", *resume[2:], timeout=300)
     assert r.returncode == 0, r.stdout + r.stderr
     evals = [json.loads(x) for x in (run / "eval.jsonl").read_text().splitlines()]
     assert [(e["tag"], e["env_steps"], e["updates"]) for e in evals] == [
-        ("eval_00000120", 120, 400), ("final", 160, 600)]
-    assert int(read_checkpoint(run / "checkpoints" / "latest.pt")["modules"]["updates"]) == 600
+        ("eval_00000120", 120, 200), ("final", 160, 300)]
+    assert int(read_checkpoint(run / "checkpoints" / "latest.pt")["modules"]["updates"]) == 300
     episode4 = [r for r in rows() if r.get("kind") == "episode" and r["episodes"] == 4]
-    assert [r["update"] for r in episode4] == [400]   # collected by the agent of all 400 updates
+    assert [r["update"] for r in episode4] == [200]   # collected by the agent of all 200 updates
 
 
 @pytest.mark.process
