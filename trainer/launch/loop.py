@@ -217,6 +217,7 @@ class Loop:
         self.argv = list(sys.argv[1:] if argv is None else argv)
         self.device = runs.resolve_device(model.device)
         runs.setup_torch(model.threads)
+        self._eta_said = False   # the expected time is said once, after the first training phase
 
     # ------------------------------------------------------------------ setup
     def _setup(self) -> None:
@@ -483,10 +484,28 @@ class Loop:
         finally:
             bar.close()
         m = self.trainer.last_metrics
+        self._say_expected_time(n - (target - self.trainer.updates), time.monotonic() - t0)
         print(f"[loop] trained to update {self.trainer.updates} in {runs.fmt_seconds(time.monotonic() - t0)}"
               + (f" (wm_loss {m.get('wm_loss', float('nan')):.3g}, reward_loss {m.get('reward_loss', float('nan')):.3g})" if m else "")
               + f"; checkpoint {self.trainer.checkpoint_path}", flush=True)
         return done
+
+    def _say_expected_time(self, n: int, seconds: float) -> None:
+        """Once, after the first training phase: how long the rest takes at the rate measured on
+        this machine (CPUs differ many times over), so a slow machine says so early."""
+        if self._eta_said or n <= 0 or seconds <= 0:
+            return
+        self._eta_said = True
+        a, rate = self.a, n / seconds
+        final = self.schedule.target_updates(a.cycles * a.episodes_per_cycle * a.robots)
+        left = max(final - self.trainer.updates, 0)
+        cycles_left = max(a.cycles - self.collect_phases, 0)
+        per_episode = [p["seconds"] / max(p["episodes"] + p["partial_episodes"], 1) for p in self.phases if "seconds" in p]
+        collect = cycles_left * a.episodes_per_cycle * (max(per_episode) if per_episode else 0.0)
+        print(f"[loop] training runs at {rate:.2f} updates/s on this machine ({self.trainer.agent.precision.precision}, "
+              f"{runs.torch_threads()} torch thread(s)): the {left} updates left take about "
+              f"{runs.fmt_seconds(left / rate)}; with {cycles_left} collection cycle(s) the loop ends in about "
+              f"{runs.fmt_seconds(left / rate + collect)}, then the final evaluation", flush=True)
 
     # ------------------------------------------------------------------ main
     def _open_trainer(self, callbacks=()) -> None:
@@ -637,8 +656,10 @@ class Loop:
         os.environ["PROTOCAD_CACHE_DIR"] = str(self.ds.cache_dir)  # reuse this run's dataset cache
         print(f"[loop] writing the rerun context recording {out}", flush=True)
         try:
+            # The contexts the bags lack, as many per split as the final evaluation had (the
+            # demo: 8 of walker's 25 + 64 instead of all: each is an env built and run in-process).
             write_context_recording(runs.checkpoint_path(self.run_dir), logs=[self.bags_dir], out_rrd=out,
-                                    device=self.device, progress=False)
+                                    device=self.device, progress=False, max_contexts=self.a.eval_max_contexts)
         except Exception as exc:  # noqa: BLE001 - the run's results stand without the picture
             print(f"[loop] rerun context recording failed: {type(exc).__name__}: {exc}", flush=True)
             return None

@@ -209,6 +209,9 @@ class Trainer:
         driver with C a multiple of it would never checkpoint between its evaluations). Returns
         False when stopped early by `stop` (a checkpoint is written then)."""
         completed = True
+        # The rate of the first line of this call counts from here: between two calls a loop
+        # collects, and that time is not the trainer's (it read as slow first updates).
+        self._last_log_t, self._last_log_u = time.monotonic(), self.updates
         while self.updates < target_updates:
             # Ranks stop together (one would wait forever for the others' gradients).
             if distributed.any_rank(stop is not None and stop.stop, self.dist):

@@ -148,9 +148,11 @@ def collect_context_episodes(task: str, agent: Any = None, *, steps: int = DEFAU
     return episodes
 
 
-def missing_contexts(task: str, episodes: Sequence[Episode],
-                     splits: Sequence[str] = ("train", "test")) -> dict[str, list[dict[str, float]]]:
-    """split -> the task's contexts that no episode in ``episodes`` has."""
+def missing_contexts(task: str, episodes: Sequence[Episode], splits: Sequence[str] = ("train", "test"),
+                     max_contexts: int = 0) -> dict[str, list[dict[str, float]]]:
+    """split -> the task's contexts that no episode in ``episodes`` has; with max_contexts, only
+    those of the split's fixed stratified subset of that many (TaskSpec.stratified, the one
+    the evaluations use), so a view of a run covers a few contexts of each split, not 25 + 64."""
     from sim_bridge.contract.contexts import get_task
 
     def key(split: str, ctx: Mapping[str, float]) -> tuple:
@@ -158,7 +160,7 @@ def missing_contexts(task: str, episodes: Sequence[Episode],
 
     have = {key(ep.split, ep.context) for ep in episodes}
     spec = get_task(task)
-    return {s: [c for c in spec.contexts(s) if key(s, c) not in have] for s in splits}
+    return {s: [c for c in spec.stratified(s, max_contexts) if key(s, c) not in have] for s in splits}
 
 
 def load_log_episodes(logs: Sequence[str | Path], *, max_steps: int | None = 100,

@@ -388,7 +388,7 @@ def write_context_recording(source: Any, logs: Sequence[str | Path] | None = Non
                             random_policy: bool = False, seed: int = 0, device: str = "cpu",
                             png: str | Path | None = None, recording: Any = None,
                             spawn: bool = False, progress: bool | None = None,
-                            cover_all_contexts: bool = True,
+                            cover_all_contexts: bool = True, max_contexts: int = 0,
                             log_steps: int | None = 100) -> RecordingResult:
     """Write the context view of an agent to ``out_rrd`` (with its blueprint).
 
@@ -397,7 +397,8 @@ def write_context_recording(source: Any, logs: Sequence[str | Path] | None = Non
     files, read with trainer.data.dataset), or collected in-process for every context of both splits
     of ``task`` (``steps_per_context`` steps each; ``task`` defaults to the agent's). With logs
     and ``cover_all_contexts``, contexts of the task the logs lack (e.g. every test context in
-    a training run's bags) are collected in-process too. ``open_loop_episodes``: longer episodes for
+    a training run's bags) are collected in-process too: all of them, or with ``max_contexts``
+    those of each split's stratified subset of that many. ``open_loop_episodes``: longer episodes for
     the open-loop view (default: those of the main episodes that are long enough, else, when
     collecting, one context_steps + horizon episode per split's first and last context).
     ``recording``: an existing rerun.RecordingStream to log into instead of a new file;
@@ -423,7 +424,7 @@ def write_context_recording(source: Any, logs: Sequence[str | Path] | None = Non
         eps = [Episode.from_any(e) for e in episodes]
     elif logs:
         eps = load_log_episodes(logs, max_steps=log_steps)
-        missing = missing_contexts(task, eps) if (task and cover_all_contexts) else {}
+        missing = missing_contexts(task, eps, max_contexts=max_contexts) if (task and cover_all_contexts) else {}
         if any(missing.values()):
             # Logs of a training run hold only training contexts: the rest is collected, so the
             # view shows every context of both splits.

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 
 import pytest
 
@@ -20,6 +21,9 @@ def test_two_collect_train_reload_cycles_through_ros(tmp_path):
                 "--eval-episodes", "1", "--eval-max-contexts", "2", "--no-visualize", "--run-dir", run,
                 "--domain-id", os.environ["ROS_DOMAIN_ID"], "--log-every", "1", "--no-progress", timeout=400)
     assert r.returncode == 0, loop_failure(r, run)
+    # after the first training phase the loop says what the rest takes at its measured rate
+    assert re.search(r"\[loop\] training runs at [\d.]+ updates/s on this machine \(float32, 1 torch thread\(s\)\): "
+                     rf"the {2 * C} updates left take about .* with 2 collection cycle\(s\) the loop ends in about", r.stdout), r.stdout
     phases = json.loads((run / "phases.json").read_text())
     assert [p["bag"] for p in phases] == ["00_prefill", "01_collect", "02_collect"]
     assert [p["episodes"] for p in phases] == [2, 1, 1]

@@ -320,3 +320,19 @@ def test_metrics_callback_is_the_training_recorder(tmp_path):
     r = read_recording(tmp_path / "run" / "metrics.rrd")
     assert r["/train/actor_loss"]["rows"] == 3
     assert sorted(r["/train/actor_loss"]["columns"]["update"]) == [0, 1, 2]
+
+
+def test_the_contexts_a_run_lacks_can_be_a_stratified_few_per_split():
+    """The loop's recording collects what its bags lack: for the demo the final evaluation's
+    8 contexts per split, not walker's 25 + 64 (each an env built and run in-process)."""
+    from types import SimpleNamespace
+
+    from trainer.viz.context_episodes import missing_contexts
+
+    spec = get_task("walker_walk")
+    full = missing_contexts("walker_walk", [])
+    assert (len(full["train"]), len(full["test"])) == (25, 64)
+    seen = SimpleNamespace(split="train", context=spec.stratified("train", 8)[0])
+    few = missing_contexts("walker_walk", [seen], max_contexts=8)
+    assert few["test"] == spec.stratified("test", 8)
+    assert few["train"] == spec.stratified("train", 8)[1:]   # the one the bags have is left out
