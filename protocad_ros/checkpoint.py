@@ -42,6 +42,8 @@ import torch
 from protocad_ros.model.agent_base import AgentBase
 from protocad_ros.model.agents import make_agent
 from protocad_ros.atomic import atomic_open, atomic_write_text
+from protocad_ros.checkpoint_limits import (DEFAULT_MAX_CHECKPOINT_BYTES, CheckpointLimitError, check_archive,
+                                            check_implied_size, check_top_level_keys)
 from protocad_ros.model.config import Config, ConfigError
 
 __all__ = ["save_checkpoint", "save_policy", "read_provenance", "load_checkpoint", "restore_checkpoint", "read_checkpoint",
@@ -148,17 +150,30 @@ def _write(path: Path, payload: Mapping[str, Any]) -> None:
         f.write(buf.getbuffer())
 
 
-def read_checkpoint(path: str | os.PathLike, data: bytes | None = None) -> dict[str, Any]:
-    """The raw checkpoint dict (tensors on CPU), after format and version checks. `data`: the
-    file's bytes as the caller read (and verified) them; then the file is not read again."""
-    path = Path(path)
+def read_checkpoint(path: str | os.PathLike, data: bytes | None = None,
+                    max_bytes: int = DEFAULT_MAX_CHECKPOINT_BYTES) -> dict[str, Any]:
+    """The raw checkpoint dict (tensors on CPU), after the archive's limits
+    (protocad_ros.checkpoint_limits: checked on its zip directory, before anything is expanded)
+    and the format and version checks. `data`: the file's bytes as the caller read (and
+    verified) them; then the file is not read again."""
+    return _read(Path(path), max_bytes, data)[0]
+
+
+def _read(path: Path, max_bytes: int, data: bytes | None = None) -> tuple[dict[str, Any], int]:
+    """(payload, bytes of its tensor entries): every load path's one reader."""
     if data is None:
-        data = _read_file(path)
+        data = _read_file(path, max_bytes)
+    elif len(data) > max_bytes:
+        raise CheckpointError(f"{path}: {len(data)} bytes, more than the limit of {max_bytes} (max_checkpoint_bytes)")
     if not data:
         raise CheckpointError(f"{path}: empty file (an interrupted write?)")
     if not zipfile.is_zipfile(io.BytesIO(data)):
         kind = "truncated or corrupt" if data[:4] == b"PK\x03\x04" else "not a checkpoint"
         raise CheckpointError(f"{path}: {kind}: not a complete torch.save archive")
+    try:
+        tensor_bytes = check_archive(path, data, max_bytes)
+    except CheckpointLimitError as err:
+        raise CheckpointError(str(err)) from None
     try:
         payload = torch.load(io.BytesIO(data), map_location="cpu", weights_only=True)
     except Exception as err:  # noqa: BLE001 - any unpickling failure means an unusable file
@@ -175,12 +190,19 @@ def read_checkpoint(path: str | os.PathLike, data: bytes | None = None) -> dict[
     for key in ("config", "action_dim", "modules"):   # optimizers: not in a policy file
         if key not in payload:
             raise CheckpointError(f"{path}: checkpoint is missing {key!r}")
-    return payload
+    try:
+        check_top_level_keys(path, payload)
+    except CheckpointLimitError as err:
+        raise CheckpointError(str(err)) from None
+    return payload, tensor_bytes
 
 
-def _read_file(path: Path) -> bytes:
+def _read_file(path: Path, max_bytes: int) -> bytes:
     if not path.is_file():
         raise CheckpointError(f"{path}: no such checkpoint file")
+    size = path.stat().st_size
+    if size > max_bytes:   # before reading it: a huge file costs nothing
+        raise CheckpointError(f"{path}: {size} bytes, more than the limit of {max_bytes} (max_checkpoint_bytes)")
     return path.read_bytes()
 
 
@@ -227,7 +249,8 @@ _LAYER_COUNTS = (("world_model", "mlp_layers"), ("behavior", "actor_layers"),
                  ("behavior", "critic_layers"), ("drq", "num_conv_layers"), ("drq", "hidden_depth"))
 
 
-def _check_weights_fit(path: Path, cfg: Config, action_dim: int, payload: Mapping[str, Any]) -> None:
+def _check_weights_fit(path: Path, cfg: Config, action_dim: int, payload: Mapping[str, Any],
+                       tensor_bytes: int = 0) -> None:
     """CheckpointError unless the file's tensors have the shapes its own config builds, checked
     on the meta device: a config that claims huge sizes is refused without allocating them."""
     modules = payload["modules"]
@@ -243,6 +266,10 @@ def _check_weights_fit(path: Path, cfg: Config, action_dim: int, payload: Mappin
             shapes = {k: tuple(v.shape) for k, v in make_agent(cfg, action_dim, device="meta").state_dict().items()}
     except Exception as err:  # noqa: BLE001 (a config no agent can be built from)
         raise CheckpointError(f"{path}: its config builds no agent: {type(err).__name__}: {err}") from None
+    try:   # more tensor bytes than these weights and their optimizer states: not this file's
+        check_implied_size(path, tensor_bytes, shapes)
+    except CheckpointLimitError as err:
+        raise CheckpointError(str(err)) from None
     theirs = {k: tuple(v.shape) if isinstance(v, torch.Tensor) else None for k, v in modules.items()}
     wrong = [f"{k}: {theirs.get(k, 'missing')} in the file, {shape} from its config"
              for k, shape in shapes.items() if theirs.get(k) != shape]
@@ -255,7 +282,8 @@ def _check_weights_fit(path: Path, cfg: Config, action_dim: int, payload: Mappin
 def load_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu",
                     action_dim: int | None = None, *,
                     fits: Callable[[Config, int], None] | None = None,
-                    restore_rng: bool = True, data: bytes | None = None) -> tuple[AgentBase, dict[str, Any]]:
+                    restore_rng: bool = True, data: bytes | None = None,
+                    max_bytes: int = DEFAULT_MAX_CHECKPOINT_BYTES) -> tuple[AgentBase, dict[str, Any]]:
     """Rebuild the agent from a checkpoint. Returns (agent, counters).
 
     action_dim, if given, must match the checkpoint's (e.g. the environment's). fits(config,
@@ -263,9 +291,11 @@ def load_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu",
     to refuse the file. restore_rng: set torch's global RNG from the file (the trainer's
     exact resume); False for anything that only serves or evaluates it. data: the file's bytes,
     already read (and verified) by the caller: loaded from, the file is not read again.
+    max_bytes: the largest file (and declared archive contents) accepted
+    (protocad_ros.checkpoint_limits).
     """
     path = Path(path)
-    payload = read_checkpoint(path, data)
+    payload, tensor_bytes = _read(path, max_bytes, data)
     cfg = _config(path, payload)
     ckpt_dim = _action_dim(path, payload)
     if action_dim is not None and int(action_dim) != ckpt_dim:
@@ -273,7 +303,7 @@ def load_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu",
                               f"but action_dim={action_dim} was requested")
     if fits is not None:
         fits(cfg, ckpt_dim)
-    _check_weights_fit(path, cfg, ckpt_dim, payload)
+    _check_weights_fit(path, cfg, ckpt_dim, payload, tensor_bytes)
     agent = make_agent(cfg, ckpt_dim, device=device)
     counters = _load_into(path, agent, payload, restore_rng)
     return agent, counters
@@ -289,15 +319,17 @@ def architecture_differences(mine: Config, theirs: Config) -> list[str]:
                     if a[sec].get(k) != b[sec].get(k)]
 
 
-def restore_checkpoint(path: str | os.PathLike, agent: AgentBase) -> dict[str, Any]:
+def restore_checkpoint(path: str | os.PathLike, agent: AgentBase,
+                       max_bytes: int = DEFAULT_MAX_CHECKPOINT_BYTES) -> dict[str, Any]:
     """Load a checkpoint into an existing agent (e.g. a policy node reloading new weights).
 
     The checkpoint's config must describe the same networks (variant, sizes, action_dim);
     training-only fields (learning rates, batch size, ...) may differ.
     """
     path = Path(path)
-    payload = read_checkpoint(path)
+    payload, tensor_bytes = _read(path, max_bytes)
     cfg = _config(path, payload)
+    _check_weights_fit(path, cfg, _action_dim(path, payload), payload, tensor_bytes)
     if int(payload["action_dim"]) != agent.action_dim:
         raise CheckpointError(f"{path}: checkpoint action_dim={payload['action_dim']} but the "
                               f"agent has action_dim={agent.action_dim}")

@@ -35,8 +35,10 @@ PARAMS: tuple[Param, ...] = (
           "number this node held (its rollback floor), apart from the checkpoint, so that losing "
           "FILE.sig does not lower it. Default: beside the first trusted key, "
           "KEY.served-<hash of the checkpoint path>.json."),
-    Param("max_checkpoint_bytes", 512 << 20, "Largest checkpoint accepted over checkpoint_topic: "
-          "a bigger announced version is refused before any chunk is kept.",
+    Param("max_checkpoint_bytes", 512 << 20, "Largest checkpoint accepted over checkpoint_topic "
+          "(a bigger announced version is refused before any chunk is kept) or loaded from the "
+          "checkpoint file (the file, and the sizes its archive entries declare, checked before "
+          "anything is expanded).",
           range=(4096, 1 << 40), units="bytes"),
     Param("checkpoint_transfer_timeout_s", 60.0, "A version announced on checkpoint_topic from "
           "which no new chunk arrived for this long (and not all of them arrived) is rejected as "

@@ -1,0 +1,152 @@
+"""Hostile checkpoint archives are refused from their zip directory, before torch expands them:
+a deflate bomb (a valid checkpoint plus a 1 GiB zero tensor re-zipped with deflate), an unknown
+top-level key, a file above max_bytes. Every loader refuses them (read, load, restore, the
+evaluate and loop CLIs), and the peak RSS of a refusal stays within 200 MB of a normal load."""
+from __future__ import annotations
+
+import io
+import json
+import os
+import struct
+import subprocess
+import sys
+import zipfile
+from pathlib import Path
+
+import pytest
+import torch
+
+from helpers import ROOT
+from protocad_ros.checkpoint import (CheckpointError, load_checkpoint, read_checkpoint, restore_checkpoint,
+                                     save_checkpoint)
+from protocad_ros.checkpoint_limits import TOP_LEVEL_KEYS
+from protocad_ros.model.agent import Agent
+from protocad_ros.model.config import make_config
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+#: Elements of the marker tensor: a 4-byte pickle int (BININT), patched to BOMB_NUMEL.
+MARKER_NUMEL = 70_001
+BOMB_NUMEL = 1 << 28          # 1 GiB of float32 zeros once inflated
+TINY = {"world_model.deter": 32, "world_model.hidden": 32, "world_model.stoch": 8,
+        "world_model.cnn_depth": 8, "world_model.mlp_layers": 1, "world_model.mlp_units": 32,
+        "behavior.actor_layers": 1, "behavior.actor_units": 32, "behavior.critic_layers": 1,
+        "behavior.critic_units": 32, "context.num_prototypes": 8}
+
+
+def tiny_agent() -> Agent:
+    return Agent(make_config("cheetah_run", "small", "protocad", **TINY), action_dim=6)
+
+
+def write_deflate_bomb(good: Path, out: Path, key: str = "padding") -> Path:
+    """`good`'s payload plus `key`: a zero tensor whose storage entry inflates to 1 GiB, the
+    archive re-zipped with deflate (what torch.load reads without a size check). Written in
+    pieces: building it costs the test a few MB."""
+    payload = torch.load(good, weights_only=True)
+    payload[key] = torch.zeros(MARKER_NUMEL)
+    buf = io.BytesIO()
+    torch.save(payload, buf)
+    src = zipfile.ZipFile(io.BytesIO(buf.getvalue()))
+    marker, bomb = b"J" + struct.pack("<i", MARKER_NUMEL), b"J" + struct.pack("<i", BOMB_NUMEL)
+    pkl_name = next(n for n in src.namelist() if n.endswith("/data.pkl"))
+    pkl = src.read(pkl_name)
+    assert pkl.count(marker) == 2, "storage numel and shape"   # the patch below needs both
+    big = next(i.filename for i in src.infolist() if i.file_size == 4 * MARKER_NUMEL)
+    with zipfile.ZipFile(out, "w", compression=zipfile.ZIP_DEFLATED) as dst:
+        for info in src.infolist():
+            if info.filename == pkl_name:
+                dst.writestr(info.filename, pkl.replace(marker, bomb))
+            elif info.filename == big:
+                zeros = bytes(1 << 24)
+                with dst.open(info.filename, "w", force_zip64=True) as f:
+                    for _ in range(4 * BOMB_NUMEL // len(zeros)):
+                        f.write(zeros)
+            else:
+                dst.writestr(info.filename, src.read(info.filename))
+    return out
+
+
+@pytest.fixture(scope="module")
+def files(tmp_path_factory) -> dict[str, Path]:
+    d = tmp_path_factory.mktemp("ckpt")
+    good = save_checkpoint(d / "run" / "checkpoints" / "latest.pt", tiny_agent())
+    stored = d / "unknown_key.pt"
+    torch.save({**torch.load(good, weights_only=True), "padding": torch.zeros(8)}, stored)
+    return {"good": good, "bomb": write_deflate_bomb(good, d / "bomb.pt"), "unknown": stored}
+
+
+def test_the_bomb_is_small_on_disk_and_what_torch_would_inflate(files):
+    assert files["bomb"].stat().st_size < 8 << 20
+    info = {i.filename: i for i in zipfile.ZipFile(files["bomb"]).infolist()}
+    assert max(i.file_size for i in info.values()) == 4 * BOMB_NUMEL
+    assert any(i.compress_type == zipfile.ZIP_DEFLATED for i in info.values())
+
+
+@pytest.mark.parametrize("loader", ["read", "load", "restore"])
+def test_every_library_loader_refuses_the_bomb_and_the_unknown_key(files, loader):
+    call = {"read": read_checkpoint, "load": load_checkpoint,
+            "restore": lambda p: restore_checkpoint(p, tiny_agent())}[loader]
+    with pytest.raises(CheckpointError, match=r"bomb\.pt: archive entry .* is compressed"):
+        call(files["bomb"])
+    with pytest.raises(CheckpointError, match=r"unknown top-level key\(s\) \['padding'\]"):
+        call(files["unknown"])
+    call(files["good"])   # the real one still loads
+
+
+def test_max_bytes_refuses_a_larger_file_before_reading_it(files):
+    size = files["good"].stat().st_size
+    with pytest.raises(CheckpointError, match=f"{size} bytes, more than the limit of 4096"):
+        load_checkpoint(files["good"], max_bytes=4096)
+    load_checkpoint(files["good"], max_bytes=size)
+
+
+def test_tensor_bytes_beyond_what_the_architecture_implies_are_refused(tmp_path, files):
+    """Stored (not compressed), under max_bytes, known keys: but 64 MiB of optimizer state
+    for a network of a few hundred kB."""
+    payload = torch.load(files["good"], weights_only=True)
+    payload["optimizers"]["world_model"]["state"][10**6] = {"exp_avg": torch.zeros(16 << 20)}
+    torch.save(payload, tmp_path / "fat.pt")
+    with pytest.raises(CheckpointError, match="more than the .* its config's architecture implies"):
+        load_checkpoint(tmp_path / "fat.pt")
+
+
+def test_format_keys_are_the_ones_save_writes(files):
+    assert set(read_checkpoint(files["good"])) <= TOP_LEVEL_KEYS
+
+
+PEAK_RSS = """
+import resource, sys
+from protocad_ros.checkpoint import CheckpointError, load_checkpoint
+load_checkpoint(sys.argv[1])
+base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+try:
+    load_checkpoint(sys.argv[2])
+    print("LOADED")
+except CheckpointError as err:
+    print("REFUSED", err)
+print("GROWTH_KB", resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - base)
+"""
+
+
+def test_refusing_the_bomb_costs_under_200_mb_over_a_normal_load(files):
+    out = subprocess.run([sys.executable, "-c", PEAK_RSS, str(files["good"]), str(files["bomb"])],
+                         capture_output=True, text=True, cwd=ROOT, timeout=300,
+                         env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert "REFUSED" in out.stdout, out.stdout + out.stderr
+    growth_kb = int(out.stdout.split("GROWTH_KB")[1])
+    assert growth_kb < 200_000, growth_kb
+
+
+@pytest.mark.parametrize("cli", ["protocad-evaluate", "protocad-loop"])
+def test_the_clis_refuse_it_in_one_line_with_exit_2(files, cli, tmp_path):
+    bin_dir = Path(sys.executable).parent
+    args = {"protocad-evaluate": [str(files["bomb"]), "--episodes", "1", "--json", str(tmp_path / "e.json")],
+            "protocad-loop": ["--init-policy", str(files["bomb"]), "--run-dir", str(tmp_path / "loop"),
+                              "--episodes-per-cycle", "1"]}[cli]
+    out = subprocess.run([str(bin_dir / cli), *args], capture_output=True, text=True, cwd=ROOT,
+                         timeout=300, env={**os.environ, "OMP_NUM_THREADS": "1"})
+    assert out.returncode == 2, out.stdout + out.stderr
+    lines = [x for x in out.stderr.splitlines() if x.strip()]
+    assert len(lines) == 1 and "is compressed" in lines[0], out.stderr
+    assert not (tmp_path / "e.json").exists()
+    json.dumps(lines)   # plain text
