@@ -9,9 +9,16 @@ What the library lacks is here: a record's length is checked against the file be
 parsed (the library reads a cut record short, without complaint); a corrupt chunk is skipped and
 reported while the chunks after it are still read; chunks that overlap in time are merged into
 log-time order holding only those in memory; rosbag2's directory layout (metadata.yaml, splits).
+
+A bag may come from elsewhere, so reading is bounded (trainer/bag/limits.py): a record or chunk
+over `max_chunk_bytes` is refused before it is read or inflated, a chunk inflates to its declared
+size at most, a message is decoded with the installed definition of its type when there is one
+(a bag's own schema text otherwise, vetted), and each refusal is one line in report.refused
+(file, byte offset, limit) while the rest of the bag is still read.
 """
 from __future__ import annotations
 
+import dataclasses
 import heapq
 import os
 import re
@@ -20,61 +27,17 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Iterator, NamedTuple
 
+__all__ = ["BagReader", "BagReadError", "BagReport", "RawMessage", "read_bag_metadata"]
+
 from mcap.opcode import Opcode
 from mcap.reader import SeekingReader
 from mcap.records import Channel, Chunk, DataEnd, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
 
+from trainer.bag.bag_report import BagReadError, BagReport, RawMessage
+from trainer.bag.limits import BagLimitError, ReadLimits, check_message_size, decompress, vet_definition
 from trainer.bag.writer import MCAP_MAGIC
-from trainer.bag.rosmsg import decode
-
-
-class BagReadError(RuntimeError):
-    """A bag could not be read (raised only with strict=True; otherwise see BagReport)."""
-
-
-# ---------------------------------------------------------------------------------------------
-# BagReader
-# ---------------------------------------------------------------------------------------------
-
-class RawMessage(NamedTuple):
-    topic: str
-    msgtype: str
-    data: bytes
-    log_time_ns: int
-    publish_time_ns: int
-
-
-@dataclass
-class BagReport:
-    """What BagReader found. files: the .mcap files in read order; truncated: file -> reason
-    (no footer/summary: writer killed or file cut; every complete chunk is still read);
-    errors: file -> reason (foreign, garbage, missing, corrupt chunk); warnings: other findings
-    (unknown schema encodings, type conflicts, metadata.yaml problems); counts: topic ->
-    messages available; topic_types: topic -> type; schema_encodings: topic -> schema encoding."""
-    files: list[str] = field(default_factory=list)
-    truncated: dict[str, str] = field(default_factory=dict)
-    errors: dict[str, str] = field(default_factory=dict)
-    warnings: list[str] = field(default_factory=list)
-    counts: dict[str, int] = field(default_factory=dict)
-    topic_types: dict[str, str] = field(default_factory=dict)
-    schema_encodings: dict[str, str] = field(default_factory=dict)
-
-    @property
-    def ok(self) -> bool:
-        return not self.errors
-
-    @property
-    def message_count(self) -> int:
-        return sum(self.counts.values())
-
-    def summary(self) -> str:
-        lines = [f"{len(self.files)} file(s), {self.message_count} message(s)"]
-        lines += [f"  {t} [{self.topic_types.get(t, '?')}]: {n}" for t, n in self.counts.items()]
-        lines += [f"  TRUNCATED {p}: {r}" for p, r in self.truncated.items()]
-        lines += [f"  ERROR {p}: {r}" for p, r in self.errors.items()]
-        lines += [f"  warning: {w}" for w in self.warnings]
-        return "\n".join(lines)
+from trainer.bag.rosmsg import TypeSupportError, decode, message_definition_with_encoding
 
 
 _KNOWN_SCHEMA_ENCODINGS = {"ros2msg", "ros2idl", "omgidl"}
@@ -98,14 +61,16 @@ class _FileIndex:
     counts: dict[int, int] = field(default_factory=dict)
     rosbag2_metadata: str | None = None
     truncated: str | None = None
+    refused: list[str] = field(default_factory=list)
     profile: str = ""
     library: str = ""
 
 
-def _record_at(fh, pos: int, size: int) -> tuple[int, int, Any]:
+def _record_at(fh, pos: int, size: int, limits: ReadLimits | None = None) -> tuple[int, int, Any]:
     """(opcode, length, record) of the record at byte `pos`, parsed by mcap's StreamReader
     (record None for an opcode the library does not know). ValueError when the record is cut
-    off: the library reads a short record without complaint, so its length is checked first."""
+    off: the library reads a short record without complaint, so its length is checked first;
+    BagLimitError, before it is read, when it is longer than limits.max_chunk_bytes."""
     fh.seek(pos)
     head = fh.read(_RECORD_HEAD.size)
     if len(head) < _RECORD_HEAD.size:
@@ -117,6 +82,9 @@ def _record_at(fh, pos: int, size: int) -> tuple[int, int, Any]:
                          f"{size - pos - _RECORD_HEAD.size} present")
     if opcode not in _OPCODES:
         return opcode, length, None
+    if limits is not None and length > limits.max_chunk_bytes:
+        raise BagLimitError(f"{name} record at byte {pos} is {length} bytes, over the limit of "
+                            f"{limits.max_chunk_bytes} (max_chunk_bytes)")
     fh.seek(pos)
     return opcode, length, next(StreamReader(fh, skip_magic=True, emit_chunks=True).records)
 
@@ -124,11 +92,13 @@ def _record_at(fh, pos: int, size: int) -> tuple[int, int, Any]:
 _OPCODES = frozenset(int(o) for o in Opcode)
 
 
-def _chunk_records(chunk: Chunk) -> list[Any]:
-    """A chunk's inner records, its CRC checked (mcap's breakup_chunk)."""
+def _chunk_records(chunk: Chunk, limits: ReadLimits) -> list[Any]:
+    """A chunk's inner records, its CRC checked (mcap's breakup_chunk, handed the records
+    inflated here within the limits: the library would inflate to whatever the chunk declares)."""
     if chunk.compression not in ("", "zstd", "lz4"):
         raise ValueError(f"unsupported chunk compression {chunk.compression!r}")
-    return breakup_chunk(chunk, validate_crc=True)
+    data = decompress(chunk.compression, chunk.data, chunk.uncompressed_size, limits)
+    return breakup_chunk(dataclasses.replace(chunk, compression="", data=data), validate_crc=True)
 
 
 def _ends_with_footer(fh, size: int) -> bool:
@@ -164,14 +134,20 @@ def _index_from_summary(reader: SeekingReader, idx: _FileIndex) -> bool:
     return True
 
 
-def _scan(fh, idx: _FileIndex, size: int) -> None:
+def _scan(fh, idx: _FileIndex, size: int, limits: ReadLimits) -> None:
     """Every complete record of the data section, one after the other (a file without a
-    usable summary: a killed writer's, a cut copy, a writer that writes none)."""
+    usable summary: a killed writer's, a cut copy, a writer that writes none). A record over
+    the limits is refused (idx.refused) and skipped: the records after it are still read."""
     pos, n_chunks, n_msgs, problem = len(MCAP_MAGIC), 0, 0, None
     complete = False
     while pos < size:
         try:
-            opcode, length, record = _record_at(fh, pos, size)
+            opcode, length, record = _record_at(fh, pos, size, limits)
+        except BagLimitError as exc:
+            idx.refused.append(f"{idx.path}: {exc}; skipped")
+            fh.seek(pos)
+            pos += _RECORD_HEAD.size + _RECORD_HEAD.unpack(fh.read(_RECORD_HEAD.size))[1]
+            continue
         except ValueError as exc:
             problem = str(exc)
             break
@@ -181,7 +157,13 @@ def _scan(fh, idx: _FileIndex, size: int) -> None:
         try:
             if isinstance(record, Chunk):
                 start = None
-                for r in _chunk_records(record):
+                try:
+                    inner = _chunk_records(record, limits)
+                except BagLimitError as exc:
+                    idx.refused.append(f"{idx.path}: chunk at byte {pos}: {exc}; skipped")
+                    pos += _RECORD_HEAD.size + length
+                    continue
+                for r in inner:
                     if isinstance(r, Schema):
                         idx.schemas.setdefault(r.id, r)
                     elif isinstance(r, Channel):
@@ -220,7 +202,7 @@ def _scan(fh, idx: _FileIndex, size: int) -> None:
                          f"{n_chunks} complete chunk(s) with {n_msgs} message(s); {tail}")
 
 
-def _index_file(path: Path) -> _FileIndex:
+def _index_file(path: Path, limits: ReadLimits) -> _FileIndex:
     idx = _FileIndex(path)
     size = path.stat().st_size
     with open(path, "rb") as fh:
@@ -245,7 +227,7 @@ def _index_file(path: Path) -> _FileIndex:
             ok = False
         if not ok:
             idx.schemas, idx.channels, idx.entries, idx.counts = {}, {}, [], {}
-            _scan(fh, idx, size)
+            _scan(fh, idx, size, limits)
             if intact and idx.truncated and idx.truncated.startswith("summary"):
                 idx.truncated = None  # a valid file without summary (e.g. noSummary writers)
     idx.entries.sort()
@@ -280,10 +262,14 @@ class BagReader:
     """
 
     def __init__(self, paths: str | os.PathLike | Iterable[str | os.PathLike], *,
-                 strict: bool = False):
+                 strict: bool = False, limits: ReadLimits | None = None):
         if isinstance(paths, (str, os.PathLike)):
             paths = [paths]
         self.strict = strict
+        self.limits = limits if limits is not None else ReadLimits.from_env()
+        self._decoding: dict[str, str | None] = {}
+        self._definition_files: dict[str, str] = {}
+        self._refused_schemas: dict[str, BagLimitError] = {}
         self.report = BagReport()
         self._indexes: list[_FileIndex] = []
         self._definitions: dict[str, tuple[str, str]] = {}
@@ -341,7 +327,7 @@ class BagReader:
             self._error(path, "listed in metadata.yaml but missing")
             return
         try:
-            idx = _index_file(path)
+            idx = _index_file(path, self.limits)
         except BagReadError as exc:
             self._error(path, str(exc))
             return
@@ -350,6 +336,8 @@ class BagReader:
             return
         self._indexes.append(idx)
         self.report.files.append(str(path))
+        for line in idx.refused:
+            self._refuse(line)
         if idx.truncated:
             self.report.truncated[str(path)] = idx.truncated
         if idx.profile != "ros2":
@@ -378,6 +366,7 @@ class BagReader:
                 data = schema.data.decode(errors="replace") if isinstance(schema.data, bytes) \
                     else str(schema.data)
                 self._definitions[msgtype] = (enc, data)
+                self._definition_files[msgtype] = str(path)
 
     # -- access --------------------------------------------------------------------------------
     @property
@@ -392,12 +381,45 @@ class BagReader:
         """(schema encoding, text) stored in the bag for a type."""
         return self._definitions.get(msgtype)
 
+    def _refuse(self, line: str) -> None:
+        """One refusal: a line naming the file, the offset and the limit (strict: raised)."""
+        if self.strict:
+            raise BagReadError(line)
+        self.report.refused.append(line)
+
     def decode(self, raw: RawMessage) -> Any:
-        """Decode with the schema stored in the bag (falls back to the local ament index)."""
-        d = self._definitions.get(raw.msgtype)
-        if d is not None and d[0] == "ros2msg" and d[1]:
-            return decode(raw.msgtype, raw.data, d[1])
-        return decode(raw.msgtype, raw.data)
+        """Decode with the installed definition of the type when there is one (a bag's schema
+        that differs from it is not trusted to say how many objects to build: a warning says
+        so), else with the schema stored in the bag, vetted (trainer/bag/limits.py). Messages
+        over limits.max_message_bytes and refused schemas: BagLimitError (a ValueError)."""
+        check_message_size(len(raw.data), self.limits)
+        if raw.msgtype in self._refused_schemas:
+            raise self._refused_schemas[raw.msgtype]
+        if raw.msgtype not in self._decoding:
+            self._decoding[raw.msgtype] = self._definition_to_decode(raw.msgtype)
+        return decode(raw.msgtype, raw.data, self._decoding[raw.msgtype])
+
+    def _definition_to_decode(self, msgtype: str) -> str | None:
+        """The schema text to decode `msgtype` with (None: the installed one, by name)."""
+        d = self._definitions.get(msgtype)
+        try:
+            installed = message_definition_with_encoding(msgtype)
+        except (TypeSupportError, OSError):
+            installed = None
+        if installed is not None:
+            if d is not None and d[1] and d[1].strip() != installed[1].strip():
+                self.report.warnings.append(f"{msgtype}: the bag's schema differs from the installed "
+                                            "definition; decoded with the installed one")
+            return None
+        if d is None or d[0] != "ros2msg" or not d[1]:
+            return None
+        try:
+            vet_definition(msgtype, d[1])
+        except BagLimitError as exc:
+            self._refused_schemas[msgtype] = exc
+            self._refuse(f"{self._definition_files.get(msgtype, '?')}: {exc}; its messages are not decoded")
+            raise
+        return d[1]
 
     def messages(self, topics: Iterable[str] | None = None) -> Iterator[RawMessage]:
         """RawMessage(topic, msgtype, data, log_time_ns, publish_time_ns) in log-time order per
@@ -427,13 +449,15 @@ class BagReader:
                     e = entries[i]
                     i += 1
                     try:
-                        for m in self._entry_messages(fh, e, size):
+                        for m in self._entry_messages(fh, e, size, self.limits):
                             c = chans.get(m.channel_id)
                             if c is None:
                                 continue
                             seq += 1
                             heapq.heappush(heap, (m.log_time, e.offset, seq,
                                                   RawMessage(c[0], c[1], m.data, m.log_time, m.publish_time)))
+                    except BagLimitError as exc:
+                        self._refuse(f"{idx.path}: {e.kind.name.lower()} at byte {e.offset}: {exc}; skipped")
                     except Exception as exc:
                         msg = (f"corrupt {'chunk' if e.kind == Opcode.CHUNK else 'message'} at byte "
                                f"{e.offset} skipped ({type(exc).__name__}: {exc})")
@@ -445,13 +469,13 @@ class BagReader:
                 yield heapq.heappop(heap)[3]
 
     @staticmethod
-    def _entry_messages(fh, e: _Entry, size: int) -> Iterator[Message]:
-        opcode, _, record = _record_at(fh, e.offset, size)
+    def _entry_messages(fh, e: _Entry, size: int, limits: ReadLimits) -> Iterator[Message]:
+        opcode, _, record = _record_at(fh, e.offset, size, limits)
         if opcode != e.kind:
             raise ValueError(f"expected a {e.kind.name} record, found opcode 0x{opcode:02x}")
         if isinstance(record, Message):
             yield record
             return
-        for r in _chunk_records(record):
+        for r in _chunk_records(record, limits):
             if isinstance(r, Message):
                 yield r

@@ -79,6 +79,7 @@ def _metadata_from_files(path: Path) -> tuple[dict[str, Any], int, list[str]]:
     rep = reader.report
     notes = [f"{p}: truncated ({why}); listing every complete message" for p, why in rep.truncated.items()]
     notes += [f"{p}: {why}" for p, why in rep.errors.items()]
+    notes += [f"refused: {line}" for line in rep.refused]
     info = {
         "storage_identifier": "mcap", "ros_distro": "",
         "starting_time": {"nanoseconds_since_epoch": first or 0},
