@@ -31,6 +31,7 @@ import numpy as np
 import yaml
 
 from protocad_ros.atomic import atomic_write_text
+from trainer.run_input import load_json_object, load_yaml_mapping
 
 MetricsCallback = Callable[[int, Mapping[str, float]], None]
 
@@ -63,10 +64,23 @@ def resume_run_dir(run_dir: str | os.PathLike | None, *, need_checkpoint: bool =
         if need_state:
             raise ValueError(f"--resume: {state} is missing (not a run directory of this command?)")
         return run_dir, {}
+    try:   # type, size and depth checked (trainer/run_input.py): a run.json is input
+        return run_dir, load_json_object(state)
+    except ValueError as e:
+        raise ValueError(f"--resume: {e}") from None
+
+
+def load_run_config(run_dir: str | os.PathLike):
+    """RUN_DIR/config.yaml as a Config, or one ValueError line naming the file (not YAML, an
+    unsafe tag, nested too deep, not a mapping, not a config)."""
+    from protocad_ros.model.config import Config
+
+    path = Path(run_dir) / "config.yaml"
     try:
-        return run_dir, json.loads(state.read_text())
-    except json.JSONDecodeError as e:
-        raise ValueError(f"--resume: {state} is not valid JSON ({e})") from None
+        return Config.from_dict(load_yaml_mapping(path))
+    except ValueError as exc:   # ConfigError is one
+        text = str(exc)
+        raise ValueError(f"--resume: {text if text.startswith(str(path)) else f'{path}: {text}'}") from None
 
 
 def new_run_dir(run_dir: str | os.PathLike | None, kind: str, task: str, variant: str) -> Path:
@@ -202,10 +216,9 @@ def apply_config_flags(cfg: Any, args: Sequence[str], prog: str) -> Any:
 def read_run_json(run_dir: str | os.PathLike) -> dict[str, Any]:
     """RUN_DIR/run.json, or {} when there is none or it is unreadable."""
     try:
-        out = json.loads((Path(run_dir) / "run.json").read_text())
-    except (OSError, ValueError):
+        return load_json_object(Path(run_dir) / "run.json")
+    except ValueError:   # missing, unreadable, not an object, too deep or too large
         return {}
-    return out if isinstance(out, dict) else {}
 
 
 def record_invocation(run_json: dict[str, Any], resume: bool, args: Sequence[str]) -> None:

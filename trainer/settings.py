@@ -26,11 +26,13 @@ import textwrap
 import typing
 from dataclasses import dataclass, field
 from functools import lru_cache
+from pathlib import Path
 from typing import Any, Sequence, TypeVar
 
 from protocad_ros.model.config import PRESETS, VARIANTS
 from sim_bridge.contract.contexts import TASKS
 from trainer import runs
+from trainer.run_input import check_settings_section, load_json_object
 
 S = TypeVar("S")
 
@@ -211,11 +213,16 @@ def resumed_from_run(run_dir: str, parsed: Parsed, parser: argparse.ArgumentPars
     """`resumed` for each section ({run.json settings key: class}) of the run in run_dir: its
     saved settings, else its saved command line, replaced by the flags given. A run.json whose
     `settings` is not a mapping of mappings (edited by hand) is a ValueError naming it."""
-    saved = runs.read_run_json(run_dir)
+    path = Path(run_dir) / "run.json"
+    saved = load_json_object(path) if path.exists() else {}   # one ValueError line if it is not sound
     kept = saved.get("settings") or {}
     if not isinstance(kept, dict) or not all(isinstance(v, dict) for v in kept.values()):
         raise ValueError(f"{run_dir}/run.json: 'settings' is not a mapping of settings sections")
-    old_args = saved.get("args") if isinstance(saved.get("args"), list) else None
+    for key, cls in sections.items():
+        check_settings_section(path, key, cls, kept.get(key) or {})
+    old_args = saved.get("args")
+    if old_args is not None and not (isinstance(old_args, list) and all(isinstance(a, str) for a in old_args)):
+        raise ValueError(f"{path}: 'args' is not a list of strings")
     return {key: resumed(cls, kept.get(key), parsed, parser, old_args) for key, cls in sections.items()}
 
 

@@ -17,46 +17,9 @@ from typing import Any, Iterable
 import numpy as np
 
 from sim_bridge.contract import topics as T
+from trainer.data.sources import MAX_SEARCH_DEPTH, find_sources  # noqa: F401 - also imported from here
 from trainer.data.records import (EXPECTED_TYPES, KNOWN_UNUSED, MULTIPLE_PUBLISHERS_KEY, REQUIRED_KEYS,
-                                   SMALL_STORE_STEPS, STORE_VERSION, CacheWriteError, DatasetError,
-                                   SourceReport, TopicMap)
-
-
-# ----------------------------------------------------------------------------- sources
-def find_sources(paths: Iterable[str | Path]) -> list[Path]:
-    """Expand CLI paths into bags: a .mcap file, a directory with .mcap files in it (one bag),
-    or a directory of such directories (searched recursively). Raises on paths with none."""
-    out: list[Path] = []
-    for p in paths:
-        p = Path(p)
-        if not p.exists():
-            raise DatasetError(f"log path {p} does not exist")
-        if p.is_file():
-            if p.suffix != ".mcap":
-                raise DatasetError(f"{p} is not an .mcap file (give a bag directory or .mcap files)")
-            out.append(p)
-            continue
-        found = _bag_dirs(p)
-        if not found:
-            raise DatasetError(f"no .mcap files under {p}")
-        out.extend(found)
-    # unique, keep order
-    seen, uniq = set(), []
-    for s in out:
-        r = s.resolve()
-        if r not in seen:
-            seen.add(r)
-            uniq.append(s)
-    return uniq
-
-
-def _bag_dirs(d: Path) -> list[Path]:
-    if any(f.suffix == ".mcap" and f.is_file() for f in d.iterdir()):
-        return [d]
-    out: list[Path] = []
-    for sub in sorted(x for x in d.iterdir() if x.is_dir() and not x.name.startswith(".")):
-        out.extend(_bag_dirs(sub))
-    return out
+                                   SMALL_STORE_STEPS, STORE_VERSION, CacheWriteError, SourceReport, TopicMap)
 
 
 def source_files(source: Path) -> list[Path]:
@@ -356,6 +319,7 @@ def _report_reading(rep: SourceReport, br: Any, source: Path, by_key: dict[str, 
     key_of = {v: k for k, v in by_key.items()}
     rep.truncated = [f"{f}: {why}" for f, why in br.truncated.items()]
     rep.read_errors += [f"{f}: {why}" for f, why in br.errors.items()]
+    rep.read_errors += [f"refused: {line}" for line in br.refused]
     rep.read_errors += [f"refused: {line}" for line in br.refused]
     rep.read_warnings = list(br.warnings)
     for t, n in br.counts.items():

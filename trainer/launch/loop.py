@@ -47,6 +47,7 @@ from trainer.data.dataset import MCAPDataset, TopicMap
 from trainer.learn.schedule import Schedule
 from trainer.learn.train import Trainer
 from trainer.settings import arg
+from trainer.run_input import check_settings_section
 
 DEMO = dict(task="pendulum_swingup", preset="small", cycles=3, episodes_per_cycle=1, prefill=2,
             updates_per_episode=25, eval_episodes=1, eval_max_contexts=8)
@@ -231,10 +232,12 @@ class Loop:
         if a.resume:
             # A loop stopped during its prefill has bags but no checkpoint yet: still resumable.
             self.run_dir, self.run_json = runs.resume_run_dir(a.run_dir, need_checkpoint=False)
-            from protocad_ros.model.config import Config
-
-            self.cfg = Config.load(self.run_dir / "config.yaml")
+            self.cfg = runs.load_run_config(self.run_dir)
             saved_protocol = self.run_json.get("protocol")
+            if saved_protocol is not None and not isinstance(saved_protocol, dict):
+                raise ValueError(f"--resume: {self.run_dir / 'run.json'}: 'protocol' is not a mapping")
+            check_settings_section(self.run_dir / "run.json", "protocol", LoopSettings,
+                                   {k: v for k, v in (saved_protocol or {}).items() if k in PROTOCOL_KEYS})
         else:
             self.cfg = self._policy_config() if a.init_policy else self.model.to_config(self.config_args, self.prog)
             self.cfg.train.device = self.device

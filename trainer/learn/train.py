@@ -39,6 +39,7 @@ from trainer.learn import distributed
 from trainer import runs, settings
 from trainer.data.dataset import DatasetError, MCAPDataset, TopicMap
 from trainer.learn.schedule import RunCounters
+from trainer.run_input import check_logs, check_settings_section
 from trainer.settings import arg
 
 DEFAULT_LOG_EVERY = 10
@@ -332,8 +333,9 @@ class TrainSettings:
     """train on bags whose recorder saw several publishers on a topic read here (a second bridge
     or an impostor interleaved its messages); refused by default, naming the bag and topic"""
 
-    def resumed_from(self, run_json: dict[str, Any]) -> "TrainSettings":
-        """Options the run was started with (run.json), where not given again."""
+    def resumed_from(self, run_json: dict[str, Any], path: Path = Path("run.json")) -> "TrainSettings":
+        """Options the run was started with (run.json at `path`), where not given again
+        (ValueError naming the first one whose type is not its option's)."""
         saved = {"logs": run_json.get("logs"), "topic": run_json.get("topics_args") or [],
                  "namespace": run_json.get("namespace"), "cache_dir": run_json.get("cache_dir"),
                  "updates": run_json.get("updates"), "checkpoint_every": run_json.get("checkpoint_every"),
@@ -342,6 +344,7 @@ class TrainSettings:
                  "accept_multiple_publishers": bool(run_json.get("accept_multiple_publishers"))}
         if isinstance(saved["namespace"], str):   # older run.json: one
             saved["namespace"] = [saved["namespace"]]
+        check_settings_section(path, "train", TrainSettings, {k: v for k, v in saved.items() if v is not None})
         mine = dataclasses.asdict(self)
         return dataclasses.replace(self, **{k: v for k, v in saved.items()
                                             if mine[k] in (None, [], False) and v not in (None, [])})
@@ -460,13 +463,10 @@ def _train(s: TrainSettings, model: settings.ModelChoice, config_args: list[str]
     run_json: dict[str, Any] = {}
     if s.resume:
         run_dir, run_json = runs.resume_run_dir(s.run_dir, need_state=False)
-        s = s.resumed_from(run_json)
-        try:
-            from protocad_ros.model.config import Config
-
-            cfg = Config.load(run_dir / "config.yaml")
-        except Exception as exc:  # noqa: BLE001 - any unreadable config is one line
-            raise ValueError(f"--resume: cannot read {run_dir / 'config.yaml'}: {exc}") from None
+        if not s.logs:   # bags from run.json: only inside the run (others are given again)
+            check_logs(run_dir / "run.json", run_dir, run_json.get("logs"))
+        s = s.resumed_from(run_json, run_dir / "run.json")
+        cfg = runs.load_run_config(run_dir)
     else:
         cfg = model.to_config(config_args, prog)
         plan_prototype_freeze(cfg, 0, s.updates or 1000)   # a refused plan leaves no run directory

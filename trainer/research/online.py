@@ -54,6 +54,7 @@ from trainer.data.dataset import MCAPDataset, TopicMap
 from trainer.learn import distributed
 from trainer.learn.schedule import RunCounters, Schedule
 from trainer.learn.train import Trainer
+from trainer.run_input import check_settings_section
 from trainer.settings import arg
 
 BAG_QOS = dict(history="keep_last", depth=100, reliability="reliable", durability="volatile")
@@ -300,11 +301,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as exc:   # a run.json edited out of shape
         print(f"protocad-online: error: {exc}", file=sys.stderr)
         return 2
+    from protocad_ros.checkpoint import CheckpointError
     from trainer.learn.train import CheckpointWriteError, RanksDiverged
 
     try:
         return run(s, model, parsed.config_args, parsed.prog, parsed.argv)
-    except ValueError as exc:
+    except (ValueError, CheckpointError) as exc:   # CheckpointError: the run's checkpoint is unusable
         print(f"protocad-online: error: {exc}", file=sys.stderr)
         return 2
     except (CheckpointWriteError, RanksDiverged, mcap_io_errors(), cache_errors(), OSError) as exc:
@@ -483,11 +485,13 @@ class OnlineRun:
         if s.resume:
             # A run killed before its first checkpoint still resumes: from its config and its bags.
             self.run_dir, self.run_json = runs.resume_run_dir(s.run_dir, need_checkpoint=False)
-            from protocad_ros.model.config import Config
-
-            self.cfg = Config.load(self.run_dir / "config.yaml")
+            self.cfg = runs.load_run_config(self.run_dir)
             if "settings" not in self.run_json:   # a run from before settings were saved
-                proto = self.run_json.get("protocol", {})
+                proto = self.run_json.get("protocol") or {}
+                if not isinstance(proto, dict):
+                    raise ValueError(f"--resume: {self.run_dir / 'run.json'}: 'protocol' is not a mapping")
+                check_settings_section(self.run_dir / "run.json", "protocol", OnlineSettings,
+                                       {k: proto[k] for k in PROTOCOL_KEYS if k in proto})
                 defaults = OnlineSettings()
                 self.s = s = dataclasses.replace(s, **{k: proto[k] for k in PROTOCOL_KEYS if k in proto
                                                        and getattr(s, k) == getattr(defaults, k)})

@@ -162,8 +162,9 @@ def test_a_killed_two_rank_run_resumes_with_two_ranks_and_with_one(bags, tmp_pat
     at_kill = _counters(ckpt)["updates"]
     assert 4 <= at_kill < 400
 
+    # The bags given again: a resume reads run.json's logs only inside the run directory.
     resumed = torchrun(*TRAIN, "--run-dir", str(run), "--resume", "--updates", str(at_kill + 4),
-                       "--no-progress", "--threads", "1")
+                       "--no-progress", "--threads", "1", "--bags", str(bags))
     assert resumed.returncode == 0, resumed.stdout + resumed.stderr
     assert f"resuming {run} at update {at_kill}" in resumed.stdout
     c = _counters(ckpt)
@@ -174,7 +175,7 @@ def test_a_killed_two_rank_run_resumes_with_two_ranks_and_with_one(bags, tmp_pat
 
     # The same run on one process (any N resumes): rank 0's weights, fresh draws.
     one = subprocess.run([sys.executable, "-m", "trainer.learn.train", "--run-dir", str(run), "--resume",
-                          "--updates", str(at_kill + 6), "--no-progress", "--threads", "1"],
+                          "--updates", str(at_kill + 6), "--no-progress", "--threads", "1", "--logs", str(bags)],
                          capture_output=True, text=True, timeout=240, cwd=ROOT, env=ENV)
     assert one.returncode == 0, one.stdout + one.stderr
     assert _counters(ckpt)["updates"] == at_kill + 6 and "world_size" not in _counters(ckpt)

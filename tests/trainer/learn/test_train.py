@@ -93,8 +93,9 @@ def test_resume_after_kill_continues_from_last_checkpoint(tmp_path):
     saved = ckpt_counters(ck)
     k = saved["agent_updates"]
     assert k >= 2 and k % 2 == 0 and saved["updates"] == k
-    # resume: continues at k with the same counters and draws the same batches as `ref`
-    r = run_cli("trainer.learn.train", "--run-dir", run_dir, "--resume", "--updates", str(N))
+    # resume: continues at k with the same counters and draws the same batches as `ref` (the
+    # bags again on the command line: run.json's logs are read only inside the run directory)
+    r = run_cli("trainer.learn.train", "--run-dir", run_dir, "--resume", "--updates", str(N), "--logs", bag)
     assert r.returncode == 0, r.stdout + r.stderr
     assert f"resuming {run_dir} at update {k}" in r.stdout
     got = {m["update"]: m for m in metrics(run_dir)}
