@@ -33,6 +33,8 @@ from sim_bridge.nodekit.rosnode import ConfigError, KeyThrottle, run_node
 from sim_bridge.contract import topics as T
 from trainer.bag import mcap_io
 from trainer.data.records import MULTIPLE_PUBLISHERS_KEY
+from trainer.nodes.record_budget import (DEFAULT_FLOOD_FACTOR, DEFAULT_MIN_FREE_DISK, BudgetLimits, DiskFloor,
+                                         RecordBudget, parse_topic_values)
 
 #: Relative contract topics recorded by default (resolved in --namespace), plus the bridge's
 #: clock there (topics.clock_topic: /clock in the default namespace).
@@ -168,7 +170,9 @@ class RecorderNode(ProtocadNode):
     the same name (a --ros-args -p override wins): output, topics, namespace, all_topics,
     regex (include), exclude_regex, exclude_topics, include_hidden_topics, no_discovery,
     compression, chunk_size, max_bagfile_size, max_bagfile_duration, flush_interval,
-    queue_depth, discovery_interval, status_interval. `qos_overrides` ({topic: policies}) and
+    queue_depth, discovery_interval, status_interval, and the disk budget's (trainer/nodes/
+    record_budget.py) max_topic_rate, max_topic_bytes, max_total_bytes, min_free_disk,
+    flood_factor, rate_limits and byte_budgets (TOPIC=NUMBER lists). `qos_overrides` ({topic: policies}) and
     `custom_data` are constructor-only (the command line's YAML file and KEY=VALUE list)."""
 
     #: run_node's bound on the close: the drain of a backlog, then closing the bag.
@@ -183,7 +187,10 @@ class RecorderNode(ProtocadNode):
                  chunk_size: int = mcap_io.DEFAULT_CHUNK_SIZE, max_bagfile_size: int = 0,
                  max_bagfile_duration: float = 0.0, flush_interval: float = 1.0,
                  queue_depth: int = DEFAULT_QUEUE_DEPTH, discovery_interval: float = 0.2,
-                 status_interval: float = 0.0, node_name: str = "recorder", **node_kwargs: Any):
+                 status_interval: float = 0.0, max_topic_rate: float = 0.0, max_topic_bytes: int = 0,
+                 max_total_bytes: int = 0, min_free_disk: int = DEFAULT_MIN_FREE_DISK,
+                 flood_factor: float = DEFAULT_FLOOD_FACTOR, rate_limits: Sequence[str] = (),
+                 byte_budgets: Sequence[str] = (), node_name: str = "recorder", **node_kwargs: Any):
         super().__init__(node_name, **node_kwargs)
         from rcl_interfaces.msg import ParameterDescriptor, ParameterType
         p = {}
@@ -197,7 +204,10 @@ class RecorderNode(ProtocadNode):
                              ("flush_interval", float(flush_interval)),
                              ("queue_depth", int(queue_depth)),
                              ("discovery_interval", float(discovery_interval)),
-                             ("status_interval", float(status_interval))):
+                             ("status_interval", float(status_interval)),
+                             ("max_topic_rate", float(max_topic_rate)), ("max_topic_bytes", int(max_topic_bytes)),
+                             ("max_total_bytes", int(max_total_bytes)), ("min_free_disk", int(min_free_disk)),
+                             ("flood_factor", float(flood_factor))):
             p[key] = self.declare_parameter(key, default).value
         p["topics"] = list(self.declare_parameter(
             "topics", list(topics), ParameterDescriptor(
@@ -208,7 +218,18 @@ class RecorderNode(ProtocadNode):
             "exclude_topics", list(exclude_topics), ParameterDescriptor(
                 type=ParameterType.PARAMETER_STRING_ARRAY,
                 description="topics not to record")).value or [])
+        for key, items, what in (("rate_limits", rate_limits, "TOPIC=HZ: a rate limit of its own"),
+                                 ("byte_budgets", byte_budgets, "TOPIC=BYTES: a byte budget of its own")):
+            p[key] = list(self.declare_parameter(key, list(items), ParameterDescriptor(
+                type=ParameterType.PARAMETER_STRING_ARRAY, description=what)).value or [])
         self.params = p
+        self.budget = RecordBudget(BudgetLimits(
+            max_topic_rate=p["max_topic_rate"], max_topic_bytes=p["max_topic_bytes"],
+            max_total_bytes=p["max_total_bytes"], flood_factor=p["flood_factor"],
+            rates={self.resolve_topic_name(t): v for t, v in parse_topic_values(p["rate_limits"], "rate_limits").items()},
+            topic_bytes={self.resolve_topic_name(t): v
+                         for t, v in parse_topic_values(p["byte_budgets"], "byte_budgets").items()}))
+        self.stop_reason: str | None = None
         # As ros2 bag record: -a overrides -e; topics and -e add up; excludes apply on top.
         explicit = [self.resolve_topic_name(t) for t in p["topics"]]
         self.wanted: list[str] = ([] if p["all_topics"] else explicit
@@ -225,6 +246,12 @@ class RecorderNode(ProtocadNode):
             max_bagfile_size=p["max_bagfile_size"],
             max_bagfile_duration_s=p["max_bagfile_duration"],
             flush_interval_s=p["flush_interval"], custom_data=custom_data)
+        self.disk_floor = DiskFloor(self.writer.bag_dir, p["min_free_disk"])
+        # Where a flood is reported; made now, so readers have matched it when one comes.
+        from diagnostic_msgs.msg import DiagnosticArray
+
+        from sim_bridge.contract.qos import diagnostics_qos
+        self._diag_pub = self.create_publisher(DiagnosticArray, T.DIAGNOSTICS, diagnostics_qos())
         self.received = 0
         self._last_log_time = 0   # ns; the newest log time written (see _on_message)
         self.errors = 0
@@ -346,6 +373,8 @@ class RecorderNode(ProtocadNode):
             if self.writer.closed:
                 return
             self._account(topic, int(seq) if isinstance(seq, int) else 0)
+            if not self._within_budget(topic, len(data)):
+                return
             # Reception times of different topics come from different DDS readers and can run
             # a little behind the order the callbacks write in. Log time never goes back in the
             # bag, so a file cut short (no index: a full disk, a kill) is still in time order
@@ -358,6 +387,55 @@ class RecorderNode(ProtocadNode):
                 self.errors += 1
                 self._warn_once(f"write:{type(exc).__name__}", f"write to bag failed: {exc}")
                 self._check_failure()
+
+    def _within_budget(self, topic: str, nbytes: int) -> bool:
+        """The disk budget (record_budget.py): False drops the message (counted); the bag's
+        budget or the free-disk floor end the recording (a closed, valid bag; one line)."""
+        now = time.monotonic()
+        reason = self.budget.admit(topic, nbytes, now)
+        for flooded in self.budget.take_new_floods():
+            self._flag_flood(flooded)
+        if reason == "total_bytes":
+            self._stop_recording(self.budget.stopped or "the bag's byte budget is spent")
+            return False
+        if reason is not None:
+            self._throttle.warning(f"budget:{topic}:{reason}", f"{topic}: messages dropped ({reason} limit; "
+                                   f"{self.budget.dropped[topic][reason]} so far)")
+            return False
+        below = self.disk_floor.below(nbytes, now)
+        if below is not None:
+            self._stop_recording(below)
+            return False
+        return True
+
+    def _stop_recording(self, reason: str) -> None:
+        if self.done.is_set():
+            return
+        self.stop_reason = reason
+        self.get_logger().error(f"recording stopped: {reason}; closing the bag with the "
+                                f"{self.writer.message_count} messages written")
+        self.exit_code = EXIT_BUDGET
+        self.done.set()
+
+    def _flag_flood(self, topic: str) -> None:
+        """A flood: in the bag's metadata at once, a WARNING, and a WARN on /diagnostics."""
+        figures = self.budget.floods[topic]
+        self.writer.custom_data = {**(self.writer.custom_data or {}), **self.budget.metadata()}
+        self.get_logger().warning(
+            f"{topic}: FLOOD: {figures['rate_hz']:g} msg/s ({figures['bytes_per_s']} B/s) against "
+            f"{figures['recent_hz']:g} msg/s recently; flagged in the bag's metadata")
+        try:
+            from diagnostic_msgs.msg import DiagnosticArray
+
+            from sim_bridge.nodekit.rosnode import make_status
+
+            arr = DiagnosticArray()
+            arr.header.stamp = self.get_clock().now().to_msg()
+            arr.status = [make_status(f"{self.get_name()}: recording", "recorder",
+                                      {"flooded_topic": topic, **figures}, "WARN", f"flood on {topic}")]
+            self._diag_pub.publish(arr)
+        except Exception as exc:  # noqa: BLE001 - the flag in the bag stands; the status is extra
+            self._warn_once("flood-diag", f"cannot publish the flood on /diagnostics: {exc}")
 
     def _account(self, topic: str, seq: int) -> None:
         if seq <= 0 or topic in self.untracked:
@@ -455,7 +533,9 @@ class RecorderNode(ProtocadNode):
         if self.stall_watch is not None:
             self.stall_watch.stop()
         with self._lock:
-            marks = {**self.loss_summary(), **self.publishers_summary()}
+            marks = {**self.loss_summary(), **self.publishers_summary(), **self.budget.metadata()}
+            if self.stop_reason:
+                marks["protocad_recording_stopped"] = self.stop_reason
             if marks:
                 self.writer.custom_data = {**(self.writer.custom_data or {}), **marks}
             self.writer.close()
@@ -481,6 +561,15 @@ class RecorderNode(ProtocadNode):
             lines.append(f"  STALLED past the DDS lease ({self.stall_lease_s:g} s): "
                          f"{', '.join(f'{x:g} s' for x in self.stalls)}; samples sent meanwhile may be "
                          "lost, counted above only where a later sample showed the gap")
+        if self.budget.dropped:
+            lines.append("  DROPPED by the budget (rate / topic bytes / bag bytes): " + ", ".join(
+                f"{t}: {sum(r.values())} ({', '.join(f'{k} {n}' for k, n in sorted(r.items()))})"
+                for t, r in sorted(self.budget.dropped.items())))
+        if self.budget.floods:
+            lines.append("  FLOOD (marked in the metadata): " + ", ".join(
+                f"{t}: {f['rate_hz']:g} msg/s against {f['recent_hz']:g}" for t, f in sorted(self.budget.floods.items())))
+        if self.stop_reason:
+            lines.append(f"  RECORDING STOPPED: {self.stop_reason}")
         several = self.publisher_watch.ever
         if several:
             lines.append("  SEVERAL PUBLISHERS (marked in the metadata): " + ", ".join(
@@ -497,6 +586,9 @@ class RecorderNode(ProtocadNode):
 #: Exit status when a write error (disk full, ...) ended the recording; the bag holds what was
 #: written before it, closed validly where the disk allowed (see BagWriter.close).
 EXIT_WRITE_FAILED = 3
+#: Exit status when the bag's byte budget or the free-disk floor ended the recording (the bag
+#: is closed and valid).
+EXIT_BUDGET = 4
 
 
 #: `ros2 bag record` (Jazzy) options this recorder does not have, and why (each is refused
@@ -621,6 +713,27 @@ def build_parser() -> argparse.ArgumentParser:
                         "protocad_stalls_past_lease). A recorder killed outright stays in the graph "
                         "this long. 0: Fast DDS's own (20 s, or the profile's). Command line "
                         f"only: it must be known before the node exists (default {DEFAULT_LEASE_S:g})")
+    g = ap.add_argument_group("the disk budget (a flood from any participant must not fill the disk)")
+    g.add_argument("--max-topic-rate", type=float, default=0.0, metavar="HZ",
+                   help="record at most this many messages per second of each topic (2 s of burst); "
+                        "the rest are dropped and counted (0: no limit; default 0)")
+    g.add_argument("--rate-limit", dest="rate_limits", nargs="+", default=[], metavar="TOPIC=HZ",
+                   help="a rate limit for one topic, over --max-topic-rate (e.g. /diagnostics=10)")
+    g.add_argument("--max-topic-bytes", type=int, default=0, metavar="BYTES",
+                   help="stop recording a topic once it has this many bytes in the bag (counted; "
+                        "0: no limit; default 0)")
+    g.add_argument("--byte-budget", dest="byte_budgets", nargs="+", default=[], metavar="TOPIC=BYTES",
+                   help="a byte budget for one topic, over --max-topic-bytes")
+    g.add_argument("--max-total-bytes", type=int, default=0, metavar="BYTES",
+                   help="end the recording (closed, valid bag; exit 4) once the bag holds this many "
+                        "message bytes (0: no limit; default 0)")
+    g.add_argument("--min-free-disk", type=int, default=DEFAULT_MIN_FREE_DISK, metavar="BYTES",
+                   help="end the recording (closed, valid bag; exit 4) when the disk under the bag "
+                        f"has less free space than this (0: off; default {DEFAULT_MIN_FREE_DISK})")
+    g.add_argument("--flood-factor", type=float, default=DEFAULT_FLOOD_FACTOR, metavar="X",
+                   help="flag a topic whose rate or byte rate over a second is X times its recent "
+                        "figure (and at least 100 msg/s or 10 MB/s) in the bag's metadata "
+                        f"(protocad_floods) and on /diagnostics (0: off; default {DEFAULT_FLOOD_FACTOR:g})")
     g = ap.add_argument_group("`ros2 bag record` options this recorder does not have (refused, "
                               "with the reason)")
     for opt in UNSUPPORTED_OPTIONS:
@@ -674,7 +787,10 @@ def start_recorder(args: argparse.Namespace) -> RecorderNode:
                 chunk_size=args.chunk_size, max_bagfile_size=args.max_bagfile_size,
                 max_bagfile_duration=args.max_bagfile_duration, flush_interval=args.flush_interval,
                 queue_depth=args.queue_depth, discovery_interval=args.polling_interval / 1000.0,
-                status_interval=args.status_interval, node_name=args.node_name)
+                status_interval=args.status_interval, max_topic_rate=args.max_topic_rate,
+                max_topic_bytes=args.max_topic_bytes, max_total_bytes=args.max_total_bytes,
+                min_free_disk=args.min_free_disk, flood_factor=args.flood_factor,
+                rate_limits=args.rate_limits, byte_budgets=args.byte_budgets, node_name=args.node_name)
     except (mcap_io.BagWriteError, ValueError) as exc:
         raise ConfigError(str(exc)) from None
     if lease_profile is not None:   # not with another rmw, nor with 0 (the profile's own)

@@ -186,7 +186,8 @@ def test_recording_into_a_full_disk_stops_cleanly_with_a_readable_bag(ros, small
     pub = ros.create_publisher(Image, T.IMAGE, obs)
     info_pub = ros.create_publisher(JointState, T.STEP_INFO, obs)   # two topics, two DDS readers
     rec = subprocess.Popen([sys.executable, "-m", "trainer.nodes.recorder", "-o", str(bag), T.topic_name(NS, T.IMAGE),
-                            T.topic_name(NS, T.STEP_INFO), "--ros-args", "-p", "flush_interval:=0.2"],
+                            T.topic_name(NS, T.STEP_INFO), "--ros-args", "-p", "flush_interval:=0.2",
+                            "-p", "min_free_disk:=0"],
                            stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     try:
         wait_until(lambda: pub.get_subscription_count() >= 1 and info_pub.get_subscription_count() >= 1, 60,
