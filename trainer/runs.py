@@ -31,7 +31,8 @@ import numpy as np
 import yaml
 
 from protocad_ros.atomic import atomic_write_text
-from trainer.run_input import load_json_object, load_yaml_mapping
+from trainer.run_input import (check_logs, check_settings_section, load_json_object,  # noqa: F401 - for the CLIs
+                               load_yaml_mapping)
 
 MetricsCallback = Callable[[int, Mapping[str, float]], None]
 

@@ -47,7 +47,7 @@ from trainer.data.dataset import MCAPDataset, TopicMap
 from trainer.learn.schedule import Schedule
 from trainer.learn.train import Trainer
 from trainer.settings import arg
-from trainer.run_input import check_settings_section
+from trainer.runs import check_settings_section
 
 DEMO = dict(task="pendulum_swingup", preset="small", cycles=3, episodes_per_cycle=1, prefill=2,
             updates_per_episode=25, eval_episodes=1, eval_max_contexts=8)

@@ -39,7 +39,7 @@ from trainer.learn import distributed
 from trainer import runs, settings
 from trainer.data.dataset import DatasetError, MCAPDataset, TopicMap
 from trainer.learn.schedule import RunCounters
-from trainer.run_input import check_logs, check_settings_section
+from trainer.runs import check_logs, check_settings_section
 from trainer.settings import arg
 
 DEFAULT_LOG_EVERY = 10

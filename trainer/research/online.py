@@ -54,7 +54,7 @@ from trainer.data.dataset import MCAPDataset, TopicMap
 from trainer.learn import distributed
 from trainer.learn.schedule import RunCounters, Schedule
 from trainer.learn.train import Trainer
-from trainer.run_input import check_settings_section
+from trainer.runs import check_settings_section
 from trainer.settings import arg
 
 BAG_QOS = dict(history="keep_last", depth=100, reliability="reliable", durability="volatile")
