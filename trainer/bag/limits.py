@@ -155,3 +155,21 @@ def vet_definition(msgtype: str, text: str) -> None:
 
     for name in list(defs):
         min_bytes(name, ())
+
+
+class ClampedFile:
+    """A file whose read(n) asks for no more than the file holds: mcap's SeekingReader reads
+    lengths from the file and Python's read(n) reserves n bytes before it reads any."""
+
+    def __init__(self, fh, size: int):
+        self._fh, self._size = fh, size
+
+    def read(self, n: int = -1) -> bytes:
+        left = max(0, self._size - self._fh.tell())
+        return self._fh.read(left if n is None or n < 0 else min(n, left))
+
+    def seek(self, offset: int, whence: int = 0) -> int:
+        return self._fh.seek(offset, whence)
+
+    def tell(self) -> int:
+        return self._fh.tell()

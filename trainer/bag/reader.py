@@ -36,7 +36,8 @@ from mcap.records import Channel, Chunk, DataEnd, Footer, Message, Metadata, Sch
 from mcap.stream_reader import StreamReader, breakup_chunk
 
 from trainer.bag.bag_report import BagReadError, BagReport, RawMessage
-from trainer.bag.limits import BagLimitError, ReadLimits, check_message_size, decompress, vet_definition
+from trainer.bag.limits import (BagLimitError, ClampedFile, ReadLimits, check_message_size, decompress,
+                                vet_definition)
 from trainer.bag.writer import MCAP_MAGIC
 from trainer.bag.rosmsg import TypeSupportError, decode, message_definition_with_encoding
 
@@ -90,25 +91,11 @@ def _record_at(fh, pos: int, size: int, limits: ReadLimits | None = None) -> tup
     # Parsed from its own bytes: a length field inside the record (a string's, a map's) can
     # then ask for no more than the record holds (read from the file, it could ask for GBs).
     blob = io.BytesIO(fh.read(_RECORD_HEAD.size + length))
-    return opcode, length, next(StreamReader(blob, skip_magic=True, emit_chunks=True).records)
-
-
-class _Clamped:
-    """A file whose read(n) asks for no more than the file holds: mcap's SeekingReader reads
-    lengths from the file and Python's read(n) reserves n bytes before it reads any."""
-
-    def __init__(self, fh, size: int):
-        self._fh, self._size = fh, size
-
-    def read(self, n: int = -1) -> bytes:
-        left = max(0, self._size - self._fh.tell())
-        return self._fh.read(left if n is None or n < 0 else min(n, left))
-
-    def seek(self, offset: int, whence: int = 0) -> int:
-        return self._fh.seek(offset, whence)
-
-    def tell(self) -> int:
-        return self._fh.tell()
+    try:
+        return opcode, length, next(StreamReader(blob, skip_magic=True, emit_chunks=True).records)
+    except Exception as exc:  # noqa: BLE001 - the library's errors (EndOfFile, ...): a corrupt record
+        raise ValueError(f"corrupt {name} record at byte {pos}: its fields need more than its "
+                         f"{length} bytes ({type(exc).__name__})") from None
 
 
 _OPCODES = frozenset(int(o) for o in Opcode)
@@ -235,7 +222,7 @@ def _index_file(path: Path, limits: ReadLimits) -> _FileIndex:
             raise BagReadError(f"not an MCAP file: starts with {head!r}, expected MCAP magic "
                                f"{MCAP_MAGIC!r}")
         fh.seek(0)
-        reader = SeekingReader(_Clamped(fh, size), validate_crcs=True)
+        reader = SeekingReader(ClampedFile(fh, size), validate_crcs=True)
         try:
             _record_at(fh, len(MCAP_MAGIC), size)          # complete, or ValueError
             header = reader.get_header()

@@ -252,6 +252,7 @@ class RecorderNode(ProtocadNode):
 
         from sim_bridge.contract.qos import diagnostics_qos
         self._diag_pub = self.create_publisher(DiagnosticArray, T.DIAGNOSTICS, diagnostics_qos())
+        self._flood_timer = None
         self.received = 0
         self._last_log_time = 0   # ns; the newest log time written (see _on_message)
         self.errors = 0
@@ -418,12 +419,19 @@ class RecorderNode(ProtocadNode):
         self.done.set()
 
     def _flag_flood(self, topic: str) -> None:
-        """A flood: in the bag's metadata at once, a WARNING, and a WARN on /diagnostics."""
+        """A flood: in the bag's metadata at once, a WARNING, and a WARN on /diagnostics, sent
+        again every second (the flood may be on /diagnostics itself, and push one status out of
+        a reader's history)."""
         figures = self.budget.floods[topic]
         self.writer.custom_data = {**(self.writer.custom_data or {}), **self.budget.metadata()}
         self.get_logger().warning(
             f"{topic}: FLOOD: {figures['rate_hz']:g} msg/s ({figures['bytes_per_s']} B/s) against "
             f"{figures['recent_hz']:g} msg/s recently; flagged in the bag's metadata")
+        self._publish_floods()
+        if self._flood_timer is None:
+            self._flood_timer = self.create_timer(1.0, self._publish_floods)
+
+    def _publish_floods(self) -> None:
         try:
             from diagnostic_msgs.msg import DiagnosticArray
 
@@ -431,8 +439,9 @@ class RecorderNode(ProtocadNode):
 
             arr = DiagnosticArray()
             arr.header.stamp = self.get_clock().now().to_msg()
-            arr.status = [make_status(f"{self.get_name()}: recording", "recorder",
-                                      {"flooded_topic": topic, **figures}, "WARN", f"flood on {topic}")]
+            arr.status = [make_status(f"{self.get_name()}: recording {topic}", "recorder",
+                                      {"flooded_topic": topic, **figures}, "WARN", f"flood on {topic}")
+                          for topic, figures in sorted(dict(self.budget.floods).items())]
             self._diag_pub.publish(arr)
         except Exception as exc:  # noqa: BLE001 - the flag in the bag stands; the status is extra
             self._warn_once("flood-diag", f"cannot publish the flood on /diagnostics: {exc}")
