@@ -42,8 +42,8 @@ import torch
 from protocad_ros.model.agent_base import AgentBase
 from protocad_ros.model.agents import make_agent
 from protocad_ros.atomic import atomic_open, atomic_write_text
-from protocad_ros.checkpoint_limits import (DEFAULT_MAX_CHECKPOINT_BYTES, CheckpointLimitError, check_archive,
-                                            check_implied_size, check_top_level_keys)
+from protocad_ros.checkpoint_limits import (CheckpointLimitError, check_archive, check_implied_size,
+                                            check_top_level_keys, max_checkpoint_bytes)
 from protocad_ros.model.config import Config, ConfigError
 
 __all__ = ["save_checkpoint", "save_policy", "read_provenance", "load_checkpoint", "restore_checkpoint", "read_checkpoint",
@@ -151,7 +151,7 @@ def _write(path: Path, payload: Mapping[str, Any]) -> None:
 
 
 def read_checkpoint(path: str | os.PathLike, data: bytes | None = None,
-                    max_bytes: int = DEFAULT_MAX_CHECKPOINT_BYTES) -> dict[str, Any]:
+                    max_bytes: int | None = None) -> dict[str, Any]:
     """The raw checkpoint dict (tensors on CPU), after the archive's limits
     (protocad_ros.checkpoint_limits: checked on its zip directory, before anything is expanded)
     and the format and version checks. `data`: the file's bytes as the caller read (and
@@ -159,8 +159,13 @@ def read_checkpoint(path: str | os.PathLike, data: bytes | None = None,
     return _read(Path(path), max_bytes, data)[0]
 
 
-def _read(path: Path, max_bytes: int, data: bytes | None = None) -> tuple[dict[str, Any], int]:
-    """(payload, bytes of its tensor entries): every load path's one reader."""
+def _read(path: Path, max_bytes: int | None, data: bytes | None = None) -> tuple[dict[str, Any], int]:
+    """(payload, bytes of its tensor entries): every load path's one reader. max_bytes: None
+    = $PROTOCAD_MAX_CHECKPOINT_BYTES or 512 MiB (checkpoint_limits.max_checkpoint_bytes)."""
+    try:
+        max_bytes = max_checkpoint_bytes(max_bytes)
+    except CheckpointLimitError as err:
+        raise CheckpointError(str(err)) from None
     if data is None:
         data = _read_file(path, max_bytes)
     elif len(data) > max_bytes:
@@ -283,7 +288,7 @@ def load_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu",
                     action_dim: int | None = None, *,
                     fits: Callable[[Config, int], None] | None = None,
                     restore_rng: bool = True, data: bytes | None = None,
-                    max_bytes: int = DEFAULT_MAX_CHECKPOINT_BYTES) -> tuple[AgentBase, dict[str, Any]]:
+                    max_bytes: int | None = None) -> tuple[AgentBase, dict[str, Any]]:
     """Rebuild the agent from a checkpoint. Returns (agent, counters).
 
     action_dim, if given, must match the checkpoint's (e.g. the environment's). fits(config,
@@ -320,7 +325,7 @@ def architecture_differences(mine: Config, theirs: Config) -> list[str]:
 
 
 def restore_checkpoint(path: str | os.PathLike, agent: AgentBase,
-                       max_bytes: int = DEFAULT_MAX_CHECKPOINT_BYTES) -> dict[str, Any]:
+                       max_bytes: int | None = None) -> dict[str, Any]:
     """Load a checkpoint into an existing agent (e.g. a policy node reloading new weights).
 
     The checkpoint's config must describe the same networks (variant, sizes, action_dim);

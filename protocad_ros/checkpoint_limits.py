@@ -16,6 +16,7 @@ No ROS import: the model side (protocad_ros.checkpoint) calls it.
 """
 from __future__ import annotations
 
+import os
 import re
 import zipfile
 from pathlib import Path
@@ -24,6 +25,9 @@ from typing import Iterable, Mapping
 #: Default largest checkpoint file (and sum of its declared entry sizes), in bytes: the policy
 #: node's `max_checkpoint_bytes` default. The paper-sized training checkpoint is far below it.
 DEFAULT_MAX_CHECKPOINT_BYTES = 512 << 20
+#: The environment variable that sets the default for the CLIs (protocad-evaluate, protocad-loop
+#: --init-policy, protocad-train --resume, ...); the policy node has its parameter.
+MAX_BYTES_ENV = "PROTOCAD_MAX_CHECKPOINT_BYTES"
 #: Most entries a checkpoint archive may have (one per tensor storage plus a handful).
 MAX_ENTRIES = 20_000
 #: Largest data.pkl (the object structure; tensors are separate entries).
@@ -44,6 +48,23 @@ _ENTRY = re.compile(r"^[^/]+/(data\.pkl|version|byteorder|\.format_version|\.sto
 
 class CheckpointLimitError(ValueError):
     """The archive breaks a limit; the message names the file, the entry and the limit."""
+
+
+def max_checkpoint_bytes(given: int | None = None) -> int:
+    """`given`, else $PROTOCAD_MAX_CHECKPOINT_BYTES, else DEFAULT_MAX_CHECKPOINT_BYTES
+    (CheckpointLimitError for a value that is not a whole number >= 1)."""
+    if given is not None:
+        return int(given)
+    text = os.environ.get(MAX_BYTES_ENV, "").strip()
+    if not text:
+        return DEFAULT_MAX_CHECKPOINT_BYTES
+    try:
+        value = int(text)
+    except ValueError:
+        value = 0
+    if value < 1:
+        raise CheckpointLimitError(f"{MAX_BYTES_ENV}={text!r} is not a whole number of bytes >= 1")
+    return value
 
 
 def check_archive(path: Path, data: bytes, max_bytes: int = DEFAULT_MAX_CHECKPOINT_BYTES) -> int:

@@ -56,6 +56,15 @@ def test_max_bytes_refuses_a_larger_file_before_reading_it(files):
     load_checkpoint(files["good"], max_bytes=size)
 
 
+def test_the_clis_default_comes_from_the_environment(files, monkeypatch):
+    monkeypatch.setenv("PROTOCAD_MAX_CHECKPOINT_BYTES", "4096")
+    with pytest.raises(CheckpointError, match="more than the limit of 4096"):
+        read_checkpoint(files["good"])
+    monkeypatch.setenv("PROTOCAD_MAX_CHECKPOINT_BYTES", "lots")
+    with pytest.raises(CheckpointError, match="PROTOCAD_MAX_CHECKPOINT_BYTES='lots'"):
+        read_checkpoint(files["good"])
+
+
 def test_tensor_bytes_beyond_what_the_architecture_implies_are_refused(tmp_path, files):
     """Stored (not compressed), under max_bytes, known keys: but 64 MiB of optimizer state
     for a network of a few hundred kB."""
