@@ -47,6 +47,7 @@ from protocad_ros.checkpoint_limits import (CheckpointLimitError, check_archive,
 from protocad_ros.model.config import Config, ConfigError
 
 __all__ = ["save_checkpoint", "save_policy", "read_provenance", "load_checkpoint", "restore_checkpoint", "read_checkpoint",
+           "read_checkpoint_file",
            "architecture_differences", "CheckpointError", "CheckpointMismatch", "FORMAT", "VERSION",
            "CONFIG_NAME"]
 
@@ -200,6 +201,16 @@ def _read(path: Path, max_bytes: int | None, data: bytes | None = None) -> tuple
     except CheckpointLimitError as err:
         raise CheckpointError(str(err)) from None
     return payload, tensor_bytes
+
+
+def read_checkpoint_file(path: str | os.PathLike, max_bytes: int | None = None) -> bytes:
+    """A checkpoint file's bytes, for a caller that verifies them before loading them
+    (read_checkpoint(path, data=...)): refused (CheckpointError) when the file is larger than
+    max_bytes (None: $PROTOCAD_MAX_CHECKPOINT_BYTES or 512 MiB), before it is read."""
+    try:
+        return _read_file(Path(path), max_checkpoint_bytes(max_bytes))
+    except CheckpointLimitError as err:
+        raise CheckpointError(str(err)) from None
 
 
 def _read_file(path: Path, max_bytes: int) -> bytes:

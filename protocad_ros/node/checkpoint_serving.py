@@ -29,7 +29,6 @@ import time
 from typing import Any
 
 import hashlib
-from pathlib import Path
 
 from protocad_ros.atomic import file_signature
 from protocad_ros.node.checkpoint_receiver import CheckpointReceiver
@@ -206,8 +205,11 @@ class CheckpointServing:
             raise ConfigError(str(e)) from None
 
     def _read_once(self, path: str) -> tuple[bytes, str]:
-        """The file's bytes and their sha256: the one read that is verified and loaded."""
-        data = Path(path).read_bytes()
+        """The file's bytes and their sha256: the one read that is verified and loaded (a file
+        over max_checkpoint_bytes is refused before it is read: CheckpointError)."""
+        from protocad_ros.checkpoint import read_checkpoint_file
+
+        data = read_checkpoint_file(path, self.params["max_checkpoint_bytes"])
         return data, hashlib.sha256(data).hexdigest()
 
     def _watch_key(self, path: str) -> tuple | None:

@@ -184,9 +184,11 @@ class PolicyNode(CheckpointServing, ManagedNode):
         self._load_trust()
         sig = file_signature(path) if path else None
         if sig is not None:
+            from protocad_ros.checkpoint import CheckpointError
+
             try:
                 data, self.ckpt_sha = self._read_once(path)   # verified and loaded, read once
-            except OSError as e:
+            except (OSError, CheckpointError) as e:   # CheckpointError: over max_checkpoint_bytes
                 raise ConfigError(f"cannot read checkpoint {path}: {e}") from None
             self._configure_seq(path, self.ckpt_sha, len(data))
             try:

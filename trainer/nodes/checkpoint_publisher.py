@@ -17,7 +17,6 @@ import dataclasses
 import hashlib
 import os
 import time
-from pathlib import Path
 from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray
@@ -110,10 +109,10 @@ class CheckpointPublisherNode(ProtocadNode):
     def _read(self, path: str) -> tuple[bytes, dict[str, Any]] | None:
         """The file's bytes and what the announcement says about them, or None if it was
         replaced while we read it (the next poll takes the newer one)."""
-        from protocad_ros.checkpoint import read_checkpoint
+        from protocad_ros.checkpoint import read_checkpoint, read_checkpoint_file
 
         sig = file_signature(path)
-        data = Path(path).read_bytes()
+        data = read_checkpoint_file(path)   # a file over the limit is refused unread
         # format and version checks on the bytes announced (never announce junk), not a reread
         payload = read_checkpoint(path, data=data)
         if file_signature(path) != sig or len(data) != sig[2]:

@@ -32,3 +32,24 @@ def test_the_publishers_reader_refuses_it_before_announcing(bomb):
 
     with pytest.raises(CheckpointError, match="is compressed"):
         CheckpointPublisherNode._read(None, str(bomb))   # the reader it announces from
+
+
+def test_a_file_over_the_limit_is_refused_before_it_is_read(bomb, monkeypatch):
+    from protocad_ros.checkpoint import read_checkpoint_file
+    from trainer.nodes.checkpoint_publisher import CheckpointPublisherNode
+
+    with pytest.raises(CheckpointError, match="more than the limit of 4096"):
+        read_checkpoint_file(bomb, 4096)
+    monkeypatch.setenv("PROTOCAD_MAX_CHECKPOINT_BYTES", "4096")
+    with pytest.raises(CheckpointError, match="more than the limit of 4096"):
+        CheckpointPublisherNode._read(None, str(bomb))
+
+
+@pytest.mark.ros
+@pytest.mark.process
+def test_the_policy_node_refuses_a_file_over_max_checkpoint_bytes_unread(spawn, bomb):
+    node = spawn("policy", *policy_args(f"checkpoint:={bomb}", "max_checkpoint_bytes:=4096"))
+    assert wait_exit(node, START) == 2
+    out = node.log_path.read_text()
+    assert "cannot read checkpoint" in out and "more than the limit of 4096" in out, out
+

@@ -159,7 +159,7 @@ def test_a_lockstep_recording_stopped_by_a_full_disk_is_in_time_order_and_read_b
     Responder(probe, lambda info: [0.0], names=["torque"])
     bag = disk / "bag"
     rec = spawn("recorder", "-m", "trainer.nodes.recorder", "-o", str(bag), "--compression", "none",
-                "--ros-args", "-p", "flush_interval:=0.2")
+                "--ros-args", "-p", "flush_interval:=0.2", "-p", "min_free_disk:=0")   # the write failure, not the floor
     wait_until(lambda: "recording to" in rec.output(), START, "the recorder")
     spawn("bridge", "-m", "sim_bridge.bridge.node", "--ros-args", "-p", f"task:={TASK}", "-p", "seed:=1",
           "-p", "min_subscribers:=2")
