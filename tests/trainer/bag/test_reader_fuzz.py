@@ -91,7 +91,10 @@ def memory():
     assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before < 200_000   # kB
 
 
+# Derandomized by default: the suite (and CI) runs the same examples every time, so a red run
+# is a regression, reproducible as it is; PROTOCAD_FUZZ_RANDOM=1 explores new ones.
 @settings(max_examples=int(os.environ.get("PROTOCAD_FUZZ_EXAMPLES", "300")), deadline=None, database=None,
+          derandomize=not os.environ.get("PROTOCAD_FUZZ_RANDOM"),
           suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow])
 @given(comp=st.sampled_from(["zstd", "lz4", ""]), ops=OPS, strict=st.booleans())
 def test_mutated_bags_raise_only_the_readers_error_and_stay_bounded(ready, comp, ops, strict):
