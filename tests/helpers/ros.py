@@ -22,6 +22,17 @@ from sim_bridge.contract import qos, topics
 NS = topics.DEFAULT_NAMESPACE
 
 
+def publisher_node(name: str, namespace: str = NS):
+    """A plain rclpy node in a Context of its own, for a test to publish from (a generator:
+    yield it from a fixture; the node and its context are shut down after the test)."""
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+    node = Node(name, namespace=namespace, context=ctx)
+    yield node
+    node.destroy_node()
+    rclpy.try_shutdown(context=ctx)
+
+
 class Probe:
     def __init__(self, name: str = "probe", namespace: str = NS):
         self.ns = namespace

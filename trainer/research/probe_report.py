@@ -24,12 +24,12 @@ import math
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
-import jsonschema
 import numpy as np
 
 from protocad_ros.atomic import atomic_write_text
 from sim_bridge.contract.contexts import context_label
 from trainer.research.probe_fit import SETTINGS, Windows
+from trainer.research.results_json import check_schema
 from trainer.viz.context_view import colormap, project
 
 SCHEMA_ID = "protocad-probe/1"
@@ -84,12 +84,8 @@ PROBE_SCHEMA: dict[str, Any] = {
 
 
 def validate(doc: Mapping[str, Any]) -> None:
-    """jsonschema validation against PROBE_SCHEMA (ValueError naming where it fails)."""
-    try:
-        jsonschema.validate(doc, PROBE_SCHEMA)
-    except jsonschema.ValidationError as exc:
-        where = "/".join(str(p) for p in exc.absolute_path) or "(top level)"
-        raise ValueError(f"probe JSON does not match {SCHEMA_ID} at {where}: {exc.message}") from None
+    """The probe's JSON against PROBE_SCHEMA (ValueError naming where it fails)."""
+    check_schema(doc, PROBE_SCHEMA, "probe JSON", SCHEMA_ID)
 
 
 def write_json(doc: Mapping[str, Any], path: Path) -> None:

@@ -232,18 +232,25 @@ def gather(specs: Iterable[Any], *, command: Sequence[str], env_steps: int, wall
             "random": {k: _eval_entry(v) for k, v in (random or {}).items()}}
 
 
-def validate(doc: Mapping[str, Any]) -> None:
-    """jsonschema validation against RESULTS_SCHEMA (ValueError with the first problem)."""
+def check_schema(doc: Any, schema: Mapping[str, Any], name: str, schema_id: str) -> None:
+    """jsonschema validation of a document of this package (ValueError with the first problem
+    and where it is; skipped, said on stderr, where jsonschema is not installed: the GPU
+    machine's bare Python, checked again where it is)."""
     try:
         import jsonschema
-    except ImportError:   # the GPU machine's bare Python: say so, check again where it is installed
-        print(f"[results] jsonschema is not installed: {SCHEMA_ID} not checked here", file=sys.stderr)
+    except ImportError:
+        print(f"[results] jsonschema is not installed: {schema_id} not checked here", file=sys.stderr)
         return
     try:
-        jsonschema.validate(doc, RESULTS_SCHEMA)
+        jsonschema.validate(doc, schema)
     except jsonschema.ValidationError as exc:
         where = "/".join(str(p) for p in exc.absolute_path) or "(top level)"
-        raise ValueError(f"results.json does not match {SCHEMA_ID} at {where}: {exc.message}") from None
+        raise ValueError(f"{name} does not match {schema_id} at {where}: {exc.message}") from None
+
+
+def validate(doc: Mapping[str, Any]) -> None:
+    """results.json against RESULTS_SCHEMA (ValueError with the first problem)."""
+    check_schema(doc, RESULTS_SCHEMA, "results.json", SCHEMA_ID)
 
 
 def save_results(doc: Mapping[str, Any], path: Path) -> Path:

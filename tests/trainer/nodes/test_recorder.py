@@ -28,14 +28,9 @@ def stamp(i: int) -> int:
 
 @pytest.fixture
 def ros():
-    import rclpy
-    from rclpy.node import Node
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx)
-    node = Node("recorder_test_publisher", namespace=NS, context=ctx)
-    yield node
-    node.destroy_node()
-    rclpy.try_shutdown(context=ctx)
+    from helpers.ros import publisher_node
+
+    yield from publisher_node("recorder_test_publisher")
 
 
 def make_publishers(node):

@@ -82,14 +82,9 @@ def test_the_launchers_record_a_bounded_copy_of_diagnostics():
 
 @pytest.fixture
 def ros():
-    import rclpy
-    from rclpy.node import Node
-    ctx = rclpy.Context()
-    rclpy.init(context=ctx)
-    node = Node("budget_test_publisher", namespace=NS, context=ctx)
-    yield node
-    node.destroy_node()
-    rclpy.try_shutdown(context=ctx)
+    from helpers.ros import publisher_node
+
+    yield from publisher_node("budget_test_publisher")
 
 
 def recorder(bag, *args: str) -> subprocess.Popen:
