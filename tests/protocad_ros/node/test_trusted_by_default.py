@@ -7,7 +7,9 @@ from __future__ import annotations
 
 import hashlib
 import io
+import math
 import os
+import time
 from pathlib import Path
 
 import pytest
@@ -17,6 +19,7 @@ from helpers.agents import save_agent
 from helpers.checkpoints import FakeCheckpointPublisher, chunks, sign
 from helpers.policy import START, TASK, policy_args
 from helpers.ros import Probe
+from protocad_ros.node.refusal_log import DEFAULT_INTERVAL_S
 from protocad_ros.checkpoint_signing import (generate_keypair, load_private_key, load_trusted_keys,
                                              sign_file, signature_path)
 from sim_bridge.contract import topics
@@ -153,6 +156,7 @@ def test_a_flood_of_refused_announcements_is_counted_and_logged_once_per_cause(s
     wait_until(lambda: probe.node_diag("policy").get("lifecycle_state") == "active", START, "the policy")
     fake = FakeCheckpointPublisher(probe)
     n = 200
+    t0 = time.monotonic()
     for i in range(n):   # fresh version ids, unsigned and signed by a stranger
         a = topics.describe_checkpoint(os.urandom(64) + bytes([i]), SIZE, task=TASK)
         fake.announce_only(a if i % 2 else sign(a, stranger))
@@ -161,8 +165,9 @@ def test_a_flood_of_refused_announcements_is_counted_and_logged_once_per_cause(s
                    f"refusal {i + 1} counted")
     # the refusals' own lines (a held-back summary, said when an interval ends during a slow
     # run, names its cause too: it is counted below, not here)
+    intervals = math.ceil((time.monotonic() - t0) / DEFAULT_INTERVAL_S)   # 1 when quiet, more on a loaded machine
     lines = [ln for ln in policy.output().splitlines() if "rejected:" in ln and "more refusal(s)" not in ln]
-    assert 2 <= len(lines) <= 4, lines   # one per cause (unsigned, another key) per interval
+    assert 2 <= len(lines) <= 2 * (intervals + 1), lines   # one per cause (unsigned, another key) per interval
     assert policy.stop() == 0   # closing says what was held back, with the count
     held = [ln for ln in policy.output().splitlines() if "more refusal(s) of this kind" in ln]
     assert held and sum(int(ln.split(" more refusal")[0].rsplit(" ", 1)[-1]) for ln in held) == n - len(lines)
