@@ -23,15 +23,23 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from helpers import ROOT, Proc
 
 
+#: The tests' own domains: ROS 2's other "safe" range (above Linux's ephemeral ports), apart from
+#: the 1..101 that the launchers the tests start draw a fresh domain from
+#: (trainer.launch.rosprocs.fresh_domain_id): a stack started by one worker never joins the
+#: domain of another worker's test, even between two of its tests, when no port shows it in use.
+TEST_DOMAINS = range(215, 233)
+
+
 def ros_domain_id() -> int:
     """A domain of its own for this run, and under pytest-xdist for each of its workers (the
     workers of one run share PYTEST_XDIST_TESTRUNUID; their numbers gw0, gw1... tell them apart)."""
+    first, size = TEST_DOMAINS.start, len(TEST_DOMAINS)
     worker = os.environ.get("PYTEST_XDIST_WORKER")
     if not worker:
-        return 10 + os.getpid() % 90
+        return first + os.getpid() % size
     n = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
     run = zlib.crc32(os.environ.get("PYTEST_XDIST_TESTRUNUID", "").encode())
-    return 10 + (run % max(1, 90 // n)) * n + int(worker.removeprefix("gw"))
+    return first + ((run % max(1, size // n)) * n + int(worker.removeprefix("gw"))) % size
 
 
 # Set before anything imports rclpy. LOCALHOST keeps discovery off external interfaces;
@@ -52,10 +60,25 @@ os.environ["PYTHONUNBUFFERED"] = "1"
 os.environ["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
 
 
+@pytest.hookimpl(wrapper=True, tryfirst=True)
+def pytest_runtest_makereport(item, call):
+    """Keeps each phase's report on the test item, so that fixtures know at teardown whether
+    the test failed."""
+    report = yield
+    setattr(item, f"report_{report.when}", report)
+    return report
+
+
+#: How much of each spawned process's output a failed test prints (its last characters).
+FAILED_LOG_TAIL = 4000
+
+
 @pytest.fixture
-def spawn(tmp_path):
+def spawn(tmp_path, request):
     """spawn(name, *args) starts `python args...` (in the repository, or `cwd`); every process
-    is stopped at teardown."""
+    is stopped at teardown. When the test failed, the end of each process's output is printed
+    (pytest shows it under the failure): a timeout on a loaded CI machine is otherwise silent
+    about what the nodes were doing."""
     procs: list[Proc] = []
 
     def _spawn(name: str, *args: str, env: dict | None = None, cwd: Path = ROOT) -> Proc:
@@ -64,8 +87,12 @@ def spawn(tmp_path):
         return proc
 
     yield _spawn
+    report = getattr(request.node, "report_call", None)
     for proc in procs:
         proc.stop()
+        if report is not None and report.failed:
+            print(f"----- {proc.log_path.name} (exit {proc.p.returncode}), last {FAILED_LOG_TAIL} "
+                  f"characters -----\n{proc.output()[-FAILED_LOG_TAIL:]}")
 
 
 @pytest.fixture(scope="module")

@@ -3,8 +3,8 @@
 Every node runs as its own process (`python -m sim_bridge.bridge.node`, `python -m
 protocad_ros.node.policy_node`, `python -m trainer.nodes.recorder`, `python -m trainer.nodes.random_actor`)
 with the environment of scripts/env.sh (AMENT_PREFIX_PATH, RMW_IMPLEMENTATION,
-ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, MUJOCO_GL) and one ROS_DOMAIN_ID per stack (a fresh
-one unless given), output to LOG_DIR/<name>.log. Processes get their own session (a Ctrl-C
+ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, MUJOCO_GL) and one ROS_DOMAIN_ID per stack (unless given, a fresh
+one: a domain no participant on this machine uses yet), output to LOG_DIR/<name>.log. Processes get their own session (a Ctrl-C
 in the terminal reaches only the orchestrator, which stops them in order: bridge, actor,
 recorder last so that it drains and closes its bag) and die with the orchestrator
 (PR_SET_PDEATHSIG) if it is killed.
@@ -52,9 +52,39 @@ def _pdeathsig() -> None:  # runs in the child between fork and exec
         _prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG: die with the orchestrator
 
 
-def fresh_domain_id() -> int:
-    """A domain id in 1..101 (the range whose ports never collide), drawn per run."""
-    return random.SystemRandom().randint(1, 101)
+#: The domain ids whose ports never collide with Linux's ephemeral ports (ROS 2's "safe" range).
+FRESH_DOMAINS = range(1, 102)
+#: Fast DDS's ports of domain d: PB + DG * d (+ offsets and 2 per participant), RTPS's defaults.
+PORT_BASE, DOMAIN_GAIN = 7400, 250
+
+
+def domains_in_use(tables: Sequence[str] = ("/proc/net/udp", "/proc/net/udp6")) -> set[int]:
+    """The DDS domains with a participant on this machine: every Fast DDS (or other RTPS)
+    participant binds unicast UDP ports in its domain's block of 250. Empty where the kernel's
+    tables cannot be read (not Linux)."""
+    used: set[int] = set()
+    for table in tables:
+        try:
+            lines = Path(table).read_text().splitlines()[1:]
+        except OSError:
+            continue
+        for line in lines:
+            try:
+                port = int(line.split()[1].rsplit(":", 1)[1], 16)
+            except (IndexError, ValueError):
+                continue
+            if port >= PORT_BASE:
+                used.add((port - PORT_BASE) // DOMAIN_GAIN)
+    return used
+
+
+def fresh_domain_id(in_use: set[int] | None = None) -> int:
+    """A domain id in 1..101 with no participant on this machine yet (domains_in_use), drawn
+    per run: a second loop, a test suite or anyone else's nodes on this machine stay apart from
+    this run's (a shared domain mixes their topics). All in use: any of them."""
+    in_use = domains_in_use() if in_use is None else in_use
+    free = [d for d in FRESH_DOMAINS if d not in in_use]
+    return random.SystemRandom().choice(free or list(FRESH_DOMAINS))
 
 
 def ros_env(domain_id: int | None = None, discovery_server: str | None = None,
