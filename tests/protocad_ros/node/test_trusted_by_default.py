@@ -113,9 +113,12 @@ def test_a_replayed_older_version_is_refused_live_after_a_restart_and_after_its_
     assert served.read_bytes() == v2
     # Strangers: an unsigned version and one signed by another key, refused and counted.
     v3, a3 = _version(tmp_path, "v3", 9, 3)
+    # One after the other: the announcement topic keeps the newest only (depth 1), so a second
+    # sent at once can replace the first before the node has taken it.
     fake.send(a3, chunks(v3, SIZE))
+    wait_until(lambda: count("checkpoint_signatures_rejected") == 1, 30, "the unsigned version refused")
     fake.send(sign(a3, stranger), chunks(v3, SIZE))
-    wait_until(lambda: count("checkpoint_signatures_rejected") == 2, 30, "the strangers' versions refused")
+    wait_until(lambda: count("checkpoint_signatures_rejected") == 2, 30, "the stranger's version refused")
     replay_refused(p1, "live")
     floor = probe.node_diag("policy")["checkpoint_rollback_floor"]
     assert floor == str(s2.seq), floor
