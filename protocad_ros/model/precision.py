@@ -86,6 +86,10 @@ class PrecisionChoice:
                else "as --precision asked" if self.explicit else "as the config asks")
         return f"precision {self.precision} ({how}; {where})"
 
+    def ran_in(self) -> str:
+        """For config.yaml, beside the request: 'ran in float32 here (cpu, CPU capability AVX2)'."""
+        return f"ran in {self.precision} here ({self.device}, CPU capability {self.capability})"
+
     def to_dict(self) -> dict[str, Any]:
         """For run.json: what ran, what was asked, and the machine's capability."""
         return asdict(self)

@@ -496,10 +496,10 @@ def _train(s: TrainSettings, model: settings.ModelChoice, config_args: list[str]
         trainer = Trainer(cfg, run_dir, ds, device=device, callbacks=callbacks, log_every=s.log_every,
                           dist_ctx=ctx)
         target = s.updates or 1000
-        if ctx.is_main:
-            cfg.save(run_dir / "config.yaml")
     precision = trainer.agent.use_precision(model.precision)   # every rank, on its own device
     say(f"[train] {precision.describe()}", flush=True)
+    if ctx.is_main:
+        trainer.agent.cfg.save(run_dir / "config.yaml", ran_in=precision.ran_in())
     if trainer.dataset.action_dim != trainer.agent.action_dim:
         raise ValueError(f"the logs have {trainer.dataset.action_dim}-d actions but the agent "
                          f"{trainer.agent.action_dim}-d")

@@ -582,7 +582,10 @@ class OnlineRun:
         if freeze is not None:
             self.say(f"[online] prototypes frozen for the first {freeze:,} updates", flush=True)
         # Resolved here, on this rank's device: a config from another machine asks, never forces.
-        self.run_json["precision"] = self.trainer.agent.use_precision(self.model.precision).to_dict()
+        precision = self.trainer.agent.use_precision(self.model.precision)
+        self.run_json["precision"] = precision.to_dict()
+        if self.main_rank:
+            self.cfg.save(self.run_dir / "config.yaml", ran_in=precision.ran_in())
         if s.resume:
             # The data is the truth: every bag on disk counts, also those written after the last
             # checkpoint (their updates are made up by the schedule, which counts from episodes).

@@ -59,10 +59,14 @@ def test_init_policy_and_resume_of_a_bf16_config_train_in_float32_without_bf16(n
     recorded = json.loads((run / "run.json").read_text())["precision"]
     assert (recorded["precision"], recorded["requested"], recorded["explicit"], recorded["emulated"]) == (
         "float32", "bfloat16", False, True)
-    # config.yaml keeps the request (a bf16 machine resuming this run trains in bf16)
+    # config.yaml keeps the request (a bf16 machine resuming this run trains in bf16) and says,
+    # on the same line, what it ran in here; so does the checkpoint's
     assert yaml.safe_load((run / "config.yaml").read_text())["train"]["precision"] == "bfloat16"
+    ran_here = "  precision: bfloat16  # ran in float32 here (cpu, CPU capability "
+    assert ran_here in (run / "config.yaml").read_text()
     loop.trainer.save()
     loop.trainer.close()
+    assert ran_here in (run / "checkpoints" / "config.yaml").read_text()
 
     # --resume of that run (its config and checkpoint say bfloat16): float32 again
     resumed = open_loop(LoopSettings(run_dir=str(run), resume=True))
