@@ -30,6 +30,7 @@ from sensor_msgs.msg import Image, JointState
 from protocad_ros.atomic import file_signature, remove_stale_temporaries
 from protocad_ros.node.checkpoint_serving import CheckpointServing
 from protocad_ros.node.checkpoint_receiver import CheckpointReceiver
+from protocad_ros.node.observation_pairing import ObservationPairing
 from protocad_ros.live_view import LiveView
 from protocad_ros.node.policy_params import COUNTERS, PARAMS
 from protocad_ros.node.refusal_log import RefusalLog
@@ -43,8 +44,6 @@ from sim_bridge.nodekit.rosnode import (ConfigError, KeyThrottle, Percentiles, d
 NODE_NAME = "policy"
 #: Seconds a closing policy gives its readers to acknowledge the last actions (see close()).
 ACTION_FLUSH_TIMEOUT_S = 30.0
-#: Observations whose image and step_info have not both arrived yet (oldest dropped beyond).
-MAX_UNPAIRED = 64
 __all__ = ["ActEvent", "COUNTERS", "PARAMS", "PolicyNode", "main"]
 
 
@@ -61,7 +60,7 @@ class ActEvent:
     checkpoint_updates: int    # -1 for a random agent
 
 
-class PolicyNode(CheckpointServing, ManagedNode):
+class PolicyNode(ObservationPairing, CheckpointServing, ManagedNode):
     """See the module docstring; parameters in PARAMS, counters in COUNTERS. A managed node
     (sim_bridge/nodekit/lifecycle.py): configure loads the checkpoint (or builds the random agent) and
     starts its file watcher, activate serves, deactivate stops answering, cleanup drops the
@@ -289,136 +288,6 @@ class PolicyNode(CheckpointServing, ManagedNode):
                 f"{publishers} publishers on {topic}: a second sim bridge in {self.get_namespace()}, or "
                 "another node publishing there (an impostor?); their observations interleave "
                 "(multiple_publishers on /diagnostics)")
-
-    def _inactive(self) -> bool:
-        """Observations are answered only while active (counted, not kept, otherwise)."""
-        if self.is_active:
-            return False
-        self._count("observations_while_inactive")
-        return True
-
-    def _on_image(self, msg) -> None:
-        if self._inactive():
-            return
-        t = time.monotonic()
-        stamp = topics.stamp_to_ns(msg.header.stamp)
-        self._count("images_received")
-        reason = None
-        if msg.encoding != "rgb8":
-            reason = ("rejected_image_encoding",
-                      f"image encoding {msg.encoding!r}, expected 'rgb8'")
-        elif (int(msg.height), int(msg.width)) != self.image_hw:
-            reason = ("rejected_image_size", f"image is {msg.height}x{msg.width}, expected "
-                      f"{self.image_hw[0]}x{self.image_hw[1]}")
-        else:
-            try:
-                image = topics.read_image(msg, self.image_hw).copy()
-            except ValueError as e:
-                reason = ("rejected_image_data", str(e))
-        if reason is not None:
-            self._count("images_rejected")
-            self._count(reason[0], f"image rejected (stamp {topics.format_stamp(stamp)}): {reason[1]}")
-            return
-        self._arrive(stamp, "image", image, t)
-
-    def _on_info(self, msg) -> None:
-        if self._inactive():
-            return
-        t = time.monotonic()
-        stamp = topics.stamp_to_ns(msg.header.stamp)
-        self._count("step_info_received")
-        try:
-            info = topics.read_step_info(msg)
-        except (ValueError, TypeError, IndexError) as e:
-            return self._count("step_info_rejected", f"step_info rejected (stamp {topics.format_stamp(stamp)}): {e}")
-        self._arrive(stamp, "info", info, t)
-
-    def _on_bridge_info(self, msg) -> None:
-        """The bridge's announcement: refuse, with the reason, a bridge the checkpoint does not fit."""
-        try:
-            info = topics.read_bridge_info(msg)
-        except ValueError as e:
-            return self._count("bridge_info_rejected", f"bridge_info rejected: {e}")
-        self.bridge = info
-        if self.policy is not None:   # else configure checks it
-            self._check_bridge()
-        held, self._held_for_bridge_info = self._held_for_bridge_info, None
-        if held is not None and self.mismatch is None and self.policy is not None and self.is_active:
-            self._answer_paired(*held)
-
-    def _check_bridge(self) -> None:
-        info = self.bridge
-        why = []
-        if info.task != self.task:
-            why.append(f"the checkpoint is for {self.task}, the bridge runs {info.task}")
-        if len(info.action_names) != self.action_dim:
-            why.append(f"the checkpoint acts with {self.action_dim} value(s) {self.action_names}, the "
-                       f"bridge expects {len(info.action_names)} {info.action_names}")
-        if (info.image_size, info.image_size) != tuple(self.image_hw):
-            why.append(f"the checkpoint sees {self.image_hw[0]}x{self.image_hw[1]} images, the bridge "
-                       f"renders {info.image_size}x{info.image_size}")
-        self.mismatch = "; ".join(why) or None
-        if self.mismatch:
-            self.get_logger().error(f"not answering this sim bridge: {self.mismatch}. Start the bridge "
-                                    f"with -p task:={self.task}, or serve a checkpoint trained on {info.task}")
-        else:
-            self.get_logger().info(f"sim bridge runs {info.task} with actions {info.action_names}: matches")
-
-    def _announcing_bridge(self) -> bool:
-        """Whether a bridge that announces itself is in the graph (a graph query, so asked at
-        most once a second: a source without announcements, e.g. a robot driver, pays nothing
-        per observation)."""
-        now = time.monotonic()
-        if now - self._announcer_checked_at >= 1.0:
-            self._announcer_checked_at = now
-            self._announcer_present = self.count_publishers(self.sub_bridge_info.topic_name) > 0
-        return self._announcer_present
-
-    def _arrive(self, stamp: int, kind: str, value: Any, t: float) -> None:
-        entry = self._unpaired.get(stamp)
-        if entry is None:
-            entry = self._unpaired[stamp] = {}
-            while len(self._unpaired) > MAX_UNPAIRED:
-                old, _ = self._unpaired.popitem(last=False)
-                self._count("unpaired_dropped", f"observation {old} never got both image and "
-                            "step_info: dropped")
-        entry[kind] = value
-        if len(entry) < 2:
-            return
-        del self._unpaired[stamp]
-        if self.mismatch is not None:
-            return self._count("mismatched_observations", f"observation {topics.format_stamp(stamp)} not answered: {self.mismatch}")
-        if self.bridge is None and self._announcing_bridge():
-            # A bridge that announces itself is there but its announcement has not arrived yet:
-            # answering now could send it actions of the wrong size. Hold the newest such
-            # observation and answer it when the announcement comes (it usually follows within
-            # milliseconds; a lock-step bridge would otherwise wait its timeout to re-send).
-            self._held_for_bridge_info = (stamp, entry, t)
-            return self._count("awaiting_bridge_info", f"observation {topics.format_stamp(stamp)} held: waiting "
-                               "for the bridge's announcement")
-        self._answer_paired(stamp, entry, t)
-
-    def _answer_paired(self, stamp: int, entry: dict, t: float) -> None:
-        """An observation with both image and step_info, from a bridge that fits: answer it."""
-        if stamp == self._last_stamp and self._last_answer is not None:
-            # The bridge published it again (its lock-step timeout): answer it again, same
-            # action, without filtering it a second time.
-            self._count("duplicate_observations")
-            for pub, msg in zip((self.pub_action, self.pub_features), self._last_answer):
-                pub.publish(msg)
-            return
-        if self._last_stamp is not None and stamp < self._last_stamp:
-            if not entry["info"].is_first:
-                return self._count("stale_observations", f"observation {topics.format_stamp(stamp)} is older than "
-                                   f"the last answered one ({topics.format_stamp(self._last_stamp)}): not answered")
-            # Sim time went back at an episode start: a new bridge run (its clock starts at 0
-            # again), as in the collect-train-reload loop. Lone pieces of the old run could
-            # pair with the new run's equal stamps, so they go.
-            self._count("sim_time_restarts", f"sim time went back to {topics.format_stamp(stamp)} at an episode "
-                        f"start (last answered {topics.format_stamp(self._last_stamp)}): a new sim run")
-            self._unpaired.clear()
-            self._last_stamp = self._last_answer = None
-        self._answer(stamp, entry["image"], entry["info"], t)
 
     def _answer(self, stamp: int, image: np.ndarray, info: topics.StepInfo, t_recv: float) -> None:
         if info.is_first:
