@@ -28,6 +28,7 @@ from sensor_msgs.msg import Image, JointState
 from protocad_ros.atomic import file_signature, remove_stale_temporaries
 from protocad_ros.node.checkpoint_serving import CheckpointServing
 from protocad_ros.node.checkpoint_receiver import CheckpointReceiver
+from protocad_ros.node.diagnostics import PolicyDiagnostics
 from protocad_ros.node.observation_pairing import ObservationPairing
 from protocad_ros.live_view import LiveView
 from protocad_ros.node.action_publishing import ActEvent, ActionPublishing
@@ -38,7 +39,7 @@ from sim_bridge.contract.contexts import task_actuators
 from sim_bridge.nodekit.lifecycle import ManagedNode
 from sim_bridge.nodekit.publisher_watch import PublisherWatch
 from sim_bridge.nodekit.rosnode import (ConfigError, KeyThrottle, Percentiles, declare_all,
-                                flush_publishers, install_parameter_guards, make_status, run_node)
+                                flush_publishers, install_parameter_guards, run_node)
 
 NODE_NAME = "policy"
 #: Seconds a closing policy gives its readers to acknowledge the last actions (see close()).
@@ -46,7 +47,8 @@ ACTION_FLUSH_TIMEOUT_S = 30.0
 __all__ = ["ActEvent", "COUNTERS", "PARAMS", "PolicyNode", "main"]
 
 
-class PolicyNode(ObservationPairing, ActionPublishing, CheckpointServing, ManagedNode):
+class PolicyNode(ObservationPairing, ActionPublishing, CheckpointServing, PolicyDiagnostics,
+                 ManagedNode):
     """See the module docstring; parameters in PARAMS, counters in COUNTERS. A managed node
     (sim_bridge/nodekit/lifecycle.py): configure loads the checkpoint (or builds the random agent) and
     starts its file watcher, activate serves, deactivate stops answering, cleanup drops the
@@ -269,64 +271,6 @@ class PolicyNode(ObservationPairing, ActionPublishing, CheckpointServing, Manage
                 f"{publishers} publishers on {topic}: a second sim bridge in {self.get_namespace()}, or "
                 "another node publishing there (an impostor?); their observations interleave "
                 "(multiple_publishers on /diagnostics)")
-
-    # ------------------------------------------------------------------ diagnostics
-    def _publish_diagnostics(self) -> None:
-        state = self.lifecycle_state
-        with self._lock:
-            c = dict(self.counters)
-            pending = self._pending_policy
-        values: dict[str, Any] = {
-            "agent": self.agent_kind, "checkpoint": self.params["checkpoint"],
-            "checkpoint_updates": self.checkpoint_updates,
-            "pending_checkpoint_updates": (pending[1].get("updates", -1) if pending else -1),
-            "checkpoint_sha256": self.ckpt_sha or "",
-            "checkpoint_announced": self.receiver.last_announced if self.receiver is not None else "",
-            "checkpoint_transfer": self.receiver.progress() if self.receiver is not None else "",
-            "checkpoint_buffered_bytes": self.receiver.buffered_bytes() if self.receiver is not None else 0,
-            "checkpoint_seq": self.ckpt_seq,
-            "checkpoint_trusted_keys": ",".join(sorted(self.trusted)) if self.trusted else "",
-            "checkpoint_rollback_floor": self.rollback.seq if self.rollback is not None else -1,
-            "unsigned_checkpoints_allowed": self.unsigned_topic,
-            # The trainer's scalar counters only (env steps, episodes, ...): its sampler state
-            # and bag list would be kilobytes on every diagnostics message.
-            **{f"checkpoint/{k}": v for k, v in self.ckpt_counters.items()
-               if k != "updates" and isinstance(v, (int, float)) and not isinstance(v, bool)},
-            "task": self.task, "device": self.params["device"], "mode": self.params["mode"],
-            "latency_ms_p50": self.latency.percentile(50) * 1e3,
-            "latency_ms_p99": self.latency.percentile(99) * 1e3,
-            "act_ms_p50": self.act_time.percentile(50) * 1e3,
-            "act_ms_p99": self.act_time.percentile(99) * 1e3,
-            "episode": self._episode, "step": self._step, "callback_errors": self.callback_errors,
-            "lifecycle_state": state, "transition_errors": self.transition_errors,
-            **c,
-        }
-        bad = (c["images_rejected"] or c["step_info_rejected"] or c["checkpoint_load_errors"]
-               or c["checkpoint_transfers_rejected"]
-               or c["stale_observations"] or c["unpaired_dropped"] or c["observations_lost"]
-               or self.callback_errors)
-        unknown = self.unknown_parameters
-        values["bridge"] = (f"{self.bridge.task} {self.bridge.action_names}" if self.bridge else "")
-        several = self.publisher_watch.summary()
-        values["multiple_publishers"] = several
-        values["multiple_publishers_detected"] = self.publisher_watch.detected
-        unsigned = self.unsigned_topic
-        level = ("ERROR" if self.mismatch else
-                 "WARN" if bad or unknown or several or unsigned or self.agent_kind == "random" else "OK")
-        message = (f"not answering: {self.mismatch}" if self.mismatch else
-                   f"several publishers on {several} (a second bridge? an impostor?)" if several else
-                   f"unknown parameters ignored: {unknown}" if unknown else
-                   f"{state}: not answering" if state != "active" else
-                   "accepting UNSIGNED checkpoints over checkpoint_topic (allow_unsigned)" if unsigned else
-                   "random agent" if self.agent_kind == "random" else
-                   "rejected inputs or checkpoint errors" if bad else "serving")
-        arr = DiagnosticArray()
-        arr.header.stamp = self.get_clock().now().to_msg()
-        arr.status = [make_status(self._diag_name, self.task, values, level, message)]
-        try:
-            self.pub_diag.publish(arr)
-        except Exception:  # noqa: BLE001 - context shutting down
-            pass
 
     def close(self) -> None:
         """Last diagnostics (what was served), then the shutdown transition (the watcher
