@@ -1,6 +1,6 @@
 """`CheckpointServing`: how the policy node loads the model it serves and replaces it while it
-runs (a mixin of protocad_ros.node.policy_node.PolicyNode, kept apart so the node's file reads as
-the ROS side: topics, pairing, answers).
+runs (a part of protocad_ros.node.policy_node.PolicyNode, as its observation pairing, action
+publishing and diagnostics are: each in a file of its own).
 
 The node configures with one checkpoint (or a random agent); afterwards one background thread
 (`_watch`) is the only place checkpoints are loaded: the file when it changed, polled every

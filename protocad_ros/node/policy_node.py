@@ -52,7 +52,11 @@ class PolicyNode(ObservationPairing, ActionPublishing, CheckpointServing, Policy
     """See the module docstring; parameters in PARAMS, counters in COUNTERS. A managed node
     (sim_bridge/nodekit/lifecycle.py): configure loads the checkpoint (or builds the random agent) and
     starts its file watcher, activate serves, deactivate stops answering, cleanup drops the
-    model."""
+    model. This class wires the node's ROS interfaces, state and lifecycle; its parts, one file
+    each: ObservationPairing (image, step_info and bridge_info in, paired by stamp),
+    ActionPublishing (the model step, action and context_features out, act callbacks),
+    CheckpointServing (loading, watching and swapping checkpoints) and PolicyDiagnostics
+    (/diagnostics)."""
 
     def __init__(self, *, namespace: str = topics.DEFAULT_NAMESPACE, **kw: Any):
         super().__init__(NODE_NAME, namespace=namespace, **kw)
