@@ -422,7 +422,7 @@ class RosStack:
                        wait_topics: Iterable[str] = (), ready_timeout: float = 60.0,
                        log_name: str | None = None, namespaces: Sequence[str] | None = None) -> NodeProc:
         """One recorder for the robots in `namespaces` (default: this stack's namespace)."""
-        from trainer.nodes.recorder import default_topics
+        from trainer.nodes.recorder_topics import default_topics
 
         topics = [t if t != T.CLOCK else T.clock_topic(ns)
                   for ns in (namespaces or [self.namespace]) for t in default_topics(ns)]

@@ -15,10 +15,7 @@ Usage: python -m trainer.nodes.recorder -o BAG [--topics T ...] [--namespace /pr
 from __future__ import annotations
 
 import argparse
-import functools
-import importlib
 import math
-import re
 import sys
 import threading
 import time
@@ -32,23 +29,14 @@ from sim_bridge.nodekit.rosnode import ConfigError, KeyThrottle, run_node
 
 from sim_bridge.contract import topics as T
 from trainer.bag import mcap_io
-from trainer.data.records import MULTIPLE_PUBLISHERS_KEY
 from trainer.nodes.record_budget import (DEFAULT_FLOOD_FACTOR, DEFAULT_MIN_FREE_DISK, BudgetLimits, DiskFloor,
                                          RecordBudget, parse_topic_values)
 from trainer.nodes.recorder_guard import EXIT_BUDGET, RecorderGuard, add_budget_options  # noqa: F401 - EXIT_BUDGET: beside EXIT_WRITE_FAILED
+from trainer.nodes.recorder_topics import DEFAULT_QUEUE_DEPTH, TopicSubscriber, history_name
 
-#: Relative contract topics recorded by default (resolved in --namespace), plus the bridge's
-#: clock there (topics.clock_topic: /clock in the default namespace).
-DEFAULT_RELATIVE_TOPICS = (T.IMAGE, T.STEP_INFO, T.CONTEXT, T.ACTION, T.CONTEXT_FEATURES, T.BRIDGE_INFO)
-#: Topics that have one publisher per node by design: never marked as having several.
-MANY_PUBLISHERS_BY_DESIGN = frozenset({T.DIAGNOSTICS, "/rosout", "/parameter_events"})
 #: Longest drain at close (s): a KEEP_ALL backlog of 5000 samples on each of five topics takes a
 #: few seconds to write; the processes that stop the recorder give it 20 s.
 DRAIN_LIMIT_S = 10.0
-#: 0 = KEEP_ALL subscriptions (lossless against KEEP_ALL writers); N > 0 = KEEP_LAST(N).
-DEFAULT_QUEUE_DEPTH = 0
-#: rclpy wants a depth even for KEEP_ALL; Fast DDS ignores it there.
-KEEP_ALL_DEPTH = 1000
 #: The DDS lease the recorder's participant announces (s): how long its writers keep it matched,
 #: and keep what it has not acknowledged, while it does not run (sim_bridge/nodekit/
 #: fastdds_profile.py). Fast DDS's 20 s default lost the whole backlog of a longer stall.
@@ -83,90 +71,13 @@ class StallWatch:
         self._thread.join(timeout=5)
 
 
-def default_topics(namespace: str = T.DEFAULT_NAMESPACE) -> list[str]:
-    return [T.topic_name(namespace, t) for t in DEFAULT_RELATIVE_TOPICS] + [T.clock_topic(namespace)]
-
-
 def default_output() -> str:
     """rosbag2's default bag name: rosbag2_YYYY_MM_DD-HH_MM_SS."""
     return datetime.now().strftime("rosbag2_%Y_%m_%d-%H_%M_%S")
 
 
-def qos_profile_to_dict(qos: Any) -> dict[str, Any]:
-    """An rclpy QoSProfile as rosbag2 (metadata v9) serializes it."""
-    def name(policy: Any) -> str:
-        return policy.name.lower()   # keep_last, reliable, transient_local, automatic, unknown...
 
-    return mcap_io.qos_profile(
-        history=name(qos.history), depth=int(qos.depth), reliability=name(qos.reliability),
-        durability=name(qos.durability), deadline_ns=qos.deadline.nanoseconds,
-        lifespan_ns=qos.lifespan.nanoseconds, liveliness=name(qos.liveliness),
-        liveliness_lease_duration_ns=qos.liveliness_lease_duration.nanoseconds,
-        avoid_ros_namespace_conventions=bool(qos.avoid_ros_namespace_conventions))
-
-
-def apply_qos_override(qos: Any, override: Mapping[str, Any] | None):
-    """A --qos-profile-overrides-path entry ({reliability, durability, history, depth}) on top of
-    the adapted profile (ValueError naming a bad value)."""
-    if not override:
-        return qos
-    from rclpy.qos import DurabilityPolicy, HistoryPolicy, ReliabilityPolicy
-
-    for key, enum in (("reliability", ReliabilityPolicy), ("durability", DurabilityPolicy),
-                      ("history", HistoryPolicy)):
-        if key in override:
-            try:
-                setattr(qos, key, enum[str(override[key]).upper()])
-            except KeyError:
-                raise ValueError(f"QoS override {key}={override[key]!r}; valid: "
-                                 f"{[e.name.lower() for e in enum]}") from None
-    if "depth" in override:
-        qos.depth = int(override["depth"])
-    return qos
-
-
-def subscription_qos(offered: Sequence[Any], depth: int):
-    """The QoS the recorder requests, adapted to the publishers' offers like rosbag2
-    (Rosbag2QoS::adapt_request_to_offers), with the history the contract needs:
-
-    * RELIABLE when every publisher is reliable (the protocad contract: a reliable reader never
-      loses a sample the writer still holds), else BEST_EFFORT (a reliable reader would not
-      match a best-effort writer at all);
-    * TRANSIENT_LOCAL when every publisher offers it (latched data is recorded), else VOLATILE;
-    * KEEP_ALL when depth <= 0 (the default): the reader never drops a sample it accepted and
-      refuses (does not acknowledge) what it has no room for, so a KEEP_ALL writer (the lock-step
-      bridge, every action publisher) keeps it and sends it again: a backlog of any size, e.g.
-      after a stall, costs the writer time and memory, never a sample. A KEEP_LAST writer (a
-      real-time bridge) is not held back: it overwrites, and the gap is counted. depth > 0:
-      KEEP_LAST(depth), which drops the oldest samples of a backlog deeper than that.
-    """
-    from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
-    reliable = bool(offered) and all(q.reliability == ReliabilityPolicy.RELIABLE for q in offered)
-    latched = bool(offered) and all(q.durability == DurabilityPolicy.TRANSIENT_LOCAL
-                                    for q in offered)
-    keep_all = int(depth) <= 0
-    return QoSProfile(
-        history=HistoryPolicy.KEEP_ALL if keep_all else HistoryPolicy.KEEP_LAST,
-        depth=KEEP_ALL_DEPTH if keep_all else int(depth),
-        reliability=ReliabilityPolicy.RELIABLE if reliable else ReliabilityPolicy.BEST_EFFORT,
-        durability=DurabilityPolicy.TRANSIENT_LOCAL if latched else DurabilityPolicy.VOLATILE)
-
-
-def history_name(depth: int) -> str:
-    """The history a `queue_depth` asks for, for logs: KEEP_ALL or KEEP_LAST(N)."""
-    return "KEEP_ALL" if int(depth) <= 0 else f"KEEP_LAST({int(depth)})"
-
-
-def _import_message(msgtype: str) -> Any:
-    """The rclpy class of a type a remote participant advertises: checked before anything is
-    imported (trainer.bag.rosmsg.interface_module: identifiers, an interface kind, an ament package)."""
-    from trainer.bag.rosmsg import interface_module
-
-    module, name = interface_module(msgtype)
-    return getattr(importlib.import_module(module), name)
-
-
-class RecorderNode(RecorderGuard, ProtocadNode):
+class RecorderNode(TopicSubscriber, RecorderGuard, ProtocadNode):
     """Records topics into a BagWriter. Every constructor argument is also a ROS parameter of
     the same name (a --ros-args -p override wins): output, topics, namespace, all_topics,
     regex (include), exclude_regex, exclude_topics, include_hidden_topics, no_discovery,
@@ -231,17 +142,7 @@ class RecorderNode(RecorderGuard, ProtocadNode):
             topic_bytes={self.resolve_topic_name(t): v
                          for t, v in parse_topic_values(p["byte_budgets"], "byte_budgets").items()}))
         self.stop_reason: str | None = None
-        # As ros2 bag record: -a overrides -e; topics and -e add up; excludes apply on top.
-        explicit = [self.resolve_topic_name(t) for t in p["topics"]]
-        self.wanted: list[str] = ([] if p["all_topics"] else explicit
-                                  or ([] if p["regex"] else default_topics(p["namespace"])))
-        try:
-            self._include = re.compile(p["regex"]) if p["regex"] and not p["all_topics"] else None
-            self._exclude = re.compile(p["exclude_regex"]) if p["exclude_regex"] else None
-        except re.error as exc:
-            raise ValueError(f"bad regular expression: {exc}") from None
-        self._excluded = {self.resolve_topic_name(t) for t in p["exclude_topics"]}
-        self._qos_overrides = {self.resolve_topic_name(t): dict(v) for t, v in (qos_overrides or {}).items()}
+        self._select_topics(p, qos_overrides)   # before the bag: a bad regex leaves no bag behind
         self.writer = mcap_io.BagWriter(
             p["output"], compression=p["compression"], chunk_size=p["chunk_size"],
             max_bagfile_size=p["max_bagfile_size"],
@@ -268,7 +169,6 @@ class RecorderNode(RecorderGuard, ProtocadNode):
         self.missed_before_subscribing: dict[str, int] = {}
         self.untracked: set[str] = set()
         self._last_seq: dict[str, int] = {}
-        self._subs: dict[str, Any] = {}
         # Stalls longer than the participant's lease (watch_stalls): seconds each.
         self.stalls: list[float] = []
         self.stall_lease_s = 0.0
@@ -286,78 +186,15 @@ class RecorderNode(RecorderGuard, ProtocadNode):
             self._flush_timer = self.create_timer(p["flush_interval"], self._flush_if_due)
         if p["status_interval"] > 0:
             self._status_timer = self.create_timer(p["status_interval"], self._status)
-        what = ("all topics" if p["all_topics"] else ", ".join(
-            self.wanted + ([f"topics matching {p['regex']!r}"] if self._include else [])))
         self.get_logger().info(
-            f"recording {what} to {self.writer.bag_dir} (compression {p['compression']}, "
+            f"recording {self._selection_text()} to {self.writer.bag_dir} (compression {p['compression']}, "
             f"chunk {p['chunk_size']} B, split size {p['max_bagfile_size']} B / duration "
             f"{p['max_bagfile_duration']} s, {history_name(p['queue_depth'])})")
-
-    # -- discovery -----------------------------------------------------------------------------
-    def _want(self, topic: str) -> bool:
-        if topic in self._excluded or (self._exclude is not None and self._exclude.search(topic)):
-            return False
-        if topic in self.wanted:
-            return True
-        if self.params["all_topics"] or (self._include is not None and self._include.search(topic)):
-            from rclpy.topic_or_service_is_hidden import topic_or_service_is_hidden
-            return self.params["include_hidden_topics"] or not topic_or_service_is_hidden(topic)
-        return False
 
     def _warn_once(self, key: str, text: str) -> None:
         if key not in self._warned:
             self._warned.add(key)
             self.get_logger().warning(text)
-
-    def _discover(self) -> None:
-        if self.writer.closed:
-            return
-        for topic, types in self.get_topic_names_and_types():
-            if topic in self._subs or not self._want(topic):
-                continue
-            if len(types) != 1:
-                self._warn_once(f"types:{topic}", f"topic {topic} has several types {types}; "
-                                "not recorded (as rosbag2)")
-                continue
-            pubs = self.get_publishers_info_by_topic(topic)
-            if not pubs:
-                continue  # wait for a publisher: its offered QoS decides ours
-            try:
-                self._subscribe(topic, types[0], pubs)
-            except Exception as exc:  # noqa: BLE001 - unknown type, import error...
-                self._warn_once(f"sub:{topic}", f"cannot record {topic} [{types[0]}]: {exc}")
-
-    def _subscribe(self, topic: str, msgtype: str, pubs: Sequence[Any]) -> None:
-        msg_class = _import_message(msgtype)
-        offered = [e.qos_profile for e in pubs]
-        hashes = {str(e.topic_type_hash) for e in pubs} - {"INVALID"}
-        type_hash = sorted(hashes)[0] if hashes else None
-        self.writer.add_topic(topic, msgtype, [qos_profile_to_dict(q) for q in offered],
-                              type_hash=type_hash)
-        qos = apply_qos_override(subscription_qos(offered, self.params["queue_depth"]),
-                                 self._qos_overrides.get(topic))
-        self._subs[topic] = self.create_subscription(
-            msg_class, topic, functools.partial(self._on_message, topic), qos, raw=True,
-            event_callbacks=None if topic in MANY_PUBLISHERS_BY_DESIGN else self.publisher_watch.callbacks(topic))
-        from sim_bridge.contract.qos import describe
-
-        self.get_logger().info(f"subscribed to {topic} [{msgtype}] ({describe(qos)})")
-
-    def _on_new_publisher(self, topic: str, publishers: int, first_time: bool) -> None:
-        with self._lock:
-            self.writer.custom_data = {**(self.writer.custom_data or {}), **self.publishers_summary()}
-        if first_time:
-            self.get_logger().warning(
-                f"{topic}: {publishers} publishers: their messages interleave in the bag (a second "
-                f"bridge, an impostor?); marked in its metadata ({MULTIPLE_PUBLISHERS_KEY}), and "
-                "protocad-train refuses it unless given --accept-multiple-publishers")
-
-    def publishers_summary(self) -> dict[str, str]:
-        """The topics that had several publishers, as metadata.yaml custom_data."""
-        import json
-
-        ever = self.publisher_watch.ever
-        return {MULTIPLE_PUBLISHERS_KEY: json.dumps(ever, sort_keys=True)} if ever else {}
 
     # -- recording -----------------------------------------------------------------------------
     def _on_message(self, topic: str, data: bytes, info: Any) -> None:

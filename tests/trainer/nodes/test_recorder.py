@@ -398,7 +398,7 @@ class ImportSpy:
 def test_graph_type_names_are_checked_before_anything_is_imported(type_name):
     """Any participant can advertise any type string on a recorded topic (or one `ros2 topic echo`
     reads): only pkg/msg/Type names of ament packages, identifiers without dots, are imported."""
-    from trainer.nodes.recorder import _import_message
+    from trainer.nodes.recorder_topics import _import_message
     from trainer.ros2cli.msgyaml import interface_class
 
     with ImportSpy() as spy:
@@ -411,7 +411,7 @@ def test_graph_type_names_are_checked_before_anything_is_imported(type_name):
 
 
 def test_installed_message_types_still_import():
-    from trainer.nodes.recorder import _import_message
+    from trainer.nodes.recorder_topics import _import_message
     from trainer.ros2cli.msgyaml import interface_class
 
     from sensor_msgs.msg import Image
