@@ -143,7 +143,6 @@ OVER_CAP: dict[str, int] = {
     'module protocad_ros/model/config.py': 772,
     'module trainer/launch/loop.py': 695,
     'module trainer/learn/train.py': 558,
-    'module trainer/nodes/recorder.py': 742,
     'module trainer/research/compare.py': 510,
     'module trainer/research/online.py': 775,
     'module trainer/runs.py': 610,

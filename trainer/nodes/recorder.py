@@ -20,7 +20,7 @@ import sys
 import threading
 import time
 from datetime import datetime
-from typing import Any, Callable, Mapping, Sequence
+from typing import Any, Mapping, Sequence
 
 from sim_bridge.nodekit.fastdds_profile import announced_lease, participant_lease
 from sim_bridge.nodekit.publisher_watch import PublisherWatch
@@ -32,43 +32,12 @@ from trainer.bag import mcap_io
 from trainer.nodes.record_budget import (DEFAULT_FLOOD_FACTOR, DEFAULT_MIN_FREE_DISK, BudgetLimits, DiskFloor,
                                          RecordBudget, parse_topic_values)
 from trainer.nodes.recorder_guard import EXIT_BUDGET, RecorderGuard, add_budget_options  # noqa: F401 - EXIT_BUDGET: beside EXIT_WRITE_FAILED
+from trainer.nodes.recorder_loss import DEFAULT_LEASE_S, LossAccounting
 from trainer.nodes.recorder_topics import DEFAULT_QUEUE_DEPTH, TopicSubscriber, history_name
 
 #: Longest drain at close (s): a KEEP_ALL backlog of 5000 samples on each of five topics takes a
 #: few seconds to write; the processes that stop the recorder give it 20 s.
 DRAIN_LIMIT_S = 10.0
-#: The DDS lease the recorder's participant announces (s): how long its writers keep it matched,
-#: and keep what it has not acknowledged, while it does not run (sim_bridge/nodekit/
-#: fastdds_profile.py). Fast DDS's 20 s default lost the whole backlog of a longer stall.
-DEFAULT_LEASE_S = 120.0
-
-
-class StallWatch:
-    """Notices when this process did not run for longer than its DDS lease (SIGSTOP, Ctrl-Z, a
-    debugger, a swap storm, a machine too loaded to schedule it): its writers may then have
-    dropped the recorder with every sample it had not acknowledged, a loss that shows as a
-    sequence gap only if a later sample reaches it. A thread, not a node timer: a busy
-    executor is no stall (DDS's own threads keep announcing the participant); a process that
-    does not run at all stops this thread too."""
-
-    def __init__(self, lease_s: float, on_stall: Callable[[float], None], interval_s: float = 0.5):
-        self.lease_s = lease_s
-        self._on_stall, self._interval = on_stall, interval_s
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._watch, name="stall-watch", daemon=True)
-        self._thread.start()
-
-    def _watch(self) -> None:
-        last = time.monotonic()   # CLOCK_MONOTONIC runs on while the process is stopped
-        while not self._stop.wait(self._interval):
-            now = time.monotonic()
-            if now - last > self.lease_s:
-                self._on_stall(now - last)
-            last = now
-
-    def stop(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=5)
 
 
 def default_output() -> str:
@@ -76,8 +45,7 @@ def default_output() -> str:
     return datetime.now().strftime("rosbag2_%Y_%m_%d-%H_%M_%S")
 
 
-
-class RecorderNode(TopicSubscriber, RecorderGuard, ProtocadNode):
+class RecorderNode(TopicSubscriber, LossAccounting, RecorderGuard, ProtocadNode):
     """Records topics into a BagWriter. Every constructor argument is also a ROS parameter of
     the same name (a --ros-args -p override wins): output, topics, namespace, all_topics,
     regex (include), exclude_regex, exclude_topics, include_hidden_topics, no_discovery,
@@ -160,19 +128,7 @@ class RecorderNode(TopicSubscriber, RecorderGuard, ProtocadNode):
         self.errors = 0
         self.done = threading.Event()    # set when recording cannot go on (write failure)
         self.exit_code = 0
-        # Loss accounting from each writer's publication sequence numbers (1, 2, 3, ... per
-        # publisher): a jump is messages the middleware dropped before we took them (a stalled
-        # recorder, a KEEP_LAST writer overwriting what it held); a first number above 1 is what
-        # was published before we subscribed. Exact for a topic with one publisher; a topic with
-        # several is not tracked (their numbers interleave), and says so.
-        self.lost: dict[str, int] = {}
-        self.missed_before_subscribing: dict[str, int] = {}
-        self.untracked: set[str] = set()
-        self._last_seq: dict[str, int] = {}
-        # Stalls longer than the participant's lease (watch_stalls): seconds each.
-        self.stalls: list[float] = []
-        self.stall_lease_s = 0.0
-        self.stall_watch: StallWatch | None = None
+        self._start_loss_accounting()
         # A recorded topic with several writers mixes their samples in the bag (an impostor, a
         # second bridge): marked in the bag's metadata as soon as it is seen.
         self.publisher_watch = PublisherWatch(self._on_new_publisher)
@@ -226,57 +182,6 @@ class RecorderNode(TopicSubscriber, RecorderGuard, ProtocadNode):
                 self.errors += 1
                 self._warn_once(f"write:{type(exc).__name__}", f"write to bag failed: {exc}")
                 self._check_failure()
-
-    def _account(self, topic: str, seq: int) -> None:
-        if seq <= 0 or topic in self.untracked:
-            return
-        last = self._last_seq.get(topic)
-        if last is None or seq <= last:
-            if last is not None or self.count_publishers(topic) > 1:
-                # several writers (or one restarted): their numbers say nothing about loss
-                self.untracked.add(topic)
-                self._warn_once(f"untracked:{topic}", f"{topic} has several publishers: its losses "
-                                "cannot be counted from sequence numbers")
-                return
-            if seq > 1:
-                self.missed_before_subscribing[topic] = seq - 1
-                self.get_logger().warning(f"{topic}: {seq - 1} message(s) were published before the "
-                                          "recorder subscribed (start the recorder first)")
-        elif seq > last + 1:
-            n = seq - last - 1
-            self.lost[topic] = self.lost.get(topic, 0) + n
-            self._throttle.warning(f"lost:{topic}", f"{topic}: {n} message(s) lost before the recorder took "
-                                   f"them (sequence {last} -> {seq}; {self.lost[topic]} on this topic so far)")
-        self._last_seq[topic] = seq
-
-    def watch_stalls(self, lease_s: float) -> None:
-        """Report every stall of this process longer than `lease_s`, its participant's lease."""
-        self.stall_lease_s = lease_s   # before the thread starts: it may report at once
-        self.stall_watch = StallWatch(lease_s, self._on_stall)
-
-    def _on_stall(self, seconds: float) -> None:
-        with self._lock:
-            self.stalls.append(round(seconds, 1))
-        self.get_logger().warning(
-            f"the recorder did not run for {seconds:.1f} s, longer than its DDS lease "
-            f"({self.stall_lease_s:g} s): writers may have dropped it with what it had not "
-            "taken; that loss is counted only where a later sample shows the gap")
-
-    def loss_summary(self) -> dict[str, str]:
-        """The loss as metadata.yaml custom_data (rosbag2 keeps str -> str)."""
-        import json
-
-        out = {}
-        if self.stalls:
-            out["protocad_stalls_past_lease"] = json.dumps(
-                {"lease_s": self.stall_lease_s, "stalls_s": self.stalls})
-        if self.lost:
-            out["protocad_lost_messages"] = json.dumps(self.lost, sort_keys=True)
-        if self.missed_before_subscribing:
-            out["protocad_missed_before_subscribing"] = json.dumps(self.missed_before_subscribing, sort_keys=True)
-        if self.untracked:
-            out["protocad_loss_untracked_topics"] = json.dumps(sorted(self.untracked))
-        return out
 
     def _flush_if_due(self) -> None:
         with self._lock:
@@ -339,18 +244,7 @@ class RecorderNode(TopicSubscriber, RecorderGuard, ProtocadNode):
         lines += [f"  {t}: {n}" for t, n in counts.items()]
         if self.errors:
             lines.append(f"  write errors: {self.errors}")
-        if self.lost:
-            lines.append(f"  LOST before the recorder took them (sequence gaps): {sum(self.lost.values())} "
-                         f"({', '.join(f'{t}: {n}' for t, n in sorted(self.lost.items()))})")
-        if self.missed_before_subscribing:
-            lines.append("  published before the recorder subscribed: " + ", ".join(
-                f"{t}: {n}" for t, n in sorted(self.missed_before_subscribing.items())))
-        if self.untracked:
-            lines.append(f"  loss not tracked (several publishers): {', '.join(sorted(self.untracked))}")
-        if self.stalls:
-            lines.append(f"  STALLED past the DDS lease ({self.stall_lease_s:g} s): "
-                         f"{', '.join(f'{x:g} s' for x in self.stalls)}; samples sent meanwhile may be "
-                         "lost, counted above only where a later sample showed the gap")
+        lines += self._loss_lines()
         if self.budget.dropped:
             lines.append("  DROPPED by the budget (rate / topic bytes / bag bytes): " + ", ".join(
                 f"{t}: {sum(r.values())} ({', '.join(f'{k} {n}' for k, n in sorted(r.items()))})"

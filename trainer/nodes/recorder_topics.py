@@ -185,4 +185,3 @@ class TopicSubscriber:
         """The topics that had several publishers, as metadata.yaml custom_data."""
         ever = self.publisher_watch.ever
         return {MULTIPLE_PUBLISHERS_KEY: json.dumps(ever, sort_keys=True)} if ever else {}
-
