@@ -18,8 +18,6 @@ import argparse
 import math
 import sys
 import threading
-import time
-from datetime import datetime
 from typing import Any, Mapping, Sequence
 
 from sim_bridge.nodekit.fastdds_profile import announced_lease, participant_lease
@@ -34,18 +32,10 @@ from trainer.nodes.record_budget import (DEFAULT_FLOOD_FACTOR, DEFAULT_MIN_FREE_
 from trainer.nodes.recorder_guard import EXIT_BUDGET, RecorderGuard, add_budget_options  # noqa: F401 - EXIT_BUDGET: beside EXIT_WRITE_FAILED
 from trainer.nodes.recorder_loss import DEFAULT_LEASE_S, LossAccounting
 from trainer.nodes.recorder_topics import DEFAULT_QUEUE_DEPTH, TopicSubscriber, history_name
-
-#: Longest drain at close (s): a KEEP_ALL backlog of 5000 samples on each of five topics takes a
-#: few seconds to write; the processes that stop the recorder give it 20 s.
-DRAIN_LIMIT_S = 10.0
+from trainer.nodes.recorder_writing import DRAIN_LIMIT_S, EXIT_WRITE_FAILED, BagWriting, default_output  # noqa: F401 - EXIT_WRITE_FAILED: imported from here
 
 
-def default_output() -> str:
-    """rosbag2's default bag name: rosbag2_YYYY_MM_DD-HH_MM_SS."""
-    return datetime.now().strftime("rosbag2_%Y_%m_%d-%H_%M_%S")
-
-
-class RecorderNode(TopicSubscriber, LossAccounting, RecorderGuard, ProtocadNode):
+class RecorderNode(TopicSubscriber, LossAccounting, BagWriting, RecorderGuard, ProtocadNode):
     """Records topics into a BagWriter. Every constructor argument is also a ROS parameter of
     the same name (a --ros-args -p override wins): output, topics, namespace, all_topics,
     regex (include), exclude_regex, exclude_topics, include_hidden_topics, no_discovery,
@@ -111,11 +101,7 @@ class RecorderNode(TopicSubscriber, LossAccounting, RecorderGuard, ProtocadNode)
                          for t, v in parse_topic_values(p["byte_budgets"], "byte_budgets").items()}))
         self.stop_reason: str | None = None
         self._select_topics(p, qos_overrides)   # before the bag: a bad regex leaves no bag behind
-        self.writer = mcap_io.BagWriter(
-            p["output"], compression=p["compression"], chunk_size=p["chunk_size"],
-            max_bagfile_size=p["max_bagfile_size"],
-            max_bagfile_duration_s=p["max_bagfile_duration"],
-            flush_interval_s=p["flush_interval"], custom_data=custom_data)
+        self._open_bag(p, custom_data)
         self.disk_floor = DiskFloor(self.writer.bag_dir, p["min_free_disk"])
         # Where a flood is reported; made now, so readers have matched it when one comes.
         from diagnostic_msgs.msg import DiagnosticArray
@@ -123,11 +109,6 @@ class RecorderNode(TopicSubscriber, LossAccounting, RecorderGuard, ProtocadNode)
         from sim_bridge.contract.qos import diagnostics_qos
         self._diag_pub = self.create_publisher(DiagnosticArray, T.DIAGNOSTICS, diagnostics_qos())
         self._flood_timer = None
-        self.received = 0
-        self._last_log_time = 0   # ns; the newest log time written (see _on_message)
-        self.errors = 0
-        self.done = threading.Event()    # set when recording cannot go on (write failure)
-        self.exit_code = 0
         self._start_loss_accounting()
         # A recorded topic with several writers mixes their samples in the bag (an impostor, a
         # second bridge): marked in the bag's metadata as soon as it is seen.
@@ -151,125 +132,6 @@ class RecorderNode(TopicSubscriber, LossAccounting, RecorderGuard, ProtocadNode)
         if key not in self._warned:
             self._warned.add(key)
             self.get_logger().warning(text)
-
-    # -- recording -----------------------------------------------------------------------------
-    def _on_message(self, topic: str, data: bytes, info: Any) -> None:
-        """raw=True + two-argument callback: CDR bytes and the rmw message info."""
-        if isinstance(info, dict):
-            recv, src = info.get("received_timestamp"), info.get("source_timestamp")
-            seq = info.get("publication_sequence_number") or 0
-        else:
-            recv = getattr(info, "received_timestamp", None)
-            src = getattr(info, "source_timestamp", None)
-            seq = getattr(info, "publication_sequence_number", 0) or 0
-        if not recv:
-            recv = time.time_ns()
-        with self._lock:
-            if self.writer.closed:
-                return
-            self._account(topic, int(seq) if isinstance(seq, int) else 0)
-            if not self._within_budget(topic, len(data)):
-                return
-            # Reception times of different topics come from different DDS readers and can run
-            # a little behind the order the callbacks write in. Log time never goes back in the
-            # bag, so a file cut short (no index: a full disk, a kill) is still in time order
-            # as written, which streaming readers such as rosbags require.
-            recv = self._last_log_time = max(int(recv), self._last_log_time)
-            try:
-                self.writer.write(topic, data, recv, src if src else recv, sequence=seq)
-                self.received += 1
-            except Exception as exc:  # noqa: BLE001 - any write failure is counted and reported; _check_failure decides
-                self.errors += 1
-                self._warn_once(f"write:{type(exc).__name__}", f"write to bag failed: {exc}")
-                self._check_failure()
-
-    def _flush_if_due(self) -> None:
-        with self._lock:
-            try:
-                self.writer.flush_if_due()
-            except mcap_io.BagWriteError as exc:
-                self._warn_once("flush", f"flushing the bag failed: {exc}")
-                self._check_failure()
-
-    def _check_failure(self) -> None:
-        """A write error (disk full, file too large, permission lost, file removed) ends the
-        recording: the bag is closed with what it holds and the recorder exits with
-        EXIT_WRITE_FAILED."""
-        if self.writer.failure is not None and not self.done.is_set():
-            self.get_logger().error(f"recording stopped: {self.writer.failure}; closing the bag with the "
-                                    f"{self.writer.message_count} messages written")
-            self.exit_code = EXIT_WRITE_FAILED
-            self.done.set()
-
-    def _status(self) -> None:
-        counts = ", ".join(f"{t}: {n}" for t, n in self.writer.topic_counts.items())
-        self.get_logger().info(f"{self.writer.message_count} messages ({counts})")
-
-    def drain(self, executor: Any, quiet_s: float = 0.3, limit_s: float = DRAIN_LIMIT_S) -> None:
-        """Take what the middleware already holds before closing (used after SIGINT/SIGTERM):
-        a KEEP_ALL reader may hold thousands of samples its writers already count as delivered
-        (a backlog after a stall), which closing without taking them would lose."""
-        deadline = time.monotonic() + limit_s
-        last, quiet_since = self.received, time.monotonic()
-        while time.monotonic() < deadline:
-            executor.spin_once(timeout_sec=0.05)
-            if self.received != last:
-                last, quiet_since = self.received, time.monotonic()
-            elif time.monotonic() - quiet_since >= quiet_s:
-                break
-
-    def close(self) -> dict[str, int]:
-        """Take what the middleware still holds (when stopped by a signal, not by a write
-        failure), close the bag (footer, summary, metadata.yaml with the loss), print the
-        summary; returns the per-topic counts."""
-        executor = self.executor
-        if executor is not None and not self.done.is_set() and self.context.ok():
-            self.drain(executor)
-        if self.stall_watch is not None:
-            self.stall_watch.stop()
-        with self._lock:
-            marks = {**self.loss_summary(), **self.publishers_summary(), **self.budget.metadata()}
-            if self.stop_reason:
-                marks["protocad_recording_stopped"] = self.stop_reason
-            if marks:
-                self.writer.custom_data = {**(self.writer.custom_data or {}), **marks}
-            self.writer.close()
-        print(self.summary(), flush=True)
-        return self.writer.topic_counts
-
-    def summary(self) -> str:
-        """What was recorded and what was lost, for the exit message."""
-        w, counts = self.writer, self.writer.topic_counts
-        lines = [f"recorder: recorded {sum(counts.values())} messages to {w.bag_dir} ({len(w.files)} file(s))"]
-        lines += [f"  {t}: {n}" for t, n in counts.items()]
-        if self.errors:
-            lines.append(f"  write errors: {self.errors}")
-        lines += self._loss_lines()
-        if self.budget.dropped:
-            lines.append("  DROPPED by the budget (rate / topic bytes / bag bytes): " + ", ".join(
-                f"{t}: {sum(r.values())} ({', '.join(f'{k} {n}' for k, n in sorted(r.items()))})"
-                for t, r in sorted(self.budget.dropped.items())))
-        if self.budget.floods:
-            lines.append("  FLOOD (marked in the metadata): " + ", ".join(
-                f"{t}: {f['rate_hz']:g} msg/s against {f['recent_hz']:g}" for t, f in sorted(self.budget.floods.items())))
-        if self.stop_reason:
-            lines.append(f"  RECORDING STOPPED: {self.stop_reason}")
-        several = self.publisher_watch.ever
-        if several:
-            lines.append("  SEVERAL PUBLISHERS (marked in the metadata): " + ", ".join(
-                f"{t}: {n}" for t, n in sorted(several.items())))
-        if w.failure is not None:
-            lines.append(f"  RECORDING STOPPED EARLY: {w.failure}")
-            lines.append(f"  messages lost (received, not in the bag: the open chunk and everything after): "
-                         f"{w.lost_after_failure}")
-            lines += [f"  {note}" for note in w.salvage_notes]
-            lines.append(f"  metadata.yaml: {'written' if (w.bag_dir / 'metadata.yaml').exists() else 'NOT written'}")
-        return "\n".join(lines)
-
-
-#: Exit status when a write error (disk full, ...) ended the recording; the bag holds what was
-#: written before it, closed validly where the disk allowed (see BagWriter.close).
-EXIT_WRITE_FAILED = 3
 
 
 #: `ros2 bag record` (Jazzy) options this recorder does not have, and why (each is refused
