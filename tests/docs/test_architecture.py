@@ -132,7 +132,6 @@ OVER_CAP: dict[str, int] = {
     'function sim_bridge/nodekit/rosnode.py:run_node': 88,
     'function trainer/data/store.py:_assemble': 114,
     'function trainer/data/store.py:_ingest_into': 103,
-    'function trainer/nodes/recorder.py:build_parser': 89,
     'function trainer/research/compare.py:main': 86,
     'function trainer/research/compare.py:run_grid': 89,
     'function trainer/viz/context_plot.py:render_context_png': 99,
