@@ -154,7 +154,6 @@ OVER_CAP: dict[str, int] = {
     'parameters trainer/bag/bag_info.py:qos_profile': 9,
     'parameters trainer/data/store.py:_assemble': 12,
     'parameters trainer/launch/rosprocs.py:wait_endpoints': 7,
-    'parameters trainer/nodes/recorder.py:__init__': 27,
     'parameters trainer/research/online.py:__init__': 11,
 }
 

@@ -11,6 +11,11 @@ read back with trainer.bag.mcap_io.BagReader.
 
 Usage: python -m trainer.nodes.recorder -o BAG [--topics T ...] [--namespace /protocad] ...
        ros2 run trainer record --ros-args -p output:=BAG -p compression:=lz4
+
+Its parts: recorder_topics.py (which topics; discovery; subscriptions and their QoS),
+recorder_loss.py (sequence gaps, stalls past the DDS lease), recorder_writing.py (writing,
+draining, closing), recorder_guard.py over record_budget.py (the disk budget), recorder_cli.py
+(the command line's options). Here: the node's parameters and wiring, and the entry point.
 """
 from __future__ import annotations
 
@@ -37,6 +42,15 @@ from trainer.nodes.recorder_loss import LossAccounting
 from trainer.nodes.recorder_topics import DEFAULT_QUEUE_DEPTH, TopicSubscriber, history_name
 from trainer.nodes.recorder_writing import DRAIN_LIMIT_S, EXIT_WRITE_FAILED, BagWriting, default_output  # noqa: F401
 
+#: The string-array parameters and their descriptions (declared with their type: an empty
+#: list's type cannot be inferred).
+STRING_ARRAY_PARAMETERS = {
+    "topics": "topics to record (empty: the contract topics in `namespace` and /clock)",
+    "exclude_topics": "topics not to record",
+    "rate_limits": "TOPIC=HZ: a rate limit of its own",
+    "byte_budgets": "TOPIC=BYTES: a byte budget of its own",
+}
+
 
 class RecorderNode(TopicSubscriber, LossAccounting, BagWriting, RecorderGuard, ProtocadNode):
     """Records topics into a BagWriter. Every constructor argument is also a ROS parameter of
@@ -51,7 +65,7 @@ class RecorderNode(TopicSubscriber, LossAccounting, BagWriting, RecorderGuard, P
     #: run_node's bound on the close: the drain of a backlog, then closing the bag.
     shutdown_budget_s = DRAIN_LIMIT_S + 10.0
 
-    def __init__(self, output: str | None = None, topics: Sequence[str] = (),
+    def __init__(self, *, output: str | None = None, topics: Sequence[str] = (),
                  namespace: str = T.DEFAULT_NAMESPACE, all_topics: bool = False,
                  exclude_regex: str = "", compression: str = "zstd", regex: str = "",
                  exclude_topics: Sequence[str] = (), include_hidden_topics: bool = False,
@@ -65,36 +79,23 @@ class RecorderNode(TopicSubscriber, LossAccounting, BagWriting, RecorderGuard, P
                  flood_factor: float = DEFAULT_FLOOD_FACTOR, rate_limits: Sequence[str] = (),
                  byte_budgets: Sequence[str] = (), node_name: str = "recorder", **node_kwargs: Any):
         super().__init__(node_name, **node_kwargs)
-        from rcl_interfaces.msg import ParameterDescriptor, ParameterType
-        p = {}
-        for key, default in (("output", output or default_output()), ("namespace", namespace),
-                             ("all_topics", bool(all_topics)), ("exclude_regex", exclude_regex),
-                             ("regex", regex), ("include_hidden_topics", bool(include_hidden_topics)),
-                             ("no_discovery", bool(no_discovery)),
-                             ("compression", compression), ("chunk_size", int(chunk_size)),
-                             ("max_bagfile_size", int(max_bagfile_size)),
-                             ("max_bagfile_duration", float(max_bagfile_duration)),
-                             ("flush_interval", float(flush_interval)),
-                             ("queue_depth", int(queue_depth)),
-                             ("discovery_interval", float(discovery_interval)),
-                             ("status_interval", float(status_interval)),
-                             ("max_topic_rate", float(max_topic_rate)), ("max_topic_bytes", int(max_topic_bytes)),
-                             ("max_total_bytes", int(max_total_bytes)), ("min_free_disk", int(min_free_disk)),
-                             ("flood_factor", float(flood_factor))):
-            p[key] = self.declare_parameter(key, default).value
-        p["topics"] = list(self.declare_parameter(
-            "topics", list(topics), ParameterDescriptor(
-                type=ParameterType.PARAMETER_STRING_ARRAY,
-                description="topics to record (empty: the contract topics in `namespace` "
-                            "and /clock)")).value or [])
-        p["exclude_topics"] = list(self.declare_parameter(
-            "exclude_topics", list(exclude_topics), ParameterDescriptor(
-                type=ParameterType.PARAMETER_STRING_ARRAY,
-                description="topics not to record")).value or [])
-        for key, items, what in (("rate_limits", rate_limits, "TOPIC=HZ: a rate limit of its own"),
-                                 ("byte_budgets", byte_budgets, "TOPIC=BYTES: a byte budget of its own")):
-            p[key] = list(self.declare_parameter(key, list(items), ParameterDescriptor(
-                type=ParameterType.PARAMETER_STRING_ARRAY, description=what)).value or [])
+        p = self._declare_parameters(
+            (("output", output or default_output()), ("namespace", namespace),
+             ("all_topics", bool(all_topics)), ("exclude_regex", exclude_regex),
+             ("regex", regex), ("include_hidden_topics", bool(include_hidden_topics)),
+             ("no_discovery", bool(no_discovery)),
+             ("compression", compression), ("chunk_size", int(chunk_size)),
+             ("max_bagfile_size", int(max_bagfile_size)),
+             ("max_bagfile_duration", float(max_bagfile_duration)),
+             ("flush_interval", float(flush_interval)),
+             ("queue_depth", int(queue_depth)),
+             ("discovery_interval", float(discovery_interval)),
+             ("status_interval", float(status_interval)),
+             ("max_topic_rate", float(max_topic_rate)), ("max_topic_bytes", int(max_topic_bytes)),
+             ("max_total_bytes", int(max_total_bytes)), ("min_free_disk", int(min_free_disk)),
+             ("flood_factor", float(flood_factor))),
+            {"topics": topics, "exclude_topics": exclude_topics, "rate_limits": rate_limits,
+             "byte_budgets": byte_budgets})
         self.params = p
         self.budget = RecordBudget(BudgetLimits(
             max_topic_rate=p["max_topic_rate"], max_topic_bytes=p["max_topic_bytes"],
@@ -130,6 +131,17 @@ class RecorderNode(TopicSubscriber, LossAccounting, BagWriting, RecorderGuard, P
             f"recording {self._selection_text()} to {self.writer.bag_dir} (compression {p['compression']}, "
             f"chunk {p['chunk_size']} B, split size {p['max_bagfile_size']} B / duration "
             f"{p['max_bagfile_duration']} s, {history_name(p['queue_depth'])})")
+
+    def _declare_parameters(self, scalars: Sequence[tuple[str, Any]],
+                            string_arrays: Mapping[str, Sequence[str]]) -> dict[str, Any]:
+        """Declares every parameter with the constructor's value as its default; returns the
+        values in effect (a --ros-args -p override wins)."""
+        from rcl_interfaces.msg import ParameterDescriptor, ParameterType
+        p = {key: self.declare_parameter(key, default).value for key, default in scalars}
+        for key, description in STRING_ARRAY_PARAMETERS.items():
+            p[key] = list(self.declare_parameter(key, list(string_arrays[key]), ParameterDescriptor(
+                type=ParameterType.PARAMETER_STRING_ARRAY, description=description)).value or [])
+        return p
 
     def _warn_once(self, key: str, text: str) -> None:
         if key not in self._warned:
