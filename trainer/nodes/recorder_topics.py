@@ -104,8 +104,8 @@ def _import_message(msgtype: str) -> Any:
 
 
 class TopicSubscriber:
-    """Mixed into RecorderNode: it has params, writer, publisher_watch, _lock, _throttle,
-    _warn_once and _on_message (the subscriptions' callback)."""
+    """Mixed into RecorderNode: it has params, writer, publisher_watch, _lock, _warn_once and
+    _on_message (the subscriptions' callback), and rclpy's graph queries."""
 
     def _select_topics(self, p: Mapping[str, Any], qos_overrides: Mapping[str, Mapping[str, Any]] | None) -> None:
         """What to record, from the parameters (ValueError for a bad regular expression, before
