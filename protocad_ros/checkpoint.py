@@ -113,7 +113,7 @@ def save_checkpoint(path: str | os.PathLike, agent: AgentBase, counters: Mapping
     if rng_state:
         payload["torch_rng"] = torch.get_rng_state()
     _write(path, payload)
-    agent.cfg.save(path.parent / CONFIG_NAME, ran_in=agent.precision.ran_in())
+    agent.precision.save_config(agent.cfg, path.parent / CONFIG_NAME)
     return path
 
 

@@ -20,7 +20,6 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
-import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
@@ -310,16 +309,10 @@ class Config:
         cfg.validate()
         return cfg
 
-    def save(self, path: str | os.PathLike, ran_in: str | None = None) -> Path:
-        """Write YAML atomically (tmp file in the same directory + fsync + os.replace).
-        `ran_in` (what train.precision resolved to here, PrecisionChoice.ran_in) becomes a comment
-        on that line: the value stays the request, resolved again wherever the file is used."""
+    def save(self, path: str | os.PathLike) -> Path:
+        """Write YAML atomically (tmp file in the same directory + fsync + os.replace)."""
         path = Path(path)
-        text = yaml.safe_dump(self.to_dict(), sort_keys=False)
-        if ran_in:
-            text = re.sub(r"^(  precision: .*)$", lambda m: f"{m.group(1)}  # {ran_in}", text, count=1,
-                          flags=re.MULTILINE)
-        atomic_write_text(path, text)
+        atomic_write_text(path, yaml.safe_dump(self.to_dict(), sort_keys=False))
         return path
 
     @classmethod

@@ -535,7 +535,7 @@ class Loop:
         precision = self.trainer.agent.use_precision(self.model.precision)
         print(f"[loop] {precision.describe()}", flush=True)
         self.run_json["precision"] = precision.to_dict()
-        self.cfg.save(self.run_dir / "config.yaml", ran_in=precision.ran_in())
+        precision.save_config(self.cfg, self.run_dir / "config.yaml")
         runs.atomic_write_json(self.run_dir / "run.json", self.run_json)
 
     def run(self) -> int:

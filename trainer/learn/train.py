@@ -499,7 +499,7 @@ def _train(s: TrainSettings, model: settings.ModelChoice, config_args: list[str]
     precision = trainer.agent.use_precision(model.precision)   # every rank, on its own device
     say(f"[train] {precision.describe()}", flush=True)
     if ctx.is_main:
-        trainer.agent.cfg.save(run_dir / "config.yaml", ran_in=precision.ran_in())
+        precision.save_config(trainer.agent.cfg, run_dir / "config.yaml")
     if trainer.dataset.action_dim != trainer.agent.action_dim:
         raise ValueError(f"the logs have {trainer.dataset.action_dim}-d actions but the agent "
                          f"{trainer.agent.action_dim}-d")

@@ -585,7 +585,7 @@ class OnlineRun:
         precision = self.trainer.agent.use_precision(self.model.precision)
         self.run_json["precision"] = precision.to_dict()
         if self.main_rank:
-            self.cfg.save(self.run_dir / "config.yaml", ran_in=precision.ran_in())
+            precision.save_config(self.cfg, self.run_dir / "config.yaml")
         if s.resume:
             # The data is the truth: every bag on disk counts, also those written after the last
             # checkpoint (their updates are made up by the schedule, which counts from episodes).
