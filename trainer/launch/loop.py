@@ -45,7 +45,7 @@ from trainer.launch import discovery, run_key
 from trainer import runs, settings
 from trainer.data.dataset import MCAPDataset, TopicMap
 from trainer.learn.schedule import Schedule
-from trainer.learn.train import Trainer
+from trainer.learn.resume import open_trainer
 from trainer.settings import arg
 from trainer.runs import check_settings_section
 
@@ -517,25 +517,17 @@ class Loop:
     def _open_trainer(self, callbacks=()) -> None:
         """The trainer: from the run's checkpoint on a resume, else fresh (the --init-policy
         weights); its precision resolved on this machine, said in one line and kept in run.json."""
-        a, cfg = self.a, self.cfg
-        ckpt = runs.checkpoint_path(self.run_dir)
-        if a.resume and ckpt.exists():
-            self.trainer = Trainer.from_checkpoint(ckpt, self.run_dir, self.ds, device=self.device,
-                                                   callbacks=callbacks, log_every=a.log_every)
-        else:
-            from sim_bridge.contract.contexts import task_actuators
-
-            self.trainer = Trainer(cfg, self.run_dir, self.ds, device=self.device, callbacks=callbacks,
-                                   log_every=a.log_every, action_dim=len(task_actuators(cfg.task)),
-                                   agent=self._agent_from_policy() if a.init_policy else None)
-        freeze = self.trainer.plan_prototype_freeze(planned_updates(a))
-        if freeze is not None:
-            print(f"[loop] prototypes frozen for the first {freeze:,} updates", flush=True)
-            self.run_json["prototype_freeze"] = freeze
-        precision = self.trainer.agent.use_precision(self.model.precision)
-        print(f"[loop] {precision.describe()}", flush=True)
-        self.run_json["precision"] = precision.to_dict()
-        precision.save_config(self.cfg, self.run_dir / "config.yaml")
+        a = self.a
+        opened = open_trainer(self.cfg, self.run_dir, self.ds, resume=a.resume, device=self.device,
+                              end_updates=planned_updates(a), precision=self.model.precision,
+                              log_every=a.log_every, callbacks=callbacks,
+                              initial_agent=self._agent_from_policy if a.init_policy else None)
+        self.trainer = opened.trainer
+        if opened.prototype_freeze is not None:
+            print(f"[loop] prototypes frozen for the first {opened.prototype_freeze:,} updates", flush=True)
+            self.run_json["prototype_freeze"] = opened.prototype_freeze
+        print(f"[loop] {opened.precision.describe()}", flush=True)
+        self.run_json["precision"] = opened.precision.to_dict()
         runs.atomic_write_json(self.run_dir / "run.json", self.run_json)
 
     def run(self) -> int:

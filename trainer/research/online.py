@@ -53,6 +53,7 @@ from trainer import runs, settings
 from trainer.data.dataset import MCAPDataset, TopicMap
 from trainer.learn import distributed
 from trainer.learn.schedule import RunCounters, Schedule
+from trainer.learn.resume import open_trainer
 from trainer.learn.train import Trainer
 from trainer.runs import check_settings_section
 from trainer.settings import arg
@@ -563,29 +564,18 @@ class OnlineRun:
         from trainer.viz.rerun_log import metrics_callbacks
 
         callbacks = metrics_callbacks(s.rerun, self.run_dir, "protocad-online")
-        ckpt = runs.checkpoint_path(self.run_dir)
-        if s.resume and ckpt.exists():
-            self.trainer = Trainer.from_checkpoint(ckpt, self.run_dir, self.ds, device=self.device,
-                                                   callbacks=callbacks, log_every=s.log_every, dist_ctx=ctx)
-            self.c = RunCounters.from_dict(self.trainer.counters)
-        else:
-            from sim_bridge.contract.contexts import task_actuators
-
-            if s.resume and self.main_rank:   # killed before its first checkpoint: updates start again
-                runs.truncate_metrics(self.run_dir / "metrics.jsonl", 0)
-            self.trainer = Trainer(self.cfg, self.run_dir, self.ds, device=self.device, callbacks=callbacks,
-                                   log_every=s.log_every, action_dim=len(task_actuators(self.cfg.task)), dist_ctx=ctx)
-            self.c = RunCounters(next_eval=self.schedule.first_eval())
+        opened = open_trainer(self.cfg, self.run_dir, self.ds, resume=s.resume, device=self.device,
+                              end_updates=self.schedule.planned_updates(s.env_steps, tr.time_limit,
+                                                                        s.num_envs * self.world),
+                              precision=self.model.precision, log_every=s.log_every, callbacks=callbacks,
+                              dist_ctx=ctx, restart_metrics=True)
+        self.trainer = opened.trainer
+        self.c = (RunCounters.from_dict(self.trainer.counters) if opened.resumed
+                  else RunCounters(next_eval=self.schedule.first_eval()))
         self.trainer.progress = self.c
-        freeze = self.trainer.plan_prototype_freeze(self.schedule.planned_updates(
-            s.env_steps, tr.time_limit, s.num_envs * self.world))
-        if freeze is not None:
-            self.say(f"[online] prototypes frozen for the first {freeze:,} updates", flush=True)
-        # Resolved here, on this rank's device: a config from another machine asks, never forces.
-        precision = self.trainer.agent.use_precision(self.model.precision)
-        self.run_json["precision"] = precision.to_dict()
-        if self.main_rank:
-            precision.save_config(self.cfg, self.run_dir / "config.yaml")
+        if opened.prototype_freeze is not None:
+            self.say(f"[online] prototypes frozen for the first {opened.prototype_freeze:,} updates", flush=True)
+        self.run_json["precision"] = opened.precision.to_dict()
         if s.resume:
             # The data is the truth: every bag on disk counts, also those written after the last
             # checkpoint (their updates are made up by the schedule, which counts from episodes).
@@ -595,7 +585,7 @@ class OnlineRun:
             c.prefill_done, c.resumes = int(self.schedule.prefilled(episodes)), c.resumes + 1
             self.say(f"[online] resuming {self.run_dir}: {c.env_steps} env steps, {c.episodes} episodes "
                      f"in {len(all_bags)} bags, {self.trainer.updates} updates"
-                     + ("" if ckpt.exists() else " (no checkpoint yet: from the bags)"), flush=True)
+                     + ("" if opened.resumed else " (no checkpoint yet: from the bags)"), flush=True)
 
     def _evaluation(self) -> None:
         from trainer.learn.evaluate import select_contexts

@@ -1,0 +1,62 @@
+"""A run's trainer, opened the one way protocad-loop and protocad-online open it: resumed from
+the run's checkpoint when there is one, else fresh; then the prototype freeze planned for the
+whole run, the precision resolved on this machine, and config.yaml saved saying what it ran in.
+No ROS."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Callable, Iterable
+
+from protocad_ros.model.precision import PrecisionChoice
+from trainer import runs
+from trainer.data.dataset import MCAPDataset
+from trainer.learn import distributed
+from trainer.learn.train import Trainer
+
+
+@dataclass
+class OpenedTrainer:
+    trainer: Trainer
+    resumed: bool
+    """restored from the run's checkpoint (False: fresh, also on a resume of a run that was
+    stopped before its first checkpoint)"""
+    prototype_freeze: int | None
+    """updates the prototypes stay frozen for (None: the agent has none)"""
+    precision: PrecisionChoice
+
+
+def open_trainer(cfg, run_dir: Path, dataset: MCAPDataset, *, resume: bool, device: str, end_updates: int,
+                 precision: str | None, log_every: int, callbacks: Iterable[runs.MetricsCallback] = (),
+                 dist_ctx: distributed.DistContext | None = None,
+                 initial_agent: Callable[[], Any] | None = None,
+                 restart_metrics: bool = False) -> OpenedTrainer:
+    """The trainer of the run in `run_dir` with the run's config `cfg`.
+
+    resume: restore the checkpoint if the run has one (weights, optimizers, counters, sampler
+    state); without one (stopped before it was written) the trainer starts fresh like a new run.
+    end_updates: the agent's update count at the end of the run's plan (the freeze is a share of
+    it; once resolved, the checkpoint keeps it). precision: the command line's --precision
+    (None: the config's request). initial_agent: builds a fresh trainer's agent (--init-policy's
+    weights) instead of new weights. restart_metrics: a fresh trainer on a resume drops the
+    metrics lines an earlier attempt logged, as its updates start from 0 again."""
+    ctx = dist_ctx or distributed.DistContext()
+    ckpt = runs.checkpoint_path(run_dir)
+    resumed = resume and ckpt.exists()
+    if resumed:
+        trainer = Trainer.from_checkpoint(ckpt, run_dir, dataset, device=device, callbacks=callbacks,
+                                          log_every=log_every, dist_ctx=dist_ctx)
+    else:
+        from sim_bridge.contract.contexts import task_actuators
+
+        if resume and restart_metrics and ctx.is_main:
+            runs.truncate_metrics(Path(run_dir) / "metrics.jsonl", 0)
+        trainer = Trainer(cfg, run_dir, dataset, device=device, callbacks=callbacks, log_every=log_every,
+                          action_dim=len(task_actuators(cfg.task)),
+                          agent=initial_agent() if initial_agent is not None else None, dist_ctx=dist_ctx)
+    freeze = trainer.plan_prototype_freeze(end_updates)
+    # Resolved here, on this rank's device: a config from another machine asks, never forces.
+    chosen = trainer.agent.use_precision(precision)
+    if ctx.is_main:
+        chosen.save_config(cfg, Path(run_dir) / "config.yaml")
+    return OpenedTrainer(trainer, resumed, freeze, chosen)
