@@ -27,7 +27,7 @@ def record_bags(out: Path, task: str, episodes: int, steps: int) -> None:
     import numpy as np
 
     from sim_bridge.sim.envs import ContextDMCEnv
-    from trainer.research.online import EpisodeBagWriter
+    from trainer.research.online_rundir import EpisodeBagWriter
 
     env = ContextDMCEnv(task, "train", seed=0, time_limit=2 * steps)
     rng = np.random.default_rng(0)

@@ -40,7 +40,7 @@ def worker(spec: dict) -> dict:
     from protocad_ros.model.precision import resolve_precision
     from sim_bridge.sim.envs import ContextDMCEnv
     from trainer.data.dataset import MCAPDataset, TopicMap
-    from trainer.research.online import EpisodeBagWriter
+    from trainer.research.online_rundir import EpisodeBagWriter
     from trainer.learn.train import Trainer
 
     torch.set_num_threads(spec["threads"])

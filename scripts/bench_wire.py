@@ -34,7 +34,7 @@ def main(argv=None) -> int:
     from sim_bridge.contract import topics as T
     from sim_bridge.sim.envs import ContextDMCEnv
     from trainer.bag import mcap_io
-    from trainer.research.online import EpisodeBagWriter
+    from trainer.research.online_rundir import EpisodeBagWriter
 
     print(f"machine: {os.cpu_count()} cores, CPU capability {cpu_capability()}; load average "
           f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}")

@@ -373,7 +373,7 @@ def test_a_grid_whose_parent_is_killed_twice_resumes_to_completion(tmp_path, spa
     """SIGKILL of protocad-compare (its runs die with it) twice in a row, once before any
     checkpoint: the same command then finishes every run, counters equal to their bags."""
     from trainer.data.dataset import MCAPDataset
-    from trainer.research.online import data_counts
+    from trainer.research.online_rundir import data_counts
 
     out = tmp_path / "grid"
     args = ["-m", "trainer.research.compare", "--tasks", "pendulum_swingup", "--variants", "dreamer", "--seeds", "0", "1",

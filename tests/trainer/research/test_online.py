@@ -144,7 +144,7 @@ def test_sigkill_at_any_point_then_resume_completes_with_counters_from_the_data(
     from helpers import wait_until
     from protocad_ros.checkpoint import read_checkpoint
     from trainer.data.dataset import MCAPDataset
-    from trainer.research.online import data_counts
+    from trainer.research.online_rundir import data_counts
 
     run = tmp_path / "run"
     args = ["-m", "trainer.research.online", "--task", "pendulum_swingup", *TINY, "--time-limit", "40",
