@@ -127,7 +127,6 @@ def test_no_function_is_longer_than_120_lines():
 # each entry is to be split, and the test names the ones that have come under their cap.
 MAX_CLASS_LINES, MAX_MODULE_LINES, MAX_FUNC_LINES, MAX_POSITIONAL = 300, 500, 80, 6
 OVER_CAP: dict[str, int] = {
-    'class trainer/launch/loop.py:Loop': 483,
     'function sim_bridge/nodekit/rosnode.py:run_node': 88,
     'function trainer/data/store.py:_assemble': 114,
     'function trainer/data/store.py:_ingest_into': 103,
@@ -138,7 +137,6 @@ OVER_CAP: dict[str, int] = {
     'function trainer/viz/visualize.py:write_context_recording': 110,
     'module protocad_ros/model/agent.py': 521,
     'module protocad_ros/model/config.py': 772,
-    'module trainer/launch/loop.py': 695,
     'module trainer/learn/train.py': 558,
     'module trainer/research/compare.py': 510,
     'module trainer/runs.py': 610,
