@@ -41,7 +41,7 @@ def worker(spec: dict) -> dict:
     from sim_bridge.sim.envs import ContextDMCEnv
     from trainer.data.dataset import MCAPDataset, TopicMap
     from trainer.research.online_rundir import EpisodeBagWriter
-    from trainer.learn.train import Trainer
+    from trainer.learn.trainer import Trainer
 
     torch.set_num_threads(spec["threads"])
     prec = resolve_precision(spec["precision"], "cpu", explicit=True).precision

@@ -137,7 +137,6 @@ OVER_CAP: dict[str, int] = {
     'function trainer/viz/visualize.py:write_context_recording': 110,
     'module protocad_ros/model/agent.py': 521,
     'module protocad_ros/model/config.py': 772,
-    'module trainer/learn/train.py': 558,
     'module trainer/research/compare.py': 510,
     'module trainer/runs.py': 610,
     'module trainer/viz/visualize.py': 609,

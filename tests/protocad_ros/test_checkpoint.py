@@ -261,7 +261,7 @@ def test_interrupted_write_leftovers_are_removed_at_the_next_start(tmp_path):
 
     from protocad_ros.atomic import remove_stale_temporaries
     from protocad_ros.model.config import make_config
-    from trainer.learn.train import Trainer
+    from trainer.learn.trainer import Trainer
 
     ckpt = tmp_path / "checkpoints" / "latest.pt"
     code = ("import os, signal, sys; from protocad_ros.atomic import atomic_open\n"
@@ -285,7 +285,7 @@ def test_full_disk_checkpoint_write_is_a_clear_error_and_the_last_good_one_stays
 
     from protocad_ros.checkpoint import load_checkpoint
     from protocad_ros.model.config import make_config
-    from trainer.learn.train import CheckpointWriteError, Trainer
+    from trainer.learn.trainer import CheckpointWriteError, Trainer
 
     mnt = tmp_path / "disk"
     mnt.mkdir()

@@ -12,7 +12,7 @@ from protocad_ros.model.precision import PrecisionChoice
 from trainer import runs
 from trainer.data.dataset import MCAPDataset
 from trainer.learn import distributed
-from trainer.learn.train import Trainer
+from trainer.learn.trainer import Trainer
 
 
 @dataclass

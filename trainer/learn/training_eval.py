@@ -11,7 +11,7 @@ from typing import Any
 from trainer import runs
 from trainer.learn import distributed
 from trainer.learn.schedule import RunCounters
-from trainer.learn.train import Trainer
+from trainer.learn.trainer import Trainer
 
 
 class Evaluator:

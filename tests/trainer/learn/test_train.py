@@ -305,7 +305,7 @@ def test_updates_that_end_on_a_checkpoint_multiple_are_saved_when_the_caller_sav
     from protocad_ros.checkpoint import read_checkpoint
     from protocad_ros.model.config import make_config
     from trainer.data.dataset import MCAPDataset
-    from trainer.learn.train import Trainer
+    from trainer.learn.trainer import Trainer
 
     write_bag(tmp_path / "bag", make_steps(2, 12))
     ds = MCAPDataset([tmp_path / "bag"], seq_len=8, cache_dir=tmp_path / "cache")
