@@ -50,7 +50,7 @@ from trainer.launch.loop_eval import context_recording, final_evaluation, policy
 from trainer.launch.loop_rundir import (DEMO, LoopRunDir, LoopSettings, agent_from_policy, planned_updates,
                                         with_shipped_policy)
 from trainer.learn.resume import open_trainer
-from trainer.learn.train import Trainer
+from trainer.learn.trainer import Trainer
 
 
 def build_parser():

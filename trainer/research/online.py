@@ -101,7 +101,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         print(f"protocad-online: error: {exc}", file=sys.stderr)
         return 2
     from protocad_ros.checkpoint import CheckpointError
-    from trainer.learn.train import CheckpointWriteError, RanksDiverged
+    from trainer.learn.trainer import CheckpointWriteError, RanksDiverged
 
     try:
         return run(s, model, parsed.config_args, parsed.prog, parsed.argv)
