@@ -152,11 +152,8 @@ class WorldModel(nn.Module):
         self.context: ContextModule | None = None
         self.dreamerpro: DreamerProPrototypes | None = None
         if cfg.uses_context:
-            self.context = ContextModule(
-                S, ctx.proto_dim, ctx.num_prototypes, ctx.temperature, ctx.sinkhorn_iters,
-                ctx.sinkhorn_eps, ctx.ema, ctx.freeze_prototypes_updates,
-                temporal_consistency=cfg.spec.representation == "tc_swav",
-                drop_first_steps=ctx.drop_first_steps)
+            self.context = ContextModule.from_config(
+                ctx, state_dim=S, temporal_consistency=cfg.spec.representation == "tc_swav")
         elif cfg.spec.representation == "dreamerpro":
             self.dreamerpro = DreamerProPrototypes(self.encoder, S, cfg)
         parts = cfg.features

@@ -89,7 +89,8 @@ class ActorCritic(nn.Module):
         super().__init__()
         self.cfg = cfg
         self.actor = ActionHead(feat_dim, action_dim, cfg.actor_layers, cfg.actor_units, cfg.act,
-                                cfg.norm, cfg.actor_dist, cfg.actor_min_std, cfg.actor_init_std)
+                                cfg.norm, dist=cfg.actor_dist, min_std=cfg.actor_min_std,
+                                init_std=cfg.actor_init_std)
         self.critic = MLP(feat_dim, 1, cfg.critic_layers, cfg.critic_units, cfg.act, cfg.norm)
         # DreamerPro slow_target: a copy used for the lambda-return bootstrap, refreshed every
         # slow_critic_update updates (hard copy with fraction 1). Never trained directly. With

@@ -155,7 +155,7 @@ def transitions(batch: Mapping[str, torch.Tensor], k: int):
 
 
 def soft_q_target(reward: torch.Tensor, discount: torch.Tensor, q1: torch.Tensor,
-                  q2: torch.Tensor, log_prob: torch.Tensor, alpha: torch.Tensor | float,
+                  q2: torch.Tensor, log_prob: torch.Tensor, *, alpha: torch.Tensor | float,
                   gamma: float) -> torch.Tensor:
     """SAC's soft Bellman target y = r + gamma d (min(Qbar_1, Qbar_2)(o', a') - alpha log pi(a'|o'))
     for a' ~ pi(. | o'); d = 0 ends the bootstrap (a terminal state)."""
@@ -228,7 +228,7 @@ class DrQAgent(AgentBase):
             for nxt in next_views:
                 next_action, log_prob = self.actor(self.conv(nxt)).sample_log_prob()
                 q1, q2 = self.critic_target(self.conv_target(nxt), next_action)
-                ys.append(soft_q_target(reward, discount, q1, q2, log_prob, alpha, d.discount))
+                ys.append(soft_q_target(reward, discount, q1, q2, log_prob, alpha=alpha, gamma=d.discount))
             target = torch.stack(ys).mean(0)
         terms, q1s = [], []
         with self._autocast():

@@ -295,7 +295,7 @@ class TanhNormal:
 class ActionHead(nn.Module):
     """MLP trunk -> (mean, std) -> TruncNormal / TanhNormal over A actions in [-1, 1]."""
 
-    def __init__(self, inp: int, action_dim: int, layers: int, units: int, act: str, norm: str,
+    def __init__(self, inp: int, action_dim: int, layers: int, units: int, act: str, norm: str, *,
                  dist: str = "trunc_normal", min_std: float = 0.1, init_std: float = 0.0):
         super().__init__()
         self.trunk = MLP(inp, None, layers, units, act, norm)

@@ -202,7 +202,7 @@ class ContextModule(nn.Module):
     `step` = number of world-model updates done before this one (0 on the first update).
     """
 
-    def __init__(self, state_dim: int, proj_dim: int = 32, num_prototypes: int = 100,
+    def __init__(self, state_dim: int, *, proj_dim: int = 32, num_prototypes: int = 100,
                  temperature: float = 0.1, sinkhorn_iters: int = 3, sinkhorn_eps: float = 0.05,
                  ema: float = 0.05, freeze_prototypes_steps: int = 0,
                  temporal_consistency: bool = True, drop_first_steps: int = 1):

@@ -137,7 +137,7 @@ class RSSM(nn.Module):
         return {"deter": prev["deter"] * keep, "stoch": prev["stoch"] * keep}, action * keep
 
     def obs_step(self, prev: State, action: torch.Tensor, embed: torch.Tensor,
-                 is_first: torch.Tensor | None = None, sample: bool = True,
+                 is_first: torch.Tensor | None = None, *, sample: bool = True,
                  generator: torch.Generator | None = None,
                  with_prior: bool = True) -> tuple[State, State | None]:
         """One filter step: (posterior, prior) of s_t given s_{t-1}, a_{t-1}, o_t's embedding.
