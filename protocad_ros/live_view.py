@@ -158,8 +158,8 @@ class LiveView:
         """The underlying rerun.RecordingStream (None when off)."""
         return self._rec
 
-    def log_step(self, sim_time_ns: int, image: np.ndarray | None, u: Any = None, w: Any = None,
-                 e: Any = None, action: Any = None, reward: float | None = None, *,
+    def log_step(self, sim_time_ns: int, image: np.ndarray | None, *, u: Any = None, w: Any = None,
+                 e: Any = None, action: Any = None, reward: float | None = None,
                  is_first: bool = False, context: Mapping[str, float] | None = None) -> None:
         """Log one answered observation at ``sim_time_ns`` (the observation's header stamp).
 
@@ -217,9 +217,9 @@ class LiveView:
         if self._rec is None:
             return
         info, feats = event.info, event.features
-        self.log_step(event.stamp_ns, event.image, getattr(feats, "u", None),
-                      getattr(feats, "w", None), getattr(feats, "e", None), event.action,
-                      getattr(info, "reward", None), is_first=bool(getattr(info, "is_first", False)))
+        self.log_step(event.stamp_ns, event.image, u=getattr(feats, "u", None),
+                      w=getattr(feats, "w", None), e=getattr(feats, "e", None), action=event.action,
+                      reward=getattr(info, "reward", None), is_first=bool(getattr(info, "is_first", False)))
 
     def flush(self) -> None:
         if self._rec is not None:

@@ -67,7 +67,7 @@ def test_save_mode_writes_documented_paths_on_sim_time(tmp_path, tiny_policy):
     stamps = []
     for t, image, action, feats in _steps(tiny_policy):
         stamps.append(1_000_000_000 + t * 20_000_000)   # control_dt 20 ms
-        view.log_step(stamps[-1], image, feats.u, feats.w, feats.e, action, 0.5 * t,
+        view.log_step(stamps[-1], image, u=feats.u, w=feats.w, e=feats.e, action=action, reward=0.5 * t,
                       is_first=t == 0, context={"m": 0.75})
     assert view.steps == 12
     view.close()
@@ -118,7 +118,7 @@ def test_variant_without_context_features_logs_the_rest(tmp_path):
     path = tmp_path / "dreamer.rrd"
     view = LiveView("save", path=path)
     empty = np.zeros(0, np.float32)
-    view.log_step(0, np.zeros((64, 64, 3), np.uint8), empty, empty, empty, [0.1, -0.2], 0.0)
+    view.log_step(0, np.zeros((64, 64, 3), np.uint8), u=empty, w=empty, e=empty, action=[0.1, -0.2], reward=0.0)
     view.close()
     rec = read_recording(path)
     assert "/policy/image" in rec and "/policy/action" in rec
@@ -130,7 +130,7 @@ def test_off_mode_is_free_and_imports_no_rerun():
     code = ("import sys, numpy as np\n"
             "from protocad_ros.live_view import LiveView\n"
             "v = LiveView()\n"
-            "v.log_step(0, np.zeros((64, 64, 3), np.uint8), [1.0], [1.0], [1.0], [0.0], 1.0)\n"
+            "v.log_step(0, np.zeros((64, 64, 3), np.uint8), u=[1.0], w=[1.0], e=[1.0], action=[0.0], reward=1.0)\n"
             "v.close()\n"
             "assert not v.enabled and v.steps == 0\n"
             "assert 'rerun' not in sys.modules, 'rerun imported in off mode'\n")
@@ -187,7 +187,7 @@ def test_connect_mode_streams_to_a_rerun_server(tmp_path, tiny_policy):
         helpers.wait_until(listening, 20, "the rerun server to listen", 0.1)
         view = LiveView.from_params("connect", f"rerun+http://127.0.0.1:{port}/proxy", "")
         for t, image, action, feats in _steps(tiny_policy, 6):
-            view.log_step(t * 20_000_000, image, feats.u, feats.w, feats.e, action, 1.0)
+            view.log_step(t * 20_000_000, image, u=feats.u, w=feats.w, e=feats.e, action=action, reward=1.0)
         view.close()
         def six_images() -> dict:
             if not (saved.exists() and saved.stat().st_size > 0):
