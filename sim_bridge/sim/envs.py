@@ -106,7 +106,7 @@ class ContextDMCEnv:
     of its next episode) sees the episodes an uninterrupted one would have.
     """
 
-    def __init__(self, task: str, split: str = "train", seed: int | np.random.SeedSequence = 0,
+    def __init__(self, task: str, split: str = "train", seed: int | np.random.SeedSequence = 0, *,
                  action_repeat: int = 2, image_size: int = 64,
                  render_quality: RenderQuality = "fast",
                  context: Mapping[str, float] | None = None, time_limit: int = 1000,
