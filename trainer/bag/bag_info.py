@@ -22,7 +22,7 @@ def _duration(ns: int) -> dict[str, int]:
     return {"sec": sec, "nsec": nsec}
 
 
-def qos_profile(history: str = "unknown", depth: int = 0, reliability: str = "reliable",
+def qos_profile(*, history: str = "unknown", depth: int = 0, reliability: str = "reliable",
                 durability: str = "volatile", deadline_ns: int = INFINITE_NS,
                 lifespan_ns: int = INFINITE_NS, liveliness: str = "automatic",
                 liveliness_lease_duration_ns: int = INFINITE_NS,
