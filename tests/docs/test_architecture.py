@@ -138,7 +138,6 @@ OVER_CAP: dict[str, int] = {
     'module trainer/research/compare.py': 510,
     'module trainer/runs.py': 610,
     'module trainer/viz/visualize.py': 609,
-    'parameters trainer/launch/rosprocs.py:wait_endpoints': 7,
 }
 
 

@@ -310,7 +310,7 @@ class RosStack:
         return self.wait_until(proc, active, f"lifecycle state active of {fqn}", timeout, stop)
 
     def wait_endpoints(self, proc: NodeProc, node_name: str, node_ns: str,
-                       wants: Sequence[tuple[str, str]], timeout: float, stop=None,
+                       wants: Sequence[tuple[str, str]], timeout: float, *, stop=None,
                        old: set = frozenset()) -> bool:
         """An unmanaged node: wait until the graph shows its new endpoints `wants`, (topic,
         'pub' | 'sub') pairs; `old` = endpoints of an earlier process (RosGraph.snapshot)."""
