@@ -276,7 +276,6 @@ def _report_reading(rep: SourceReport, br: Any, source: Path, by_key: dict[str, 
     rep.truncated = [f"{f}: {why}" for f, why in br.truncated.items()]
     rep.read_errors += [f"{f}: {why}" for f, why in br.errors.items()]
     rep.read_errors += [f"refused: {line}" for line in br.refused]
-    rep.read_errors += [f"refused: {line}" for line in br.refused]
     rep.read_warnings = list(br.warnings)
     for t, n in br.counts.items():
         rep.topics[t] = {"type": br.topic_types.get(t, "?"), "count": n, "used_as": key_of.get(t)}

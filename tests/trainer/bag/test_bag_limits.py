@@ -156,4 +156,5 @@ def test_protocad_train_stays_bounded(bags, bomb, tmp_path):
     assert "nothing to train on" in out
     assert ("refused: " in out and "max_chunk_bytes" in out) if bomb == "chunk" \
         else "decoded with the installed one" in out
+    assert out.count("refused: ") == (1 if bomb == "chunk" else 0), out   # one line per refusal
     assert peak - base < 200_000, (peak, base)
