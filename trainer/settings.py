@@ -31,7 +31,7 @@ from typing import Any, Sequence, TypeVar
 
 from protocad_ros.model.config import PRESETS, VARIANTS
 from sim_bridge.contract.contexts import TASKS
-from trainer import runs
+from trainer import cli_values, run_config, torch_setup
 from trainer.run_input import check_settings_section, load_json_object
 
 S = TypeVar("S")
@@ -121,7 +121,7 @@ def settings_parser(prog: str, description: str, sections: Sequence[tuple[str | 
                     defaults: dict[str, Any] | None = None) -> argparse.ArgumentParser:
     with_config = any(cls is ModelChoice for _, cls in sections)
     parser = argparse.ArgumentParser(prog=prog, description=description, epilog=PRECEDENCE if with_config else None,
-                                     formatter_class=runs.HelpFormatter)
+                                     formatter_class=cli_values.HelpFormatter)
     for title, cls in sections:
         add_settings(parser, cls, title, defaults)
     return parser
@@ -162,7 +162,7 @@ def parse(parser: argparse.ArgumentParser, argv: Sequence[str] | None,
         if config_help:
             print(flush=True)
             choice = build(ModelChoice, vars(ns))
-            runs.apply_config_flags(runs.build_config(choice.task, choice.variant, choice.preset, choice.config),
+            run_config.apply_config_flags(run_config.build_config(choice.task, choice.variant, choice.preset, choice.config),
                                     ["--help"], parser.prog)
         raise SystemExit(0)
     return Parsed(vars(ns), given_flags(parser, argv), rest, argv, parser.prog)
@@ -255,7 +255,7 @@ class ModelChoice:
     """seeds model init, sampling and augmentation"""
     device: str = "cpu"
     """cpu, cuda, cuda:N or auto (cuda when available)"""
-    threads: int = arg(0, help=runs.THREADS_HELP)
+    threads: int = arg(0, help=torch_setup.THREADS_HELP)
     """torch threads"""
     precision: str | None = arg(None, choices=("auto", "float32", "bfloat16"))
     """train.precision; auto = bfloat16 where the device has bf16 arithmetic (AVX512-BF16/AMX
@@ -269,7 +269,7 @@ class ModelChoice:
         before anything is built (ConfigError, a ValueError: one line in the CLIs)."""
         from protocad_ros.model.config import check_train_memory
 
-        settings = runs.parse_set(self.set)
+        settings = run_config.parse_set(self.set)
         settings.update(overrides or {})
         if self.batch_size is not None:
             settings["train.batch_size"] = self.batch_size
@@ -278,14 +278,14 @@ class ModelChoice:
         settings["train.seed"] = self.seed
         if self.precision:   # the request; resolved where the agent is built (agent.use_precision)
             settings["train.precision"] = self.precision
-        cfg = runs.build_config(self.task, self.variant, self.preset, self.config, settings)
+        cfg = run_config.build_config(self.task, self.variant, self.preset, self.config, settings)
         if config_args:
-            flagged = runs.apply_config_flags(cfg, config_args, prog)
-            chosen = {k: getattr(flagged, k) for k in runs.SELECTOR_FIELDS}
-            if chosen != {k: getattr(cfg, k) for k in runs.SELECTOR_FIELDS}:
+            flagged = run_config.apply_config_flags(cfg, config_args, prog)
+            chosen = {k: getattr(flagged, k) for k in run_config.SELECTOR_FIELDS}
+            if chosen != {k: getattr(cfg, k) for k in run_config.SELECTOR_FIELDS}:
                 # --reference / --no_own_settings pick other defaults: rebuild on them, flags on top
-                cfg = runs.build_config(self.task, self.variant, self.preset, self.config, {**settings, **chosen})
-                flagged = runs.apply_config_flags(cfg, config_args, prog)
+                cfg = run_config.build_config(self.task, self.variant, self.preset, self.config, {**settings, **chosen})
+                flagged = run_config.apply_config_flags(cfg, config_args, prog)
             cfg = flagged
         check_train_memory(cfg)
         return cfg

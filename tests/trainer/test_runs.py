@@ -12,9 +12,9 @@ from helpers import ROOT
 # of it the process still holds after the free, in MB, from /proc/self/statm's resident pages.
 _HELD_AFTER_FREE = """
 import os, sys, torch
-from trainer import runs
+from trainer import runs, torch_setup
 if sys.argv[1] == "retain":
-    print(runs.retain_freed_memory())
+    print(torch_setup.retain_freed_memory())
 page = os.sysconf("SC_PAGE_SIZE")
 resident = lambda: int(open("/proc/self/statm").read().split()[1]) * page
 y = torch.empty(1 << 10); y.fill_(1.0); del y   # fill's code pages, loaded once, are not the block

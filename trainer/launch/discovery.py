@@ -210,7 +210,7 @@ def udp_listening(pid: int, port: int) -> bool:
 def wait_listening(pid: int, port: int, alive: Callable[[], str | None], timeout: float = 20.0) -> None:
     """Block until the server process listens on its port; RuntimeError if it exits first,
     TimeoutError if it does not within `timeout`."""
-    from trainer.runs import wait_until
+    from trainer.console import wait_until
 
     wait_until(lambda: udp_listening(pid, port), what=f"discovery server listening on UDP port {port}",
                timeout=timeout, alive=alive)

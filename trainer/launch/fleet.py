@@ -39,7 +39,7 @@ from typing import Sequence
 from sim_bridge.contract import topics as T
 from protocad_ros.checkpoint_signing import SigningError
 from protocad_ros.model.config import DEFAULT_CLI_PRESET, PRESETS, VARIANTS
-from trainer import runs
+from trainer import cli_values, console
 from trainer.launch import discovery, run_key
 
 
@@ -47,8 +47,8 @@ def build_parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(prog="protocad-fleet", description=__doc__.split("\n\n")[0],
                                  epilog=__doc__.split("\n\n", 1)[1], formatter_class=argparse.RawDescriptionHelpFormatter)
     discovery.add_args(ap)
-    ap.add_argument("--robots", type=runs.positive_int, default=1, help="robots (actor groups / recorded namespaces) on this machine")
-    ap.add_argument("--first-robot", type=runs.non_negative_int, default=0,
+    ap.add_argument("--robots", type=cli_values.positive_int, default=1, help="robots (actor groups / recorded namespaces) on this machine")
+    ap.add_argument("--first-robot", type=cli_values.non_negative_int, default=0,
                     help="number of the first robot: /protocad/robotFIRST ... (distinct per machine)")
     ap.add_argument("--no-actors", action="store_true", help="start no actor group (e.g. only the recorder)")
     ap.add_argument("--record", default=None, metavar="BAG", help="also record the robots' topics into this bag")
@@ -72,11 +72,11 @@ def build_parser() -> argparse.ArgumentParser:
                     help="also run the checkpoint publisher on the learner's FILE, announcing on "
                          "--checkpoint-topic (default /protocad/checkpoint)")
     ap.add_argument("--exploration-noise", type=float, default=0.0, help="policy nodes' exploration noise")
-    ap.add_argument("--episodes", type=runs.non_negative_int, default=0,
+    ap.add_argument("--episodes", type=cli_values.non_negative_int, default=0,
                     help="episodes per robot, then the groups end (0: until Ctrl-C)")
-    ap.add_argument("--episode-length", type=runs.positive_int, default=500, help="agent steps per episode")
-    ap.add_argument("--action-repeat", type=runs.positive_int, default=2)
-    ap.add_argument("--min-subscribers", type=runs.positive_int, default=2,
+    ap.add_argument("--episode-length", type=cli_values.positive_int, default=500, help="agent steps per episode")
+    ap.add_argument("--action-repeat", type=cli_values.positive_int, default=2)
+    ap.add_argument("--min-subscribers", type=cli_values.positive_int, default=2,
                     help="readers each bridge waits for before stepping (its actor + a recorder)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID, the same on every machine "
@@ -124,7 +124,7 @@ def run(a: argparse.Namespace) -> int:
     print(f"[fleet] ROS_DOMAIN_ID={stack.domain_id}; {stack.describe_discovery()}; robots "
           f"{', '.join(namespaces)}; logs in {log_dir}", flush=True)
     bridges = []
-    with runs.StopFlag() as stop:
+    with console.StopFlag() as stop:
         try:
             if a.record:
                 stack.start_recorder(a.record, namespaces=namespaces, ready_timeout=a.ready_timeout)

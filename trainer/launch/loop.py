@@ -43,7 +43,7 @@ from pathlib import Path
 from typing import Sequence
 
 from protocad_ros.checkpoint_signing import load_private_key, sign_file
-from trainer import runs, settings
+from trainer import cli_values, console, runs, settings, torch_setup
 from trainer.launch import discovery, run_key
 from trainer.launch.loop_collect import Collection
 from trainer.launch.loop_eval import context_recording, final_evaluation, policy_vs_random
@@ -91,7 +91,7 @@ class TrainingPhase:
         self.trainer, self.rundir = trainer, rundir
         self._eta_said = False   # the expected time is said once, after the first training phase
 
-    def __call__(self, stop: runs.StopFlag) -> bool:
+    def __call__(self, stop: console.StopFlag) -> bool:
         """Train up to the schedule's target; False when stopped before it."""
         a, ledger, trainer = self.rundir.a, self.rundir.ledger, self.trainer
         target = self.rundir.schedule.target_updates(ledger.collected_episodes)
@@ -104,7 +104,7 @@ class TrainingPhase:
         print(f"[loop] training {n} updates ({trainer.updates} -> {target}) on {ledger.ds.num_steps} steps "
               f"from {len(ledger.ds.stores)} bag(s)", flush=True)
         t0 = time.monotonic()
-        bar = runs.progress(target, initial=trainer.updates, desc="train",
+        bar = console.progress(target, initial=trainer.updates, desc="train",
                             disable=True if a.no_progress else None, unit="upd")
         try:
             done = trainer.train(target, stop=stop, checkpoint_every=a.checkpoint_every, bar=bar)
@@ -112,7 +112,7 @@ class TrainingPhase:
             bar.close()
         m = trainer.last_metrics
         self._say_expected_time(n - (target - trainer.updates), time.monotonic() - t0)
-        print(f"[loop] trained to update {trainer.updates} in {runs.fmt_seconds(time.monotonic() - t0)}"
+        print(f"[loop] trained to update {trainer.updates} in {cli_values.format_duration(time.monotonic() - t0)}"
               + (f" (wm_loss {m.get('wm_loss', float('nan')):.3g}, reward_loss {m.get('reward_loss', float('nan')):.3g})" if m else "")
               + f"; checkpoint {trainer.checkpoint_path}", flush=True)
         return done
@@ -130,9 +130,9 @@ class TrainingPhase:
         per_episode = [p["seconds"] / max(p["episodes"] + p["partial_episodes"], 1) for p in ledger.phases if "seconds" in p]
         collect = cycles_left * a.episodes_per_cycle * (max(per_episode) if per_episode else 0.0)
         print(f"[loop] training runs at {rate:.2f} updates/s on this machine ({trainer.agent.precision.precision}, "
-              f"{runs.torch_threads()} torch thread(s)): the {left} updates left take about "
-              f"{runs.fmt_seconds(left / rate)}; with {cycles_left} collection cycle(s) the loop ends in about "
-              f"{runs.fmt_seconds(left / rate + collect)}, then the final evaluation", flush=True)
+              f"{torch_setup.torch_threads()} torch thread(s)): the {left} updates left take about "
+              f"{cli_values.format_duration(left / rate)}; with {cycles_left} collection cycle(s) the loop ends in about "
+              f"{cli_values.format_duration(left / rate + collect)}, then the final evaluation", flush=True)
 
 
 class Loop:
@@ -148,8 +148,8 @@ class Loop:
         self.a, self.model = s.with_demo(), model
         self.config_args, self.prog = list(config_args), prog
         self.argv = list(sys.argv[1:] if argv is None else argv)
-        self.device = runs.resolve_device(model.device)
-        runs.setup_torch(model.threads)
+        self.device = torch_setup.resolve_device(model.device)
+        torch_setup.setup_torch(model.threads)
 
     def _setup(self) -> None:
         self.rundir = LoopRunDir.open(self.a, self.model, device=self.device, config_args=self.config_args,
@@ -210,7 +210,7 @@ class Loop:
         collection = Collection(self.stack, self.rundir, trusted_keys=self.key.public, device=self.device)
         training = TrainingPhase(self.trainer, self.rundir)
         status = "finished"
-        with runs.StopFlag() as stop:
+        with console.StopFlag() as stop:
             try:
                 if a.init_policy and a.start_eval_episodes and not a.resume:
                     policy_vs_random(self.rundir, self.stack.domain_id, self.device, stop)
@@ -228,7 +228,7 @@ class Loop:
         self._report(status, t_start, eval_json, rrd)
         return 0
 
-    def _train_and_collect(self, collection: Collection, training: TrainingPhase, stop: runs.StopFlag) -> None:
+    def _train_and_collect(self, collection: Collection, training: TrainingPhase, stop: console.StopFlag) -> None:
         """The cycles: train to the schedule's target and checkpoint, then, until the cycles are
         done, collect a cycle once every policy node has loaded that checkpoint."""
         a, trainer, ledger = self.a, self.trainer, self.rundir.ledger
@@ -267,7 +267,7 @@ class Loop:
 
     def _report(self, status: str, t_start: float, eval_json: Path | None, rrd: Path | None) -> None:
         c = self.trainer.counters
-        print(f"[loop] {status} in {runs.fmt_seconds(time.monotonic() - t_start)}: "
+        print(f"[loop] {status} in {cli_values.format_duration(time.monotonic() - t_start)}: "
               f"{c.get('episodes', 0)} episodes ({c.get('env_steps', 0)} env steps) in {len(self.rundir.ledger.phases)} bag(s), "
               f"{self.trainer.updates} updates", flush=True)
         lines = [("run dir", self.run_dir), ("bags (MCAP)", self.rundir.bags_dir), ("checkpoint", runs.checkpoint_path(self.run_dir)),

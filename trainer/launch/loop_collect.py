@@ -8,7 +8,7 @@ import time
 from typing import Any
 
 from sim_bridge.contract import topics as T
-from trainer import runs
+from trainer import console, runs
 from trainer.launch.loop_rundir import LoopRunDir
 
 
@@ -19,7 +19,7 @@ class Collection:
         self.stack, self.rundir, self.trusted_keys, self.device = stack, rundir, trusted_keys, device
         self.a, self.cfg, self.ledger, self.namespaces = rundir.a, rundir.cfg, rundir.ledger, rundir.namespaces
 
-    def prefill(self, stop: runs.StopFlag) -> None:
+    def prefill(self, stop: console.StopFlag) -> None:
         """Random actions until the prefill's episodes are recorded (those of a resumed run count)."""
         a, cfg, ledger = self.a, self.cfg, self.ledger
         while ledger.prefill_episodes_done < a.prefill_episodes and not stop.stop:
@@ -32,7 +32,7 @@ class Collection:
                 raise RuntimeError("the prefill phase recorded no complete episode; see "
                                    f"{self.stack.log_dir}")
 
-    def collect(self, kind: str, episodes: int, stop: runs.StopFlag) -> dict[str, Any] | None:
+    def collect(self, kind: str, episodes: int, stop: console.StopFlag) -> dict[str, Any] | None:
         """One recorded run of every robot's bridge, `episodes` episodes each; returns the phase
         stats (None when interrupted before the bag holds anything)."""
         a, tr = self.a, self.cfg.train

@@ -6,11 +6,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from trainer import runs
+from trainer import console, runs
 from trainer.launch.loop_rundir import LoopRunDir
 
 
-def policy_vs_random(rundir: LoopRunDir, domain_id: int, device: str, stop: runs.StopFlag) -> None:
+def policy_vs_random(rundir: LoopRunDir, domain_id: int, device: str, stop: console.StopFlag) -> None:
     """The starting policy and the random one on the same unseen contexts, through ROS."""
     from trainer.learn.evaluate import evaluate_through_ros, format_table
 
@@ -28,7 +28,7 @@ def policy_vs_random(rundir: LoopRunDir, domain_id: int, device: str, stop: runs
     runs.atomic_write_json(rundir.path / "eval" / "start.json", {**res.to_dict(), "random": rnd.to_dict()})
 
 
-def final_evaluation(rundir: LoopRunDir, updates: int, device: str, stop: runs.StopFlag) -> Path | None:
+def final_evaluation(rundir: LoopRunDir, updates: int, device: str, stop: console.StopFlag) -> Path | None:
     """The trained checkpoint and the random policy on the test contexts (in-process): the table,
     and eval/test_UPDATES.json; None when stopped."""
     from trainer.learn.evaluate import evaluate_checkpoint, format_table

@@ -13,7 +13,7 @@ from typing import Any, Sequence
 from protocad_ros.model.config import plan_prototype_freeze
 from sim_bridge.contract import topics as T
 from trainer.launch import discovery
-from trainer import runs, settings
+from trainer import cli_values, run_config, runs, settings
 from trainer.data.dataset import MCAPDataset, TopicMap
 from trainer.learn.schedule import Schedule
 from trainer.settings import arg
@@ -63,7 +63,7 @@ class LoopSettings:
     policies) before training; 0: none"""
     no_visualize: bool = arg(False, group="loop")
     """skip the rerun context recording at the end"""
-    robots: int | None = arg(None, type=runs.positive_int, group="loop")
+    robots: int | None = arg(None, type=cli_values.positive_int, group="loop")
     """N robots collecting at once: a bridge and a policy node each in /protocad/robotI (own
     /clock), one recorder recording all of them, training on every robot's episodes; each
     records --episodes-per-cycle episodes per cycle (default 1)"""
@@ -175,9 +175,9 @@ def policy_config(init_policy: Path, s: LoopSettings, model: settings.ModelChoic
              **({"train.seq_len": m.seq_len} if m.seq_len else {})}
     if m.precision:   # the request; the policy's own (a shipped bf16 one) is a request too
         train["train.precision"] = m.precision
-    cfg = apply_overrides(copy.deepcopy(policy_cfg), {**runs.parse_set(m.set), **train})
+    cfg = apply_overrides(copy.deepcopy(policy_cfg), {**run_config.parse_set(m.set), **train})
     if config_args:
-        cfg = runs.apply_config_flags(cfg, list(config_args), prog)
+        cfg = run_config.apply_config_flags(cfg, list(config_args), prog)
     diffs = architecture_differences(policy_cfg, cfg)
     if diffs:
         raise ValueError(f"--init-policy {s.init_policy}: these options change its networks: "

@@ -31,7 +31,7 @@ from typing import Callable, Iterable
 
 from sim_bridge.contract import topics as T
 from trainer.launch.sender_gid import SenderSubscription, gid_pid
-from trainer.runs import wait_until
+from trainer.console import wait_until
 
 #: How long one get_state call may take before it is asked again.
 GET_STATE_TIMEOUT_S = 2.0
@@ -58,7 +58,7 @@ class RosGraph:
         from sim_bridge.contract import qos
 
         self.ctx = rclpy.Context()
-        # NO signal handlers: Ctrl-C belongs to the launcher (runs.StopFlag).
+        # NO signal handlers: Ctrl-C belongs to the launcher (console.StopFlag).
         rclpy.init(context=self.ctx, domain_id=domain_id,
                    signal_handler_options=SignalHandlerOptions.NO)
         self.node = Node(name, context=self.ctx, start_parameter_services=False)

@@ -290,7 +290,7 @@ class RosStack:
 
     def wait_until(self, proc: NodeProc, ready, what: str, timeout: float, stop=None) -> bool:
         """Wait for `ready()` (NodeFailed with the log tail if the process exits first or the
-        time runs out); False when `stop` (a runs.StopFlag) is raised."""
+        time runs out); False when `stop` (a console.StopFlag) is raised."""
         try:
             return self.graph.wait(ready, what=what, timeout=timeout, alive=proc.gone, stop=stop)
         except (RuntimeError, TimeoutError) as exc:
@@ -439,7 +439,7 @@ class RosStack:
     def wait_exit(self, proc: NodeProc, timeout: float, *, watch: Sequence[str] = ("policy", "actor", "recorder"),
                   stop=None) -> int:
         """Wait for `proc` to exit (code 0 expected); NodeFailed if it fails or a watched
-        process dies meanwhile; returns -1 when `stop` (a runs.StopFlag) is raised."""
+        process dies meanwhile; returns -1 when `stop` (a console.StopFlag) is raised."""
         deadline = time.monotonic() + timeout
         while proc.alive():
             if stop is not None and stop.stop:

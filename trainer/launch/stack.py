@@ -41,7 +41,7 @@ import yaml
 from sim_bridge.contract import topics as T
 from trainer.launch import discovery
 
-from trainer import runs
+from trainer import console, run_config
 SECTIONS = ("bridge", "policy", "recorder")
 DIAG_ERROR = 2   # diagnostic_msgs/DiagnosticStatus.ERROR
 MODULES = {"bridge": "sim_bridge.bridge.node", "policy": "protocad_ros.node.policy_node", "recorder": "trainer.nodes.recorder"}
@@ -59,7 +59,7 @@ def load_stack(path: str | Path, overrides: Sequence[str] = ()) -> dict[str, Any
     unknown = sorted(set(doc) - {"namespace", *SECTIONS})
     if unknown:
         raise ValueError(f"{path}: unknown key(s) {unknown}; valid: namespace, {', '.join(SECTIONS)}")
-    for key, value in runs.parse_set(overrides).items():
+    for key, value in run_config.parse_set(overrides).items():
         section, _, name = key.partition(".")
         if section not in SECTIONS or not name:
             raise ValueError(f"--set {key}: expected bridge.NAME, policy.NAME or recorder.NAME")
@@ -173,7 +173,7 @@ def run(doc: dict[str, Any], *, log_dir: Path, domain_id: int | None, ready_time
           flush=True)
     codes: dict[str, int | None] = {}
     refused = None
-    with runs.StopFlag() as stop:
+    with console.StopFlag() as stop:
         try:
             if record:
                 rec = dict(doc.get("recorder") or {})

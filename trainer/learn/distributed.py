@@ -97,10 +97,10 @@ def barrier_if(ctx: DistContext) -> None:
 def run_entry_point(threads: int, device: str, body: Callable[[DistContext, str], int]) -> int:
     """A command's body under torchrun or not: threads, join the ranks (device per rank), run
     body(ctx, device), leave the process group whatever happens."""
-    from trainer import runs
+    from trainer import torch_setup
 
-    runs.setup_torch(threads)
-    ctx, device = init(runs.resolve_device(device))
+    torch_setup.setup_torch(threads)
+    ctx, device = init(torch_setup.resolve_device(device))
     try:
         code = body(ctx, device)
         # Leave together: a rank that tears down gloo while its peer still has a pair open

@@ -37,7 +37,7 @@ import numpy as np
 
 from sim_bridge.contract.contexts import context_label
 from sim_bridge.sim.vector import VectorEnv
-from trainer import runs
+from trainer import console, runs, torch_setup
 from trainer.settings import arg
 from sim_bridge.sim.rollout import RandomPolicy, rollout
 
@@ -183,7 +183,7 @@ def select_contexts(task: str, split: str = "test", contexts: Sequence[Mapping[s
 def run_episodes(task: str, policy: Any, contexts: Sequence[Mapping[str, float]], episodes: int = 1, *,
                  split: str = "test", seed: int = 0, workers: int = 0, batch: int = 0,
                  action_repeat: int = 2, time_limit: int = 1000, render_quality: str = "fast",
-                 progress: bool | None = None, stop: runs.StopFlag | None = None,
+                 progress: bool | None = None, stop: console.StopFlag | None = None,
                  desc: str = "eval") -> list[ContextResult]:
     """`episodes` episodes of every context with `policy` (protocad_ros.policy.Policy or
     RandomPolicy; batched over up to `batch` envs). workers > 0: envs in worker processes."""
@@ -193,7 +193,7 @@ def run_episodes(task: str, policy: Any, contexts: Sequence[Mapping[str, float]]
         return results
     n = min(len(jobs), batch or (workers if workers > 0 else 8))   # one env per worker process
     steps_per_ep = math.ceil(time_limit / action_repeat)
-    bar = runs.progress(len(jobs) * steps_per_ep, desc=desc, disable=True if progress is False else None, unit="step")
+    bar = console.progress(len(jobs) * steps_per_ep, desc=desc, disable=True if progress is False else None, unit="step")
     # Seeds as evaluation always drew them (an int from each child of SeedSequence(seed)), so
     # earlier results reproduce.
     env_seeds = [int(s.generate_state(1)[0]) for s in np.random.SeedSequence(seed).spawn(n)]
@@ -215,7 +215,7 @@ def evaluate_checkpoint(checkpoint: str | Path | None, *, task: str | None = Non
                         max_contexts: int = 0, seed: int = 0, device: str = "cpu", workers: int = 0,
                         batch: int = 0, time_limit: int | None = None, agent: Any = None,
                         counters: Mapping[str, Any] | None = None, progress: bool | None = None,
-                        stop: runs.StopFlag | None = None) -> EvalResult:
+                        stop: console.StopFlag | None = None) -> EvalResult:
     """Evaluate a checkpoint (or an in-memory `agent`, or the random policy when both are None)."""
     from protocad_ros.policy import Policy
 
@@ -367,7 +367,7 @@ class EvaluateSettings:
     """--through-ros: ROS_DOMAIN_ID (default: a fresh one)"""
     json: str | None = arg(None, metavar="FILE")
     """write the results as JSON"""
-    threads: int = arg(0, help=runs.THREADS_HELP)
+    threads: int = arg(0, help=torch_setup.THREADS_HELP)
     """torch threads"""
     no_progress: bool = False
     """no progress bar"""
@@ -398,8 +398,8 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def run(a: EvaluateSettings) -> int:
     """Evaluate as the settings say, print the tables (and write --json)."""
-    runs.setup_torch(a.threads)
-    device = runs.resolve_device(a.device)
+    torch_setup.setup_torch(a.threads)
+    device = torch_setup.resolve_device(a.device)
     if not a.checkpoints and not a.random:
         raise ValueError("give CHECKPOINT(s) or --random --task TASK")
     if a.episodes < 1:
@@ -413,7 +413,7 @@ def run(a: EvaluateSettings) -> int:
     results: list[EvalResult] = []
     baselines: dict[str, EvalResult] = {}
     out: dict[str, Any] = {"split": a.split, "episodes_per_context": a.episodes, "seed": a.seed, "results": []}
-    with runs.StopFlag() as stop:
+    with console.StopFlag() as stop:
         random_tasks = list(a.task)
         for ck in ckpts:
             if a.through_ros:

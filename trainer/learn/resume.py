@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterable
 
 from protocad_ros.model.precision import PrecisionChoice
-from trainer import runs
+from trainer import metrics_log, runs
 from trainer.data.dataset import MCAPDataset
 from trainer.learn import distributed
 from trainer.learn.trainer import Trainer
@@ -27,7 +27,7 @@ class OpenedTrainer:
 
 
 def open_trainer(cfg, run_dir: Path, dataset: MCAPDataset, *, resume: bool, device: str, end_updates: int,
-                 precision: str | None, log_every: int, callbacks: Iterable[runs.MetricsCallback] = (),
+                 precision: str | None, log_every: int, callbacks: Iterable[metrics_log.MetricsCallback] = (),
                  dist_ctx: distributed.DistContext | None = None,
                  initial_agent: Callable[[], Any] | None = None,
                  restart_metrics: bool = False) -> OpenedTrainer:
@@ -50,7 +50,7 @@ def open_trainer(cfg, run_dir: Path, dataset: MCAPDataset, *, resume: bool, devi
         from sim_bridge.contract.contexts import task_actuators
 
         if resume and restart_metrics and ctx.is_main:
-            runs.truncate_metrics(Path(run_dir) / "metrics.jsonl", 0)
+            metrics_log.truncate_metrics(Path(run_dir) / "metrics.jsonl", 0)
         trainer = Trainer(cfg, run_dir, dataset, device=device, callbacks=callbacks, log_every=log_every,
                           action_dim=len(task_actuators(cfg.task)),
                           agent=initial_agent() if initial_agent is not None else None, dist_ctx=dist_ctx)

@@ -20,7 +20,7 @@ from pathlib import Path
 from typing import Any, Callable, Sequence
 
 from protocad_ros.model.config import plan_prototype_freeze
-from trainer import runs, settings
+from trainer import cli_values, console, runs, settings
 from trainer.data.dataset import DatasetError, MCAPDataset, TopicMap
 from trainer.learn import distributed
 from trainer.learn.trainer import DEFAULT_LOG_EVERY, CheckpointWriteError, RanksDiverged, Trainer
@@ -266,8 +266,8 @@ def _train_to(trainer: Trainer, target: int, s: TrainSettings, cfg, ctx: distrib
         f"run dir {run_dir}", flush=True)
     t0 = time.monotonic()
     start = trainer.updates
-    with runs.StopFlag() as stop:
-        bar = runs.progress(target, initial=trainer.updates, desc="train",
+    with console.StopFlag() as stop:
+        bar = console.progress(target, initial=trainer.updates, desc="train",
                             disable=True if s.no_progress or not ctx.is_main else None, unit="upd")
         try:
             done = trainer.train(target, stop=stop, checkpoint_every=s.checkpoint_every, bar=bar)
@@ -277,7 +277,7 @@ def _train_to(trainer: Trainer, target: int, s: TrainSettings, cfg, ctx: distrib
     dt = time.monotonic() - t0
     n = trainer.updates - start
     status = "finished" if done else "interrupted"
-    say(f"[train] {status} at update {trainer.updates} ({n} updates in {runs.fmt_seconds(dt)}"
+    say(f"[train] {status} at update {trainer.updates} ({n} updates in {cli_values.format_duration(dt)}"
         f"{f', {n / dt:.2f}/s' if dt > 0 and n else ''})", flush=True)
     say(f"[train] checkpoint: {trainer.checkpoint_path}", flush=True)
     say(f"[train] metrics:    {run_dir / 'metrics.jsonl'}", flush=True)

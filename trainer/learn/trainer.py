@@ -24,7 +24,7 @@ from typing import Any, Callable, Iterable, Mapping
 import numpy as np
 
 from protocad_ros.model.config import plan_prototype_freeze
-from trainer import runs
+from trainer import console, metrics_log, runs, torch_setup
 from trainer.data.dataset import MCAPDataset
 from trainer.learn import distributed
 from trainer.learn.schedule import RunCounters
@@ -42,7 +42,7 @@ class Trainer:
 
     def __init__(self, cfg, run_dir: str | Path, dataset: MCAPDataset | None, *, device: str = "cpu",
                  agent=None, counters: Mapping[str, Any] | None = None,
-                 callbacks: Iterable[runs.MetricsCallback] = (), log_every: int = DEFAULT_LOG_EVERY,
+                 callbacks: Iterable[metrics_log.MetricsCallback] = (), log_every: int = DEFAULT_LOG_EVERY,
                  action_dim: int | None = None, resumed: bool = False,
                  dist_ctx: distributed.DistContext | None = None):
         from protocad_ros.model.agents import make_agent
@@ -68,10 +68,10 @@ class Trainer:
             adim = action_dim or (dataset.action_dim if dataset is not None else None)
             if not adim:
                 raise ValueError("the action size is unknown: no dataset with actions and no action_dim")
-            runs.seed_everything(cfg.train.seed)
+            torch_setup.seed_everything(cfg.train.seed)
             agent = make_agent(cfg, int(adim), device=device)
             if self.dist.enabled:   # the same weights (rank 0's), each rank its own draws
-                runs.seed_everything(distributed.rank_seed(cfg.train.seed, self.dist.rank))
+                torch_setup.seed_everything(distributed.rank_seed(cfg.train.seed, self.dist.rank))
                 if dataset is not None:
                     dataset.rng = np.random.default_rng(distributed.rank_seed(cfg.train.seed, self.dist.rank))
         distributed.attach(agent, self.dist)
@@ -89,11 +89,11 @@ class Trainer:
         self.after_save: list = []
         self.log_every = max(1, int(log_every))
         if resumed and self.dist.is_main:  # lines logged after the checkpoint will be logged again
-            runs.truncate_metrics(self.run_dir / "metrics.jsonl", self.counters["updates"])
-        self.metrics = runs.MetricsLogger(self.run_dir / "metrics.jsonl" if self.dist.is_main else None,
+            metrics_log.truncate_metrics(self.run_dir / "metrics.jsonl", self.counters["updates"])
+        self.metrics = metrics_log.MetricsLogger(self.run_dir / "metrics.jsonl" if self.dist.is_main else None,
                                           callbacks if self.dist.is_main else (),
                                           wall_offset=float(self.counters.get("wall_time", 0.0)))
-        self._mean = runs.RunningMean()
+        self._mean = metrics_log.RunningMean()
         self._last_log_t = time.monotonic()
         self._last_log_u = self.updates
         self.last_metrics: dict[str, float] = {}
@@ -189,7 +189,7 @@ class Trainer:
                 row_extra.setdefault(k, counters[k])
         return self.metrics.log(self.updates, means, kind="train", **row_extra)
 
-    def train(self, target_updates: int, *, stop: runs.StopFlag | None = None, checkpoint_every: int = 0,
+    def train(self, target_updates: int, *, stop: console.StopFlag | None = None, checkpoint_every: int = 0,
               bar=None, on_update: Callable[[int, dict], None] | None = None, save: bool = True) -> bool:
         """Update until the agent's counter reaches target_updates (a total, not a delta).
         Checkpoints every `checkpoint_every` updates and at the end (unless save=False and not

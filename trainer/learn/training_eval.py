@@ -8,7 +8,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-from trainer import runs
+from trainer import console, runs
 from trainer.learn import distributed
 from trainer.learn.schedule import RunCounters
 from trainer.learn.trainer import Trainer
@@ -25,7 +25,7 @@ class Evaluator:
         self.device, self.workers, self.c, self.ctx, self.progress = device, workers, counters, ctx, progress
         self.run_dir, self.eval_dir = run_dir, run_dir / "eval"
 
-    def __call__(self, tag: str, contexts, episodes: int, stop: runs.StopFlag) -> Any:
+    def __call__(self, tag: str, contexts, episodes: int, stop: console.StopFlag) -> Any:
         from trainer.learn.evaluate import evaluate_checkpoint, format_table
 
         if not self.ctx.is_main:   # rank 0 evaluates; the others wait for it
@@ -43,7 +43,7 @@ class Evaluator:
         print(format_table(res), flush=True)
         return res
 
-    def random_baseline(self, contexts, episodes: int, time_limit: int, stop: runs.StopFlag) -> None:
+    def random_baseline(self, contexts, episodes: int, time_limit: int, stop: console.StopFlag) -> None:
         """The uniform random policy once per run (eval/random.json)."""
         from trainer.learn.evaluate import evaluate_checkpoint, format_table
 
@@ -56,7 +56,7 @@ class Evaluator:
             runs.atomic_write_json(self.eval_dir / "random.json", rnd.to_dict())
             print(format_table(rnd), flush=True)
 
-    def on_train_contexts(self, episodes: int, stop: runs.StopFlag) -> Any:
+    def on_train_contexts(self, episodes: int, stop: console.StopFlag) -> Any:
         """The final agent on every context of the training split: eval/final_train.json
         (outside eval.jsonl, whose rows are the test curve)."""
         from trainer.learn.evaluate import evaluate_checkpoint, format_table, select_contexts

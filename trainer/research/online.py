@@ -45,7 +45,7 @@ import time
 from pathlib import Path
 from typing import Sequence
 
-from trainer import runs, settings
+from trainer import cli_values, console, runs, settings, torch_setup
 from trainer.data.dataset import MCAPDataset, TopicMap
 from trainer.learn import distributed
 from trainer.learn.schedule import RunCounters
@@ -241,12 +241,12 @@ class OnlineRun:
 
     def _announce(self) -> None:
         s, cfg, tr, ctx = self.s, self.cfg, self.cfg.train, self.ctx
-        wall = f", wall budget {runs.fmt_seconds(s.wall_budget)}" if s.wall_budget else ""
+        wall = f", wall budget {cli_values.format_duration(s.wall_budget)}" if s.wall_budget else ""
         self.say(f"[online] {cfg.task} / {cfg.variant} / {cfg.preset} on {self.device}: {s.num_envs} env(s)"
                  + (f" on each of {self.world} ranks ({ctx.backend})" if ctx.enabled else "") + ", "
                  f"budget {s.env_steps} env steps{wall}, prefill {tr.prefill_episodes} episodes, "
                  f"C={tr.collect_interval}, eval every {s.eval_every} env steps on {len(self.periodic_contexts)} "
-                 f"{s.eval_split} contexts; {runs.torch_threads()} torch thread(s); run dir {self.run_dir}",
+                 f"{s.eval_split} contexts; {torch_setup.torch_threads()} torch thread(s); run dir {self.run_dir}",
                  flush=True)
         self.say(f"[online] {self.trainer.agent.precision.describe()}", flush=True)
 
@@ -254,14 +254,14 @@ class OnlineRun:
     def prefilling(self) -> bool:
         return not self.schedule.prefilled(self.c.episodes) and not self.c.prefill_done
 
-    def _stopped(self, stop: runs.StopFlag) -> bool:   # collective under torchrun: every rank decides the same
+    def _stopped(self, stop: console.StopFlag) -> bool:   # collective under torchrun: every rank decides the same
         return distributed.any_rank(stop.stop, self.ctx)
 
-    def _keep_going(self, stop: runs.StopFlag) -> bool:
+    def _keep_going(self, stop: console.StopFlag) -> bool:
         out_of_time = bool(self.s.wall_budget) and self.trainer.metrics.wall_time >= self.s.wall_budget
         return self.c.env_steps < self.s.env_steps and not distributed.any_rank(stop.stop or out_of_time, self.ctx)
 
-    def _after_episodes(self, finished: list[Path], stop: runs.StopFlag, bar) -> None:
+    def _after_episodes(self, finished: list[Path], stop: console.StopFlag, bar) -> None:
         """Episodes ended: replay them, train up to the schedule's target, evaluate when due."""
         s, c, sched, trainer = self.s, self.c, self.schedule, self.trainer
         self.ds.add(finished)
@@ -280,11 +280,11 @@ class OnlineRun:
                 c.evals += 1
                 trainer.save()
 
-    def _collect_and_train(self, stream, stop: runs.StopFlag) -> str:
+    def _collect_and_train(self, stream, stop: console.StopFlag) -> str:
         """The loop: step every env, record, and after each finished episode train and evaluate
         on schedule. Returns how it ended: interrupted, finished (env steps) or wall_budget."""
         c, s = self.c, self.s
-        bar = runs.progress(s.env_steps, initial=c.env_steps, desc="env steps",
+        bar = console.progress(s.env_steps, initial=c.env_steps, desc="env steps",
                             disable=True if s.no_progress or not self.main_rank else None, unit="step")
         if s.resume:
             # What the interruption cut short comes first: the updates the episodes on disk are
@@ -317,7 +317,7 @@ class OnlineRun:
         t_start = time.monotonic()
         self.venv, self.bags = None, None
         status, cause = "failed", None   # until the loop ends normally or is stopped
-        with runs.StopFlag() as stop:
+        with console.StopFlag() as stop:
             try:
                 if self.s.random_baseline:
                     self.evaluate.random_baseline(self.final_contexts, self.s.final_episodes,
@@ -369,7 +369,7 @@ class OnlineRun:
     def _report(self, status: str, seconds: float) -> None:
         c, run_dir = self.c, self.run_dir
         self.say(f"[online] {status}: {c.env_steps} env steps, {c.episodes} episodes, {self.trainer.updates} "
-                 f"updates in {runs.fmt_seconds(seconds)}", flush=True)
+                 f"updates in {cli_values.format_duration(seconds)}", flush=True)
         self.say(f"[online] run dir:    {run_dir}\n[online] checkpoint: {self.trainer.checkpoint_path}\n"
                  f"[online] bags:       {self.bags_dir} ({len(self.ds.stores)} episodes)\n"
                  f"[online] metrics:    {run_dir / 'metrics.jsonl'}\n"

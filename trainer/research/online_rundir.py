@@ -19,7 +19,7 @@ import numpy as np
 
 from protocad_ros.model.config import plan_prototype_freeze
 from sim_bridge.contract import topics as T
-from trainer import runs, settings
+from trainer import cli_values, runs, settings
 from trainer.data.dataset import MCAPDataset
 from trainer.learn import distributed
 from trainer.learn.schedule import RunCounters, Schedule
@@ -67,7 +67,7 @@ class OnlineSettings:
     final_max_contexts: int = arg(0, group="protocol")
     """the final evaluation (and --random-baseline): 0 = every context of the split, the paper
     protocol; K = the stratified subset of K"""
-    wall_budget: float | None = arg(None, type=runs.parse_duration, metavar="DURATION", group="protocol")
+    wall_budget: float | None = arg(None, type=cli_values.parse_duration, metavar="DURATION", group="protocol")
     """also stop once the run's training wall time (carried across resumes) reaches this, e.g.
     5400, 90m, 1h30m; then the final evaluation, checkpoint and curves are written as at the
     env-step budget"""

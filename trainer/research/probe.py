@@ -30,7 +30,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from sim_bridge.contract.contexts import get_task
-from trainer import runs, settings
+from trainer import settings, torch_setup
 from trainer.learn.evaluate import select_contexts
 from trainer.provenance import code_version
 from trainer.research import probe_report
@@ -75,7 +75,7 @@ class ProbeSettings:
     """write a rerun recording: the window features in 2-D PCA, coloured by context"""
     device: str = "cpu"
     """cpu, cuda, cuda:N or auto"""
-    threads: int = arg(0, help=runs.THREADS_HELP)
+    threads: int = arg(0, help=torch_setup.THREADS_HELP)
     """torch threads"""
     no_progress: bool = False
     """no progress bar"""
@@ -154,8 +154,8 @@ def run(s: ProbeSettings, command: Sequence[str] = ()) -> int:
     argv the JSON records)."""
     t0 = time.monotonic()
     s.plan().check()
-    runs.setup_torch(s.threads)
-    device = runs.resolve_device(s.device)
+    torch_setup.setup_torch(s.threads)
+    device = torch_setup.resolve_device(s.device)
     agent, counters, path = load(s.checkpoint, device)
     from protocad_ros.policy import Policy
 

@@ -25,7 +25,7 @@ import numpy as np
 
 from sim_bridge.sim.rollout import Trajectory, rollout
 from sim_bridge.sim.vector import VectorEnv
-from trainer import runs
+from trainer import console
 from trainer.research.probe_fit import Windows
 
 PIXELS = 64 * 64 * 3
@@ -202,7 +202,7 @@ def collect(agent: Any, policy: Any, contexts: Mapping[str, Sequence[Mapping[str
     out.contexts = [(split, dict(c)) for split, ctxs in contexts.items() for c in ctxs]
     jobs = [(split, ci) for ci, (split, _) in enumerate(out.contexts) for _ in range(plan.episodes)]
     # rollout counts the steps after each episode's first observation
-    bar = runs.progress(len(jobs) * (plan.steps - 1), desc=f"probe {cfg.task}", unit="step",
+    bar = console.progress(len(jobs) * (plan.steps - 1), desc=f"probe {cfg.task}", unit="step",
                         disable=True if progress is False else None)
     try:
         for split_index, split in enumerate(contexts):

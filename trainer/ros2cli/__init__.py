@@ -14,7 +14,7 @@ discovery, as ros2cli does without its daemon. Anything else says that it needs 
 install. Where a real ros2cli exists (importable, or another `ros2` on PATH), every call is
 handed to it.
 
-May import: ROS, trainer.runs, trainer.bag, trainer.nodes
+May import: ROS, trainer.runs, trainer.run_config, trainer.torch_setup, trainer.metrics_log, trainer.cli_values, trainer.console, trainer.bag, trainer.nodes
 """
 from __future__ import annotations
 

@@ -7,7 +7,7 @@ import threading
 from typing import Any
 
 from trainer.ros2cli import graph
-from trainer.runs import non_negative_int, positive_float, positive_int
+from trainer.cli_values import non_negative_int, positive_float, positive_int
 from trainer.ros2cli.msgyaml import interface_class, message_to_csv, message_to_yaml
 
 DEFAULT_TRUNCATE_LENGTH = 128

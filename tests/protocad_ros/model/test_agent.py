@@ -371,7 +371,7 @@ def test_one_override_path_for_make_config_files_and_set(tmp_path):
     """make_config, a config file and --set all go through config.apply_overrides: bare keys
     resolve to the one section that has them, ambiguous ones are refused with the choices."""
     from protocad_ros.model.config import apply_overrides
-    from trainer.runs import build_config
+    from trainer.run_config import build_config
 
     cfg = make_config("pendulum_swingup", "small")
     assert apply_overrides(cfg, {"horizon": 3}).behavior.horizon == 3

@@ -19,7 +19,7 @@ ROBOT = {"image": "/robot/camera", "step_info": "/robot/step", "action": "/robot
 
 
 def metrics(run_dir: Path) -> list[dict]:
-    from trainer.runs import read_metrics
+    from trainer.metrics_log import read_metrics
 
     return [r for r in read_metrics(run_dir / "metrics.jsonl") if r.get("kind") == "train"]
 
@@ -170,12 +170,12 @@ def test_every_config_field_is_an_option_with_the_configs_help_and_the_presets_d
     import dataclasses
 
     from protocad_ros.model.config import make_config
-    from trainer import runs
+    from trainer import run_config
 
     small, paper = run_cli("trainer.learn.train", "--help"), run_cli("trainer.learn.train", "--preset", "paper", "--help")
     assert small.returncode == paper.returncode == 0, small.stderr + paper.stderr
     cfg = make_config(preset="small")
-    for section in (f for f in dataclasses.fields(cfg) if f.name not in runs.OWN_FLAG_FIELDS):
+    for section in (f for f in dataclasses.fields(cfg) if f.name not in run_config.OWN_FLAG_FIELDS):
         value = getattr(cfg, section.name)
         keys = [f"{section.name}.{f.name}" for f in dataclasses.fields(value)] if dataclasses.is_dataclass(value) \
             else [section.name]
@@ -215,8 +215,8 @@ def test_config_options_set_what_set_and_the_file_set(tmp_path):
 def test_auto_threads_are_the_cores_shared_among_the_local_ranks(local_ranks):
     """--threads 0: torch's one thread per core, divided among torchrun's ranks on the machine;
     an explicit number wins, and auto after it comes back to the same share."""
-    code = ("import torch; from trainer import runs; d = torch.get_num_threads(); "
-            "print(d, runs.setup_torch(0), runs.setup_torch(3), runs.setup_torch(None))")
+    code = ("import torch; from trainer import torch_setup; d = torch.get_num_threads(); "
+            "print(d, torch_setup.setup_torch(0), torch_setup.setup_torch(3), torch_setup.setup_torch(None))")
     env = {k: v for k, v in os.environ.items() if k != "LOCAL_WORLD_SIZE"}
     if local_ranks:
         env["LOCAL_WORLD_SIZE"] = local_ranks

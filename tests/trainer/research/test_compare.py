@@ -247,7 +247,7 @@ def test_compare_help_and_bad_report_are_clear(tmp_path):
 
 
 def test_durations_print_as_they_parse():
-    from trainer.runs import format_duration, parse_duration
+    from trainer.cli_values import format_duration, parse_duration
     for seconds in (0, 45, 600, 3600, 11400, 90061):
         text = format_duration(seconds)
         assert abs(parse_duration(text) - seconds) < 60, text

@@ -307,7 +307,7 @@ def test_training_recorder_series_on_the_update_timeline(tmp_path, pendulum_agen
 
 def test_metrics_callback_is_the_training_recorder(tmp_path):
     from trainer.viz.rerun_log import metrics_callback
-    from trainer.runs import MetricsLogger
+    from trainer.metrics_log import MetricsLogger
 
     assert metrics_callback(None) is None
     cb = metrics_callback(tmp_path / "run" / "metrics.rrd")
