@@ -130,13 +130,8 @@ OVER_CAP: dict[str, int] = {
     'function sim_bridge/nodekit/rosnode.py:run_node': 88,
     'function trainer/research/compare.py:main': 86,
     'function trainer/research/compare.py:run_grid': 89,
-    'function trainer/viz/context_plot.py:render_context_png': 99,
-    'function trainer/viz/context_view.py:compute_context_view': 86,
-    'function trainer/viz/visualize.py:write_context_recording': 110,
-    'module protocad_ros/model/agent.py': 518,
     'module protocad_ros/model/config.py': 772,
     'module trainer/research/compare.py': 510,
-    'module trainer/viz/visualize.py': 609,
 }
 
 

@@ -170,6 +170,81 @@ class ContextView:
         return [context_label(c, s) for s, c in self.contexts]
 
 
+def _point_steps(eps: Sequence[Episode], skip_steps: int, max_points: int) -> list[np.ndarray]:
+    """The steps of each episode that become points: the warm-up skipped, thinned evenly to
+    stay under max_points."""
+    steps_per_ep = []
+    for ep in eps:
+        first = min(skip_steps, len(ep) - 1)
+        steps_per_ep.append(np.arange(first, len(ep)))
+    total = sum(len(s) for s in steps_per_ep)
+    if total > max_points:
+        keep = max(1, max_points // len(eps))
+        steps_per_ep = [s[np.linspace(0, len(s) - 1, min(keep, len(s))).round().astype(int)]
+                        for s in steps_per_ep]
+    return steps_per_ep
+
+
+def _contexts_of(eps: Sequence[Episode]) -> tuple[list[tuple[str, dict[str, float]]], np.ndarray]:
+    """The (split, context) pairs in order of first appearance, and each episode's index into
+    them: several episodes of one context share its mean point."""
+    contexts: list[tuple[str, dict[str, float]]] = []
+    episode_context = np.zeros(len(eps), int)
+    index: dict[tuple, int] = {}
+    for i, ep in enumerate(eps):
+        key = (ep.split, tuple(sorted(ep.context.items())))
+        if key not in index:
+            index[key] = len(contexts)
+            contexts.append((ep.split, dict(ep.context)))
+        episode_context[i] = index[key]
+    return contexts, episode_context
+
+
+def _feature_spaces(emb: Sequence[dict[str, np.ndarray | None]], steps_per_ep: Sequence[np.ndarray]
+                    ) -> dict[str, np.ndarray]:
+    """name -> (N, F) at the point steps: u_e, u and e where the agent has context features,
+    and always the RSSM state."""
+    def gather(key: str) -> np.ndarray | None:
+        if any(e[key] is None for e in emb):
+            return None
+        return np.concatenate([emb[i][key][s] for i, s in enumerate(steps_per_ep)])
+
+    s, u, e = gather("s"), gather("u"), gather("e")
+    features: dict[str, np.ndarray] = {}
+    if u is not None and e is not None:
+        features["u_e"] = np.concatenate([u, e], axis=1)
+    if u is not None:
+        features["u"] = u
+    if e is not None:
+        features["e"] = e
+    if s is None:
+        raise ValueError("agent.embed_sequences returned no RSSM state 's'")
+    features["rssm_state"] = s
+    return features
+
+
+def _project_spaces(features: dict[str, np.ndarray], protos: np.ndarray | None, point_context: np.ndarray,
+                    num_contexts: int, *, dims: Sequence[int], projection: str, seed: int) -> tuple[dict, dict, dict]:
+    """(points, context means, prototypes), each (feature, dim) -> (n, dim), of every feature
+    space in every dim."""
+    proto_in = {}
+    if protos is not None:
+        proto_in = {"u": protos, "e": protos, "u_e": np.concatenate([protos, protos], axis=1)}
+    points, ctx_points, proto_points = {}, {}, {}
+    for name, X in features.items():
+        extra = proto_in.get(name)
+        if extra is not None and extra.shape[1] != X.shape[1]:
+            extra = None  # e.g. prototypes of another dim than u: not in this space
+        for dim in dims:
+            Y, Ye = project(X, dim, projection, extra=extra, seed=seed)
+            points[(name, dim)] = Y
+            if Ye is not None:
+                proto_points[(name, dim)] = Ye
+            ctx_points[(name, dim)] = np.stack([Y[point_context == c].mean(0)
+                                                for c in range(num_contexts)])
+    return points, ctx_points, proto_points
+
+
 def compute_context_view(agent: Any, episodes: Iterable[Any], *, projection: str = "pca",
                          skip_steps: int = DEFAULT_SKIP_STEPS, batch_size: int = 16,
                          dims: Sequence[int] = (2, 3), seed: int = 0,
@@ -190,63 +265,15 @@ def compute_context_view(agent: Any, episodes: Iterable[Any], *, projection: str
             if p not in params:
                 params.append(p)
     emb = embeddings if embeddings is not None else embed_episodes(agent, eps, batch_size)
-    # Which steps become points: skip the warm-up, thin evenly to stay under max_points.
-    steps_per_ep = []
-    for ep in eps:
-        first = min(skip_steps, len(ep) - 1)
-        steps_per_ep.append(np.arange(first, len(ep)))
-    total = sum(len(s) for s in steps_per_ep)
-    if total > max_points:
-        keep = max(1, max_points // len(eps))
-        steps_per_ep = [s[np.linspace(0, len(s) - 1, min(keep, len(s))).round().astype(int)]
-                        for s in steps_per_ep]
+    steps_per_ep = _point_steps(eps, skip_steps, max_points)
     point_episode = np.concatenate([np.full(len(s), i) for i, s in enumerate(steps_per_ep)])
     point_step = np.concatenate(steps_per_ep)
-    # Contexts in order of first appearance; several episodes of one context share its mean.
-    contexts: list[tuple[str, dict[str, float]]] = []
-    episode_context = np.zeros(len(eps), int)
-    index: dict[tuple, int] = {}
-    for i, ep in enumerate(eps):
-        key = (ep.split, tuple(sorted(ep.context.items())))
-        if key not in index:
-            index[key] = len(contexts)
-            contexts.append((ep.split, dict(ep.context)))
-        episode_context[i] = index[key]
-    point_context = episode_context[point_episode]
-
-    def gather(key: str) -> np.ndarray | None:
-        if any(e[key] is None for e in emb):
-            return None
-        return np.concatenate([emb[i][key][s] for i, s in enumerate(steps_per_ep)])
-
-    s, u, e = gather("s"), gather("u"), gather("e")
-    features: dict[str, np.ndarray] = {}
-    if u is not None and e is not None:
-        features["u_e"] = np.concatenate([u, e], axis=1)
-    if u is not None:
-        features["u"] = u
-    if e is not None:
-        features["e"] = e
-    if s is None:
-        raise ValueError("agent.embed_sequences returned no RSSM state 's'")
-    features["rssm_state"] = s
-
+    contexts, episode_context = _contexts_of(eps)
+    features = _feature_spaces(emb, steps_per_ep)
     protos = agent_prototypes(agent)
-    proto_in = {}
-    if protos is not None:
-        proto_in = {"u": protos, "e": protos, "u_e": np.concatenate([protos, protos], axis=1)}
-    points, ctx_points, proto_points = {}, {}, {}
-    for name, X in features.items():
-        extra = proto_in.get(name)
-        if extra is not None and extra.shape[1] != X.shape[1]:
-            extra = None  # e.g. prototypes of another dim than u: not in this space
-        for dim in dims:
-            Y, Ye = project(X, dim, projection, extra=extra, seed=seed)
-            points[(name, dim)] = Y
-            if Ye is not None:
-                proto_points[(name, dim)] = Ye
-            ctx_points[(name, dim)] = np.stack([Y[point_context == c].mean(0)
-                                                for c in range(len(contexts))])
+    points, ctx_points, proto_points = _project_spaces(
+        features, protos, episode_context[point_episode], len(contexts), dims=dims,
+        projection=projection, seed=seed)
     value_range = {}
     for p in params:
         vals = [ep.context[p] for ep in eps if p in ep.context]
@@ -256,6 +283,3 @@ def compute_context_view(agent: Any, episodes: Iterable[Any], *, projection: str
                        points, ctx_points, proto_points, assignments,
                        0 if protos is None else len(protos), contexts, episode_context,
                        value_range, skip_steps)
-
-
-# ============================================================================== logging

@@ -219,16 +219,18 @@ class TrainingRecorder:
         """The context view of trainer.viz.visualize (embeddings, prototypes, assignments,
         reconstructions, open loop) for ``agent`` on ``episodes`` at ``update``; returns the
         ContextView."""
-        from trainer.viz import visualize as vis
+        from trainer.viz.context_blueprint import context_blueprint_parts
+        from trainer.viz.context_log import log_context_view, log_open_loop, log_reconstructions
+        from trainer.viz.context_view import compute_context_view
 
-        view = vis.compute_context_view(agent, episodes, projection=projection, **kw)
-        vis.log_context_view(self.recording, view, update=update)
-        vis.log_reconstructions(self.recording, agent, view.episodes, num_episodes=num_episodes,
-                                update=update)
+        view = compute_context_view(agent, episodes, projection=projection, **kw)
+        log_context_view(self.recording, view, update=update)
+        log_reconstructions(self.recording, agent, view.episodes, num_episodes=num_episodes,
+                            update=update)
         if open_loop and horizon > 0:
-            vis.log_open_loop(self.recording, agent, view.episodes, context_steps=context_steps,
-                              horizon=horizon, num_episodes=num_episodes, update=update)
-        self._context_tabs = vis.context_blueprint_parts(view)
+            log_open_loop(self.recording, agent, view.episodes, context_steps=context_steps,
+                          horizon=horizon, num_episodes=num_episodes, update=update)
+        self._context_tabs = context_blueprint_parts(view)
         self._send_blueprint()
         return view
 

@@ -16,53 +16,15 @@ recording with a blueprint (layout) inside:
 * observations beside reconstructions, and open-loop predictions (a few context frames then
   ``horizon`` imagined frames) against the truth, with the per-frame error.
 
-Entity paths (``<space>`` = ``<feature>/<method><dim>d``, e.g. ``u_e/pca3d``; ``<method>`` is
-``pca`` or ``tsne``; ``<param>`` a context parameter of the task, e.g. ``m`` or ``d``):
-
-================================== =========================================================
-/embeddings                        AnnotationContext: class 0 train, 1 test, 2 prototype
-/embeddings/legend                 TextDocument: features, colour scales, counts
-/embeddings/<space>/by_split       Points: one per step (after ``skip_steps``), class = split,
-                                   label = context
-/embeddings/<space>/by_<param>     Points: same positions, coloured by the true value of
-                                   <param> (viridis over both splits' range)
-/embeddings/<space>/contexts       Points: one per context (mean of all its points), class =
-                                   split, label = "train m=0.75 d=1" -- every context of both
-                                   splits (collected in-process where no log has it)
-/embeddings/<space>/prototypes     Points: the K prototypes (u_e, u, e spaces only), labels c<k>
-/assignment/by_context             Tensor (episode x prototype): mean w per episode
-/assignment/episodes               TextDocument: row index -> split, context, return
-/episodes/<i>/assignment           Tensor (step x prototype): w over time for episode i
-/episodes/<i>/top_prototype        Scalars on 'step': argmax_k w_t
-/reconstruction/truth              Image on 'step': observations of a few episodes side by side
-/reconstruction/model              Image on 'step': the decoder's reconstructions, same layout
-/reconstruction/mse                Scalars on 'step': mean squared pixel error (0..1 scale)
-/reconstruction/episodes           TextDocument: which episodes, left to right
-/open_loop/truth                   Image on 'step': true frames (context + horizon)
-/open_loop/prediction              Image on 'step': context frames (green border), then the
-                                   open-loop prediction (red border)
-/open_loop/mse                     Scalars on 'step': per-frame error of the prediction
-/open_loop/montage                 Image: every 5th frame, truth row above prediction row
-/open_loop/episodes                TextDocument: which episodes, left to right
-/open_loop/note                    TextDocument: why there is no open-loop view (none long enough)
-================================== =========================================================
-
-Times: the embeddings, prototypes and tensors are static (or on 'update', see below); the
-per-step entities are on the sequence timeline 'step'. The recording carries a blueprint with
-tabs "Contexts" (u_e and RSSM state, 3D coloured by the first parameter and 2D by split, with
-prototypes and context means, plus the legend), "Features u / e", "Assignments" and
-"Predictions" (observations | reconstructions, open-loop truth | prediction, errors).
-
-The agent is used only through Agent.embed_sequences, .reconstruct, .open_loop and
-.prototypes (protocad_ros/model/agent.py); variants without a decoder skip the prediction views and
-variants without context features show the RSSM state only.
-
-With ``update`` set (``TrainingRecorder.log_context_view``) everything is logged on the
-'update' timeline too, so the embeddings can be scrubbed through training.
+The recording carries its blueprint (layout) inside. The agent is used only through
+Agent.embed_sequences, .reconstruct, .open_loop and .prototypes (protocad_ros/model/agent.py);
+variants without a decoder skip the prediction views and variants without context features show
+the RSSM state only.
 
 The parts: trainer/viz/context_episodes.py (episodes per context, from a policy or from logs),
-trainer/viz/context_view.py (features, projections, classes), trainer/viz/context_plot.py (the PNG);
-this module logs them to rerun and is the CLI.
+trainer/viz/context_view.py (features, projections, classes), trainer/viz/context_log.py (what
+is logged: the entity paths), trainer/viz/context_blueprint.py (the layout),
+trainer/viz/context_plot.py (the PNG); this module writes the recording and is the CLI.
 """
 from __future__ import annotations
 
@@ -74,17 +36,16 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
-import numpy as np
-
-
 from sim_bridge.contract.contexts import context_label
+from trainer.viz.context_blueprint import context_blueprint, context_blueprint_parts
 from trainer.viz.context_episodes import (DEFAULT_SKIP_STEPS, DEFAULT_STEPS_PER_CONTEXT, SPLIT_CLASS,
-                                      Episode, collect_context_episodes, load_log_episodes,
-                                      missing_contexts, pick_episodes, stack_batches)
+                                          Episode, collect_context_episodes, load_log_episodes,
+                                          missing_contexts, pick_episodes, stack_batches)
+from trainer.viz.context_log import log_context_view, log_open_loop, log_reconstructions
 from trainer.viz.context_plot import render_context_png
 from trainer.viz.context_view import (CLASS_COLORS, CLASS_NAMES, FEATURES, PROTOTYPE_CLASS,
-                                  PROTOTYPE_FEATURES, ContextView, colormap,
-                                  compute_context_view, embed_episodes, no_grad, project, to_numpy)
+                                      PROTOTYPE_FEATURES, ContextView, colormap,
+                                      compute_context_view, embed_episodes, project)
 
 __all__ = ["Episode", "ContextView", "RecordingResult", "collect_context_episodes",
            "load_log_episodes", "missing_contexts", "compute_context_view", "embed_episodes",
@@ -93,264 +54,6 @@ __all__ = ["Episode", "ContextView", "RecordingResult", "collect_context_episode
            "write_context_recording", "load_agent", "context_label", "colormap", "stack_batches",
            "FEATURES", "PROTOTYPE_FEATURES", "CLASS_COLORS", "CLASS_NAMES", "PROTOTYPE_CLASS",
            "SPLIT_CLASS", "DEFAULT_STEPS_PER_CONTEXT", "DEFAULT_SKIP_STEPS", "pick_episodes", "main"]
-
-
-def annotation_context():
-    import rerun as rr
-
-    return rr.AnnotationContext([rr.AnnotationInfo(id=i, label=CLASS_NAMES[i], color=CLASS_COLORS[i])
-                                 for i in sorted(CLASS_NAMES)])
-
-
-def log_context_view(rec: Any, view: ContextView, *, update: int | None = None) -> None:
-    """Log the embeddings, prototypes and assignments of ``view`` to the RecordingStream ``rec``.
-
-    update=None: static data (one snapshot); an int: on the 'update' timeline.
-    """
-    import rerun as rr
-
-    static = update is None
-    if update is not None:
-        rec.set_time("update", sequence=int(update))
-    rec.log("/embeddings", annotation_context(), static=True)
-    eps = view.episodes
-    split_ids = np.array([SPLIT_CLASS[ep.split] for ep in eps])
-    ctx_split_ids = np.array([SPLIT_CLASS[s] for s, _ in view.contexts])
-    labels = [ep.label for ep in eps]
-    # Points in a fixed shuffled order: no split or context is drawn over all the others.
-    order = np.random.default_rng(0).permutation(len(view.point_episode))
-    p_ep = view.point_episode[order]
-    point_labels = [f"{labels[i]} t={t}" for i, t in zip(p_ep, view.point_step[order])]
-    for (name, dim), Y in view.points.items():
-        Y = Y[order]
-        space = view.space(name, dim)
-        Points = rr.Points3D if dim == 3 else rr.Points2D
-        rec.log(f"{space}/by_split", Points(Y, class_ids=split_ids[p_ep], labels=point_labels,
-                                           show_labels=False, radii=-2.0), static=static)
-        for p in view.params:
-            vals = np.array([eps[i].context.get(p, np.nan) for i in p_ep])
-            lo, hi = view.value_range[p]
-            rec.log(f"{space}/by_{p}", Points(Y, colors=colormap(vals, lo, hi),
-                                              class_ids=split_ids[p_ep], labels=point_labels,
-                                              show_labels=False, radii=-2.0), static=static)
-        rec.log(f"{space}/contexts", Points(view.context_points[(name, dim)],
-                                            class_ids=ctx_split_ids, labels=view.context_labels,
-                                            show_labels=False, radii=-5.0), static=static)
-        Yp = view.prototype_points.get((name, dim))
-        if Yp is not None:
-            rec.log(f"{space}/prototypes",
-                    Points(Yp, class_ids=np.full(len(Yp), PROTOTYPE_CLASS),
-                           labels=[f"c{k}" for k in range(len(Yp))], show_labels=False,
-                           radii=-4.0), static=static)
-    rec.log("/embeddings/legend", rr.TextDocument(legend_markdown(view), media_type="text/markdown"),
-            static=static)
-    # Assignments: mean w per episode (rows sorted as the episode table) and w over time.
-    rows = []
-    if any(w is not None for w in view.assignments):
-        mean_w = np.stack([w.mean(0) if w is not None else np.zeros(view.num_prototypes)
-                           for w in view.assignments])
-        rec.log("/assignment/by_context", rr.Tensor(mean_w, dim_names=["episode", "prototype"]),
-                static=static)
-        for i, (ep, w) in enumerate(zip(eps, view.assignments)):
-            if w is None:
-                continue
-            rec.log(f"/episodes/{i}/assignment", rr.Tensor(w, dim_names=["step", "prototype"]),
-                    static=static)
-            top = np.argmax(w, axis=1).astype(np.float64)
-            index = [rr.TimeColumn("step", sequence=np.arange(len(top)))]
-            if update is not None:
-                index.append(rr.TimeColumn("update", sequence=np.full(len(top), int(update))))
-            rec.send_columns(f"/episodes/{i}/top_prototype", indexes=index,
-                             columns=rr.Scalars.columns(scalars=top))
-    for i, ep in enumerate(eps):
-        rows.append(f"| {i} | {ep.split} | {context_label(ep.context)} | {len(ep)} | "
-                    f"{float(ep.reward.sum()):.1f} |")
-    table = ("| episode | split | context | steps | return |\n|---|---|---|---|---|\n"
-             + "\n".join(rows))
-    rec.log("/assignment/episodes", rr.TextDocument(table, media_type="text/markdown"),
-            static=static)
-
-
-def legend_markdown(view: ContextView) -> str:
-    n_ctx = view.contexts_per_split()
-    lines = [
-        f"# Context features ({view.method.upper()})",
-        "",
-        "Points: one per step (from step %d on) of every episode; big points: per-context mean;"
-        % view.skip_steps,
-        "red `c<k>`: the K prototypes in the same projection.",
-        "",
-        "* **u_e**: concat(u, e), the learned context feature (paper t-SNE figure); a prototype "
-        "c_k sits at (c_k, c_k)",
-        "* **u**: projection of the RSSM state; **e**: prototype-weighted aggregate "
-        "e = sum_k softmax(u.c_k / T) c_k",
-        "* **rssm_state**: the RSSM state s = (h, z), for comparison",
-        "",
-        "Colours: `by_split` blue = train, orange = test; "
-        + "; ".join(f"`by_{p}` viridis from {lo:g} (purple) to {hi:g} (yellow)"
-                    for p, (lo, hi) in view.value_range.items()),
-        "",
-        f"{len(view.episodes)} episodes of {n_ctx['train']} train and {n_ctx['test']} test "
-        f"contexts, {len(view.point_episode)} points, K = {view.num_prototypes} prototypes.",
-    ]
-    return "\n".join(lines)
-
-
-def _strip(frames: Sequence[np.ndarray], pad: int = 2) -> np.ndarray:
-    """Frames (H,W,3) side by side with a white gap."""
-    h = max(f.shape[0] for f in frames)
-    parts = []
-    for i, f in enumerate(frames):
-        if i:
-            parts.append(np.full((h, pad, 3), 255, np.uint8))
-        parts.append(f)
-    return np.concatenate(parts, axis=1)
-
-
-def _border(frame: np.ndarray, color: Sequence[int], width: int = 2) -> np.ndarray:
-    f = frame.copy()
-    f[:width], f[-width:], f[:, :width], f[:, -width:] = color, color, color, color
-    return f
-
-
-def log_reconstructions(rec: Any, agent: Any, episodes: Sequence[Episode], *, num_episodes: int = 4,
-                        update: int | None = None) -> list[int]:
-    """Observations beside reconstructions of a few episodes (side by side), on 'step'."""
-    import rerun as rr
-
-    picks = pick_episodes(episodes, num_episodes, min_length=2)
-    if not picks or not getattr(agent, "has_decoder", True):
-        return []  # e.g. DreamerPro: reconstruction-free, nothing to show
-    if update is not None:
-        rec.set_time("update", sequence=int(update))
-    T = min(len(episodes[i]) for i in picks)
-    with no_grad():
-        model = to_numpy(agent.reconstruct(stack_batches([episodes[i].batch(0, T) for i in picks])))
-    truth = np.stack([episodes[i].image[:T] for i in picks])
-    model = np.asarray(model).astype(np.uint8)
-    labels = " | ".join(episodes[i].label for i in picks)
-    rec.log("/reconstruction/episodes", rr.TextDocument(f"left to right: {labels}"),
-            static=update is None)
-    for t in range(T):
-        rec.set_time("step", sequence=t)
-        rec.log("/reconstruction/truth", rr.Image(_strip(truth[:, t])))
-        rec.log("/reconstruction/model", rr.Image(_strip(model[:, t])))
-        err = ((truth[:, t].astype(np.float32) - model[:, t]) / 255.0) ** 2
-        rec.log("/reconstruction/mse", rr.Scalars(float(err.mean())))
-    rec.disable_timeline("step")
-    return picks
-
-
-def log_open_loop(rec: Any, agent: Any, episodes: Sequence[Episode], *, context_steps: int = 5,
-                  horizon: int = 50, num_episodes: int = 4, update: int | None = None) -> list[int]:
-    """Open-loop predictions (``context_steps`` observed frames, then ``horizon`` imagined ones)
-    against the truth, for a few episodes at least context_steps + horizon long."""
-    import rerun as rr
-
-    L = context_steps + horizon
-    if not getattr(agent, "has_decoder", True):
-        return []
-    picks = pick_episodes(episodes, num_episodes, min_length=L)
-    if update is not None:
-        rec.set_time("update", sequence=int(update))
-    if not picks:
-        rec.log("/open_loop/note", rr.TextDocument(
-            f"no episode has {L} steps (context {context_steps} + horizon {horizon}); "
-            "collect longer episodes for open-loop predictions"), static=update is None)
-        return []
-    batch = stack_batches([episodes[i].batch(0, L) for i in picks])
-    with no_grad():
-        out = agent.open_loop(batch, context_steps=context_steps, horizon=horizon)
-    pred = np.asarray(to_numpy(out["prediction"])).astype(np.uint8)
-    truth = batch["image"]
-    if pred.shape[1] < truth.shape[1]:  # predictions only: prepend the observed context frames
-        pred = np.concatenate([truth[:, :context_steps], pred], axis=1)
-    L = min(L, pred.shape[1])
-    truth, pred = truth[:, :L], pred[:, :L]
-    labels = " | ".join(episodes[i].label for i in picks)
-    rec.log("/open_loop/episodes", rr.TextDocument(
-        f"left to right: {labels}; green border = observed context frame, red = open-loop "
-        f"prediction ({context_steps} context + {horizon} predicted frames)"), static=update is None)
-    green, red = (0, 200, 0), (220, 0, 0)
-    for t in range(L):
-        rec.set_time("step", sequence=t)
-        color = green if t < context_steps else red
-        rec.log("/open_loop/truth", rr.Image(_strip(truth[:, t])))
-        rec.log("/open_loop/prediction", rr.Image(_strip([_border(f, color) for f in pred[:, t]])))
-        if t >= context_steps:
-            err = ((truth[:, t].astype(np.float32) - pred[:, t]) / 255.0) ** 2
-            rec.log("/open_loop/mse", rr.Scalars(float(err.mean())))
-    rec.disable_timeline("step")
-    cols = list(range(0, L, 5))
-    rows = []
-    for b in range(len(picks)):
-        rows.append(_strip([truth[b, t] for t in cols]))
-        rows.append(_strip([_border(pred[b, t], green if t < context_steps else red) for t in cols]))
-        rows.append(np.full((4, rows[-1].shape[1], 3), 255, np.uint8))
-    rec.log("/open_loop/montage", rr.Image(np.concatenate(rows[:-1], axis=0)), static=update is None)
-    return picks
-
-
-# ============================================================================== blueprint
-def context_blueprint_parts(view: ContextView | None, method: str = "pca") -> list:
-    """Tabs: 'Contexts' (u_e and RSSM state 3D + 2D), 'Features u / e', 'Assignments',
-    'Predictions'."""
-    import rerun.blueprint as rrb
-
-    method = view.method if view is not None else method
-    params = view.params if view is not None else ()
-    color = f"by_{params[0]}" if params else "by_split"
-
-    def space_view(feature: str, dim: int, by: str, name: str):
-        origin = f"/embeddings/{feature}/{method}{dim}d"
-        contents = [f"{origin}/{by}", f"{origin}/prototypes", f"{origin}/contexts"]
-        # Frame the points (they span [-1, 1]); unused prototypes may lie further out.
-        if dim == 3:
-            return rrb.Spatial3DView(origin=origin, contents=contents, name=name,
-                                     eye_controls=rrb.EyeControls3D(position=[1.3, -1.6, 1.1],
-                                                                    look_target=[0, 0, 0],
-                                                                    eye_up=[0, 0, 1]))
-        return rrb.Spatial2DView(origin=origin, contents=contents, name=name,
-                                 visual_bounds=rrb.VisualBounds2D(x_range=[-1.15, 1.15],
-                                                                  y_range=[-1.15, 1.15]))
-
-    ctx = rrb.Horizontal(
-        rrb.Vertical(space_view("u_e", 3, color, f"learned feature u,e (3D, {color})"),
-                     space_view("u_e", 2, "by_split", "learned feature u,e (2D, by split)")),
-        rrb.Vertical(space_view("rssm_state", 3, color, f"RSSM state (3D, {color})"),
-                     space_view("rssm_state", 2, "by_split", "RSSM state (2D, by split)")),
-        rrb.TextDocumentView(origin="/embeddings/legend", name="legend"),
-        column_shares=[3, 3, 1], name="Contexts")
-    feats = rrb.Grid(*[space_view(f, 3, b, f"{f} ({b})") for f in ("u", "e")
-                       for b in (color, "by_split")], name="Features u / e")
-    assign = rrb.Horizontal(
-        rrb.TensorView(origin="/assignment/by_context", name="mean assignment w per episode"),
-        rrb.Vertical(rrb.TensorView(origin="/episodes/0/assignment", name="episode 0: w over time"),
-                     rrb.TimeSeriesView(origin="/episodes", name="top prototype per step")),
-        rrb.TextDocumentView(origin="/assignment/episodes", name="episodes"),
-        name="Assignments")
-    preds = rrb.Horizontal(
-        rrb.Vertical(rrb.Spatial2DView(origin="/reconstruction/truth", name="observations"),
-                     rrb.Spatial2DView(origin="/reconstruction/model", name="reconstructions"),
-                     rrb.TimeSeriesView(origin="/reconstruction/mse", name="reconstruction MSE")),
-        rrb.Vertical(rrb.Spatial2DView(origin="/open_loop/truth", name="open loop: truth"),
-                     rrb.Spatial2DView(origin="/open_loop/prediction", name="open loop: prediction"),
-                     rrb.TimeSeriesView(origin="/open_loop/mse", name="open-loop MSE")),
-        rrb.Spatial2DView(origin="/open_loop/montage", name="open loop montage"),
-        name="Predictions")
-    return [ctx, feats, assign, preds]
-
-
-def context_blueprint(view: ContextView | None = None, extra_tabs: Sequence[Any] = ()):
-    import rerun.blueprint as rrb
-
-    # Side panels start collapsed so the views get the room (the collapsed time panel keeps
-    # its play bar for the 'step' timeline); every panel opens again from the top bar.
-    return rrb.Blueprint(rrb.Tabs(*context_blueprint_parts(view), *extra_tabs),
-                         rrb.BlueprintPanel(state="collapsed"),
-                         rrb.SelectionPanel(state="collapsed"),
-                         rrb.TimePanel(state="collapsed"))
-
 
 
 # ============================================================================== top level
@@ -376,6 +79,83 @@ def load_agent(source: Any, device: str = "cpu") -> Any:
     if not hasattr(source, "embed_sequences"):
         raise TypeError(f"expected a checkpoint path or an Agent, got {type(source).__name__}")
     return source
+
+
+def _check_destination(out_rrd: str | Path | None, recording: Any, spawn: bool) -> None:
+    if out_rrd is not None and Path(out_rrd).suffix != ".rrd":
+        raise ValueError(f"output must be an .rrd file, got {str(out_rrd)!r}")
+    if recording is None and out_rrd is None and not spawn:
+        raise ValueError("nowhere to write: give out_rrd or spawn=True")
+    if spawn:
+        from protocad_ros.live_view import check_display
+
+        check_display()
+
+
+def _episodes_to_show(agent: Any, task: str | None, logs: Sequence[str | Path] | None, *,
+                      episodes: Iterable[Any] | None, log_steps: int | None, cover_all_contexts: bool,
+                      max_contexts: int, steps_per_context: int, seed: int, random_policy: bool,
+                      progress: bool | None) -> list[Episode]:
+    """The episodes of the view: those given, else those of the logs (plus the contexts they
+    lack), else collected for every context of ``task``."""
+    if episodes is not None:
+        eps = [Episode.from_any(e) for e in episodes]
+    elif logs:
+        eps = load_log_episodes(logs, max_steps=log_steps)
+        missing = missing_contexts(task, eps, max_contexts=max_contexts) if (task and cover_all_contexts) else {}
+        if any(missing.values()):
+            # Logs of a training run hold only training contexts: the rest is collected, so the
+            # view shows every context of both splits.
+            eps += collect_context_episodes(task, agent, steps=steps_per_context, seed=seed,
+                                            contexts=missing, random_policy=random_policy,
+                                            progress=progress)
+    elif task:
+        eps = collect_context_episodes(task, agent, steps=steps_per_context, seed=seed,
+                                       random_policy=random_policy, progress=progress)
+    else:
+        raise ValueError("give episodes, logs or a task to collect episodes for")
+    if not eps:
+        raise ValueError("no episodes to visualize")
+    return eps
+
+
+def _open_loop_episodes(agent: Any, task: str | None, eps: list[Episode], *,
+                        given: Iterable[Any] | None, context_steps: int, horizon: int, seed: int,
+                        random_policy: bool, progress: bool | None) -> list[Episode]:
+    """Episodes long enough for the open-loop view: those given, else the view's own, else one
+    collected in the first and last context of each split."""
+    length = context_steps + horizon
+    if given is not None:
+        return [Episode.from_any(e) for e in given]
+    if any(len(e) >= length for e in eps):
+        return eps
+    if task and horizon > 0:
+        from sim_bridge.contract.contexts import get_task
+
+        spec = get_task(task)
+        pick = {s: [spec.contexts(s)[0], spec.contexts(s)[-1]] for s in ("train", "test")}
+        return collect_context_episodes(task, agent, steps=length, seed=seed + 1, contexts=pick,
+                                        random_policy=random_policy, progress=progress)
+    return []
+
+
+def _new_stream(blueprint: Any, out_rrd: Path | None, spawn: bool) -> tuple[Any, Path | None]:
+    """A RecordingStream to a temporary file beside ``out_rrd`` (and a spawned viewer), and
+    that file's path: the caller renames it at the end, so an earlier recording is never
+    replaced by a partial one."""
+    import rerun as rr
+
+    rec = rr.RecordingStream("protocad_contexts")
+    sinks, tmp_rrd = [], None
+    if out_rrd is not None:
+        out_rrd.parent.mkdir(parents=True, exist_ok=True)
+        tmp_rrd = out_rrd.parent / f".{out_rrd.name}.{os.getpid()}.tmp"
+        sinks.append(rr.FileSink(str(tmp_rrd)))
+    if spawn:
+        rr.spawn(connect=False)
+        sinks.append(rr.GrpcSink())
+    rec.set_sinks(*sinks, default_blueprint=blueprint)
+    return rec, tmp_rrd
 
 
 def write_context_recording(source: Any, logs: Sequence[str | Path] | None = None,
@@ -404,73 +184,27 @@ def write_context_recording(source: Any, logs: Sequence[str | Path] | None = Non
     ``recording``: an existing rerun.RecordingStream to log into instead of a new file;
     ``spawn``: also stream to a spawned viewer. ``png``: also write a static scatter image.
     """
-    import rerun as rr
-
     if projection not in ("pca", "tsne"):
         raise ValueError(f"unknown projection {projection!r}; valid: 'pca', 'tsne'")
-    if out_rrd is not None and Path(out_rrd).suffix != ".rrd":
-        raise ValueError(f"output must be an .rrd file, got {str(out_rrd)!r}")
-    if recording is None and out_rrd is None and not spawn:
-        raise ValueError("nowhere to write: give out_rrd or spawn=True")
-    if spawn:
-        from protocad_ros.live_view import check_display
-
-        check_display()
+    _check_destination(out_rrd, recording, spawn)
     agent = load_agent(source, device)
     if hasattr(agent, "eval"):
         agent.eval()
     task = task or getattr(getattr(agent, "cfg", None), "task", None)
-    if episodes is not None:
-        eps = [Episode.from_any(e) for e in episodes]
-    elif logs:
-        eps = load_log_episodes(logs, max_steps=log_steps)
-        missing = missing_contexts(task, eps, max_contexts=max_contexts) if (task and cover_all_contexts) else {}
-        if any(missing.values()):
-            # Logs of a training run hold only training contexts: the rest is collected, so the
-            # view shows every context of both splits.
-            eps += collect_context_episodes(task, agent, steps=steps_per_context, seed=seed,
-                                            contexts=missing, random_policy=random_policy,
-                                            progress=progress)
-    elif task:
-        eps = collect_context_episodes(task, agent, steps=steps_per_context, seed=seed,
-                                       random_policy=random_policy, progress=progress)
-    else:
-        raise ValueError("give episodes, logs or a task to collect episodes for")
-    if not eps:
-        raise ValueError("no episodes to visualize")
+    eps = _episodes_to_show(agent, task, logs, episodes=episodes, log_steps=log_steps,
+                            cover_all_contexts=cover_all_contexts, max_contexts=max_contexts,
+                            steps_per_context=steps_per_context, seed=seed,
+                            random_policy=random_policy, progress=progress)
     view = compute_context_view(agent, eps, projection=projection, skip_steps=skip_steps, seed=seed)
-    L = context_steps + horizon
-    if open_loop_episodes is not None:
-        ol_eps = [Episode.from_any(e) for e in open_loop_episodes]
-    elif any(len(e) >= L for e in eps):
-        ol_eps = eps
-    elif task and horizon > 0:
-        from sim_bridge.contract.contexts import get_task
-
-        spec = get_task(task)
-        pick = {s: [spec.contexts(s)[0], spec.contexts(s)[-1]] for s in ("train", "test")}
-        ol_eps = collect_context_episodes(task, agent, steps=L, seed=seed + 1, contexts=pick,
-                                          random_policy=random_policy, progress=progress)
-    else:
-        ol_eps = []
-    bp = context_blueprint(view)
+    ol_eps = _open_loop_episodes(agent, task, eps, given=open_loop_episodes, context_steps=context_steps,
+                                 horizon=horizon, seed=seed, random_policy=random_policy,
+                                 progress=progress)
+    out_rrd = Path(out_rrd) if out_rrd is not None else None
     if recording is not None:
-        rec = recording
-        rec.send_blueprint(bp)
+        rec, tmp_rrd = recording, None
+        rec.send_blueprint(context_blueprint(view))
     else:
-        rec = rr.RecordingStream("protocad_contexts")
-        sinks = []
-        if out_rrd is not None:
-            # Written beside the target and renamed at the end: an earlier recording is never
-            # replaced by a partial one.
-            out_rrd = Path(out_rrd)
-            out_rrd.parent.mkdir(parents=True, exist_ok=True)
-            tmp_rrd = out_rrd.parent / f".{out_rrd.name}.{os.getpid()}.tmp"
-            sinks.append(rr.FileSink(str(tmp_rrd)))
-        if spawn:
-            rr.spawn(connect=False)
-            sinks.append(rr.GrpcSink())
-        rec.set_sinks(*sinks, default_blueprint=bp)
+        rec, tmp_rrd = _new_stream(context_blueprint(view), out_rrd, spawn)
     try:
         log_context_view(rec, view)
         recon = log_reconstructions(rec, agent, eps, num_episodes=num_prediction_episodes)
@@ -480,14 +214,12 @@ def write_context_recording(source: Any, logs: Sequence[str | Path] | None = Non
         if recording is None:
             rec.flush()
             rec.disconnect()
-            if out_rrd is not None and sys.exc_info()[0] is not None:
+            if tmp_rrd is not None and sys.exc_info()[0] is not None:
                 tmp_rrd.unlink(missing_ok=True)
-    if recording is None and out_rrd is not None:
+    if tmp_rrd is not None:
         os.replace(tmp_rrd, out_rrd)
-    png_path = None
-    if png:
-        png_path = render_context_png(view, png)
-    return RecordingResult(Path(out_rrd) if out_rrd else None, view, recon, ol, png_path)
+    png_path = render_context_png(view, png) if png else None
+    return RecordingResult(out_rrd, view, recon, ol, png_path)
 
 
 def build_parser() -> argparse.ArgumentParser:
