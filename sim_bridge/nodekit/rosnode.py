@@ -351,6 +351,63 @@ def arm_shutdown_watchdog(budget_s: float, prog: str, code: Callable[[], int]) -
     return timer
 
 
+def _node_args(argv: Sequence[str], *, prog: str, description: str, params: Iterable[Param], example: str,
+               parser: argparse.ArgumentParser | None) -> argparse.Namespace:
+    """The node's own command line (ROS arguments removed); argparse exits here on --help or a
+    bad plain argument."""
+    from rclpy.utilities import remove_ros_args
+
+    if parser is None:
+        parser = argparse.ArgumentParser(
+            prog=prog, description=description, epilog=help_epilog(list(params), example),
+            formatter_class=argparse.RawDescriptionHelpFormatter)
+    return parser.parse_args(remove_ros_args(argv)[1:])
+
+
+def _stop_on_signals(prog: str) -> threading.Event:
+    """Our own SIGINT/SIGTERM handlers (not rclpy's, which would shut the context down at
+    once): the node then closes with a live context, so its last diagnostics and log lines
+    still go out, and reliable readers get the last samples. Returns the event they set."""
+    stop = threading.Event()
+
+    def _on_signal(signum, _frame):
+        if stop.is_set() and signum == signal.SIGINT:
+            raise KeyboardInterrupt   # a second Ctrl-C: stop waiting for a clean close
+        stop.set()
+        # said at once, so a user knows the first Ctrl-C was heard (the close may take a moment)
+        print(f"[{prog}] {signal.Signals(signum).name}: stopping (Ctrl-C again to skip the "
+              "clean close)", file=sys.stderr, flush=True)
+
+    signal.signal(signal.SIGINT, _on_signal)
+    signal.signal(signal.SIGTERM, _on_signal)
+    return stop
+
+
+def _spin_until_done(node: Any, stop: threading.Event) -> int:
+    """Spins ``node`` until it is done, a signal stops it or ROS shuts down; its exit code."""
+    import rclpy
+
+    executor = make_executor(getattr(node, "executor_kind", "single"))
+    executor.add_node(node)
+    done = getattr(node, "done", None) or threading.Event()
+    while rclpy.ok() and not done.is_set() and not stop.is_set():
+        executor.spin_once(timeout_sec=0.1)
+    return int(getattr(node, "exit_code", 0))
+
+
+def _close_node(node: Any, prog: str) -> None:
+    try:
+        close = getattr(node, "close", None)
+        if close is not None:
+            close()
+    except (Exception, KeyboardInterrupt) as e:  # noqa: BLE001 - never a traceback on the way out
+        print(f"[{prog}] error while shutting down: {e!r}", file=sys.stderr)
+    try:
+        node.destroy_node()
+    except Exception:  # noqa: BLE001 - on the way out
+        pass
+
+
 def run_node(make_node: Callable[..., Any], *, prog: str, description: str = "",
              params: Iterable[Param] = (), example: str = "", argv: Sequence[str] | None = None,
              parser: argparse.ArgumentParser | None = None) -> int:
@@ -368,30 +425,11 @@ def run_node(make_node: Callable[..., Any], *, prog: str, description: str = "",
         import rclpy.logging
         from rclpy.executors import ExternalShutdownException
         from rclpy.signals import SignalHandlerOptions
-        from rclpy.utilities import remove_ros_args
 
         own_args = parser is not None
-        if parser is None:
-            parser = argparse.ArgumentParser(
-                prog=prog, description=description, epilog=help_epilog(list(params), example),
-                formatter_class=argparse.RawDescriptionHelpFormatter)
-        args = parser.parse_args(remove_ros_args(argv)[1:])   # --help / bad plain args exit here
-
-        # Our own SIGINT/SIGTERM handlers (not rclpy's, which would shut the context down at
-        # once): the node then closes with a live context, so its last diagnostics and log
-        # lines still go out, and reliable readers get the last samples.
-        stop = threading.Event()
-
-        def _on_signal(signum, _frame):
-            if stop.is_set() and signum == signal.SIGINT:
-                raise KeyboardInterrupt   # a second Ctrl-C: stop waiting for a clean close
-            stop.set()
-            # said at once, so a user knows the first Ctrl-C was heard (the close may take a moment)
-            print(f"[{prog}] {signal.Signals(signum).name}: stopping (Ctrl-C again to skip the "
-                  "clean close)", file=sys.stderr, flush=True)
-
-        signal.signal(signal.SIGINT, _on_signal)
-        signal.signal(signal.SIGTERM, _on_signal)
+        args = _node_args(argv, prog=prog, description=description, params=params, example=example,
+                          parser=parser)
+        stop = _stop_on_signals(prog)
         rclpy.init(args=argv, signal_handler_options=SignalHandlerOptions.NO)
     except KeyboardInterrupt:
         return 0
@@ -411,28 +449,14 @@ def run_node(make_node: Callable[..., Any], *, prog: str, description: str = "",
 
             log.error(f"could not start: {type(e).__name__}: {e}\n{traceback.format_exc()}")
             return 1
-        executor = make_executor(getattr(node, "executor_kind", "single"))
-        executor.add_node(node)
-        done = getattr(node, "done", None) or threading.Event()
-        while rclpy.ok() and not done.is_set() and not stop.is_set():
-            executor.spin_once(timeout_sec=0.1)
-        code = int(getattr(node, "exit_code", 0))
+        code = _spin_until_done(node, stop)
     except (KeyboardInterrupt, ExternalShutdownException):
         code = 0
     finally:
         watchdog = arm_shutdown_watchdog(float(getattr(node, "shutdown_budget_s", SHUTDOWN_BUDGET_S)),
                                          prog, lambda: code)
         if node is not None:
-            try:
-                close = getattr(node, "close", None)
-                if close is not None:
-                    close()
-            except (Exception, KeyboardInterrupt) as e:  # noqa: BLE001 - never a traceback on the way out
-                print(f"[{prog}] error while shutting down: {e!r}", file=sys.stderr)
-            try:
-                node.destroy_node()
-            except Exception:  # noqa: BLE001 - on the way out
-                pass
+            _close_node(node, prog)
         try:
             rclpy.try_shutdown()
         except Exception:  # noqa: BLE001 - on the way out
