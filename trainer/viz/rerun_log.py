@@ -19,7 +19,7 @@ Entity paths (timeline ``update``; '.' in a metric name becomes '/'):
 /eval/<split>/mean_return           rr.Scalars: mean over that split's contexts (paper protocol)
 /eval/<split>/median_return         rr.Scalars: median over that split's contexts
 /train/config                       rr.TextDocument (static): the run's config, when given
-(context view)                      the entity paths of trainer/viz/visualize.py, on 'update'
+(context view)                      the entity paths of trainer/viz/context_log.py, on 'update'
 =================================== ==============================================================
 """
 from __future__ import annotations
