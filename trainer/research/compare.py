@@ -57,7 +57,7 @@ from typing import Callable, Sequence
 from protocad_ros.model.config import VARIANTS
 from sim_bridge.contract.contexts import TASKS
 from trainer import runs
-from trainer.research.results import ANCHOR_LABEL, standard_context
+from trainer.research.results import ANCHOR_LABEL, latest_progress, standard_context
 from trainer.settings import arg
 
 
@@ -175,31 +175,8 @@ def _die_with_parent() -> None:
     os.setpgid(0, 0)   # Ctrl-C in the terminal reaches only us; we forward it once
 
 
-def latest_progress(run_dir: Path) -> tuple[int, int]:
-    """The newest (env steps, updates) a run has logged (metrics.jsonl), for progress."""
-    path = Path(run_dir) / "metrics.jsonl"
-    try:
-        with open(path, "rb") as f:
-            f.seek(max(0, path.stat().st_size - 4096))
-            lines = f.read().decode(errors="replace").splitlines()
-    except OSError:
-        return 0, 0
-    for line in reversed(lines):
-        try:
-            row = json.loads(line)
-        except json.JSONDecodeError:
-            continue
-        if "env_steps" in row:
-            return int(row["env_steps"]), int(row.get("update", 0))
-    return 0, 0
-
-
-def run_grid(specs: Sequence[RunSpec], a: GridSettings,
-             on_progress: Callable[[dict[Path, tuple[int, int]]], None] = lambda running: None) -> int:
-    """Runs every unfinished spec, at most a.jobs at once, calling on_progress(running: run dir
-    -> (env steps, updates) of the runs going on) after each run ends and at each status line;
-    an OSError or ValueError from it is reported and the runs go on. Returns the number that
-    failed (-1: interrupted)."""
+def _runs_to_do(specs: Sequence[RunSpec], a: GridSettings) -> list[tuple[RunSpec, str]]:
+    """The specs still to run, each with its state (printed for every spec)."""
     todo = []
     for s in specs:
         st = s.state(a.env_steps, a.wall_budget)
@@ -209,6 +186,52 @@ def run_grid(specs: Sequence[RunSpec], a: GridSettings,
             shutil.rmtree(s.run_dir)   # killed before its first checkpoint: nothing to keep
         if st not in ("done", "carried"):
             todo.append((s, st))
+    return todo
+
+
+def _start_run(s: RunSpec, st: str, a: GridSettings) -> tuple[subprocess.Popen, object]:
+    """A protocad-online worker for ``s``, its output appended to RUN_DIR/online.log; the
+    process and that open log."""
+    s.run_dir.mkdir(parents=True, exist_ok=True)
+    log = open(s.run_dir / "online.log", "a")
+    p = subprocess.Popen(online_argv(s, a, st), stdout=log, stderr=subprocess.STDOUT,
+                         stdin=subprocess.DEVNULL, preexec_fn=_die_with_parent)
+    print(f"[compare] started {s.task}/{s.label}/seed{s.seed} ({st}) pid {p.pid} on "
+          f"{s.device}", flush=True)
+    return p, log
+
+
+def _ended_well(s: RunSpec, p: subprocess.Popen) -> bool:
+    """Whether the ended run ``s`` reached one of its budgets; says how it ended either way."""
+    res = runs.read_run_json(s.run_dir).get("result") or {}
+    ok = p.returncode == 0 and res.get("status") in ("finished", "wall_budget")
+    print(f"[compare] {s.task}/{s.label}/seed{s.seed}: exit {p.returncode}, "
+          f"{res.get('status', 'no result')} at {res.get('env_steps', '?')} env steps"
+          + ("" if ok else f" (see {s.run_dir / 'online.log'})"), flush=True)
+    return ok
+
+
+def _stop_runs(running: dict[int, tuple[RunSpec, subprocess.Popen, object]]) -> None:
+    """Asks every run still going to stop (each checkpoints and exits), waits for them."""
+    for s, p, log in running.values():
+        if p.poll() is None:
+            p.send_signal(signal.SIGINT)
+    for s, p, log in running.values():
+        try:
+            p.wait(timeout=300)
+        except subprocess.TimeoutExpired:
+            p.kill()
+            p.wait()
+        log.close()
+
+
+def run_grid(specs: Sequence[RunSpec], a: GridSettings,
+             on_progress: Callable[[dict[Path, tuple[int, int]]], None] = lambda running: None) -> int:
+    """Runs every unfinished spec, at most a.jobs at once, calling on_progress(running: run dir
+    -> (env steps, updates) of the runs going on) after each run ends and at each status line;
+    an OSError or ValueError from it is reported and the runs go on. Returns the number that
+    failed (-1: interrupted)."""
+    todo = _runs_to_do(specs, a)
     running: dict[int, tuple[RunSpec, subprocess.Popen, object]] = {}
     failed = 0
     bar = runs.progress(len(specs) * a.env_steps, desc="env steps (all runs)", unit="step")
@@ -234,13 +257,8 @@ def run_grid(specs: Sequence[RunSpec], a: GridSettings,
             while (todo or running) and not stop.stop:
                 while todo and len(running) < a.jobs and not stop.stop:
                     s, st = todo.pop(0)
-                    s.run_dir.mkdir(parents=True, exist_ok=True)
-                    log = open(s.run_dir / "online.log", "a")
-                    p = subprocess.Popen(online_argv(s, a, st), stdout=log, stderr=subprocess.STDOUT,
-                                         stdin=subprocess.DEVNULL, preexec_fn=_die_with_parent)
+                    p, log = _start_run(s, st, a)
                     running[p.pid] = (s, p, log)
-                    print(f"[compare] started {s.task}/{s.label}/seed{s.seed} ({st}) pid {p.pid} on "
-                          f"{s.device}", flush=True)
                 time.sleep(1.0)
                 for pid, (s, p, log) in list(running.items()):
                     steps, updates[id(s)] = latest_progress(s.run_dir)
@@ -250,12 +268,7 @@ def run_grid(specs: Sequence[RunSpec], a: GridSettings,
                         continue
                     log.close()
                     del running[pid]
-                    res = runs.read_run_json(s.run_dir).get("result") or {}
-                    ok = p.returncode == 0 and res.get("status") in ("finished", "wall_budget")
-                    failed += 0 if ok else 1
-                    print(f"[compare] {s.task}/{s.label}/seed{s.seed}: exit {p.returncode}, "
-                          f"{res.get('status', 'no result')} at {res.get('env_steps', '?')} env steps"
-                          + ("" if ok else f" (see {s.run_dir / 'online.log'})"), flush=True)
+                    failed += 0 if _ended_well(s, p) else 1
                     progress()
                 for s, _, _ in running.values():
                     if updates[id(s)] > 0:   # training, prefill over: its pace is the grid's
@@ -267,16 +280,7 @@ def run_grid(specs: Sequence[RunSpec], a: GridSettings,
                           + grid_estimate(specs, running, started, done_steps, updates, a), flush=True)
                     progress()
         finally:
-            for s, p, log in running.values():
-                if p.poll() is None:
-                    p.send_signal(signal.SIGINT)   # each run checkpoints and exits
-            for s, p, log in running.values():
-                try:
-                    p.wait(timeout=300)
-                except subprocess.TimeoutExpired:
-                    p.kill()
-                    p.wait()
-                log.close()
+            _stop_runs(running)
             bar.close()
     if stop.stop:
         print("[compare] interrupted: every run saved its checkpoint; re-run the same command to "
@@ -323,23 +327,6 @@ def earlier_grid_wall_time(out: Path) -> float:
 
 def save_grid_wall_time(out: Path, total: float) -> None:
     runs.atomic_write_json(Path(out) / "grid.json", {"wall_time_s": round(total, 1)})
-
-
-def random_baselines(a: GridSettings, evaluate: bool = True) -> dict[str, dict]:
-    """The uniform random policy on each task's test contexts, once (OUT/TASK/random.json);
-    evaluate=False: only those already there."""
-    from trainer.learn.evaluate import evaluate_checkpoint
-
-    out = {}
-    for task in a.tasks:
-        path = Path(a.out) / task / "random.json"
-        if not path.exists() and not evaluate:
-            continue
-        if not path.exists():
-            res = evaluate_checkpoint(None, task=task, episodes=a.random_episodes, seed=7, progress=False)
-            runs.atomic_write_json(path, res.to_dict())
-        out[task] = json.loads(path.read_text())
-    return out
 
 
 # ---------------------------------------------------------------------- settings and CLI
@@ -418,88 +405,84 @@ def build_parser() -> argparse.ArgumentParser:
         [(None, GridSettings)])
 
 
+def _reported_docs(a: GridSettings) -> tuple[list[dict], list[str], dict]:
+    """--report: the files' documents, their paths, and all of them combined."""
+    from trainer.research import results as R
+
+    if a.ship and len(a.report) > 1:
+        raise ValueError("--ship takes the best run of one results.json: give --report one file")
+    docs, sources = [R.load_results(p) for p in a.report], list(a.report)
+    return docs, sources, R.combined(docs, sources)   # a run in two files: refused before anything is written
+
+
+def _run_and_gather(a: GridSettings, argv: Sequence[str] | None) -> tuple[list[dict], list[str], dict, int]:
+    """Runs the grid into a.out (resuming what is there), keeping OUT/results.json current;
+    returns its document, path and combination as _reported_docs does, and the number of
+    runs that failed (-1: interrupted, with the finished runs' results saved)."""
+    from trainer.provenance import stale_install
+    from trainer.research import results as R
+
+    if warning := stale_install():
+        print(f"[compare] warning: {warning}", file=sys.stderr, flush=True)
+    out_dir = Path(a.out)
+    specs = plan(a)
+    carried = carry_finished_runs(specs, a)   # a file it cannot take: refused before anything is made
+    out_dir.mkdir(parents=True, exist_ok=True)
+    if a.from_results:
+        print(f"[compare] {carried} finished run(s) carried from {', '.join(a.from_results)}",
+              flush=True)
+    earlier, t0 = earlier_grid_wall_time(out_dir), time.monotonic()
+    command = ["protocad-compare", *(sys.argv[1:] if argv is None else argv)]
+
+    def save(random: dict, running: dict | None = None) -> dict:
+        doc = R.gather(specs, command=command, env_steps=a.env_steps, wall_budget=a.wall_budget,
+                       jobs=a.jobs, threads=a.threads, wall_time=earlier + time.monotonic() - t0,
+                       random=random, running=running)
+        R.save_results(doc, out_dir / "results.json")
+        return doc
+
+    def random_rows(evaluate: bool = True) -> dict:
+        return R.random_baselines(a.tasks, a.out, episodes=a.random_episodes, evaluate=evaluate)
+
+    # Rewritten as runs finish, at each status line and when cut short: what finished can
+    # be committed anytime, and `--report` shows where the others stand.
+    failed = run_grid(specs, a, on_progress=lambda running: save(random_rows(evaluate=False), running))
+    save_grid_wall_time(out_dir, earlier + time.monotonic() - t0)
+    if failed < 0:
+        save(random_rows(evaluate=False))
+        print(f"[compare] results of the finished runs so far: {out_dir / 'results.json'}", flush=True)
+        return [], [], {}, failed
+    docs = [save(random_rows() if a.random_baseline else {})]
+    sources = [str(out_dir / "results.json")]
+    everything = R.combined(docs, sources)
+    print(f"[compare] {len(specs)} runs, {failed} failed; results: {sources[0]}", flush=True)
+    return docs, sources, everything, failed
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     from trainer.settings import build
 
     a = build(GridSettings, vars(build_parser().parse_args(argv)))
     if a.online_args and a.online_args[0] == "--":
         a.online_args = a.online_args[1:]
+    failed = 0
     try:
         if a.report:
-            from trainer.research import results as R
-
-            if a.ship and len(a.report) > 1:
-                raise ValueError("--ship takes the best run of one results.json: give --report one file")
-            docs, sources = [R.load_results(p) for p in a.report], list(a.report)
-            everything = R.combined(docs, sources)   # a run in two files: refused before anything is written
+            docs, sources, everything = _reported_docs(a)
         else:
-            from trainer.provenance import stale_install
-
-            if warning := stale_install():
-                print(f"[compare] warning: {warning}", file=sys.stderr, flush=True)
-            out_dir = Path(a.out or time.strftime("runs/compare-%Y%m%d-%H%M%S"))
-            a = dataclasses.replace(a, out=str(out_dir))
-            specs = plan(a)
-            carried = carry_finished_runs(specs, a)   # a file it cannot take: refused before anything is made
-            out_dir.mkdir(parents=True, exist_ok=True)
-            if a.from_results:
-                print(f"[compare] {carried} finished run(s) carried from {', '.join(a.from_results)}",
-                      flush=True)
-            from trainer.research import results as R
-
-            earlier, t0 = earlier_grid_wall_time(out_dir), time.monotonic()
-            command = ["protocad-compare", *(sys.argv[1:] if argv is None else argv)]
-
-            def save(random: dict, running: dict | None = None) -> dict:
-                doc = R.gather(specs, command=command, env_steps=a.env_steps, wall_budget=a.wall_budget,
-                               jobs=a.jobs, threads=a.threads, wall_time=earlier + time.monotonic() - t0,
-                               random=random, running=running)
-                R.save_results(doc, out_dir / "results.json")
-                return doc
-
-            # Rewritten as runs finish, at each status line and when cut short: what finished can
-            # be committed anytime, and `--report` shows where the others stand.
-            failed = run_grid(specs, a, on_progress=lambda running: save(random_baselines(a, evaluate=False),
-                                                                         running))
-            save_grid_wall_time(out_dir, earlier + time.monotonic() - t0)
+            a = dataclasses.replace(a, out=str(Path(a.out or time.strftime("runs/compare-%Y%m%d-%H%M%S"))))
+            docs, sources, everything, failed = _run_and_gather(a, argv)
             if failed < 0:
-                save(random_baselines(a, evaluate=False))
-                print(f"[compare] results of the finished runs so far: {out_dir / 'results.json'}", flush=True)
                 return 130
-            docs = [save(random_baselines(a) if a.random_baseline else {})]
-            sources = [str(out_dir / "results.json")]
-            everything = R.combined(docs, sources)
-            print(f"[compare] {len(specs)} runs, {failed} failed; results: {sources[0]}", flush=True)
-        print("\n\n".join(R.format_report(d) for d in docs), flush=True)
-        # A grid writes its plot and recording beside results.json; --report only where asked.
-        # (never into the directory of a results.json it was only asked to read: that may be
-        # the source tree, msgs_docs/results/)
-        png = (R.plot_curves(everything, a.image) if a.image else "not written (--image PNG)") if a.report \
-            else R.plot_curves(everything, out_dir / "curves.png")
-        if a.image and not a.report:
-            shutil.copyfile(png, a.image)
-        rrd_path = a.rrd or (None if a.report else out_dir / "curves.rrd")
-        try:
-            rrd = R.log_curves_rerun(everything, rrd_path) if rrd_path else "not written (--rrd PATH)"
-        except ImportError:   # rerun-sdk absent (the GPU machine's bare Python)
-            rrd = "not written (rerun-sdk is not installed)"
-        print(f"[compare] plot: {png}\n[compare] rerun: {rrd}", flush=True)
-        if a.markdown:
-            print(R.markdown_section(docs, image=a.image, sources=sources))
-        if a.update_readme:
-            R.update_readme(Path(a.update_readme), R.markdown_section(docs, image=a.image, sources=sources,
-                                                                      target=a.update_readme))
-            print(f"[compare] updated the results section of {a.update_readme}", flush=True)
+        from trainer.research import results as R
+
+        R.write_reports(docs, sources, everything, grid_dir=None if a.report else Path(a.out), image=a.image,
+                        rrd=a.rrd, markdown=a.markdown, readme=a.update_readme)
         if a.ship:
-            from trainer.research.ship import ship_best
+            from trainer.research.ship import ship_best, shipped_line
 
             path, prov = ship_best(docs[0], a.ship, sources[0], label=a.ship_label, evaluation=a.ship_evaluation)
-            unseen = prov.get("unseen_evaluation")
-            print(f"[compare] shipped {prov['what']} (final {prov['results_entry']['final']['mean_return']:.1f}"
-                  + (f"; unseen contexts {unseen['mean_return']:.1f}, random {unseen['random_mean_return']:.1f}"
-                     if unseen and unseen["random_mean_return"] is not None else "")
-                  + f") as {path} ({path.stat().st_size / 1e6:.1f} MB; provenance: {path.with_suffix('.json')})",
-                  flush=True)
+            print(f"[compare] {shipped_line(path, prov)}", flush=True)
     except (ValueError, OSError) as exc:
         print(f"protocad-compare: error: {exc}", file=sys.stderr)
         return 2

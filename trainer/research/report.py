@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 from pathlib import Path
 from typing import Any, Mapping, Sequence
 
@@ -398,3 +399,32 @@ def readme_section(readme: Path) -> str | None:
     text = Path(readme).read_text()
     i, j = text.find(BEGIN), text.find(END)
     return None if i < 0 or j < i else text[i:j + len(END)]
+
+
+def write_reports(docs: Sequence[Mapping[str, Any]], sources: Sequence[str], everything: Mapping[str, Any], *,
+                  grid_dir: Path | None, image: str | None, rrd: str | None, markdown: bool,
+                  readme: str | None) -> None:
+    """protocad-compare's output from results.json documents (`everything`: them combined): the
+    text report, the curves' plot and rerun recording, the markdown section (printed, and into
+    `readme`). `grid_dir`: the grid's directory, where the plot and recording go besides where
+    asked; None (--report): only where asked."""
+    print("\n\n".join(format_report(d) for d in docs), flush=True)
+    # Never by default into the directory of a results.json only read: that may be the source
+    # tree (msgs_docs/results/).
+    if grid_dir is None:
+        png = plot_curves(everything, image) if image else "not written (--image PNG)"
+    else:
+        png = plot_curves(everything, grid_dir / "curves.png")
+        if image:
+            shutil.copyfile(png, image)
+    rrd_path = rrd or (None if grid_dir is None else grid_dir / "curves.rrd")
+    try:
+        rrd_text = log_curves_rerun(everything, rrd_path) if rrd_path else "not written (--rrd PATH)"
+    except ImportError:   # rerun-sdk absent (the GPU machine's bare Python)
+        rrd_text = "not written (rerun-sdk is not installed)"
+    print(f"[compare] plot: {png}\n[compare] rerun: {rrd_text}", flush=True)
+    if markdown:
+        print(markdown_section(docs, image=image, sources=sources))
+    if readme:
+        update_readme(Path(readme), markdown_section(docs, image=image, sources=sources, target=readme))
+        print(f"[compare] updated the results section of {readme}", flush=True)

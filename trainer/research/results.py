@@ -41,21 +41,23 @@ Schema (RESULTS_SCHEMA, checked on every save and load):
 from __future__ import annotations
 
 from trainer.research.results_json import (
-    ANCHOR_LABEL, PAPER_ENV_STEPS, PAPER_TABLE1, RESULTS_SCHEMA, SCHEMA_ID, gather, gather_run, load_results,
-    machine_info, runs_code_version, save_results, validate)
+    ANCHOR_LABEL, PAPER_ENV_STEPS, PAPER_TABLE1, RESULTS_SCHEMA, SCHEMA_ID, gather, gather_run, latest_progress,
+    load_results, machine_info, random_baselines, runs_code_version, save_results, validate)
 from trainer.research.statistics import (
     AGGREGATES, aggregate_iqm, aggregate_mean, aggregate_median, bootstrap_ci, final_scores, iqm,
     paired_difference, standard_context, summarize, unseen_train_ratio)
 from trainer.research.report import (
     BEGIN, DREAMERV2_SCORES, END, MIN_SEEDS_FOR_CI, aggregate_rows, anchor_rows, carried_sentence, combined,
     curves, dreamerv2_reference, format_report, labels_of, log_curves_rerun, markdown_section, paired_lines,
-    plot_curves, progress_rows, readme_section, superseded_lines, table_rows, update_readme)
+    plot_curves, progress_rows, readme_section, superseded_lines, table_rows, update_readme, write_reports)
 
 __all__ = [
-    'AGGREGATES', 'ANCHOR_LABEL', 'BEGIN', 'DREAMERV2_SCORES', 'END', 'MIN_SEEDS_FOR_CI', 'PAPER_ENV_STEPS',
-    'PAPER_TABLE1', 'RESULTS_SCHEMA', 'SCHEMA_ID', 'aggregate_iqm', 'aggregate_mean', 'aggregate_median',
-    'aggregate_rows', 'anchor_rows', 'bootstrap_ci', 'carried_sentence', 'combined', 'curves',
-    'dreamerv2_reference', 'final_scores', 'format_report', 'gather', 'gather_run', 'iqm', 'labels_of',
-    'load_results', 'log_curves_rerun', 'machine_info', 'markdown_section', 'paired_difference', 'paired_lines',
-    'plot_curves', 'progress_rows', 'readme_section', 'runs_code_version', 'save_results', 'standard_context',
-    'summarize', 'superseded_lines', 'table_rows', 'unseen_train_ratio', 'update_readme', 'validate']
+    'AGGREGATES', 'ANCHOR_LABEL', 'BEGIN', 'DREAMERV2_SCORES', 'END', 'MIN_SEEDS_FOR_CI',
+    'PAPER_ENV_STEPS', 'PAPER_TABLE1', 'RESULTS_SCHEMA', 'SCHEMA_ID', 'aggregate_iqm', 'aggregate_mean',
+    'aggregate_median', 'aggregate_rows', 'anchor_rows', 'bootstrap_ci', 'carried_sentence', 'combined',
+    'curves', 'dreamerv2_reference', 'final_scores', 'format_report', 'gather', 'gather_run', 'iqm',
+    'labels_of', 'latest_progress', 'load_results', 'log_curves_rerun', 'machine_info',
+    'markdown_section', 'paired_difference', 'paired_lines', 'plot_curves', 'progress_rows',
+    'random_baselines', 'readme_section', 'runs_code_version', 'save_results', 'standard_context',
+    'summarize', 'superseded_lines', 'table_rows', 'unseen_train_ratio', 'update_readme', 'validate',
+    'write_reports']

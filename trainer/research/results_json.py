@@ -1,6 +1,6 @@
 """results.json itself: its schema (described in trainer/research/results.py), the paper's
-figures it is read against, gathering a grid's run directories into it, and reading and
-writing it checked against the schema."""
+figures it is read against, gathering a grid's run directories (finished or still going) and
+the random policy's baselines into it, and reading and writing it checked against the schema."""
 from __future__ import annotations
 
 import json
@@ -11,6 +11,7 @@ import time
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
+from trainer import runs
 from trainer.provenance import code_version
 
 SCHEMA_ID = "protocad-compare/1"
@@ -230,6 +231,45 @@ def gather(specs: Iterable[Any], *, command: Sequence[str], env_steps: int, wall
             "wall_time_s": round(float(wall_time), 1),
             "runs": rows,
             "random": {k: _eval_entry(v) for k, v in (random or {}).items()}}
+
+
+def latest_progress(run_dir: Path) -> tuple[int, int]:
+    """The newest (env steps, updates) a run has logged (metrics.jsonl): what `gather`'s
+    `running` holds for a run still going."""
+    path = Path(run_dir) / "metrics.jsonl"
+    try:
+        with open(path, "rb") as f:
+            f.seek(max(0, path.stat().st_size - 4096))
+            lines = f.read().decode(errors="replace").splitlines()
+    except OSError:
+        return 0, 0
+    for line in reversed(lines):
+        try:
+            row = json.loads(line)
+        except json.JSONDecodeError:
+            continue
+        if "env_steps" in row:
+            return int(row["env_steps"]), int(row.get("update", 0))
+    return 0, 0
+
+
+def random_baselines(tasks: Sequence[str], out: str | Path, *, episodes: int, evaluate: bool = True
+                     ) -> dict[str, dict]:
+    """results.json's `random` entries: the uniform random policy on each task's test contexts,
+    evaluated once (OUT/TASK/random.json; `episodes` per context); evaluate=False: only those
+    already there."""
+    from trainer.learn.evaluate import evaluate_checkpoint
+
+    found = {}
+    for task in tasks:
+        path = Path(out) / task / "random.json"
+        if not path.exists() and not evaluate:
+            continue
+        if not path.exists():
+            res = evaluate_checkpoint(None, task=task, episodes=episodes, seed=7, progress=False)
+            runs.atomic_write_json(path, res.to_dict())
+        found[task] = json.loads(path.read_text())
+    return found
 
 
 def check_schema(doc: Any, schema: Mapping[str, Any], name: str, schema_id: str) -> None:

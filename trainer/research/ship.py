@@ -109,3 +109,12 @@ def ship_best(doc: Mapping[str, Any], out: str | Path, results_path: str | Path,
     if evaluation is not None:
         provenance["unseen_evaluation"] = unseen_evaluation(evaluation, ckpt)
     return save_policy(out, agent, provenance), provenance
+
+
+def shipped_line(path: Path, prov: Mapping[str, Any]) -> str:
+    """What ship_best wrote, in one line: the run, its scores, the file and its size."""
+    unseen = prov.get("unseen_evaluation")
+    return (f"shipped {prov['what']} (final {prov['results_entry']['final']['mean_return']:.1f}"
+            + (f"; unseen contexts {unseen['mean_return']:.1f}, random {unseen['random_mean_return']:.1f}"
+               if unseen and unseen["random_mean_return"] is not None else "")
+            + f") as {path} ({path.stat().st_size / 1e6:.1f} MB; provenance: {path.with_suffix('.json')})")
