@@ -121,7 +121,3 @@ def record_invocation(run_json: dict[str, Any], resume: bool, args: Sequence[str
 
 
 
-
-# Until the modules being split elsewhere take these from their new homes (removed with them).
-from trainer.cli_values import format_duration, non_negative_int, parse_duration, positive_int  # noqa: E402,F401
-from trainer.console import StopFlag, progress  # noqa: E402,F401

@@ -56,7 +56,7 @@ from typing import Callable, Sequence
 
 from protocad_ros.model.config import VARIANTS
 from sim_bridge.contract.contexts import TASKS
-from trainer import runs
+from trainer import cli_values, console, runs
 from trainer.research.results import ANCHOR_LABEL, latest_progress, standard_context
 from trainer.settings import arg
 
@@ -234,7 +234,7 @@ def run_grid(specs: Sequence[RunSpec], a: GridSettings,
     todo = _runs_to_do(specs, a)
     running: dict[int, tuple[RunSpec, subprocess.Popen, object]] = {}
     failed = 0
-    bar = runs.progress(len(specs) * a.env_steps, desc="env steps (all runs)", unit="step")
+    bar = console.progress(len(specs) * a.env_steps, desc="env steps (all runs)", unit="step")
     done_steps = {id(s): (a.env_steps if s.state(a.env_steps, a.wall_budget) in ("done", "carried") else 0)
                   for s in specs}
     bar.update(sum(done_steps.values()))
@@ -252,7 +252,7 @@ def run_grid(specs: Sequence[RunSpec], a: GridSettings,
             print(f"[compare] could not write the grid's results ({exc}); the runs go on, and it is "
                   "tried again at the next status line", file=sys.stderr, flush=True)
     started = {}   # id(spec) -> (monotonic time, updates) when this invocation first saw it train
-    with runs.StopFlag() as stop:
+    with console.StopFlag() as stop:
         try:
             while (todo or running) and not stop.stop:
                 while todo and len(running) < a.jobs and not stop.stop:
@@ -312,7 +312,7 @@ def grid_estimate(specs, running, started, done_steps, updates, a) -> str:
     left = sum(max(0, a.env_steps - max(done_steps[id(s)], prefill)) * per_step for s in specs)
     per_run = sum(rates) / len(rates)
     seconds = left / (per_run * min(a.jobs, max(1, len(running))))
-    return f"; about {runs.format_duration(seconds)} left ({per_run:.2f} updates/s per run)"
+    return f"; about {cli_values.format_duration(seconds)} left ({per_run:.2f} updates/s per run)"
 
 
 def earlier_grid_wall_time(out: Path) -> float:
@@ -348,12 +348,12 @@ class GridSettings:
     and the arguments after -- must be the same)"""
     env_steps: int = arg(2_000_000, group="budgets and resources")
     """env-step budget of every run"""
-    wall_budget: float | None = arg(None, type=runs.parse_duration, metavar="DURATION",
+    wall_budget: float | None = arg(None, type=cli_values.parse_duration, metavar="DURATION",
                                     group="budgets and resources")
     """training wall-time budget of every run (e.g. 85m, 1h30m, 5400)"""
-    jobs: int = arg(2, type=runs.positive_int, group="budgets and resources")
+    jobs: int = arg(2, type=cli_values.positive_int, group="budgets and resources")
     """runs at once (worker processes)"""
-    threads: int = arg(1, type=runs.non_negative_int, group="budgets and resources")
+    threads: int = arg(1, type=cli_values.non_negative_int, group="budgets and resources")
     """torch threads of each run"""
     devices: list[str] = arg(["cpu"], group="budgets and resources")
     """devices assigned to runs round robin (cpu, cuda, cuda:N)"""

@@ -113,7 +113,7 @@ def collect_context_episodes(task: str, agent: Any = None, *, steps: int = DEFAU
     from sim_bridge.contract.contexts import get_task, task_actuators
     from sim_bridge.sim.vector import VectorEnv
     from sim_bridge.sim.rollout import RandomPolicy, rollout
-    from trainer.runs import progress as progress_bar
+    from trainer.console import progress as progress_bar
 
     if steps < 2:
         raise ValueError(f"steps per context must be >= 2, got {steps}")
