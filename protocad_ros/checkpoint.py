@@ -39,11 +39,16 @@ from typing import Any, Callable, Mapping
 
 import torch
 
+from protocad_ros.atomic import atomic_open, atomic_write_text
+from protocad_ros.checkpoint_limits import (
+    CheckpointLimitError,
+    check_archive,
+    check_implied_size,
+    check_top_level_keys,
+    max_checkpoint_bytes,
+)
 from protocad_ros.model.agent_base import AgentBase
 from protocad_ros.model.agents import make_agent
-from protocad_ros.atomic import atomic_open, atomic_write_text
-from protocad_ros.checkpoint_limits import (CheckpointLimitError, check_archive, check_implied_size,
-                                            check_top_level_keys, max_checkpoint_bytes)
 from protocad_ros.model.config import Config, ConfigError
 
 __all__ = ["save_checkpoint", "save_policy", "read_provenance", "load_checkpoint", "restore_checkpoint", "read_checkpoint",

@@ -59,11 +59,11 @@ def main() -> None:
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
 
-    from protocad_ros.model.agent import Agent
     from protocad_ros.atomic import atomic_open
     from protocad_ros.checkpoint import load_checkpoint, save_checkpoint
-    from protocad_ros.node.checkpoint_receiver import CheckpointReceiver, install
+    from protocad_ros.model.agent import Agent
     from protocad_ros.model.config import make_config
+    from protocad_ros.node.checkpoint_receiver import CheckpointReceiver, install
     from sim_bridge.contract.contexts import task_actuators
 
     torch.set_num_threads(1)

@@ -36,12 +36,12 @@ def worker(spec: dict) -> dict:
 
     sys.path.insert(0, str(ROOT))
     from protocad_ros.model.config import make_config
-    from protocad_ros.policy import Policy
     from protocad_ros.model.precision import resolve_precision
+    from protocad_ros.policy import Policy
     from sim_bridge.sim.envs import ContextDMCEnv
     from trainer.data.dataset import MCAPDataset, TopicMap
-    from trainer.research.online_rundir import EpisodeBagWriter
     from trainer.learn.trainer import Trainer
+    from trainer.research.online_rundir import EpisodeBagWriter
 
     torch.set_num_threads(spec["threads"])
     prec = resolve_precision(spec["precision"], "cpu", explicit=True).precision
@@ -135,9 +135,9 @@ def main(argv=None) -> int:
         print(json.dumps(worker(json.loads(a.worker))))
         return 0
     sys.path.insert(0, str(ROOT))
-    from protocad_ros.model.precision import cpu_capability
-
     import torch
+
+    from protocad_ros.model.precision import cpu_capability
     print(f"machine: {os.cpu_count()} cores, torch {torch.__version__}, {a.threads} torch thread(s); "
           f"CPU capability {cpu_capability()}; load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     print(f"{a.task} / {a.preset}; collection {a.steps} agent steps (env steps = action repeat x), "

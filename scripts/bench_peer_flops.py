@@ -31,7 +31,7 @@ def main() -> int:
         ap.error(f"{peer} has no bench_update.py and dreamerv3-torch/dreamer.py (see msgs_docs/benchmarks.md, 'The peer')")
     sys.path[:0] = [str(peer / "dreamerv3-torch"), str(peer)]
     gl = os.environ.get("MUJOCO_GL", "egl")
-    import dreamer   # the peer's; it sets MUJOCO_GL=osmesa on import
+    import dreamer  # the peer's; it sets MUJOCO_GL=osmesa on import
     os.environ["MUJOCO_GL"] = gl
     from torch.utils.flop_counter import FlopCounterMode
 

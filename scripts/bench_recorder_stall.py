@@ -100,6 +100,7 @@ def steps_at(samples: list[tuple[float, int]], t: float) -> int:
 def run(args, logdir: Path, stall: bool, index: int) -> dict:
     from helpers import wait_until
     from helpers.ros import Probe, Responder
+
     from sim_bridge.contract import topics as T
     from trainer.bag import mcap_io as M
 

@@ -155,11 +155,11 @@ def floor(args, logdir: Path, image_only: bool = False) -> dict[str, float]:
     import signal
 
     import rclpy
+    from helpers import wait_until
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
     from sensor_msgs.msg import Image, JointState
 
-    from helpers import wait_until
     from sim_bridge.contract import qos, topics
 
     ns = "/bench_floor"
@@ -250,10 +250,10 @@ def profile_top(path: Path, n: int = 12) -> list[tuple[float, float, str]]:
 def ros_loop(args, with_policy: bool, logdir: Path, acks: bool) -> dict[str, float]:
     import signal
 
-    from sensor_msgs.msg import JointState
-
     from helpers import wait_until
     from helpers.ros import Probe, Responder
+    from sensor_msgs.msg import JointState
+
     from sim_bridge.contract import qos, topics
 
     ns = ("/bench_policy" if with_policy else "/bench_zero") + ("_acked" if acks else "")

@@ -22,7 +22,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from helpers import ROOT, Proc
 
-
 #: The tests' own domains: ROS 2's other "safe" range (above Linux's ephemeral ports), apart from
 #: the 1..101 that the launchers the tests start draw a fresh domain from
 #: (trainer.launch.rosprocs.fresh_domain_id): a stack started by one worker never joins the

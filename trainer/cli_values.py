@@ -6,7 +6,6 @@ import argparse
 import re
 from typing import Callable, Mapping
 
-
 MetricsCallback = Callable[[int, Mapping[str, float]], None]
 
 

@@ -9,7 +9,6 @@ import time
 from dataclasses import dataclass, field
 from typing import Callable, Mapping
 
-
 MetricsCallback = Callable[[int, Mapping[str, float]], None]
 
 

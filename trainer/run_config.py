@@ -7,7 +7,6 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import yaml
 
-
 MetricsCallback = Callable[[int, Mapping[str, float]], None]
 
 

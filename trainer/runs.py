@@ -25,9 +25,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from protocad_ros.atomic import atomic_write_text
-from trainer.run_input import (check_logs, check_settings_section, load_json_object,  # noqa: F401 - for the CLIs
-                               load_yaml_mapping)
-
+from trainer.run_input import check_logs, check_settings_section, load_json_object, load_yaml_mapping  # noqa: F401 - for the CLIs
 
 CHECKPOINT_NAME = "latest.pt"
 

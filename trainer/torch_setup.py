@@ -7,7 +7,6 @@ from typing import Callable, Mapping
 
 import numpy as np
 
-
 MetricsCallback = Callable[[int, Mapping[str, float]], None]
 
 

@@ -28,6 +28,7 @@ import yaml
 
 from protocad_ros.atomic import atomic_write_text
 
+
 # ------------------------------------------------------------------------------------------------
 # The variants: one row each. Agent code asks the row (what it trains, what x_t holds), never the
 # name. Adding a variant = a row here (+ its own settings below if it was published with others).

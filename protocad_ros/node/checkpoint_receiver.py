@@ -32,8 +32,14 @@ from typing import Any, Callable
 from std_msgs.msg import String, UInt8MultiArray
 
 from protocad_ros.atomic import atomic_open, fsync_dir
-from protocad_ros.checkpoint_signing import (Manifest, SignatureRejected, TrustedKeys, signature_path,
-                                             verify_manifest, write_signature_file)
+from protocad_ros.checkpoint_signing import (
+    Manifest,
+    SignatureRejected,
+    TrustedKeys,
+    signature_path,
+    verify_manifest,
+    write_signature_file,
+)
 from protocad_ros.node.refusal_log import RefusalLog
 from sim_bridge.contract import qos, topics
 

@@ -25,16 +25,21 @@ the counters), `_stop` / `_wake` (events), `receiver`, `policy`, `ckpt_counters`
 """
 from __future__ import annotations
 
+import hashlib
 import time
 from typing import Any
 
-import hashlib
-
 from protocad_ros.atomic import file_signature
+from protocad_ros.checkpoint_signing import (
+    SignatureRejected,
+    SigningError,
+    load_trusted_keys,
+    parse_key_list,
+    read_signature_file,
+    signature_path,
+    verify_file,
+)
 from protocad_ros.node.checkpoint_receiver import CheckpointReceiver
-from protocad_ros.checkpoint_signing import (SignatureRejected, SigningError, load_trusted_keys,
-                                             parse_key_list, read_signature_file, signature_path,
-                                             verify_file)
 from protocad_ros.node.rollback_floor import RollbackFloor, RollbackStateError, default_state_path
 from sim_bridge.contract.contexts import task_actuators
 from sim_bridge.nodekit.rosnode import ConfigError

@@ -26,20 +26,27 @@ from diagnostic_msgs.msg import DiagnosticArray
 from sensor_msgs.msg import Image, JointState
 
 from protocad_ros.atomic import file_signature, remove_stale_temporaries
-from protocad_ros.node.checkpoint_serving import CheckpointServing
-from protocad_ros.node.checkpoint_receiver import CheckpointReceiver
-from protocad_ros.node.diagnostics import PolicyDiagnostics
-from protocad_ros.node.observation_pairing import ObservationPairing
 from protocad_ros.live_view import LiveView
 from protocad_ros.node.action_publishing import ActEvent, ActionPublishing
+from protocad_ros.node.checkpoint_receiver import CheckpointReceiver
+from protocad_ros.node.checkpoint_serving import CheckpointServing
+from protocad_ros.node.diagnostics import PolicyDiagnostics
+from protocad_ros.node.observation_pairing import ObservationPairing
 from protocad_ros.node.policy_params import COUNTERS, PARAMS
 from protocad_ros.node.refusal_log import RefusalLog
 from sim_bridge.contract import qos, topics
 from sim_bridge.contract.contexts import task_actuators
 from sim_bridge.nodekit.lifecycle import ManagedNode
 from sim_bridge.nodekit.publisher_watch import PublisherWatch
-from sim_bridge.nodekit.rosnode import (ConfigError, KeyThrottle, Percentiles, declare_all,
-                                flush_publishers, install_parameter_guards, run_node)
+from sim_bridge.nodekit.rosnode import (
+    ConfigError,
+    KeyThrottle,
+    Percentiles,
+    declare_all,
+    flush_publishers,
+    install_parameter_guards,
+    run_node,
+)
 
 NODE_NAME = "policy"
 #: Seconds a closing policy gives its readers to acknowledge the last actions (see close()).

@@ -35,13 +35,20 @@ from std_srvs.srv import Trigger
 from sim_bridge.bridge.action_intake import ActionIntake
 from sim_bridge.bridge.diagnostics import BridgeDiagnostics
 from sim_bridge.bridge.params import COUNTERS, FLUSH_TIMEOUT_S, LOSSLESS_FLUSH_TIMEOUT_S, PARAMS, episode_contexts
-from sim_bridge.bridge.publishing import PUBLISH_RETRY_S, RCLError, ObservationPublishing
+from sim_bridge.bridge.publishing import PUBLISH_RETRY_S, ObservationPublishing, RCLError
 from sim_bridge.bridge.stepping import Stepping
 from sim_bridge.contract import qos, topics
 from sim_bridge.nodekit.lifecycle import ManagedNode
 from sim_bridge.nodekit.publisher_watch import FirstPublisherLock, PublisherWatch
-from sim_bridge.nodekit.rosnode import (SHUTDOWN_BUDGET_S, ConfigError, KeyThrottle, Percentiles,
-                                declare_all, flush_publishers, install_parameter_guards)
+from sim_bridge.nodekit.rosnode import (
+    SHUTDOWN_BUDGET_S,
+    ConfigError,
+    KeyThrottle,
+    Percentiles,
+    declare_all,
+    flush_publishers,
+    install_parameter_guards,
+)
 
 NODE_NAME = "sim_bridge"
 __all__ = ["COUNTERS", "PARAMS", "PUBLISH_RETRY_S", "RCLError", "SimBridgeNode", "episode_contexts", "main"]

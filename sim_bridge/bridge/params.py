@@ -4,8 +4,14 @@ without importing rclpy."""
 from __future__ import annotations
 
 from sim_bridge.contract.contexts import TASKS
-from sim_bridge.nodekit.rosnode import (ConfigError, Param, autostart_param, executor_param,
-                                remote_lifecycle_param, strict_param)
+from sim_bridge.nodekit.rosnode import (
+    ConfigError,
+    Param,
+    autostart_param,
+    executor_param,
+    remote_lifecycle_param,
+    strict_param,
+)
 
 
 def episode_contexts(task: str, split: str, schedule: str, fixed: str) -> list[dict[str, float]]:

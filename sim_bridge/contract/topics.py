@@ -14,7 +14,6 @@ import functools
 import hashlib
 import json
 import math
-
 from dataclasses import dataclass, field
 from typing import Any, Mapping, Sequence
 

@@ -47,8 +47,7 @@ class Param:
         return {bool: "bool", int: "int", float: "double", str: "string"}[type(self.default)]
 
     def descriptor(self):
-        from rcl_interfaces.msg import (FloatingPointRange, IntegerRange, ParameterDescriptor,
-                                        ParameterType)
+        from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
 
         types = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
                  float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING}

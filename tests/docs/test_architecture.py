@@ -12,7 +12,6 @@ from pathlib import Path
 
 import grimp
 import pytest
-
 from helpers import ROOT
 
 PACKAGES = ("protocad_ros", "sim_bridge", "trainer")

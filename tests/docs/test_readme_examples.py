@@ -13,11 +13,11 @@ import subprocess
 from pathlib import Path
 
 import pytest
-from sensor_msgs.msg import JointState
-
 from helpers import ROOT, wait_until
 from helpers.agents import tiny_checkpoint
 from helpers.ros import Probe
+from sensor_msgs.msg import JointState
+
 from sim_bridge.contract import qos
 from sim_bridge.contract import topics as T
 from trainer.bag import mcap_io as M

@@ -14,10 +14,10 @@ import sys
 from pathlib import Path
 
 import pytest
+from helpers import wait_exit, wait_until
 from mcap.reader import make_reader
 from mcap_ros2.decoder import DecoderFactory
 
-from helpers import wait_exit, wait_until
 from sim_bridge.contract import topics
 
 pytestmark = [pytest.mark.ros, pytest.mark.process]

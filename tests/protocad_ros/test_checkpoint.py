@@ -8,12 +8,18 @@ import zipfile
 import numpy as np
 import pytest
 import torch
-
 from helpers import ROOT
+
 from protocad_ros import checkpoint as ckpt_mod
+from protocad_ros.checkpoint import (
+    CONFIG_NAME,
+    CheckpointError,
+    load_checkpoint,
+    read_checkpoint,
+    restore_checkpoint,
+    save_checkpoint,
+)
 from protocad_ros.model.agent import Agent
-from protocad_ros.checkpoint import (CONFIG_NAME, CheckpointError, load_checkpoint,
-                                     read_checkpoint, restore_checkpoint, save_checkpoint)
 from protocad_ros.model.config import Config, make_config
 from protocad_ros.policy import Policy
 

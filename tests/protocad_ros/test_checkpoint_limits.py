@@ -13,11 +13,16 @@ from pathlib import Path
 
 import pytest
 import torch
-
 from helpers import ROOT
 from helpers.hostile_checkpoints import BOMB_NUMEL, tiny_agent, write_deflate_bomb
-from protocad_ros.checkpoint import (CheckpointError, load_checkpoint, read_checkpoint, restore_checkpoint,
-                                     save_checkpoint)
+
+from protocad_ros.checkpoint import (
+    CheckpointError,
+    load_checkpoint,
+    read_checkpoint,
+    restore_checkpoint,
+    save_checkpoint,
+)
 from protocad_ros.checkpoint_limits import TOP_LEVEL_KEYS
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")

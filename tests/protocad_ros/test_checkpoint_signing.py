@@ -10,10 +10,21 @@ import sys
 
 import pytest
 
-from protocad_ros.checkpoint_signing import (Manifest, SignatureRejected, SigningError,
-                                             generate_keypair, keygen_main, load_private_key,
-                                             load_trusted_keys, next_seq, sign_main, sign_manifest,
-                                             signature_path, verify_file, verify_manifest)
+from protocad_ros.checkpoint_signing import (
+    Manifest,
+    SignatureRejected,
+    SigningError,
+    generate_keypair,
+    keygen_main,
+    load_private_key,
+    load_trusted_keys,
+    next_seq,
+    sign_main,
+    sign_manifest,
+    signature_path,
+    verify_file,
+    verify_manifest,
+)
 
 
 @pytest.fixture
@@ -82,8 +93,8 @@ def test_keys_that_are_not_ed25519_or_not_keys_are_refused(tmp_path):
 
 
 def test_a_signed_file_verifies_and_its_signature_does_not_carry_to_other_bytes(tmp_path, pair, capsys):
-    from protocad_ros.model.agents import make_agent
     from protocad_ros.checkpoint import save_checkpoint
+    from protocad_ros.model.agents import make_agent
     from protocad_ros.model.config import make_config
 
     kid, _, trusted = pair

@@ -8,10 +8,10 @@ import socket
 import subprocess
 import sys
 
+import helpers
 import numpy as np
 import pytest
 
-import helpers
 from protocad_ros.live_view import DEFAULT_URL, PARAMETERS, LiveView, check_mode
 from trainer.viz.rerun_log import read_recording
 

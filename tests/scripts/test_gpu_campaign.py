@@ -10,8 +10,8 @@ import sys
 import tarfile
 
 import pytest
-
 from helpers import HELPERS, ROOT
+
 from trainer.research import results as R
 
 pytestmark = pytest.mark.process

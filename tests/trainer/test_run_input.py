@@ -11,11 +11,11 @@ import sys
 from pathlib import Path
 
 import pytest
-
 from helpers import ROOT
-from trainer.data.sources import find_sources
+
 from trainer.data.records import DatasetError
-from trainer.run_input import (MAX_DEPTH, check_logs, depth, load_json_object, load_yaml_mapping, matches)
+from trainer.data.sources import find_sources
+from trainer.run_input import MAX_DEPTH, check_logs, depth, load_json_object, load_yaml_mapping, matches
 
 DEEP = "[" * 100_000 + "]" * 100_000
 UNSAFE = "!!python/object/apply:os.system [\"echo PWNED\"]\n"

@@ -5,7 +5,6 @@ import subprocess
 import sys
 
 import pytest
-
 from helpers import ROOT
 
 # Fills and frees a 24 MB tensor (an update's activations are such blocks) and prints how much

@@ -4,7 +4,8 @@ metadata record carry (msgs_docs/mcap_layout.md)."""
 from __future__ import annotations
 
 from dataclasses import dataclass
-from importlib.metadata import PackageNotFoundError, version as _pkg_version
+from importlib.metadata import PackageNotFoundError
+from importlib.metadata import version as _pkg_version
 from typing import Any, Mapping, Sequence
 
 import yaml

@@ -109,7 +109,7 @@ def vet_definition(msgtype: str, text: str) -> None:
     Refused: an array of a type that reads fewer (an empty struct reads one checked byte, a
     struct of only fixed byte arrays none), a fixed array of more than MAX_FIXED_STRUCT_ARRAY structs, a recursive type, nesting
     deeper than MAX_TYPE_DEPTH."""
-    from mcap_ros2._dynamic import _for_each_msgdef   # the decoder's own split of the text
+    from mcap_ros2._dynamic import _for_each_msgdef  # the decoder's own split of the text
 
     defs: dict[str, object] = {}
 

@@ -27,13 +27,31 @@ trainer/bag/reader.py (BagReader, recovery of cut files); this module is the one
 """
 from __future__ import annotations
 
-from trainer.bag.reader import BagReadError, BagReader, BagReport, RawMessage, read_bag_metadata
-from trainer.bag.writer import (DEFAULT_CHUNK_SIZE, DEFAULT_OFFERED_QOS, METADATA_VERSION,
-                                MIN_SPLIT_SIZE, ROS_DISTRO_DEFAULT, BagWriteError, BagWriter,
-                                qos_profile, qos_yaml)
-from trainer.bag.rosmsg import (TypeSupportError, decode, decoder_for, encode, encoder_for,
-                            message_definition, message_definition_with_encoding, new_message,
-                            normalize_type, to_plain, type_hash)
+from trainer.bag.reader import BagReader, BagReadError, BagReport, RawMessage, read_bag_metadata
+from trainer.bag.rosmsg import (
+                                TypeSupportError,
+                                decode,
+                                decoder_for,
+                                encode,
+                                encoder_for,
+                                message_definition,
+                                message_definition_with_encoding,
+                                new_message,
+                                normalize_type,
+                                to_plain,
+                                type_hash,
+)
+from trainer.bag.writer import (
+                                DEFAULT_CHUNK_SIZE,
+                                DEFAULT_OFFERED_QOS,
+                                METADATA_VERSION,
+                                MIN_SPLIT_SIZE,
+                                ROS_DISTRO_DEFAULT,
+                                BagWriteError,
+                                BagWriter,
+                                qos_profile,
+                                qos_yaml,
+)
 from trainer.bag.yamlcpp import yaml_cpp_dump
 
 __all__ = [

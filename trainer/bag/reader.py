@@ -36,11 +36,9 @@ from mcap.records import Channel, Chunk, DataEnd, Footer, Message, Metadata, Sch
 from mcap.stream_reader import StreamReader, breakup_chunk
 
 from trainer.bag.bag_report import BagReadError, BagReport, RawMessage
-from trainer.bag.limits import (BagLimitError, ClampedFile, ReadLimits, check_message_size, decompress,
-                                vet_definition)
-from trainer.bag.writer import MCAP_MAGIC
+from trainer.bag.limits import BagLimitError, ClampedFile, ReadLimits, check_message_size, decompress, vet_definition
 from trainer.bag.rosmsg import TypeSupportError, decode, message_definition_with_encoding
-
+from trainer.bag.writer import MCAP_MAGIC
 
 _KNOWN_SCHEMA_ENCODINGS = {"ros2msg", "ros2idl", "omgidl"}
 _RECORD_HEAD = struct.Struct("<BQ")     # opcode, length: every MCAP record starts so

@@ -14,8 +14,19 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from protocad_ros.atomic import atomic_write_text, remove_stale_temporaries
-from trainer.bag.bag_info import (DEFAULT_OFFERED_QOS, INT64_MAX, METADATA_VERSION, FileInfo, TopicInfo,
-                                  bag_metadata, library_string, plain_type, qos_profile, qos_yaml, topic_info)
+from trainer.bag.bag_info import (
+    DEFAULT_OFFERED_QOS,
+    INT64_MAX,
+    METADATA_VERSION,
+    FileInfo,
+    TopicInfo,
+    bag_metadata,
+    library_string,
+    plain_type,
+    qos_profile,
+    qos_yaml,
+    topic_info,
+)
 from trainer.bag.disk_safety import CheckedFile as _CheckedFile
 from trainer.bag.disk_safety import FailureRecovery, drop_reserve, make_reserve
 from trainer.bag.rosmsg import encode
@@ -72,7 +83,7 @@ class BagWriter(FailureRecovery):
                  chunk_size: int = DEFAULT_CHUNK_SIZE, max_bagfile_size: int = 0,
                  max_bagfile_duration_s: float = 0, flush_interval_s: float = 0,
                  custom_data: Mapping[str, str] | None = None, ros_distro: str | None = None):
-        import mcap.writer as mw   # deliberately lazy: the mcap library only where bags are written
+        import mcap.writer as mw  # deliberately lazy: the mcap library only where bags are written
 
         check_options(compression, chunk_size, max_bagfile_size, max_bagfile_duration_s, flush_interval_s,
                       custom_data)

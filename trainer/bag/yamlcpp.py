@@ -10,7 +10,6 @@ from typing import Any, Mapping
 
 import numpy as np
 
-
 # ---------------------------------------------------------------------------------------------
 # YAML the way rosbag2 writes it (yaml-cpp block style: YAML::Dump / operator<<)
 # ---------------------------------------------------------------------------------------------

@@ -49,12 +49,18 @@ from typing import Any, Iterable, Iterator, Mapping, Sequence
 
 import numpy as np
 
-from protocad_ros.model.agent_base import BATCH_KEYS   # what an agent's train_step reads
-from trainer.data.store import (SourceStore, cache_key, default_cache_budget_gb,
-                                   default_cache_dir, entry_size, find_sources, ingest_source,
-                                   prune_cache)
-from trainer.data.records import (CacheWriteError, DatasetError, DatasetReport, SourceReport,
-                                   TopicMap)
+from protocad_ros.model.agent_base import BATCH_KEYS  # what an agent's train_step reads
+from trainer.data.records import CacheWriteError, DatasetError, DatasetReport, SourceReport, TopicMap
+from trainer.data.store import (
+    SourceStore,
+    cache_key,
+    default_cache_budget_gb,
+    default_cache_dir,
+    entry_size,
+    find_sources,
+    ingest_source,
+    prune_cache,
+)
 
 __all__ = ["MCAPDataset", "TopicMap", "DatasetReport", "SourceReport", "DatasetError",
            "CacheWriteError", "find_sources", "cache_key", "default_cache_dir", "BATCH_KEYS"]

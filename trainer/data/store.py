@@ -18,9 +18,17 @@ import numpy as np
 
 from sim_bridge.contract import topics as T
 from trainer.data.rebuild import BagColumns, assemble
+from trainer.data.records import (
+    EXPECTED_TYPES,
+    KNOWN_UNUSED,
+    MULTIPLE_PUBLISHERS_KEY,
+    SMALL_STORE_STEPS,
+    STORE_VERSION,
+    CacheWriteError,
+    SourceReport,
+    TopicMap,
+)
 from trainer.data.sources import MAX_SEARCH_DEPTH, find_sources  # noqa: F401 - also imported from here
-from trainer.data.records import (EXPECTED_TYPES, KNOWN_UNUSED, MULTIPLE_PUBLISHERS_KEY, SMALL_STORE_STEPS,
-                                   STORE_VERSION, CacheWriteError, SourceReport, TopicMap)
 
 
 def source_files(source: Path) -> list[Path]:

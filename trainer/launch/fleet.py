@@ -36,9 +36,9 @@ import time
 from pathlib import Path
 from typing import Sequence
 
-from sim_bridge.contract import topics as T
 from protocad_ros.checkpoint_signing import SigningError
 from protocad_ros.model.config import DEFAULT_CLI_PRESET, PRESETS, VARIANTS
+from sim_bridge.contract import topics as T
 from trainer import cli_values, console
 from trainer.launch import discovery, run_key
 
@@ -103,7 +103,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 def run(a: argparse.Namespace) -> int:
     from trainer.launch.rosprocs import NodeFailed, RosStack, robot_namespaces
-
     from trainer.launch.stack import checkpoint_mismatch
 
     mismatch = checkpoint_mismatch({"bridge": {"task": a.task}, "policy": {"checkpoint": a.checkpoint}})

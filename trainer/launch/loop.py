@@ -47,8 +47,14 @@ from trainer import cli_values, console, runs, settings, torch_setup
 from trainer.launch import discovery, run_key
 from trainer.launch.loop_collect import Collection
 from trainer.launch.loop_eval import context_recording, final_evaluation, policy_vs_random
-from trainer.launch.loop_rundir import (DEMO, LoopRunDir, LoopSettings, agent_from_policy, planned_updates,
-                                        with_shipped_policy)
+from trainer.launch.loop_rundir import (
+    DEMO,
+    LoopRunDir,
+    LoopSettings,
+    agent_from_policy,
+    planned_updates,
+    with_shipped_policy,
+)
 from trainer.learn.resume import open_trainer
 from trainer.learn.trainer import Trainer
 

@@ -6,18 +6,18 @@ the counters, phases.json and a resume read."""
 from __future__ import annotations
 
 import dataclasses
-from pathlib import Path
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Sequence
 
 from protocad_ros.model.config import plan_prototype_freeze
 from sim_bridge.contract import topics as T
-from trainer.launch import discovery
 from trainer import cli_values, run_config, runs, settings
 from trainer.data.dataset import MCAPDataset, TopicMap
+from trainer.launch import discovery
 from trainer.learn.schedule import Schedule
-from trainer.settings import arg
 from trainer.runs import check_settings_section
+from trainer.settings import arg
 
 #: The demo's protocol. C=15: its 60 updates are most of its wall time, and on a CPU without bf16
 #: arithmetic (float32, about 4.7 s an update of 16 x 50 on one AVX2 core) 100 updates alone took

@@ -30,8 +30,8 @@ import sys
 from typing import Callable, Iterable
 
 from sim_bridge.contract import topics as T
-from trainer.launch.sender_gid import SenderSubscription, gid_pid
 from trainer.console import wait_until
+from trainer.launch.sender_gid import SenderSubscription, gid_pid
 
 #: How long one get_state call may take before it is asked again.
 GET_STATE_TIMEOUT_S = 2.0

@@ -14,9 +14,9 @@ import stat
 from dataclasses import dataclass
 from pathlib import Path
 
-from protocad_ros.checkpoint_signing import (SigningError, generate_keypair, key_id,
-                                             load_private_key)
 from cryptography.hazmat.primitives import serialization
+
+from protocad_ros.checkpoint_signing import SigningError, generate_keypair, key_id, load_private_key
 
 KEY_DIR = "keys"
 KEY_NAME = "checkpoint"

@@ -39,9 +39,9 @@ from typing import Any, Sequence
 import yaml
 
 from sim_bridge.contract import topics as T
+from trainer import console, run_config
 from trainer.launch import discovery
 
-from trainer import console, run_config
 SECTIONS = ("bridge", "policy", "recorder")
 DIAG_ERROR = 2   # diagnostic_msgs/DiagnosticStatus.ERROR
 MODULES = {"bridge": "sim_bridge.bridge.node", "policy": "protocad_ros.node.policy_node", "recorder": "trainer.nodes.recorder"}

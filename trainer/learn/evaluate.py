@@ -36,10 +36,10 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from sim_bridge.contract.contexts import context_label
+from sim_bridge.sim.rollout import RandomPolicy, rollout
 from sim_bridge.sim.vector import VectorEnv
 from trainer import console, runs, torch_setup
 from trainer.settings import arg
-from sim_bridge.sim.rollout import RandomPolicy, rollout
 
 DEFAULT_EPISODES = 5
 
@@ -268,8 +268,8 @@ def evaluate_through_ros(checkpoint: str | None, *, task: str | None, split: str
     recorder), then read the returns from the recorded bag (grouped by the true context).
     Without `total_episodes` the bridge cycles through the split's contexts, so each gets
     exactly `episodes` episodes; with it, contexts are drawn uniformly."""
-    from trainer.launch import rosprocs
     from trainer.data.dataset import MCAPDataset
+    from trainer.launch import rosprocs
 
     t0 = time.monotonic()
     cfg = None

@@ -103,9 +103,9 @@ class Trainer:
     def from_checkpoint(cls, path: str | Path, run_dir: str | Path, dataset: MCAPDataset | None, *,
                         device: str = "cpu", **kw) -> "Trainer":
         """Rebuild from a checkpoint: weights, optimizers, torch RNG, counters, sampler state."""
-        from protocad_ros.checkpoint import load_checkpoint
-
         import torch
+
+        from protocad_ros.checkpoint import load_checkpoint
 
         agent, counters = load_checkpoint(path, device=device)
         ctx = kw.get("dist_ctx") or distributed.DistContext()
@@ -223,9 +223,9 @@ class Trainer:
     # ------------------------------------------------------------------ checkpoints
     def save(self, path: str | Path | None = None) -> Path:
         """Atomic checkpoint (weights, optimizers, torch RNG, counters, sampler state)."""
-        from protocad_ros.checkpoint import save_checkpoint
-
         import torch
+
+        from protocad_ros.checkpoint import save_checkpoint
 
         self.log_now()
         self.counters["updates"] = self.updates

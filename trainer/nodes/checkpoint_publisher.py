@@ -23,13 +23,27 @@ from diagnostic_msgs.msg import DiagnosticArray
 from std_msgs.msg import String, UInt8MultiArray
 
 from protocad_ros.atomic import file_signature
+from protocad_ros.checkpoint_signing import (
+    SigningError,
+    key_id,
+    load_private_key,
+    next_seq,
+    sign_manifest,
+    write_signature_file,
+)
 from protocad_ros.node.checkpoint_receiver import manifest_of
-from protocad_ros.checkpoint_signing import (SigningError, key_id, load_private_key, next_seq,
-                                             sign_manifest, write_signature_file)
 from sim_bridge.contract import qos, topics
 from sim_bridge.nodekit.rosbase import ProtocadNode
-from sim_bridge.nodekit.rosnode import (ConfigError, Param, declare_all, executor_param, install_parameter_guards,
-                                make_status, run_node, strict_param)
+from sim_bridge.nodekit.rosnode import (
+    ConfigError,
+    Param,
+    declare_all,
+    executor_param,
+    install_parameter_guards,
+    make_status,
+    run_node,
+    strict_param,
+)
 
 NODE_NAME = "checkpoint_publisher"
 

@@ -25,18 +25,29 @@ import sys
 import threading
 from typing import Any, Mapping, Sequence
 
+from sim_bridge.contract import topics as T
 from sim_bridge.nodekit.fastdds_profile import announced_lease, participant_lease
 from sim_bridge.nodekit.publisher_watch import PublisherWatch
 from sim_bridge.nodekit.rosbase import ProtocadNode
 from sim_bridge.nodekit.rosnode import ConfigError, KeyThrottle, run_node
-
-from sim_bridge.contract import topics as T
 from trainer.bag import mcap_io
-from trainer.nodes.record_budget import (DEFAULT_FLOOD_FACTOR, DEFAULT_MIN_FREE_DISK, BudgetLimits, DiskFloor,
-                                         RecordBudget, parse_topic_values)
+from trainer.nodes.record_budget import (
+    DEFAULT_FLOOD_FACTOR,
+    DEFAULT_MIN_FREE_DISK,
+    BudgetLimits,
+    DiskFloor,
+    RecordBudget,
+    parse_topic_values,
+)
+
 # UNSUPPORTED_OPTIONS and the exit codes are imported from here (tests, msgs_docs/recorder.md).
-from trainer.nodes.recorder_cli import (STORAGE_PRESETS, UNSUPPORTED_OPTIONS, build_parser,  # noqa: F401
-                                        load_qos_overrides, parse_custom_data)
+from trainer.nodes.recorder_cli import (  # noqa: F401
+    STORAGE_PRESETS,
+    UNSUPPORTED_OPTIONS,
+    build_parser,
+    load_qos_overrides,
+    parse_custom_data,
+)
 from trainer.nodes.recorder_guard import EXIT_BUDGET, RecorderGuard  # noqa: F401
 from trainer.nodes.recorder_loss import LossAccounting
 from trainer.nodes.recorder_topics import DEFAULT_QUEUE_DEPTH, TopicSubscriber, history_name

@@ -61,7 +61,6 @@ from trainer.research.results import ANCHOR_LABEL, latest_progress, standard_con
 from trainer.settings import arg
 
 
-
 @dataclass
 class RunSpec:
     task: str

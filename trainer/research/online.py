@@ -48,11 +48,18 @@ from typing import Sequence
 from trainer import cli_values, console, runs, settings, torch_setup
 from trainer.data.dataset import MCAPDataset, TopicMap
 from trainer.learn import distributed
-from trainer.learn.schedule import RunCounters
 from trainer.learn.resume import open_trainer
+from trainer.learn.schedule import RunCounters
 from trainer.learn.training_eval import Evaluator
-from trainer.research.online_rundir import (EnvBags, OnlineSettings, data_counts, feature_row, leftovers,
-                                            open_run_dir, write_run_json)
+from trainer.research.online_rundir import (
+    EnvBags,
+    OnlineSettings,
+    data_counts,
+    feature_row,
+    leftovers,
+    open_run_dir,
+    write_run_json,
+)
 
 
 def close_quietly(steps) -> list[tuple[str, Exception]]:

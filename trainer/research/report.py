@@ -11,8 +11,15 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from trainer.research.results_json import ANCHOR_LABEL, PAPER_ENV_STEPS
-from trainer.research.statistics import (aggregate_mean, bootstrap_ci, paired_difference, standard_context,
-                                         summarize, unseen_train_ratio)
+from trainer.research.statistics import (
+    aggregate_mean,
+    bootstrap_ci,
+    paired_difference,
+    standard_context,
+    summarize,
+    unseen_train_ratio,
+)
+
 
 def _ci(v: float, ci: tuple[float, float]) -> str:
     return f"{v:.1f} [{ci[0]:.1f}, {ci[1]:.1f}]"

@@ -40,16 +40,59 @@ Schema (RESULTS_SCHEMA, checked on every save and load):
 
 from __future__ import annotations
 
-from trainer.research.results_json import (
-    ANCHOR_LABEL, PAPER_ENV_STEPS, PAPER_TABLE1, RESULTS_SCHEMA, SCHEMA_ID, gather, gather_run, latest_progress,
-    load_results, machine_info, random_baselines, runs_code_version, save_results, validate)
-from trainer.research.statistics import (
-    AGGREGATES, aggregate_iqm, aggregate_mean, aggregate_median, bootstrap_ci, final_scores, iqm,
-    paired_difference, standard_context, summarize, unseen_train_ratio)
 from trainer.research.report import (
-    BEGIN, DREAMERV2_SCORES, END, MIN_SEEDS_FOR_CI, aggregate_rows, anchor_rows, carried_sentence, combined,
-    curves, dreamerv2_reference, format_report, labels_of, log_curves_rerun, markdown_section, paired_lines,
-    plot_curves, progress_rows, readme_section, superseded_lines, table_rows, update_readme, write_reports)
+    BEGIN,
+    DREAMERV2_SCORES,
+    END,
+    MIN_SEEDS_FOR_CI,
+    aggregate_rows,
+    anchor_rows,
+    carried_sentence,
+    combined,
+    curves,
+    dreamerv2_reference,
+    format_report,
+    labels_of,
+    log_curves_rerun,
+    markdown_section,
+    paired_lines,
+    plot_curves,
+    progress_rows,
+    readme_section,
+    superseded_lines,
+    table_rows,
+    update_readme,
+    write_reports,
+)
+from trainer.research.results_json import (
+    ANCHOR_LABEL,
+    PAPER_ENV_STEPS,
+    PAPER_TABLE1,
+    RESULTS_SCHEMA,
+    SCHEMA_ID,
+    gather,
+    gather_run,
+    latest_progress,
+    load_results,
+    machine_info,
+    random_baselines,
+    runs_code_version,
+    save_results,
+    validate,
+)
+from trainer.research.statistics import (
+    AGGREGATES,
+    aggregate_iqm,
+    aggregate_mean,
+    aggregate_median,
+    bootstrap_ci,
+    final_scores,
+    iqm,
+    paired_difference,
+    standard_context,
+    summarize,
+    unseen_train_ratio,
+)
 
 __all__ = [
     'AGGREGATES', 'ANCHOR_LABEL', 'BEGIN', 'DREAMERV2_SCORES', 'END', 'MIN_SEEDS_FOR_CI',

@@ -13,8 +13,7 @@ import hashlib
 from pathlib import Path
 from typing import Any, Mapping
 
-from protocad_ros.checkpoint import (CheckpointError, existing_checkpoint_file, load_checkpoint,
-                                     save_policy)
+from protocad_ros.checkpoint import CheckpointError, existing_checkpoint_file, load_checkpoint, save_policy
 from trainer import runs
 
 

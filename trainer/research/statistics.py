@@ -11,6 +11,7 @@ import numpy as np
 
 from trainer.research.results_json import PAPER_TABLE1
 
+
 def standard_context(task: str) -> str:
     """The unrandomized task's context (every scale 1), e.g. 'm=1,d=1': the anchor's train and
     evaluation context, as a --train-context value."""

@@ -6,8 +6,8 @@ import math
 import threading
 from typing import Any
 
-from trainer.ros2cli import graph
 from trainer.cli_values import non_negative_int, positive_float, positive_int
+from trainer.ros2cli import graph
 from trainer.ros2cli.msgyaml import interface_class, message_to_csv, message_to_yaml
 
 DEFAULT_TRUNCATE_LENGTH = 128
@@ -115,8 +115,7 @@ def add_qos_arguments(parser: argparse.ArgumentParser, default_profile: str) -> 
 
 def choose_qos(node, args) -> Any:
     """ros2cli's rule: the preset, adapted to what every publisher offers, unless set explicitly."""
-    from rclpy.qos import (QoSDurabilityPolicy, QoSHistoryPolicy, QoSPresetProfiles,
-                           QoSReliabilityPolicy)
+    from rclpy.qos import QoSDurabilityPolicy, QoSHistoryPolicy, QoSPresetProfiles, QoSReliabilityPolicy
 
     profile = QoSPresetProfiles.get_from_short_key(args.qos_profile)
     explicit = any(v is not None for v in (args.qos_depth, args.qos_history, args.qos_reliability,

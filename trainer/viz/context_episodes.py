@@ -12,7 +12,6 @@ import numpy as np
 
 from sim_bridge.contract.contexts import context_label
 
-
 SPLIT_CLASS = {"train": 0, "test": 1}   # class ids of the points (the prototypes are 2)
 DEFAULT_STEPS_PER_CONTEXT = 30
 DEFAULT_SKIP_STEPS = 5
@@ -111,8 +110,8 @@ def collect_context_episodes(task: str, agent: Any = None, *, steps: int = DEFAU
     or ``random_policy``.
     """
     from sim_bridge.contract.contexts import get_task, task_actuators
-    from sim_bridge.sim.vector import VectorEnv
     from sim_bridge.sim.rollout import RandomPolicy, rollout
+    from sim_bridge.sim.vector import VectorEnv
     from trainer.console import progress as progress_bar
 
     if steps < 2:

@@ -48,8 +48,15 @@ import numpy as np
 
 from sim_bridge.contract.contexts import context_label
 from trainer.viz.context_episodes import SPLIT_CLASS, Episode, pick_episodes, stack_batches
-from trainer.viz.context_view import (CLASS_COLORS, CLASS_NAMES, PROTOTYPE_CLASS, ContextView, colormap,
-                                      no_grad, to_numpy)
+from trainer.viz.context_view import (
+    CLASS_COLORS,
+    CLASS_NAMES,
+    PROTOTYPE_CLASS,
+    ContextView,
+    colormap,
+    no_grad,
+    to_numpy,
+)
 
 
 def annotation_context():

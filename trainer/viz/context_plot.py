@@ -7,11 +7,8 @@ from typing import Sequence
 
 import numpy as np
 
-
 from trainer.viz.context_episodes import SPLIT_CLASS
-from trainer.viz.context_view import (CLASS_COLORS, CLASS_NAMES, PROTOTYPE_CLASS, ContextView,
-                                  colormap)
-
+from trainer.viz.context_view import CLASS_COLORS, CLASS_NAMES, PROTOTYPE_CLASS, ContextView, colormap
 
 #: Panel titles of the feature spaces.
 _FEATURE_TITLES = {"u_e": "learned feature (u, e)", "rssm_state": "RSSM state s", "u": "u", "e": "e"}

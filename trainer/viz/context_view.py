@@ -8,10 +8,8 @@ from typing import Any, Iterable, Sequence
 
 import numpy as np
 
-
 from sim_bridge.contract.contexts import context_label
-from trainer.viz.context_episodes import (DEFAULT_SKIP_STEPS, SPLIT_CLASS, Episode,
-                                      stack_batches)
+from trainer.viz.context_episodes import DEFAULT_SKIP_STEPS, SPLIT_CLASS, Episode, stack_batches
 
 PROTOTYPE_CLASS = 2
 CLASS_COLORS = {0: (31, 119, 180), 1: (255, 127, 14), 2: (214, 39, 40)}

@@ -38,14 +38,31 @@ from typing import Any, Iterable, Sequence
 
 from sim_bridge.contract.contexts import context_label
 from trainer.viz.context_blueprint import context_blueprint, context_blueprint_parts
-from trainer.viz.context_episodes import (DEFAULT_SKIP_STEPS, DEFAULT_STEPS_PER_CONTEXT, SPLIT_CLASS,
-                                          Episode, collect_context_episodes, load_log_episodes,
-                                          missing_contexts, pick_episodes, stack_batches)
+from trainer.viz.context_episodes import (
+    DEFAULT_SKIP_STEPS,
+    DEFAULT_STEPS_PER_CONTEXT,
+    SPLIT_CLASS,
+    Episode,
+    collect_context_episodes,
+    load_log_episodes,
+    missing_contexts,
+    pick_episodes,
+    stack_batches,
+)
 from trainer.viz.context_log import log_context_view, log_open_loop, log_reconstructions
 from trainer.viz.context_plot import render_context_png
-from trainer.viz.context_view import (CLASS_COLORS, CLASS_NAMES, FEATURES, PROTOTYPE_CLASS,
-                                      PROTOTYPE_FEATURES, ContextView, colormap,
-                                      compute_context_view, embed_episodes, project)
+from trainer.viz.context_view import (
+    CLASS_COLORS,
+    CLASS_NAMES,
+    FEATURES,
+    PROTOTYPE_CLASS,
+    PROTOTYPE_FEATURES,
+    ContextView,
+    colormap,
+    compute_context_view,
+    embed_episodes,
+    project,
+)
 
 __all__ = ["Episode", "ContextView", "RecordingResult", "collect_context_episodes",
            "load_log_episodes", "missing_contexts", "compute_context_view", "embed_episodes",

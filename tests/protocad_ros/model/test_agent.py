@@ -12,8 +12,8 @@ import functools
 import numpy as np
 import pytest
 import torch
-
 from helpers.agents import render_batch
+
 from protocad_ros.model.agent import Agent
 from protocad_ros.model.config import WORLD_MODEL_VARIANTS, Config, ConfigError, make_config
 from protocad_ros.policy import ContextFeatures, Policy

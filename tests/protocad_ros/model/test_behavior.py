@@ -11,7 +11,6 @@ from protocad_ros.model.behavior import ActorCritic, ImagineFns, lambda_return
 from protocad_ros.model.config import BehaviorConfig
 from protocad_ros.model.networks import TanhNormal, TruncNormal
 
-
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 

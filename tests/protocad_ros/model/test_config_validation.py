@@ -7,8 +7,7 @@ import sys
 
 import pytest
 
-from protocad_ros.model.config import (PRESETS, ConfigError, check_train_memory, estimate_train_memory,
-                                 make_config)
+from protocad_ros.model.config import PRESETS, ConfigError, check_train_memory, estimate_train_memory, make_config
 
 
 @pytest.mark.parametrize("key,value,says", [

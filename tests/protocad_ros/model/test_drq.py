@@ -10,15 +10,14 @@ import sys
 import numpy as np
 import pytest
 import torch
+from helpers.agents import render_batch
 
+from protocad_ros.checkpoint import load_checkpoint, save_checkpoint
 from protocad_ros.model.agents import make_agent
 from protocad_ros.model.augment import crop_images, random_crop
-from protocad_ros.checkpoint import load_checkpoint, save_checkpoint
 from protocad_ros.model.config import ConfigError, make_config
-from protocad_ros.model.drq import (DrQAgent, soft_q_target, soft_update, temperature_loss,
-                              transitions)
+from protocad_ros.model.drq import DrQAgent, soft_q_target, soft_update, temperature_loss, transitions
 from protocad_ros.policy import Policy
-from helpers.agents import render_batch
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -222,8 +221,8 @@ def test_compare_runs_drq_online_and_protocad_train_learns_from_its_logs(tmp_pat
 @pytest.mark.process
 def test_policy_node_serves_a_drq_checkpoint(spawn, tmp_path):
     from helpers import wait_until
-    from helpers.ros import Probe
     from helpers.policy import START, Feeder, policy_args
+    from helpers.ros import Probe
 
     agent = make_agent(make_config(TASK, "small", "drq", **{"train.seed": 3}), 1)
     agent.updates.fill_(11)

@@ -7,8 +7,8 @@ import subprocess
 import sys
 
 import pytest
-
 from helpers import ROOT
+
 from protocad_ros.model import precision as P
 
 

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 import pytest
 
-from protocad_ros.model.config import (MAX_FREEZE_SHARE, Config, ConfigError, make_config,
-                                       plan_prototype_freeze)
+from protocad_ros.model.config import MAX_FREEZE_SHARE, Config, ConfigError, make_config, plan_prototype_freeze
 from trainer.learn.schedule import Schedule
 
 

@@ -5,14 +5,19 @@ reference (explicit loops / closed forms), so a wrong axis, pairing or update fa
 """
 from __future__ import annotations
 
-
 import pytest
 import torch
 import torch.nn.functional as F
 
 from protocad_ros.model.augment import random_shift, sample_shifts, shift_images
-from protocad_ros.model.prototypes import (ContextModule, same_episode_pairs, sinkhorn_knopp,
-                                     swav_cross_entropy, swav_loss, tc_swav_loss)
+from protocad_ros.model.prototypes import (
+    ContextModule,
+    same_episode_pairs,
+    sinkhorn_knopp,
+    swav_cross_entropy,
+    swav_loss,
+    tc_swav_loss,
+)
 
 
 def _gen(seed=0):

@@ -4,10 +4,10 @@ one reader every load path uses (protocad_ros.checkpoint._read)."""
 from __future__ import annotations
 
 import pytest
-
 from helpers import wait_exit
 from helpers.hostile_checkpoints import tiny_agent, write_deflate_bomb
 from helpers.policy import START, policy_args
+
 from protocad_ros.checkpoint import CheckpointError, save_checkpoint
 
 

@@ -20,19 +20,20 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from helpers import Proc, wait_until
+from helpers.agents import save_agent
+from helpers.checkpoints import FakeCheckpointPublisher
+from helpers.checkpoints import chunks as _chunks
+from helpers.checkpoints import sign as _sign
+from helpers.policy import START, TASK, Feeder, policy_args
+from helpers.ros import Probe
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from std_msgs.msg import String, UInt8MultiArray
 
+from protocad_ros.checkpoint_signing import generate_keypair, load_private_key, next_seq, sign_file, signature_path
 from protocad_ros.node.checkpoint_receiver import CheckpointReceiver
-from protocad_ros.checkpoint_signing import (generate_keypair, load_private_key, next_seq,
-                                             sign_file, signature_path)
-from helpers import Proc, wait_until
-from helpers.ros import Probe
 from sim_bridge.contract import qos, topics
-from helpers.agents import save_agent
-from helpers.checkpoints import FakeCheckpointPublisher, chunks as _chunks, sign as _sign
-from helpers.policy import START, TASK, Feeder, policy_args
 
 TIMEOUT_S = 5.0   # the policy's checkpoint_transfer_timeout_s: how long a version may be partial
 
@@ -202,8 +203,8 @@ WALKER = "walker_walk"   # 6-d actions, as cheetah_run: another task of the same
 
 def _save_task(path, task: str, updates: int, seed: int = 0) -> bytes:
     """A small-preset checkpoint of `task`, written as the trainer writes it; its bytes."""
-    from protocad_ros.model.agents import make_agent
     from protocad_ros.checkpoint import save_checkpoint
+    from protocad_ros.model.agents import make_agent
     from protocad_ros.model.config import make_config
     from sim_bridge.contract.contexts import task_actuators
 
@@ -489,6 +490,7 @@ def test_announcement_round_trip_keeps_every_field():
 
 def test_docs_cover_every_publisher_parameter_and_counter():
     from helpers import ROOT
+
     from trainer.nodes.checkpoint_publisher import COUNTERS, PARAMS
 
     doc = (ROOT / "msgs_docs" / "checkpoint_publisher.md").read_text()

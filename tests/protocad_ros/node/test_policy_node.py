@@ -11,12 +11,12 @@ import os
 
 import numpy as np
 import pytest
-from sensor_msgs.msg import Image, JointState
-
 from helpers import ROOT, wait_exit, wait_until
 from helpers.agents import save_agent
 from helpers.policy import START, TASK, Feeder, policy_args
 from helpers.ros import Probe
+from sensor_msgs.msg import Image, JointState
+
 from sim_bridge.contract import qos, topics
 from sim_bridge.contract.contexts import TASKS
 

@@ -13,15 +13,20 @@ import time
 from pathlib import Path
 
 import pytest
-
 from helpers import wait_until
 from helpers.agents import save_agent
 from helpers.checkpoints import FakeCheckpointPublisher, chunks, sign
 from helpers.policy import START, TASK, policy_args
 from helpers.ros import Probe
+
+from protocad_ros.checkpoint_signing import (
+    generate_keypair,
+    load_private_key,
+    load_trusted_keys,
+    sign_file,
+    signature_path,
+)
 from protocad_ros.node.refusal_log import DEFAULT_INTERVAL_S
-from protocad_ros.checkpoint_signing import (generate_keypair, load_private_key, load_trusted_keys,
-                                             sign_file, signature_path)
 from sim_bridge.contract import topics
 
 SIZE = topics.DEFAULT_CHUNK_SIZE
@@ -340,8 +345,7 @@ def test_refusal_lines_are_one_per_cause_per_interval_with_a_count():
 
 
 def test_the_rollback_floor_is_kept_apart_and_only_grows(tmp_path):
-    from protocad_ros.node.rollback_floor import (RollbackFloor, RollbackStateError,
-                                                  default_state_path)
+    from protocad_ros.node.rollback_floor import RollbackFloor, RollbackStateError, default_state_path
 
     state = default_state_path(tmp_path / "keys" / "learner.pub", tmp_path / "robot" / "agent.pt")
     assert state.parent == tmp_path / "keys" and state.name.startswith("learner.pub.served-")

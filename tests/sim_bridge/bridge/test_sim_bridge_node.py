@@ -11,14 +11,14 @@ import math
 
 import numpy as np
 import pytest
+from helpers import ROOT, wait_exit, wait_until
+from helpers.ros import Probe, Responder
 from rclpy.parameter import Parameter
 from rclpy.parameter_client import AsyncParameterClient
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import Image, JointState
 from std_srvs.srv import Trigger
 
-from helpers import ROOT, wait_exit, wait_until
-from helpers.ros import Probe, Responder
 from sim_bridge.contract import qos, topics
 
 TASK = "pendulum_swingup"

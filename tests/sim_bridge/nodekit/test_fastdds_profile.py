@@ -9,8 +9,14 @@ from pathlib import Path
 
 import pytest
 
-from sim_bridge.nodekit.fastdds_profile import (FASTDDS_DEFAULT_LEASE_S, PROFILES_ENV, announced_lease,
-                                                participant_lease, profile_lease, profile_with_lease)
+from sim_bridge.nodekit.fastdds_profile import (
+    FASTDDS_DEFAULT_LEASE_S,
+    PROFILES_ENV,
+    announced_lease,
+    participant_lease,
+    profile_lease,
+    profile_with_lease,
+)
 
 ROOT = Path(__file__).resolve().parents[3]
 NS = "{http://www.eprosima.com/XMLSchemas/fastRTPS_Profiles}"

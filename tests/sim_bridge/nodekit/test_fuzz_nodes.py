@@ -14,12 +14,12 @@ import math
 
 import numpy as np
 import pytest
+from helpers import wait_until
+from helpers.ros import Probe
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from sensor_msgs.msg import Image, JointState
 
-from helpers import wait_until
-from helpers.ros import Probe
 from sim_bridge.contract import qos, topics
 
 pytestmark = pytest.mark.ros

@@ -14,12 +14,12 @@ import time
 import numpy as np
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray
+from helpers import wait_until
+from helpers.ros import Probe, Responder
 from lifecycle_msgs.msg import Transition, TransitionEvent
 from lifecycle_msgs.srv import ChangeState, GetAvailableStates, GetAvailableTransitions, GetState
 from sensor_msgs.msg import Image, JointState
 
-from helpers import wait_until
-from helpers.ros import Probe, Responder
 from sim_bridge.contract import qos, topics
 
 pytestmark = pytest.mark.ros

@@ -13,10 +13,19 @@ from pathlib import Path
 
 import pytest
 import zstandard
-
 from helpers import ROOT
-from helpers.hostile_bags import (JOINT_STATE, _chunk, _channel, _header, _message_head, _schema, joint_state,
-                                  write_chunk_bomb, write_schema_bomb)
+from helpers.hostile_bags import (
+    JOINT_STATE,
+    _channel,
+    _chunk,
+    _header,
+    _message_head,
+    _schema,
+    joint_state,
+    write_chunk_bomb,
+    write_schema_bomb,
+)
+
 from trainer.bag.limits import BagLimitError, ReadLimits, vet_definition
 from trainer.bag.reader import BagReader
 from trainer.bag.rosmsg import message_definition

@@ -8,12 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 import yaml
-
 from helpers import wait_until
 from helpers.bags import rerun_check
+
 from sim_bridge.contract import topics as T
-from trainer.bag import writer as bag_writer, rosmsg
 from trainer.bag import mcap_io as M
+from trainer.bag import rosmsg
+from trainer.bag import writer as bag_writer
 
 IMAGE, JOINT = "sensor_msgs/msg/Image", "sensor_msgs/msg/JointState"
 CLOCK = "rosgraph_msgs/msg/Clock"
@@ -345,8 +346,8 @@ def test_reads_bag_written_by_rosbags(tmp_path):
 def _expected_chunks(path: Path) -> list[tuple[int, int, int]]:
     """(chunk start offset, end offset, messages in it) from the summary (mcap library)."""
     from mcap.reader import make_reader
-    from mcap.stream_reader import breakup_chunk
     from mcap.records import Chunk, Message
+    from mcap.stream_reader import breakup_chunk
     with open(path, "rb") as fh:
         summary = make_reader(fh).get_summary()
         out = []

@@ -15,11 +15,11 @@ import tracemalloc
 from pathlib import Path
 
 import pytest
+from helpers.bags import make_steps, write_bag
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from helpers.bags import make_steps, write_bag
-from trainer.bag.reader import BagReadError, BagReader
+from trainer.bag.reader import BagReader, BagReadError
 from trainer.bag.rosmsg import TypeSupportError
 
 PEAK_LIMIT = 64 << 20

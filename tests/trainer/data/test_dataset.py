@@ -7,9 +7,9 @@ import shutil
 
 import numpy as np
 import pytest
+from helpers.bags import DT_NS, answer, make_steps, write_bag
 
 from trainer.data.dataset import DatasetError, MCAPDataset, TopicMap, find_sources
-from helpers.bags import DT_NS, answer, make_steps, write_bag
 
 
 def test_episode_rebuild_reports_gaps_duplicates_foreign_topics_and_unanswered(tmp_path):

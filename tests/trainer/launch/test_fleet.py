@@ -7,7 +7,6 @@ import json
 import os
 
 import pytest
-
 from helpers import wait_until
 from helpers.bags import TINY, check_robot_episodes, check_robots_recorded_and_trained, loop_failure, run_cli
 
@@ -91,8 +90,8 @@ def test_actor_groups_placed_like_on_other_machines(tmp_path, spawn):
     one actor group each, whose policy receives that checkpoint over ROS into its own file
     (no access to the learner's directory) and serves it before its bridge steps; the bag holds
     both robots' episodes and protocad-train learns from both."""
-    from protocad_ros.model.agents import make_agent
     from protocad_ros.checkpoint import save_checkpoint
+    from protocad_ros.model.agents import make_agent
     from protocad_ros.model.config import make_config
 
     learner = tmp_path / "learner_ckpt" / "latest.pt"

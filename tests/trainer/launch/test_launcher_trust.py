@@ -11,10 +11,10 @@ import time
 
 import pytest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-
 from helpers import wait_until
 from helpers.checkpoints import FakeCheckpointPublisher, chunks, sign
 from helpers.ros import Probe
+
 from protocad_ros.checkpoint_signing import generate_keypair, load_private_key
 from sim_bridge.contract import qos, topics
 
@@ -79,11 +79,11 @@ def test_a_default_fleet_serves_only_signed_checkpoints_and_forged_status_comple
     stranger pushes an unsigned version and one signed by another key (refused, counted) and
     forges B's policy's diagnostics saying one is loaded (ignored: B keeps waiting). Then the
     learner's checkpoint appears: it is the one B serves."""
+    from helpers.agents import save_agent
+
     from protocad_ros.checkpoint import save_checkpoint
     from protocad_ros.model.agents import make_agent
     from protocad_ros.model.config import make_config
-
-    from helpers.agents import save_agent
 
     dom = ["--domain-id", os.environ["ROS_DOMAIN_ID"]]
     topic = "/protocad/checkpoint"

@@ -7,7 +7,6 @@ import os
 import re
 
 import pytest
-
 from helpers.bags import TINY, check_robots_recorded_and_trained, loop_failure, run_cli
 
 pytestmark = [pytest.mark.ros, pytest.mark.process]

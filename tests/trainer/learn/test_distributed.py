@@ -12,14 +12,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
-
 from helpers import HELPERS, ROOT, wait_until
 from helpers.agents import render_batch
-from protocad_ros.model.agents import make_agent
+from helpers.bags import TINY, make_steps, write_bag
+
 from protocad_ros.checkpoint import load_checkpoint, read_checkpoint
+from protocad_ros.model.agents import make_agent
 from protocad_ros.model.config import make_config
 from trainer.learn import distributed
-from helpers.bags import TINY, make_steps, write_bag
 
 pytestmark = [pytest.mark.process, pytest.mark.usefixtures("one_torch_thread"),
               pytest.mark.skipif(not (Path(sys.executable).parent / "protocad-train").exists(),

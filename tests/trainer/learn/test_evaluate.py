@@ -6,10 +6,11 @@ import json
 
 import numpy as np
 import pytest
-
-from sim_bridge.contract.contexts import TASKS
 from helpers.agents import tiny_checkpoint
 from helpers.bags import run_cli
+
+from sim_bridge.contract.contexts import TASKS
+
 
 def test_select_contexts_subsets():
     from trainer.learn.evaluate import parse_context, select_contexts

@@ -11,7 +11,6 @@ from pathlib import Path
 
 import pytest
 import yaml
-
 from helpers import ROOT, wait_until
 from helpers.bags import TINY, make_steps, run_cli, write_bag, write_rosbags_bag
 
@@ -231,11 +230,11 @@ def record_with_a_second_image_publisher(tmp_path: Path, steps: list[dict]) -> P
     """A bag recorded by trainer.nodes.recorder (its own process) from publishers in this process: the
     contract topics, plus a second, silent writer on /protocad/image (an impostor)."""
     import rclpy
+    from helpers import Proc
     from rclpy.duration import Duration
     from rclpy.node import Node
     from sensor_msgs.msg import Image, JointState
 
-    from helpers import Proc
     from sim_bridge.contract import qos
     from sim_bridge.contract import topics as T
 

@@ -16,9 +16,9 @@ import time
 
 import pytest
 import yaml
-
 from helpers import wait_until
 from helpers.ros import Probe, Responder
+
 from sim_bridge.bridge.params import LOSSLESS_FLUSH_TIMEOUT_S
 from sim_bridge.contract import topics as T
 from sim_bridge.nodekit.rosnode import SHUTDOWN_BUDGET_S, flush_publishers

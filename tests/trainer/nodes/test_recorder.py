@@ -10,8 +10,8 @@ import time
 
 import numpy as np
 import pytest
-
 from helpers import wait_until
+
 from sim_bridge.contract import topics as T
 from trainer.bag import mcap_io as M
 
@@ -36,6 +36,7 @@ def ros():
 def make_publishers(node):
     from rosgraph_msgs.msg import Clock
     from sensor_msgs.msg import Image, JointState
+
     from sim_bridge.contract import qos
     # The contract's reliability/durability; a history deep enough that a burst on a loaded
     # machine cannot overwrite samples the recorder's reader has not received yet (a KEEP_LAST
@@ -168,12 +169,10 @@ def test_recording_into_a_full_disk_stops_cleanly_with_a_readable_bag(ros, small
     mcap library and rosbags read, with no temporary file left."""
     from mcap.reader import make_reader
     from rosbags.rosbag2 import Reader
-    from sensor_msgs.msg import Image
+    from sensor_msgs.msg import Image, JointState
 
     from sim_bridge.contract import qos
     from trainer.nodes.recorder import EXIT_WRITE_FAILED
-
-    from sensor_msgs.msg import JointState
 
     bag = small_disk.path / "bag"
     obs = qos.observation_qos()
@@ -208,8 +207,8 @@ def test_recording_into_a_full_disk_stops_cleanly_with_a_readable_bag(ros, small
         n_mcap = sum(1 for _ in make_reader(f).iter_messages())
     assert n_mcap > 0
     # log times never go back in the file as written (no index): what streaming readers need
-    from mcap.stream_reader import StreamReader
     from mcap.records import Message
+    from mcap.stream_reader import StreamReader
     with open(bag / "bag_0.mcap", "rb") as f:
         times = [r.log_time for r in StreamReader(f, emit_chunks=False).records if isinstance(r, Message)]
     assert times == sorted(times) and len(times) == n_mcap
@@ -411,11 +410,11 @@ def test_graph_type_names_are_checked_before_anything_is_imported(type_name):
 
 
 def test_installed_message_types_still_import():
-    from trainer.nodes.recorder_topics import _import_message
-    from trainer.ros2cli.msgyaml import interface_class
-
     from sensor_msgs.msg import Image
     from std_srvs.srv import Trigger
+
+    from trainer.nodes.recorder_topics import _import_message
+    from trainer.ros2cli.msgyaml import interface_class
 
     assert _import_message("sensor_msgs/msg/Image") is Image and _import_message("sensor_msgs/Image") is Image
     assert interface_class("std_srvs/srv/Trigger", kind="srv") is Trigger

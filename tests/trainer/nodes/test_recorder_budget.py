@@ -13,13 +13,20 @@ import time
 import numpy as np
 import pytest
 import yaml
-
 from helpers import wait_until
+
 from sim_bridge.contract import topics as T
 from trainer.bag import mcap_io as M
 from trainer.launch.rosprocs import recorder_budget_args
-from trainer.nodes.record_budget import (BUDGET_KEY, DROPPED_KEY, FLOOD_KEY, BudgetLimits, DiskFloor, RecordBudget,
-                                         parse_topic_values)
+from trainer.nodes.record_budget import (
+    BUDGET_KEY,
+    DROPPED_KEY,
+    FLOOD_KEY,
+    BudgetLimits,
+    DiskFloor,
+    RecordBudget,
+    parse_topic_values,
+)
 
 NS = T.DEFAULT_NAMESPACE
 
@@ -165,7 +172,6 @@ def test_below_the_free_disk_floor_recording_stops_with_a_valid_bag(ros, small_d
 @pytest.mark.process
 def test_a_diagnostics_flood_is_rate_limited_and_flagged_in_the_bag_and_on_diagnostics(ros, tmp_path):
     from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
-
     from rclpy.executors import SingleThreadedExecutor
 
     from sim_bridge.contract import qos

@@ -12,8 +12,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from helpers import ROOT, wait_until
+
 from trainer.research import results as R
 
 # Runs of 100-agent-step episodes; 2 test contexts, 1 episode each, so a run takes seconds.

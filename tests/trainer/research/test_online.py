@@ -7,7 +7,6 @@ from __future__ import annotations
 import json
 
 import pytest
-
 from helpers.bags import TINY, run_cli
 
 ARGS = ["--task", "pendulum_swingup", *TINY, "--time-limit", "40", "--prefill-episodes", "2",
@@ -142,6 +141,7 @@ def test_sigkill_at_any_point_then_resume_completes_with_counters_from_the_data(
     import signal
 
     from helpers import wait_until
+
     from protocad_ros.checkpoint import read_checkpoint
     from trainer.data.dataset import MCAPDataset
     from trainer.research.online_rundir import data_counts
@@ -204,6 +204,7 @@ def test_ctrl_c_while_training_costs_the_run_neither_updates_nor_an_evaluation(t
     import signal
 
     from helpers import wait_until
+
     from protocad_ros.checkpoint import read_checkpoint
 
     run = tmp_path / "run"

@@ -8,7 +8,6 @@ import math
 
 import numpy as np
 import pytest
-
 from helpers.agents import tiny_checkpoint
 
 
@@ -158,6 +157,7 @@ def test_help_and_bad_input(capsys, tmp_path):
 
 def test_the_committed_probe_of_the_shipped_policy_matches_its_schema_and_results_md():
     from helpers import ROOT
+
     from trainer.research.probe_report import validate
 
     doc = json.loads((ROOT / "msgs_docs" / "results" / "walker_shipped_probe.json").read_text())
@@ -170,6 +170,7 @@ def test_the_committed_probe_of_the_shipped_policy_matches_its_schema_and_result
 @pytest.mark.parametrize("variant", ["dreamer", "dreamerpro"])
 def test_variants_without_context_features_get_h_and_the_floor(variant):
     from helpers.agents import TINY_OVERRIDES
+
     from protocad_ros.model.agent import Agent
     from protocad_ros.model.config import make_config
     from trainer.research.probe_collect import Plan, feature_windows, open_loop_errors, pixel_projection

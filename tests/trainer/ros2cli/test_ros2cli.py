@@ -14,7 +14,6 @@ import sys
 
 import pytest
 import yaml
-
 from helpers import ROOT, Proc, wait_until
 from helpers.ros import Probe, Responder
 

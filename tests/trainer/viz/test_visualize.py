@@ -10,10 +10,10 @@ import os
 import subprocess
 import sys
 
+import helpers
 import numpy as np
 import pytest
 
-import helpers
 from sim_bridge.contract.contexts import get_task
 from trainer.viz import visualize as V
 from trainer.viz.rerun_log import TrainingRecorder, normalize_eval, read_recording
@@ -273,7 +273,7 @@ def test_training_recorder_series_on_the_update_timeline(tmp_path, pendulum_agen
         {"context": {"m": 1.0}, "split": "train", "mean_return": 400.0}])
     assert ("test", "m0.2", 150.0) in rows
     rec.log_eval(50, {"test m=0.2": 160.0, "test/m1.8": [60.0], "train m=1": 410.0})
-    from trainer.learn.evaluate import ContextResult, EvalResult   # what evaluate_checkpoint returns
+    from trainer.learn.evaluate import ContextResult, EvalResult  # what evaluate_checkpoint returns
 
     res = EvalResult("pendulum_swingup", "test", "x", [ContextResult({"m": 0.4}, "test", [1.0, 3.0])])
     assert rec.log_eval(60, res) == [("test", "m0.4", 2.0)]
@@ -306,8 +306,8 @@ def test_training_recorder_series_on_the_update_timeline(tmp_path, pendulum_agen
 
 
 def test_metrics_callback_is_the_training_recorder(tmp_path):
-    from trainer.viz.rerun_log import metrics_callback
     from trainer.metrics_log import MetricsLogger
+    from trainer.viz.rerun_log import metrics_callback
 
     assert metrics_callback(None) is None
     cb = metrics_callback(tmp_path / "run" / "metrics.rrd")
