@@ -16,6 +16,7 @@ No ROS import: the model side (protocad_ros.checkpoint) calls it.
 """
 from __future__ import annotations
 
+import io
 import os
 import re
 import zipfile
@@ -74,7 +75,6 @@ def check_archive(path: Path, data: bytes, max_bytes: int = DEFAULT_MAX_CHECKPOI
     if len(data) > max_bytes:
         raise CheckpointLimitError(f"{path}: {len(data)} bytes, more than the limit of {max_bytes} "
                                    "(max_checkpoint_bytes)")
-    import io
     try:
         infos = zipfile.ZipFile(io.BytesIO(data)).infolist()
     except (zipfile.BadZipFile, ValueError, OSError) as err:

@@ -48,6 +48,7 @@ TrainingRecorder a live target, e.g. ``TrainingRecorder(open_stream('spawn'))``.
 from __future__ import annotations
 
 import math
+import os
 import sys
 from pathlib import Path
 from typing import Any, Mapping, Sequence
@@ -78,8 +79,6 @@ def check_mode(mode: str) -> str:
 def check_display() -> None:
     """ValueError unless a viewer window can open here (DISPLAY or WAYLAND_DISPLAY set):
     without one a spawned viewer dies and the stream waits on it for seconds, then drops."""
-    import os
-
     if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")):
         raise ValueError("rerun mode 'spawn' needs a display (DISPLAY / WAYLAND_DISPLAY unset): "
                          "use 'save' (then `rerun FILE.rrd` elsewhere) or 'connect' to a viewer")

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 import torch
 
+from protocad_ros.checkpoint import load_checkpoint
 from protocad_ros.model.agent_base import AgentBase
 
 __all__ = ["Policy", "ContextFeatures", "SHIPPED_POLICIES", "shipped_policy"]
@@ -74,7 +75,6 @@ class Policy:
 
     @classmethod
     def from_checkpoint(cls, path, device: str | torch.device = "cpu", **kwargs: Any) -> "Policy":
-        from protocad_ros.checkpoint import load_checkpoint
         # Serving a file must not reseed this process (the trainer's resume alone takes its RNG).
         agent, _ = load_checkpoint(path, device=device, restore_rng=False)
         return cls(agent, device=device, **kwargs)

@@ -27,6 +27,7 @@ from typing import Any, Mapping
 import yaml
 
 from protocad_ros.atomic import atomic_write_text
+from sim_bridge.contract.contexts import TASKS  # pure data (no ROS): the contract's task table
 
 
 # ------------------------------------------------------------------------------------------------
@@ -632,8 +633,6 @@ VARIANT_OWN_SETTINGS: dict[str, dict[str, Any]] = {
 
 def task_num_prototypes(task: str) -> int:
     """K for a task (paper Table `setting_k`), from the task table sim_bridge.contract.contexts.TASKS."""
-    from sim_bridge.contract.contexts import TASKS  # pure data: the contract's task knowledge
-
     if task not in TASKS:
         raise ConfigError(f"unknown task {task!r}; valid tasks: {sorted(TASKS)}")
     return int(TASKS[task].num_prototypes)

@@ -39,6 +39,7 @@ from protocad_ros.checkpoint_signing import (
     signature_path,
     verify_file,
 )
+from protocad_ros.model.config import make_config
 from protocad_ros.node.checkpoint_receiver import CheckpointReceiver
 from protocad_ros.node.rollback_floor import RollbackFloor, RollbackStateError, default_state_path
 from sim_bridge.contract.contexts import task_actuators
@@ -77,7 +78,6 @@ class CheckpointServing:
 
     def _random_policy(self):
         from protocad_ros.model.agents import make_agent
-        from protocad_ros.model.config import make_config
         from protocad_ros.policy import Policy
 
         p = self.params

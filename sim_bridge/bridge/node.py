@@ -48,6 +48,7 @@ from sim_bridge.nodekit.rosnode import (
     declare_all,
     flush_publishers,
     install_parameter_guards,
+    run_node,
 )
 
 NODE_NAME = "sim_bridge"
@@ -264,8 +265,6 @@ class SimBridgeNode(ActionIntake, Stepping, ObservationPublishing, BridgeDiagnos
 
 
 def main(argv: list[str] | None = None) -> None:
-    from sim_bridge.nodekit.rosnode import run_node
-
     raise SystemExit(run_node(
         SimBridgeNode, prog="sim_bridge", params=PARAMS, argv=argv,
         description="Sim-bridge node: a context-randomized DMC task as ROS 2 topics "

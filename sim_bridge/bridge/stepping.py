@@ -14,12 +14,11 @@ import numpy as np
 
 from sim_bridge.bridge.params import READY_GRACE_S
 from sim_bridge.contract import topics
+from sim_bridge.sim.envs import ContextDMCEnv
 
 
 class Stepping:
     def _make_env(self):
-        from sim_bridge.sim.envs import ContextDMCEnv
-
         p = self.params
         return ContextDMCEnv(p["task"], split=p["split"], seed=p["seed"],
                              action_repeat=p["action_repeat"], image_size=p["image_size"],

@@ -16,6 +16,7 @@ Every protocad publisher offers RELIABLE + VOLATILE:
 from __future__ import annotations
 
 from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from rclpy.qos_overriding_options import QoSOverridingOptions
 
 #: History depth of image, step_info, context, action and context_features (messages).
 OBSERVATION_DEPTH = 100
@@ -97,6 +98,4 @@ def overridable():
     """rclpy's QoS overriding: `-p qos_overrides./NS/TOPIC.publisher.reliability:=best_effort`
     (also `.subscription.`, and durability, history, depth) at start, for the image and
     action topics (for a viewer on a lossy link; see msgs_docs/topics.md for what it costs)."""
-    from rclpy.qos_overriding_options import QoSOverridingOptions
-
     return QoSOverridingOptions.with_default_policies()

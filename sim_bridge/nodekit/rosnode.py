@@ -15,9 +15,11 @@ from __future__ import annotations
 
 import argparse
 import collections
+import os
 import signal
 import sys
 import threading
+import time
 from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Sequence
 
@@ -213,8 +215,6 @@ class KeyThrottle:
         self._lock = threading.Lock()
 
     def warning(self, key: str, message: str) -> None:
-        import time
-
         now = time.monotonic()
         with self._lock:
             if now - self._last.get(key, -1e9) < self._period:
@@ -277,8 +277,6 @@ def flush_publishers(publishers: Iterable[Any], timeout_s: float) -> list[str]:
     sample of `publishers` before the node exits: readers acknowledge lazily (at the writer's
     next heartbeat) and a reader that was stalled (a frozen recorder) still has a backlog that
     exiting would lose. Returns the topics with samples left unacknowledged."""
-    import time
-
     from rclpy.duration import Duration
 
     deadline = time.monotonic() + float(timeout_s)
@@ -337,8 +335,6 @@ def arm_shutdown_watchdog(budget_s: float, prog: str, code: Callable[[], int]) -
     """A daemon timer that ends the process (os._exit with code()) after budget_s: the bound
     on a node's shutdown. What it skips is the rest of a clean close; checkpoints and bags are
     written so that an abrupt end leaves them valid (atomic files, recoverable chunks)."""
-    import os
-
     def expire() -> None:
         print(f"[{prog}] shutdown took longer than {budget_s:g} s (a peer that left DDS "
               "uncleanly?): exiting now", file=sys.stderr, flush=True)
