@@ -16,6 +16,8 @@ import os
 from dataclasses import dataclass
 from functools import lru_cache
 
+from mcap_ros2._dynamic import _for_each_msgdef  # the decoder's own split of a definition text
+
 #: Default largest chunk (declared uncompressed size, and its record in the file). rosbag2
 #: writes chunks of 768 KiB by default, this project 1 MiB; one raw 4K image is 25 MB.
 DEFAULT_MAX_CHUNK_BYTES = 256 << 20
@@ -109,8 +111,6 @@ def vet_definition(msgtype: str, text: str) -> None:
     Refused: an array of a type that reads fewer (an empty struct reads one checked byte, a
     struct of only fixed byte arrays none), a fixed array of more than MAX_FIXED_STRUCT_ARRAY structs, a recursive type, nesting
     deeper than MAX_TYPE_DEPTH."""
-    from mcap_ros2._dynamic import _for_each_msgdef  # the decoder's own split of the text
-
     defs: dict[str, object] = {}
 
     def keep(name: str, short: str, msgdef: object) -> None:

@@ -28,6 +28,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Iterable, Iterator, NamedTuple
 
+import yaml
+
 __all__ = ["BagReader", "BagReadError", "BagReport", "RawMessage", "read_bag_metadata"]
 
 from mcap.opcode import Opcode
@@ -248,7 +250,6 @@ def _split_index(path: Path) -> tuple[int, str]:
 
 def read_bag_metadata(bag_dir: str | os.PathLike) -> dict[str, Any]:
     """The rosbag2_bagfile_information dict of a bag directory's metadata.yaml."""
-    import yaml
     with open(Path(bag_dir) / "metadata.yaml") as fh:
         data = yaml.safe_load(fh)
     if not isinstance(data, dict) or "rosbag2_bagfile_information" not in data:

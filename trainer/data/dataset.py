@@ -40,6 +40,7 @@ The parts: trainer/data/records.py (TopicMap, reports, errors), trainer/data/sto
 """
 from __future__ import annotations
 
+import argparse
 import json
 import os
 import shutil
@@ -272,8 +273,6 @@ class MCAPDataset:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """`python -m trainer.data.dataset LOGS... [--topic k=/t]`: index logs and print the report."""
-    import argparse
-
     ap = argparse.ArgumentParser(prog="python -m trainer.data.dataset", description=main.__doc__)
     ap.add_argument("logs", nargs="+", help="bag directories, .mcap files or folders of bags")
     ap.add_argument("--topic", action="append", default=[], metavar="KEY=/TOPIC",

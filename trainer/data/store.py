@@ -15,8 +15,10 @@ from pathlib import Path
 from typing import Any, Iterable
 
 import numpy as np
+import yaml
 
 from sim_bridge.contract import topics as T
+from trainer.bag import mcap_io
 from trainer.data.rebuild import BagColumns, assemble
 from trainer.data.records import (
     EXPECTED_TYPES,
@@ -169,10 +171,6 @@ def recorder_losses(source: Path, used: Iterable[str] | None = None) -> dict[str
     """The protocad_* custom_data of the bag's metadata.yaml (none for foreign bags), per-topic
     counts kept for the `used` topics only (what the dataset trains on: a missed /diagnostics
     status is no problem)."""
-    import json
-
-    import yaml
-
     meta = Path(source) / "metadata.yaml" if Path(source).is_dir() else Path(source).parent / "metadata.yaml"
     try:
         info = (yaml.safe_load(meta.read_text()) or {}).get("rosbag2_bagfile_information") or {}
@@ -207,8 +205,6 @@ def recorder_losses(source: Path, used: Iterable[str] | None = None) -> dict[str
 def multiple_publishers(source: Path, used: Iterable[str]) -> dict[str, int]:
     """{topic: publishers} for the `used` topics the bag's recorder saw several publishers on
     (the bag's metadata; empty for unmarked and foreign bags)."""
-    import json
-
     value = recorder_losses(source, used=used).get(MULTIPLE_PUBLISHERS_KEY)
     try:
         marked = json.loads(value) if value else {}
@@ -218,8 +214,6 @@ def multiple_publishers(source: Path, used: Iterable[str]) -> dict[str, int]:
 
 
 def _ingest_into(source: Path, topics: TopicMap, tmp: Path) -> None:
-    from trainer.bag import mcap_io
-
     t0 = time.monotonic()
     rep = SourceReport(path=str(source), files=[str(f) for f in source_files(source)])
     by_key = {k: v for k, v in topics.as_dict().items() if v}
