@@ -20,6 +20,7 @@ import signal
 import sys
 import threading
 import time
+import traceback
 from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Sequence
 
@@ -440,8 +441,6 @@ def run_node(make_node: Callable[..., Any], *, prog: str, description: str = "",
         except (KeyboardInterrupt, ExternalShutdownException):
             return 0
         except Exception as e:  # noqa: BLE001 - any other start-up failure: logged with its traceback, exit 1
-            import traceback
-
             log.error(f"could not start: {type(e).__name__}: {e}\n{traceback.format_exc()}")
             return 1
         code = _spin_until_done(node, stop)

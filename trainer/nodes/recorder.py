@@ -25,7 +25,12 @@ import sys
 import threading
 from typing import Any, Mapping, Sequence
 
+import rclpy.logging
+from diagnostic_msgs.msg import DiagnosticArray
+from rcl_interfaces.msg import ParameterDescriptor, ParameterType
+
 from sim_bridge.contract import topics as T
+from sim_bridge.contract.qos import diagnostics_qos
 from sim_bridge.nodekit.fastdds_profile import announced_lease, participant_lease
 from sim_bridge.nodekit.publisher_watch import PublisherWatch
 from sim_bridge.nodekit.rosbase import ProtocadNode
@@ -119,9 +124,7 @@ class RecorderNode(TopicSubscriber, LossAccounting, BagWriting, RecorderGuard, P
         self._open_bag(p, custom_data)
         self.disk_floor = DiskFloor(self.writer.bag_dir, p["min_free_disk"])
         # Where a flood is reported; made now, so readers have matched it when one comes.
-        from diagnostic_msgs.msg import DiagnosticArray
 
-        from sim_bridge.contract.qos import diagnostics_qos
         self._diag_pub = self.create_publisher(DiagnosticArray, T.DIAGNOSTICS, diagnostics_qos())
         self._flood_timer = None
         self._start_loss_accounting()
@@ -147,7 +150,6 @@ class RecorderNode(TopicSubscriber, LossAccounting, BagWriting, RecorderGuard, P
                             string_arrays: Mapping[str, Sequence[str]]) -> dict[str, Any]:
         """Declares every parameter with the constructor's value as its default; returns the
         values in effect (a --ros-args -p override wins)."""
-        from rcl_interfaces.msg import ParameterDescriptor, ParameterType
         p = {key: self.declare_parameter(key, default).value for key, default in scalars}
         for key, description in STRING_ARRAY_PARAMETERS.items():
             p[key] = list(self.declare_parameter(key, list(string_arrays[key]), ParameterDescriptor(
@@ -162,8 +164,6 @@ class RecorderNode(TopicSubscriber, LossAccounting, BagWriting, RecorderGuard, P
 
 def start_recorder(args: argparse.Namespace) -> RecorderNode:
     """The RecorderNode the parsed command line asks for (ConfigError: bad options, exit 2)."""
-    import rclpy.logging
-
     rclpy.logging.set_logger_level(args.node_name, getattr(rclpy.logging.LoggingSeverity, args.log_level.upper()))
     try:
         compression = args.compression or STORAGE_PRESETS.get(args.storage_preset_profile or "none", "zstd")

@@ -7,6 +7,8 @@ from __future__ import annotations
 import argparse
 from typing import Any, Sequence
 
+import yaml
+
 from sim_bridge.contract import topics as T
 from trainer.bag import mcap_io
 from trainer.nodes.recorder_guard import add_budget_options
@@ -172,8 +174,6 @@ def parse_custom_data(items: Sequence[str]) -> dict[str, str]:
 
 def load_qos_overrides(stream: Any) -> dict[str, dict[str, Any]]:
     """The YAML of --qos-profile-overrides-path: {topic: {policy: value}} (ValueError if malformed)."""
-    import yaml
-
     data = yaml.safe_load(stream) or {}
     if not isinstance(data, dict) or not all(isinstance(v, dict) for v in data.values()):
         raise ValueError("--qos-profile-overrides-path: expected a mapping of topic -> QoS policies")

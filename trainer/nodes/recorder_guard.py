@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import time
 
+from sim_bridge.nodekit.rosnode import make_status
 from trainer.nodes.record_budget import DEFAULT_FLOOD_FACTOR, DEFAULT_MIN_FREE_DISK
 
 #: Exit status when the bag's byte budget or the free-disk floor ended the recording (the bag
@@ -62,8 +63,6 @@ class RecorderGuard:
     def _publish_floods(self) -> None:
         try:
             from diagnostic_msgs.msg import DiagnosticArray
-
-            from sim_bridge.nodekit.rosnode import make_status
 
             arr = DiagnosticArray()
             arr.header.stamp = self.get_clock().now().to_msg()

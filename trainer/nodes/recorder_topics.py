@@ -12,6 +12,7 @@ from typing import Any, Mapping, Sequence
 
 from sim_bridge.contract import topics as T
 from trainer.bag import mcap_io
+from trainer.bag.rosmsg import interface_module
 from trainer.data.records import MULTIPLE_PUBLISHERS_KEY
 
 #: Relative contract topics recorded by default (resolved in --namespace), plus the bridge's
@@ -97,8 +98,6 @@ def history_name(depth: int) -> str:
 def _import_message(msgtype: str) -> Any:
     """The rclpy class of a type a remote participant advertises: checked before anything is
     imported (trainer.bag.rosmsg.interface_module: identifiers, an interface kind, an ament package)."""
-    from trainer.bag.rosmsg import interface_module
-
     module, name = interface_module(msgtype)
     return getattr(importlib.import_module(module), name)
 
