@@ -24,10 +24,13 @@ from __future__ import annotations
 import argparse
 import ipaddress
 import os
+import shutil
 import socket
 import sys
 from pathlib import Path
 from typing import Any, Callable
+
+from trainer.console import wait_until
 
 DEFAULT_PORT = 11811
 LOCALHOST = "127.0.0.1"
@@ -130,8 +133,6 @@ def server_executable() -> str:
     exe = Path(sys.prefix) / "bin" / "fast-discovery-server"
     if exe.exists():
         return str(exe)
-    import shutil
-
     found = shutil.which("fast-discovery-server")
     if not found:
         raise FileNotFoundError("fast-discovery-server not found (it ships with the ros-jazzy Fast DDS wheels "
@@ -210,8 +211,6 @@ def udp_listening(pid: int, port: int) -> bool:
 def wait_listening(pid: int, port: int, alive: Callable[[], str | None], timeout: float = 20.0) -> None:
     """Block until the server process listens on its port; RuntimeError if it exits first,
     TimeoutError if it does not within `timeout`."""
-    from trainer.console import wait_until
-
     wait_until(lambda: udp_listening(pid, port), what=f"discovery server listening on UDP port {port}",
                timeout=timeout, alive=alive)
 

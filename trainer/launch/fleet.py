@@ -41,6 +41,8 @@ from protocad_ros.model.config import DEFAULT_CLI_PRESET, PRESETS, VARIANTS
 from sim_bridge.contract import topics as T
 from trainer import cli_values, console
 from trainer.launch import discovery, run_key
+from trainer.launch.rosprocs import NodeFailed, RosStack, robot_namespaces
+from trainer.launch.stack import checkpoint_mismatch
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -102,9 +104,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def run(a: argparse.Namespace) -> int:
-    from trainer.launch.rosprocs import NodeFailed, RosStack, robot_namespaces
-    from trainer.launch.stack import checkpoint_mismatch
-
     mismatch = checkpoint_mismatch({"bridge": {"task": a.task}, "policy": {"checkpoint": a.checkpoint}})
     if mismatch:   # before any node: its policies would refuse every bridge
         print(f"protocad-fleet: error: {mismatch.replace('bridge.task', '--task')}", file=sys.stderr)
@@ -214,8 +213,6 @@ def main(argv: Sequence[str] | None = None) -> int:
                   "or set ROS_DOMAIN_ID", file=sys.stderr)
             return 2
         a.domain_id = int(os.environ["ROS_DOMAIN_ID"])
-    from trainer.launch.rosprocs import NodeFailed
-
     try:
         return run(a)
     except (NodeFailed, FileNotFoundError) as exc:   # e.g. the discovery server did not start

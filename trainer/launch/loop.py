@@ -55,8 +55,10 @@ from trainer.launch.loop_rundir import (
     planned_updates,
     with_shipped_policy,
 )
+from trainer.launch.rosprocs import NodeFailed, RosStack
 from trainer.learn.resume import open_trainer
 from trainer.learn.trainer import Trainer
+from trainer.viz.rerun_log import metrics_callbacks
 
 
 def build_parser():
@@ -73,8 +75,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     parsed = settings.parse(parser, argv)
     s, model = parsed.get(LoopSettings), parsed.get(settings.ModelChoice)
-    from trainer.launch.rosprocs import NodeFailed
-
     try:
         if s.resume and s.run_dir:   # the original command's options, unless given again
             got = settings.resumed_from_run(s.run_dir, parsed, parser,
@@ -190,8 +190,6 @@ class Loop:
             sign_file(ckpt, signer)
 
     def _start_stack(self) -> None:
-        from trainer.launch.rosprocs import RosStack
-
         a, cfg = self.a, self.cfg
         server, start_server = discovery.from_args(a)
         self.stack = RosStack(self.run_dir / "logs", domain_id=a.domain_id, discovery_server=server,
@@ -205,8 +203,6 @@ class Loop:
                  if a.resume else ""), flush=True)
 
     def run(self) -> int:
-        from trainer.viz.rerun_log import metrics_callbacks
-
         self._setup()
         a = self.a
         t_start = time.monotonic()

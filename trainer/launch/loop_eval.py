@@ -4,16 +4,16 @@ policy on the test contexts (in-process, deterministic) and the rerun recording 
 view."""
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 from trainer import console, runs
 from trainer.launch.loop_rundir import LoopRunDir
+from trainer.learn.evaluate import evaluate_checkpoint, evaluate_through_ros, format_table
 
 
 def policy_vs_random(rundir: LoopRunDir, domain_id: int, device: str, stop: console.StopFlag) -> None:
     """The starting policy and the random one on the same unseen contexts, through ROS."""
-    from trainer.learn.evaluate import evaluate_through_ros, format_table
-
     n, cfg = rundir.a.start_eval_episodes, rundir.cfg
     print(f"[loop] {rundir.init_policy} against the random policy on {n} unseen-context episode(s), "
           "through the ROS nodes (sim bridge + policy node / random actor + recorder)", flush=True)
@@ -31,8 +31,6 @@ def policy_vs_random(rundir: LoopRunDir, domain_id: int, device: str, stop: cons
 def final_evaluation(rundir: LoopRunDir, updates: int, device: str, stop: console.StopFlag) -> Path | None:
     """The trained checkpoint and the random policy on the test contexts (in-process): the table,
     and eval/test_UPDATES.json; None when stopped."""
-    from trainer.learn.evaluate import evaluate_checkpoint, format_table
-
     a = rundir.a
     ckpt = runs.checkpoint_path(rundir.path)
     print(f"[loop] evaluating {ckpt} on the test contexts ({a.eval_episodes} episode(s) each, "
@@ -72,8 +70,6 @@ def context_recording(rundir: LoopRunDir, device: str) -> Path | None:
     except ImportError as exc:
         print(f"[loop] no rerun context recording: trainer.viz.visualize is not available ({exc})", flush=True)
         return None
-    import os
-
     old_cache = os.environ.get("PROTOCAD_CACHE_DIR")
     os.environ["PROTOCAD_CACHE_DIR"] = str(rundir.ledger.ds.cache_dir)  # reuse this run's dataset cache
     print(f"[loop] writing the rerun context recording {out}", flush=True)

@@ -5,16 +5,21 @@ and weights --init-policy starts from, and the ledger of the phases the bags on 
 the counters, phases.json and a resume read."""
 from __future__ import annotations
 
+import copy
 import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
-from protocad_ros.model.config import plan_prototype_freeze
+from protocad_ros.checkpoint import CheckpointError, architecture_differences, existing_checkpoint_file, read_checkpoint
+from protocad_ros.model.agents import make_agent
+from protocad_ros.model.config import Config, apply_overrides, plan_prototype_freeze
+from protocad_ros.policy import shipped_policy
 from sim_bridge.contract import topics as T
 from trainer import cli_values, run_config, runs, settings
 from trainer.data.dataset import MCAPDataset, TopicMap
 from trainer.launch import discovery
+from trainer.launch.rosprocs import robot_namespaces
 from trainer.learn.schedule import Schedule
 from trainer.runs import check_settings_section
 from trainer.settings import arg
@@ -134,8 +139,6 @@ def planned_updates(a: LoopSettings) -> int:
 def with_shipped_policy(s: LoopSettings, model: settings.ModelChoice) -> LoopSettings:
     """The demo: start from a shipped policy (of --task if given, else the first of
     DEMO_POLICY_TASKS the package ships) unless --init-policy names one."""
-    from protocad_ros.policy import shipped_policy
-
     if s.init_policy or s.resume:
         return s
     for task in [model.task] if model.task else DEMO_POLICY_TASKS:
@@ -155,11 +158,6 @@ def policy_config(init_policy: Path, s: LoopSettings, model: settings.ModelChoic
     """--init-policy: the policy file's config (its networks) with this run's training
     options on top (--set, --batch-size, --seq-len, --seed, --precision, config flags); an
     option that would change the networks is refused (ValueError)."""
-    import copy
-
-    from protocad_ros.checkpoint import CheckpointError, architecture_differences, read_checkpoint
-    from protocad_ros.model.config import Config, apply_overrides
-
     try:
         policy_cfg = Config.from_dict(read_checkpoint(init_policy)["config"])
     except CheckpointError as err:
@@ -188,9 +186,6 @@ def policy_config(init_policy: Path, s: LoopSettings, model: settings.ModelChoic
 def agent_from_policy(init_policy: Path, cfg, device: str):
     """An agent of the run's config (its optimizers from the run's learning rates) holding
     the policy's weights, update counter 0 (this run's schedule counts its own updates)."""
-    from protocad_ros.checkpoint import CheckpointError, read_checkpoint
-    from protocad_ros.model.agents import make_agent
-
     try:
         payload = read_checkpoint(init_policy)
         agent = make_agent(cfg, int(payload["action_dim"]), device=device)
@@ -207,8 +202,6 @@ class LoopRunDir:
     bags. `open` makes a new one or continues one (--resume)."""
 
     def __init__(self, a: LoopSettings, cfg, path: Path, run_json: dict[str, Any], init_policy: Path | None):
-        from trainer.launch.rosprocs import robot_namespaces
-
         self.a, self.cfg, self.path, self.run_json, self.init_policy = a, cfg, path, run_json, init_policy
         self.schedule = Schedule(N=a.prefill_episodes, C=a.updates_per_episode)
         self.namespaces = robot_namespaces(T.DEFAULT_NAMESPACE, a.robots)
@@ -226,8 +219,6 @@ class LoopRunDir:
         saved_protocol = None
         init_policy = None
         if s.init_policy:
-            from protocad_ros.checkpoint import existing_checkpoint_file
-
             init_policy = existing_checkpoint_file(s.init_policy)
         if s.resume:
             # A loop stopped during its prefill has bags but no checkpoint yet: still resumable.

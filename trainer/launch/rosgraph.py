@@ -31,6 +31,7 @@ from typing import Callable, Iterable
 
 from sim_bridge.contract import topics as T
 from trainer.console import wait_until
+from trainer.launch import discovery
 from trainer.launch.sender_gid import SenderSubscription, gid_pid
 
 #: How long one get_state call may take before it is asked again.
@@ -39,8 +40,6 @@ GET_STATE_TIMEOUT_S = 2.0
 
 class RosGraph:
     def __init__(self, domain_id: int, *, name: str = "protocad_launcher", discovery_server: str | None = None):
-        from trainer.launch import discovery
-
         # Before rclpy.init: this process's own participant stays on this machine, like the
         # nodes it starts (rosprocs.ros_env), whatever the caller's environment says. With a
         # Discovery Server it is a super client: a plain client would never hear of endpoints

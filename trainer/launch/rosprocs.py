@@ -33,6 +33,8 @@ from pathlib import Path
 from typing import Iterable, Sequence
 
 from sim_bridge.contract import topics as T
+from trainer.launch import discovery
+from trainer.launch.rosgraph import RosGraph
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -91,8 +93,6 @@ def ros_env(domain_id: int | None = None, discovery_server: str | None = None,
             super_client: bool = False) -> dict[str, str]:
     """The environment of a node process: this machine only, the given domain, and discovery
     through `discovery_server` (a client; a super client if asked) or without one."""
-    from trainer.launch import discovery
-
     env = dict(os.environ)
     env["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"    # DDS never leaves this machine
     env.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
@@ -204,8 +204,6 @@ class RosStack:
     def __init__(self, log_dir: str | Path, *, domain_id: int | None = None,
                  namespace: str = T.DEFAULT_NAMESPACE, discovery_server: str | None = None,
                  start_discovery_server: tuple[str, int] | None = None, ready_timeout: float = 20.0):
-        from trainer.launch import discovery
-
         self.log_dir = Path(log_dir)
         self.log_dir.mkdir(parents=True, exist_ok=True)
         self.procs: dict[str, NodeProc] = {}
@@ -221,8 +219,6 @@ class RosStack:
         self.namespace = namespace
 
     def _start_discovery_server(self, host: str, port: int, timeout: float) -> str:
-        from trainer.launch import discovery
-
         warning = discovery.exposure_warning(host)
         if warning:
             print(f"[{DISCOVERY_SERVER}] {warning}", file=sys.stderr, flush=True)
@@ -251,8 +247,6 @@ class RosStack:
     def graph(self):
         """The launcher's RosGraph on this stack's domain (made at first use)."""
         if self._graph is None:
-            from trainer.launch.rosgraph import RosGraph
-
             self._graph = RosGraph(self.domain_id, discovery_server=self.discovery_server)
         return self._graph
 
@@ -422,6 +416,8 @@ class RosStack:
                        wait_topics: Iterable[str] = (), ready_timeout: float = 60.0,
                        log_name: str | None = None, namespaces: Sequence[str] | None = None) -> NodeProc:
         """One recorder for the robots in `namespaces` (default: this stack's namespace)."""
+        # The bag library (mcap) only where a recorder starts: evaluate and compare import this
+        # module at startup.
         from trainer.nodes.recorder_topics import default_topics
 
         topics = [t if t != T.CLOCK else T.clock_topic(ns)

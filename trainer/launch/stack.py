@@ -38,9 +38,11 @@ from typing import Any, Sequence
 
 import yaml
 
+from sim_bridge.bridge.params import PARAMS as BRIDGE_PARAMS
 from sim_bridge.contract import topics as T
 from trainer import console, run_config
 from trainer.launch import discovery
+from trainer.launch.rosprocs import NodeFailed, RosStack, recorder_endpoints
 
 SECTIONS = ("bridge", "policy", "recorder")
 DIAG_ERROR = 2   # diagnostic_msgs/DiagnosticStatus.ERROR
@@ -80,7 +82,6 @@ def checkpoint_mismatch(doc: dict[str, Any]) -> str | None:
     size differ), or None. Read before any node starts: a mismatched stack would otherwise run
     with a policy that refuses every observation."""
     from protocad_ros.checkpoint import CheckpointError, read_checkpoint
-    from sim_bridge.bridge.params import PARAMS as BRIDGE_PARAMS
 
     path = (doc.get("policy") or {}).get("checkpoint")
     if not path or not Path(path).exists():
@@ -157,8 +158,6 @@ class LogFollower(threading.Thread):
 
 def run(doc: dict[str, Any], *, log_dir: Path, domain_id: int | None, ready_timeout: float,
         discovery_server: str | None = None, start_discovery_server: tuple[str, int] | None = None) -> int:
-    from trainer.launch.rosprocs import NodeFailed, RosStack, recorder_endpoints
-
     ns = doc.get("namespace") or T.DEFAULT_NAMESPACE
     try:
         stack = RosStack(log_dir, domain_id=domain_id, namespace=ns, discovery_server=discovery_server,
