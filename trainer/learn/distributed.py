@@ -20,6 +20,7 @@ LOCAL_RANK, MASTER_ADDR/PORT).
 from __future__ import annotations
 
 import base64
+import ctypes
 import hashlib
 import os
 import signal
@@ -30,6 +31,8 @@ from typing import Any, Callable, Sequence
 import torch
 import torch.distributed as dist
 import torch.nn as nn
+
+from trainer import torch_setup
 
 __all__ = ["DistContext", "init", "attach", "average_gradients", "fingerprints", "any_rank",
            "gather_objects", "rank_seed", "pack_rng", "unpack_rng"]
@@ -81,8 +84,6 @@ def _die_with_launcher() -> None:
     """SIGTERM (a clean, coordinated stop with a checkpoint) when torchrun's agent dies, instead
     of ranks training on as orphans (Linux prctl PR_SET_PDEATHSIG; elsewhere nothing)."""
     try:
-        import ctypes
-
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, signal.SIGTERM)
     except (OSError, AttributeError):
         pass
@@ -97,8 +98,6 @@ def barrier_if(ctx: DistContext) -> None:
 def run_entry_point(threads: int, device: str, body: Callable[[DistContext, str], int]) -> int:
     """A command's body under torchrun or not: threads, join the ranks (device per rank), run
     body(ctx, device), leave the process group whatever happens."""
-    from trainer import torch_setup
-
     torch_setup.setup_torch(threads)
     ctx, device = init(torch_setup.resolve_device(device))
     try:

@@ -35,11 +35,13 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from sim_bridge.contract.contexts import context_label
+from protocad_ros.model.config import Config
+from sim_bridge.contract.contexts import context_label, get_task, task_actuators
 from sim_bridge.sim.rollout import RandomPolicy, rollout
 from sim_bridge.sim.vector import VectorEnv
-from trainer import console, runs, torch_setup
-from trainer.settings import arg
+from trainer import console, runs, settings, torch_setup
+from trainer.launch import rosprocs
+from trainer.settings import arg, settings_parser
 
 DEFAULT_EPISODES = 5
 
@@ -172,8 +174,6 @@ def select_contexts(task: str, split: str = "test", contexts: Sequence[Mapping[s
                     max_contexts: int = 0) -> list[dict[str, float]]:
     """The split's contexts (validated), a given subset, or the fixed stratified subset of
     K (TaskSpec.stratified: every value of m and of d equally often; 0 = all)."""
-    from sim_bridge.contract.contexts import get_task
-
     spec = get_task(task)
     if contexts:
         return [spec.validate(c, split) for c in contexts]
@@ -236,15 +236,12 @@ def evaluate_checkpoint(checkpoint: str | Path | None, *, task: str | None = Non
     else:
         if not task:
             raise ValueError("--random needs --task")
-        from sim_bridge.contract.contexts import get_task
 
         get_task(task)
         policy = None
         repeat, limit, quality = 2, time_limit or 1000, "fast"
     ctxs = select_contexts(task, split, contexts, max_contexts)
     if policy is None:
-        from sim_bridge.contract.contexts import task_actuators
-
         policy = RandomPolicy(len(task_actuators(task)), seed)
     per = run_episodes(task, policy, ctxs, episodes, split=split, seed=seed, workers=workers, batch=batch,
                        action_repeat=repeat, time_limit=limit, render_quality=quality,
@@ -269,14 +266,12 @@ def evaluate_through_ros(checkpoint: str | None, *, task: str | None, split: str
     Without `total_episodes` the bridge cycles through the split's contexts, so each gets
     exactly `episodes` episodes; with it, contexts are drawn uniformly."""
     from trainer.data.dataset import MCAPDataset
-    from trainer.launch import rosprocs
 
     t0 = time.monotonic()
     cfg = None
     updates = env_steps = None
     if checkpoint:
         from protocad_ros.checkpoint import read_checkpoint
-        from protocad_ros.model.config import Config
 
         payload = read_checkpoint(checkpoint)
         cfg = Config.from_dict(payload["config"])
@@ -290,8 +285,6 @@ def evaluate_through_ros(checkpoint: str | None, *, task: str | None, split: str
     bag = out_dir / f"eval_{split}_{time.strftime('%Y%m%d-%H%M%S')}"
     stack = rosprocs.RosStack(out_dir / "logs", domain_id=domain_id)
     ep_len = episode_length or ((cfg.train.time_limit // cfg.train.action_repeat) if cfg else 500)
-    from sim_bridge.contract.contexts import get_task
-
     total = total_episodes or episodes * len(get_task(task).contexts(split))
     try:
         if checkpoint:
@@ -374,8 +367,6 @@ class EvaluateSettings:
 
 
 def build_parser():
-    from trainer.settings import settings_parser
-
     return settings_parser(
         "protocad-evaluate",
         "Evaluate checkpoints (or the random policy) on a split's contexts: E episodes per "
@@ -386,7 +377,6 @@ def build_parser():
 
 def main(argv: Sequence[str] | None = None) -> int:
     from protocad_ros.checkpoint import CheckpointError
-    from trainer import settings
 
     s = settings.parse(build_parser(), argv, config_help=False).get(EvaluateSettings)
     try:

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any, Callable, Iterable
 
 from protocad_ros.model.precision import PrecisionChoice
+from sim_bridge.contract.contexts import task_actuators
 from trainer import metrics_log, runs
 from trainer.data.dataset import MCAPDataset
 from trainer.learn import distributed
@@ -47,8 +48,6 @@ def open_trainer(cfg, run_dir: Path, dataset: MCAPDataset, *, resume: bool, devi
         trainer = Trainer.from_checkpoint(ckpt, run_dir, dataset, device=device, callbacks=callbacks,
                                           log_every=log_every, dist_ctx=dist_ctx)
     else:
-        from sim_bridge.contract.contexts import task_actuators
-
         if resume and restart_metrics and ctx.is_main:
             metrics_log.truncate_metrics(Path(run_dir) / "metrics.jsonl", 0)
         trainer = Trainer(cfg, run_dir, dataset, device=device, callbacks=callbacks, log_every=log_every,

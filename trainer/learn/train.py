@@ -19,13 +19,17 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
+from protocad_ros.checkpoint import CheckpointError
 from protocad_ros.model.config import plan_prototype_freeze
+from sim_bridge.contract.contexts import task_actuators
 from trainer import cli_values, console, runs, settings
-from trainer.data.dataset import DatasetError, MCAPDataset, TopicMap
+from trainer.data.dataset import DatasetError, MCAPDataset, TopicMap, default_cache_dir
+from trainer.data.store import find_sources, multiple_publishers
 from trainer.learn import distributed
 from trainer.learn.trainer import DEFAULT_LOG_EVERY, CheckpointWriteError, RanksDiverged, Trainer
 from trainer.runs import check_logs, check_settings_section
 from trainer.settings import arg
+from trainer.viz.rerun_log import metrics_callbacks
 
 
 # ---------------------------------------------------------------------- settings and CLI
@@ -120,8 +124,6 @@ def refuse_multiple_publishers(logs: Sequence[str | Path], topic_maps: Sequence[
     """ValueError (one line, naming the bag and topic) when a bag's recorder marked a topic these
     maps read as having had several publishers: their messages interleave in it (an impostor's
     actions, a second bridge's observations) and nothing in the bag tells whose is whose."""
-    from trainer.data.store import find_sources, multiple_publishers
-
     used = {t for m in topic_maps for t in m.as_dict().values() if t}
     marked = [(src, found) for src in find_sources(logs) if (found := multiple_publishers(src, used))]
     if not marked:
@@ -161,8 +163,6 @@ def open_logs(s: TrainSettings, cfg, ctx: distributed.DistContext, say: Callable
     if not s.accept_multiple_publishers:
         refuse_multiple_publishers(s.logs, [TopicMap.parse(s.topic, ns) for ns in namespaces])
     say(f"[train] reading logs: {', '.join(map(str, s.logs))}", flush=True)
-    from trainer.data.dataset import default_cache_dir
-
     where = "--cache-dir" if s.cache_dir else (
         "$PROTOCAD_CACHE_DIR" if os.environ.get("PROTOCAD_CACHE_DIR") else "default, outside the project")
     say(f"[train] dataset cache (decoded frames, reused across runs): "
@@ -182,8 +182,6 @@ def open_logs(s: TrainSettings, cfg, ctx: distributed.DistContext, say: Callable
         raise DatasetError(f"nothing to train on: no window of {cfg.train.seq_len} steps in the logs "
                            "(see the report above)")
     refuse_test_split(ds, s.accept_test_split, say)
-    from sim_bridge.contract.contexts import task_actuators
-
     n_act = len(task_actuators(cfg.task))
     if ds.action_dim != n_act:
         raise ValueError(f"the logs carry {ds.action_dim}-d actions {ds.action_names} but {cfg.task} has "
@@ -193,8 +191,6 @@ def open_logs(s: TrainSettings, cfg, ctx: distributed.DistContext, say: Callable
 
 def _train(s: TrainSettings, model: settings.ModelChoice, config_args: list[str], prog: str,
            ctx: distributed.DistContext, device: str) -> int:
-    from protocad_ros.checkpoint import CheckpointError
-
     say = print if ctx.is_main else (lambda *args, **kw: None)
     run_json: dict[str, Any] = {}
     if s.resume:
@@ -213,8 +209,6 @@ def _train(s: TrainSettings, model: settings.ModelChoice, config_args: list[str]
     if not s.logs:
         raise ValueError("give --logs PATH... (bag directories, .mcap files or folders of bags)")
     ds = open_logs(s, cfg, ctx, say)
-    from trainer.viz.rerun_log import metrics_callbacks
-
     callbacks = metrics_callbacks(s.rerun, run_dir, "protocad-train")
     rrd = (s.rerun or str(run_dir / "metrics.rrd")) if s.rerun is not None else None
     if s.resume:

@@ -22,7 +22,11 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping
 
 import numpy as np
+import torch
 
+from protocad_ros.atomic import remove_stale_temporaries
+from protocad_ros.checkpoint import load_checkpoint, save_checkpoint
+from protocad_ros.model.agents import make_agent
 from protocad_ros.model.config import plan_prototype_freeze
 from trainer import console, metrics_log, runs, torch_setup
 from trainer.data.dataset import MCAPDataset
@@ -45,8 +49,6 @@ class Trainer:
                  callbacks: Iterable[metrics_log.MetricsCallback] = (), log_every: int = DEFAULT_LOG_EVERY,
                  action_dim: int | None = None, resumed: bool = False,
                  dist_ctx: distributed.DistContext | None = None):
-        from protocad_ros.model.agents import make_agent
-
         self.cfg = cfg
         self.dist = dist_ctx or distributed.DistContext()
         if cfg.train.batch_size % self.dist.world_size:
@@ -55,8 +57,6 @@ class Trainer:
         self.local_batch = cfg.train.batch_size // self.dist.world_size
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
-        from protocad_ros.atomic import remove_stale_temporaries
-
         if self.dist.is_main:
             for path in (self.checkpoint_path, self.checkpoint_path.with_name("config.yaml"),
                          self.run_dir / "config.yaml", self.run_dir / "run.json"):
@@ -103,10 +103,6 @@ class Trainer:
     def from_checkpoint(cls, path: str | Path, run_dir: str | Path, dataset: MCAPDataset | None, *,
                         device: str = "cpu", **kw) -> "Trainer":
         """Rebuild from a checkpoint: weights, optimizers, torch RNG, counters, sampler state."""
-        import torch
-
-        from protocad_ros.checkpoint import load_checkpoint
-
         agent, counters = load_checkpoint(path, device=device)
         ctx = kw.get("dist_ctx") or distributed.DistContext()
         ranks = json.loads(counters.get("rank_states") or "[]")
@@ -223,10 +219,6 @@ class Trainer:
     # ------------------------------------------------------------------ checkpoints
     def save(self, path: str | Path | None = None) -> Path:
         """Atomic checkpoint (weights, optimizers, torch RNG, counters, sampler state)."""
-        import torch
-
-        from protocad_ros.checkpoint import save_checkpoint
-
         self.log_now()
         self.counters["updates"] = self.updates
         self.counters["wall_time"] = round(self.metrics.wall_time, 3)

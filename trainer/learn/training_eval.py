@@ -10,6 +10,7 @@ from typing import Any
 
 from trainer import console, runs
 from trainer.learn import distributed
+from trainer.learn.evaluate import evaluate_checkpoint, format_table, select_contexts
 from trainer.learn.schedule import RunCounters
 from trainer.learn.trainer import Trainer
 
@@ -26,8 +27,6 @@ class Evaluator:
         self.run_dir, self.eval_dir = run_dir, run_dir / "eval"
 
     def __call__(self, tag: str, contexts, episodes: int, stop: console.StopFlag) -> Any:
-        from trainer.learn.evaluate import evaluate_checkpoint, format_table
-
         if not self.ctx.is_main:   # rank 0 evaluates; the others wait for it
             distributed.barrier_if(self.ctx)
             return None
@@ -45,8 +44,6 @@ class Evaluator:
 
     def random_baseline(self, contexts, episodes: int, time_limit: int, stop: console.StopFlag) -> None:
         """The uniform random policy once per run (eval/random.json)."""
-        from trainer.learn.evaluate import evaluate_checkpoint, format_table
-
         if not self.ctx.is_main or (self.eval_dir / "random.json").exists():
             return
         rnd = evaluate_checkpoint(None, task=self.task, episodes=episodes, contexts=contexts, split=self.split,
@@ -59,8 +56,6 @@ class Evaluator:
     def on_train_contexts(self, episodes: int, stop: console.StopFlag) -> Any:
         """The final agent on every context of the training split: eval/final_train.json
         (outside eval.jsonl, whose rows are the test curve)."""
-        from trainer.learn.evaluate import evaluate_checkpoint, format_table, select_contexts
-
         if not self.ctx.is_main:
             distributed.barrier_if(self.ctx)
             return None
