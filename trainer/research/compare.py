@@ -11,6 +11,7 @@ directory, run as parallel worker processes, gathered into one `results.json` an
 Each run is `python -m trainer.research.online --run-dir OUT/TASK/LABEL/seedS ...` with its own torch
 thread budget (`--threads`) and device (`--devices`, assigned round robin), its output in
 RUN_DIR/online.log. Re-running the same command skips finished runs and resumes the others
+from trainer.research import results as R
 from their last checkpoint (`protocad-online --resume`: weights, optimisers, RNG, sampler;
 counters from the bags on disk, which all count); a run killed before its first checkpoint
 resumes from its bags. Ctrl-C
@@ -57,8 +58,10 @@ from typing import Callable, Sequence
 from protocad_ros.model.config import VARIANTS
 from sim_bridge.contract.contexts import TASKS
 from trainer import cli_values, console, runs
+from trainer.provenance import stale_install
+from trainer.research import results as R
 from trainer.research.results import ANCHOR_LABEL, latest_progress, standard_context
-from trainer.settings import arg
+from trainer.settings import arg, build, settings_parser
 
 
 @dataclass
@@ -105,8 +108,6 @@ def carry_finished_runs(specs: Sequence[RunSpec], a: GridSettings) -> int:
     """Marks the specs whose run finished in one of a.from_results (results.json written by this
     grid elsewhere: another machine, an earlier session). Returns how many. A file made with
     other budgets or other run arguments is refused (ValueError): its rows are not this grid's."""
-    from trainer.research import results as R
-
     wanted = {(s.task, s.label, s.seed): s for s in specs}
     n = 0
     for path in a.from_results:
@@ -392,8 +393,6 @@ class GridSettings:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from trainer.settings import settings_parser
-
     return settings_parser(
         "protocad-compare",
         "Run tasks x variants x seeds as parallel protocad-online runs (resumable), gather their "
@@ -406,8 +405,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 def _reported_docs(a: GridSettings) -> tuple[list[dict], list[str], dict]:
     """--report: the files' documents, their paths, and all of them combined."""
-    from trainer.research import results as R
-
     if a.ship and len(a.report) > 1:
         raise ValueError("--ship takes the best run of one results.json: give --report one file")
     docs, sources = [R.load_results(p) for p in a.report], list(a.report)
@@ -418,9 +415,6 @@ def _run_and_gather(a: GridSettings, argv: Sequence[str] | None) -> tuple[list[d
     """Runs the grid into a.out (resuming what is there), keeping OUT/results.json current;
     returns its document, path and combination as _reported_docs does, and the number of
     runs that failed (-1: interrupted, with the finished runs' results saved)."""
-    from trainer.provenance import stale_install
-    from trainer.research import results as R
-
     if warning := stale_install():
         print(f"[compare] warning: {warning}", file=sys.stderr, flush=True)
     out_dir = Path(a.out)
@@ -459,8 +453,6 @@ def _run_and_gather(a: GridSettings, argv: Sequence[str] | None) -> tuple[list[d
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    from trainer.settings import build
-
     a = build(GridSettings, vars(build_parser().parse_args(argv)))
     if a.online_args and a.online_args[0] == "--":
         a.online_args = a.online_args[1:]
@@ -473,7 +465,6 @@ def main(argv: Sequence[str] | None = None) -> int:
             docs, sources, everything, failed = _run_and_gather(a, argv)
             if failed < 0:
                 return 130
-        from trainer.research import results as R
 
         R.write_reports(docs, sources, everything, grid_dir=None if a.report else Path(a.out), image=a.image,
                         rrd=a.rrd, markdown=a.markdown, readme=a.update_readme)

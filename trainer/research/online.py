@@ -45,11 +45,19 @@ import time
 from pathlib import Path
 from typing import Sequence
 
+from protocad_ros.checkpoint import CheckpointError
+from protocad_ros.policy import Policy
+from sim_bridge.sim.rollout import RandomPolicy, continuing_rollout
+from sim_bridge.sim.vector import VectorEnv
 from trainer import cli_values, console, runs, settings, torch_setup
+from trainer.bag.mcap_io import BagWriteError
 from trainer.data.dataset import MCAPDataset, TopicMap
+from trainer.data.records import CacheWriteError
 from trainer.learn import distributed
+from trainer.learn.evaluate import select_contexts
 from trainer.learn.resume import open_trainer
 from trainer.learn.schedule import RunCounters
+from trainer.learn.trainer import CheckpointWriteError, RanksDiverged
 from trainer.learn.training_eval import Evaluator
 from trainer.research.online_rundir import (
     EnvBags,
@@ -60,6 +68,7 @@ from trainer.research.online_rundir import (
     open_run_dir,
     write_run_json,
 )
+from trainer.viz.rerun_log import metrics_callbacks
 
 
 def close_quietly(steps) -> list[tuple[str, Exception]]:
@@ -107,9 +116,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     except ValueError as exc:   # a run.json edited out of shape
         print(f"protocad-online: error: {exc}", file=sys.stderr)
         return 2
-    from protocad_ros.checkpoint import CheckpointError
-    from trainer.learn.trainer import CheckpointWriteError, RanksDiverged
-
     try:
         return run(s, model, parsed.config_args, parsed.prog, parsed.argv)
     except (ValueError, CheckpointError) as exc:   # CheckpointError: the run's checkpoint is unusable
@@ -128,14 +134,10 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def mcap_io_errors() -> type:
-    from trainer.bag.mcap_io import BagWriteError
-
     return BagWriteError
 
 
 def cache_errors() -> type:
-    from trainer.data.records import CacheWriteError
-
     return CacheWriteError
 
 
@@ -182,8 +184,6 @@ class OnlineRun:
         all_bags = sorted(p for p in self.bags_dir.iterdir() if p.is_dir())
         if all_bags[ctx.rank::self.world]:   # each rank a share, whatever the ranks that wrote them
             self.ds.add(all_bags[ctx.rank::self.world])
-        from trainer.viz.rerun_log import metrics_callbacks
-
         callbacks = metrics_callbacks(s.rerun, self.run_dir, "protocad-online")
         opened = open_trainer(self.cfg, self.run_dir, self.ds, resume=s.resume, device=self.device,
                               end_updates=self.schedule.planned_updates(s.env_steps, tr.time_limit,
@@ -209,8 +209,6 @@ class OnlineRun:
                      + ("" if opened.resumed else " (no checkpoint yet: from the bags)"), flush=True)
 
     def _evaluation(self) -> None:
-        from trainer.learn.evaluate import select_contexts
-
         s, task = self.s, self.cfg.task
         workers = s.eval_workers if s.eval_workers >= 0 else (0 if (os.cpu_count() or 1) <= 2 else
                                                               min(16, (os.cpu_count() or 2) - 1))
@@ -223,10 +221,6 @@ class OnlineRun:
     def _start_envs(self):
         """The training envs and the rollout that asks, before every step, who acts: the
         prefill's random policy, then the agent (sampling, as DreamerV2 collects)."""
-        from protocad_ros.policy import Policy
-        from sim_bridge.sim.rollout import RandomPolicy, continuing_rollout
-        from sim_bridge.sim.vector import VectorEnv
-
         s, tr, c = self.s, self.cfg.train, self.c
         # Episode-keyed draws: every run of a seed (each variant of a paired comparison, a
         # resumed run) meets the same contexts and initial states in the same episodes.

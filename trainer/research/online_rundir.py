@@ -9,6 +9,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import os
+import shutil
 import sys
 import time
 from dataclasses import dataclass
@@ -17,19 +18,22 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from protocad_ros.atomic import remove_stale_temporaries
 from protocad_ros.model.config import plan_prototype_freeze
 from sim_bridge.contract import topics as T
+from sim_bridge.contract.contexts import get_task
 from trainer import cli_values, runs, settings
+from trainer.bag import mcap_io
 from trainer.data.dataset import MCAPDataset
 from trainer.learn import distributed
+from trainer.learn.evaluate import parse_context
 from trainer.learn.schedule import RunCounters, Schedule
+from trainer.provenance import code_version, stale_install
 from trainer.runs import check_settings_section
 from trainer.settings import arg
 
 
 def parse_context_arg(text: str) -> dict[str, float]:
-    from trainer.learn.evaluate import parse_context
-
     try:
         return parse_context(text)
     except ValueError as exc:
@@ -169,8 +173,6 @@ def open_run_dir(s: OnlineSettings, model: settings.ModelChoice, ctx: distribute
     rd.bags_dir.mkdir(parents=True, exist_ok=True)
     (run_dir / "eval").mkdir(exist_ok=True)
     if s.train_context is not None:
-        from sim_bridge.contract.contexts import get_task
-
         rd.s = dataclasses.replace(s, train_context=get_task(cfg.task).validate(s.train_context, "train"))
     return rd
 
@@ -179,8 +181,6 @@ def write_run_json(rd: OnlineRunDir, model: settings.ModelChoice, ctx: distribut
                    argv: list[str], device: str) -> None:
     """run.json as this invocation starts: what runs (kind, task, settings, the protocol), the
     code of every invocation and its command line; rank 0 writes it."""
-    from trainer.provenance import code_version, stale_install
-
     if ctx.is_main and (warning := stale_install()):
         print(f"[online] warning: {warning}", file=sys.stderr, flush=True)
     s, cfg, rj = rd.s, rd.cfg, rd.run_json
@@ -217,8 +217,6 @@ class EpisodeBagWriter:
 
     def __init__(self, bag_dir: Path, action_names: Sequence[str], namespace: str = T.DEFAULT_NAMESPACE,
                  compression: str = "zstd"):
-        from trainer.bag import mcap_io
-
         self._io = mcap_io
         self.bag_dir = Path(bag_dir)
         self.names = list(action_names)
@@ -298,10 +296,6 @@ def leftovers(run_dir: Path, cache_dir: Path) -> list[Path]:
     """Remove what killed attempts leave behind: temporaries of atomic writes in the run
     directory, half-built dataset cache entries, and the disk reserves of bags that were never
     closed. Returns what was removed."""
-    import shutil
-
-    from protocad_ros.atomic import remove_stale_temporaries
-
     removed = list(remove_stale_temporaries(run_dir / "metrics.jsonl"))
     removed += remove_stale_temporaries(run_dir / "run.json")
     for tmp in sorted(Path(cache_dir).glob("*.tmp-*")) if Path(cache_dir).is_dir() else []:

@@ -10,6 +10,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from protocad_ros.atomic import atomic_write_text
 from trainer.research.results_json import ANCHOR_LABEL, PAPER_ENV_STEPS
 from trainer.research.statistics import (
     aggregate_mean,
@@ -392,8 +393,6 @@ def markdown_section(docs: Sequence[Mapping[str, Any]], image: str | None = None
 
 def update_readme(readme: Path, section: str) -> None:
     """Replace the text between BEGIN and END (inclusive) in `readme` (ValueError without them)."""
-    from protocad_ros.atomic import atomic_write_text
-
     text = Path(readme).read_text()
     i, j = text.find(BEGIN), text.find(END)
     if i < 0 or j < i:

@@ -11,7 +11,12 @@ import time
 from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
+import yaml
+
+from protocad_ros.atomic import atomic_write_text
+from protocad_ros.model.precision import cpu_capability
 from trainer import runs
+from trainer.learn.evaluate import context_label, evaluate_checkpoint
 from trainer.provenance import code_version
 
 SCHEMA_ID = "protocad-compare/1"
@@ -103,8 +108,6 @@ def _read_jsonl(path: Path) -> list[dict]:
 
 
 def _eval_entry(d: Mapping[str, Any]) -> dict[str, Any]:
-    from trainer.learn.evaluate import context_label
-
     return {"mean_return": round(float(d["mean_return"]), 3),
             "episodes": int(d.get("episodes", 0)),
             "per_context": {context_label(pc["context"]): round(float(pc["mean_return"]), 3)
@@ -161,8 +164,6 @@ def gather_run(task: str, label: str, variant: str, seed: int, run_dir: Path) ->
 
 def _saved_config(run_dir: Path) -> dict[str, Any]:
     """A run's saved config.yaml as a mapping ({} where there is none to read)."""
-    import yaml
-
     try:
         cfg = yaml.safe_load((Path(run_dir) / "config.yaml").read_text()) or {}
     except (OSError, yaml.YAMLError):
@@ -191,7 +192,6 @@ def runs_code_version(specs: Iterable[Any]) -> str:
 def machine_info() -> dict[str, Any]:
     import torch
 
-    from protocad_ros.model.precision import cpu_capability
 
     cpu = platform.processor() or "unknown"
     try:
@@ -258,8 +258,6 @@ def random_baselines(tasks: Sequence[str], out: str | Path, *, episodes: int, ev
     """results.json's `random` entries: the uniform random policy on each task's test contexts,
     evaluated once (OUT/TASK/random.json; `episodes` per context); evaluate=False: only those
     already there."""
-    from trainer.learn.evaluate import evaluate_checkpoint
-
     found = {}
     for task in tasks:
         path = Path(out) / task / "random.json"
@@ -294,8 +292,6 @@ def validate(doc: Mapping[str, Any]) -> None:
 
 
 def save_results(doc: Mapping[str, Any], path: Path) -> Path:
-    from protocad_ros.atomic import atomic_write_text
-
     validate(doc)
     atomic_write_text(Path(path), json.dumps(doc, indent=1) + "\n")
     return Path(path)

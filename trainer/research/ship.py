@@ -10,11 +10,13 @@ code version(s) and the SHA-256 of the training checkpoint it was cut from.
 from __future__ import annotations
 
 import hashlib
+import json
 from pathlib import Path
 from typing import Any, Mapping
 
 from protocad_ros.checkpoint import CheckpointError, existing_checkpoint_file, load_checkpoint, save_policy
 from trainer import runs
+from trainer.learn.evaluate import context_label
 
 
 def best_run(doc: Mapping[str, Any], task: str | None = None, label: str | None = None) -> dict[str, Any]:
@@ -50,10 +52,6 @@ def _sha256(path: Path) -> str:
 def unseen_evaluation(path: str | Path, checkpoint: Path) -> dict[str, Any]:
     """The summary of `protocad-evaluate CHECKPOINT --random --json PATH` for `checkpoint` on the
     test split (ValueError if the file evaluates another checkpoint or split)."""
-    import json
-
-    from trainer.learn.evaluate import context_label
-
     try:
         doc = json.loads(Path(path).read_text())
     except (OSError, ValueError) as exc:

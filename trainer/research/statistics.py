@@ -9,14 +9,13 @@ from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
+from sim_bridge.contract.contexts import get_task
 from trainer.research.results_json import PAPER_TABLE1
 
 
 def standard_context(task: str) -> str:
     """The unrandomized task's context (every scale 1), e.g. 'm=1,d=1': the anchor's train and
     evaluation context, as a --train-context value."""
-    from sim_bridge.contract.contexts import get_task
-
     return ",".join(f"{p}=1" for p in get_task(task).params)
 
 
