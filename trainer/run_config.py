@@ -2,10 +2,15 @@
 and the config's own flags (protocad_ros.model.config.Config)."""
 from __future__ import annotations
 
+import copy
+import dataclasses
+import typing
 from pathlib import Path
 from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import yaml
+
+from protocad_ros.model.config import DEFAULT_CLI_PRESET, apply_overrides, make_config
 
 MetricsCallback = Callable[[int, Mapping[str, float]], None]
 
@@ -39,8 +44,6 @@ def build_config(task: str | None = None, variant: str | None = None, preset: st
 
     Returns a protocad_ros.model.config.Config.
     """
-    from protocad_ros.model.config import DEFAULT_CLI_PRESET, apply_overrides, make_config
-
     file_dict: dict[str, Any] = {}
     if config_file:
         try:
@@ -81,10 +84,6 @@ OWN_SETTINGS_HELP = ("a baseline with the settings it was published with (msgs_d
 
 def _config_options_class(cfg: Any) -> type:
     """A dataclass of cfg's sections and settings (not OWN_FLAG_FIELDS), defaults = cfg's values."""
-    import copy
-    import dataclasses
-    import typing
-
     import tyro
 
     hints = typing.get_type_hints(type(cfg))
@@ -100,8 +99,6 @@ def apply_config_flags(cfg: Any, args: Sequence[str], prog: str) -> Any:
     (`--train.batch_size 8`, `--world_model.gru_norm` / `--world_model.no_gru_norm`), generated
     from protocad_ros.model.config by tyro, with the field's comment as help and cfg's value as the
     default shown. `--help` among them prints them and exits; an unknown one exits 2."""
-    import dataclasses
-
     import tyro
 
     options = _config_options_class(cfg)

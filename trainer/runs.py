@@ -25,6 +25,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from protocad_ros.atomic import atomic_write_text
+from protocad_ros.model.config import Config
 from trainer.run_input import check_logs, check_settings_section, load_json_object, load_yaml_mapping  # noqa: F401 - for the CLIs
 
 CHECKPOINT_NAME = "latest.pt"
@@ -65,8 +66,6 @@ def resume_run_dir(run_dir: str | os.PathLike | None, *, need_checkpoint: bool =
 def load_run_config(run_dir: str | os.PathLike):
     """RUN_DIR/config.yaml as a Config, or one ValueError line naming the file (not YAML, an
     unsafe tag, nested too deep, not a mapping, not a config)."""
-    from protocad_ros.model.config import Config
-
     path = Path(run_dir) / "config.yaml"
     try:
         return Config.from_dict(load_yaml_mapping(path))

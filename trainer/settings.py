@@ -29,7 +29,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any, Sequence, TypeVar
 
-from protocad_ros.model.config import PRESETS, VARIANTS
+from protocad_ros.model.config import PRESETS, VARIANTS, check_train_memory
 from sim_bridge.contract.contexts import TASKS
 from trainer import cli_values, run_config, torch_setup
 from trainer.run_input import check_settings_section, load_json_object
@@ -267,8 +267,6 @@ class ModelChoice:
                   overrides: dict[str, Any] | None = None):
         """The Config, in the order of precedence above; checked against the machine's memory
         before anything is built (ConfigError, a ValueError: one line in the CLIs)."""
-        from protocad_ros.model.config import check_train_memory
-
         settings = run_config.parse_set(self.set)
         settings.update(overrides or {})
         if self.batch_size is not None:

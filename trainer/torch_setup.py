@@ -1,6 +1,7 @@
 """Torch set-up of the trainer CLIs: seeds, the device, threads, and how freed memory is kept."""
 from __future__ import annotations
 
+import ctypes
 import os
 import random
 from typing import Callable, Mapping
@@ -52,8 +53,6 @@ def retain_freed_memory() -> bool:
     the mmap threshold to glibc's largest (32 MiB) and never trimming keeps them in the heap;
     the process holds its peak memory instead of returning it between updates. Returns
     whether glibc took both settings (False elsewhere: nothing changes)."""
-    import ctypes
-
     m_trim_threshold, m_mmap_threshold = -1, -3   # <malloc.h>
     try:
         mallopt = ctypes.CDLL("libc.so.6").mallopt

@@ -8,6 +8,10 @@ import time
 from pathlib import Path
 from typing import Any
 
+import yaml
+
+from trainer.bag.mcap_io import BagReader, read_bag_metadata
+
 INDENT = 19  # rosbag2: the longest label ("Topic information: ") plus nothing
 
 
@@ -69,8 +73,6 @@ def format_bag_metadata(info: dict[str, Any], bag_size: int) -> str:
 
 def _metadata_from_files(path: Path) -> tuple[dict[str, Any], int, list[str]]:
     """What metadata.yaml would say, read from the .mcap file(s) themselves."""
-    from trainer.bag.mcap_io import BagReader
-
     reader = BagReader(path)
     first = last = None
     for raw in reader.messages():
@@ -103,8 +105,6 @@ def sub_bags(path: Path) -> list[Path]:
 
 def read_info(bag: str | Path) -> tuple[dict[str, Any], int, list[str]]:
     """(bag info mapping, bag size in bytes, notes for stderr) of a bag directory or .mcap file."""
-    from trainer.bag.mcap_io import read_bag_metadata
-
     path = Path(bag)
     if not path.exists():
         raise FileNotFoundError(f"No such file or directory: {bag}")
@@ -121,8 +121,6 @@ def read_info(bag: str | Path) -> tuple[dict[str, Any], int, list[str]]:
 def cmd_info(args) -> int | str | None:
     if args.storage not in (None, "mcap"):
         return f"storage {args.storage!r} is not supported here (only mcap)"
-    import yaml
-
     bags = sub_bags(Path(args.bag_path))
     if bags:   # a folder of bags: each one, as `ros2 bag info` would print it
         failed = []

@@ -17,6 +17,8 @@ from typing import Any
 import numpy as np
 import yaml
 
+from trainer.bag.rosmsg import TypeSupportError, interface_module
+
 _SEQUENCES = (list, tuple, array.array, np.ndarray)
 
 
@@ -153,8 +155,6 @@ def set_message_fields(msg: Any, values: dict | None) -> None:
 
 def interface_class(type_name: str, kind: str = "msg") -> Any:
     """`pkg/msg/Name` (or `pkg/Name`) -> the generated Python class; ValueError if unknown."""
-    from trainer.bag.rosmsg import TypeSupportError, interface_module
-
     try:   # a name from the graph or the command line: checked before anything is imported
         module, name = interface_module(type_name, kind)
     except TypeSupportError as exc:

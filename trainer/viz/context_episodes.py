@@ -10,7 +10,10 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
-from sim_bridge.contract.contexts import context_label
+from sim_bridge.contract.contexts import context_label, get_task, task_actuators
+from sim_bridge.sim.rollout import RandomPolicy, rollout
+from sim_bridge.sim.vector import VectorEnv
+from trainer.console import progress as progress_bar
 
 SPLIT_CLASS = {"train": 0, "test": 1}   # class ids of the points (the prototypes are 2)
 DEFAULT_STEPS_PER_CONTEXT = 30
@@ -109,11 +112,6 @@ def collect_context_episodes(task: str, agent: Any = None, *, steps: int = DEFAU
     protocad_ros.policy.Policy in deterministic mode) or uniform random when no agent is given
     or ``random_policy``.
     """
-    from sim_bridge.contract.contexts import get_task, task_actuators
-    from sim_bridge.sim.rollout import RandomPolicy, rollout
-    from sim_bridge.sim.vector import VectorEnv
-    from trainer.console import progress as progress_bar
-
     if steps < 2:
         raise ValueError(f"steps per context must be >= 2, got {steps}")
     spec = get_task(task)
@@ -152,8 +150,6 @@ def missing_contexts(task: str, episodes: Sequence[Episode], splits: Sequence[st
     """split -> the task's contexts that no episode in ``episodes`` has; with max_contexts, only
     those of the split's fixed stratified subset of that many (TaskSpec.stratified, the one
     the evaluations use), so a view of a run covers a few contexts of each split, not 25 + 64."""
-    from sim_bridge.contract.contexts import get_task
-
     def key(split: str, ctx: Mapping[str, float]) -> tuple:
         return (split, tuple(sorted((k, float(f"{float(v):.6g}")) for k, v in ctx.items())))
 

@@ -3,6 +3,7 @@ state), their 2-D/3-D projections (PCA, t-SNE, UMAP) with the prototypes beside 
 classes and colours the recording and the PNG share."""
 from __future__ import annotations
 
+import contextlib
 from dataclasses import dataclass, field
 from typing import Any, Iterable, Sequence
 
@@ -49,8 +50,6 @@ def no_grad():
 
         return torch.no_grad()
     except ImportError:  # pragma: no cover
-        import contextlib
-
         return contextlib.nullcontext()
 
 

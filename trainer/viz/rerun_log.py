@@ -30,8 +30,12 @@ from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
+import yaml
 
 from protocad_ros.live_view import path_part
+from trainer.viz.context_blueprint import context_blueprint_parts
+from trainer.viz.context_log import log_context_view, log_open_loop, log_reconstructions
+from trainer.viz.context_view import compute_context_view
 
 SKIP_KEYS = frozenset({"update", "time"})
 
@@ -206,8 +210,6 @@ class TrainingRecorder:
 
     def log_config(self, config: Any) -> None:
         """The run's config as a static text document (/train/config)."""
-        import yaml
-
         d = config.to_dict() if hasattr(config, "to_dict") else config
         text = d if isinstance(d, str) else yaml.safe_dump(d, sort_keys=False)
         self.recording.log("/train/config", self._rr.TextDocument(text), static=True)
@@ -219,10 +221,6 @@ class TrainingRecorder:
         """The context view of trainer.viz.visualize (embeddings, prototypes, assignments,
         reconstructions, open loop) for ``agent`` on ``episodes`` at ``update``; returns the
         ContextView."""
-        from trainer.viz.context_blueprint import context_blueprint_parts
-        from trainer.viz.context_log import log_context_view, log_open_loop, log_reconstructions
-        from trainer.viz.context_view import compute_context_view
-
         view = compute_context_view(agent, episodes, projection=projection, **kw)
         log_context_view(self.recording, view, update=update)
         log_reconstructions(self.recording, agent, view.episodes, num_episodes=num_episodes,

@@ -36,7 +36,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
-from sim_bridge.contract.contexts import context_label
+from protocad_ros.live_view import check_display
+from sim_bridge.contract.contexts import context_label, get_task
 from trainer.viz.context_blueprint import context_blueprint, context_blueprint_parts
 from trainer.viz.context_episodes import (
     DEFAULT_SKIP_STEPS,
@@ -104,8 +105,6 @@ def _check_destination(out_rrd: str | Path | None, recording: Any, spawn: bool) 
     if recording is None and out_rrd is None and not spawn:
         raise ValueError("nowhere to write: give out_rrd or spawn=True")
     if spawn:
-        from protocad_ros.live_view import check_display
-
         check_display()
 
 
@@ -147,8 +146,6 @@ def _open_loop_episodes(agent: Any, task: str | None, eps: list[Episode], *,
     if any(len(e) >= length for e in eps):
         return eps
     if task and horizon > 0:
-        from sim_bridge.contract.contexts import get_task
-
         spec = get_task(task)
         pick = {s: [spec.contexts(s)[0], spec.contexts(s)[-1]] for s in ("train", "test")}
         return collect_context_episodes(task, agent, steps=length, seed=seed + 1, contexts=pick,
@@ -319,8 +316,6 @@ def main(argv: Sequence[str] | None = None) -> int:
     if not args.logs and not task:
         raise SystemExit("--task is needed (the checkpoint does not say which task it learned)")
     if task:
-        from sim_bridge.contract.contexts import get_task
-
         try:
             get_task(task)
         except ValueError as exc:
