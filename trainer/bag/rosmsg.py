@@ -21,6 +21,10 @@ from pathlib import Path
 from typing import Any, Callable, Mapping
 
 import numpy as np
+from mcap.records import Schema
+from mcap_ros2._dynamic import serialize_dynamic
+from mcap_ros2._vendor.rosidl_adapter.parser import parse_message_string
+from mcap_ros2.decoder import DecoderFactory
 
 DELIMITER = "=" * 80 + "\n"
 
@@ -241,7 +245,6 @@ class RosMessage:
 @lru_cache(maxsize=None)
 def _specs(msgtype: str):
     """(parsed MessageSpecification, [(field, type str)]) of one type's .msg."""
-    from mcap_ros2._vendor.rosidl_adapter.parser import parse_message_string
     pkg, _, name = _split_type(msgtype)
     try:
         spec = parse_message_string(pkg, name, _read_interface(normalize_type(msgtype), ".msg"))
@@ -329,7 +332,6 @@ def to_plain(value: Any) -> Any:
 def encoder_for(msgtype: str, definition: str | None = None) -> Callable[[Any], bytes]:
     """Cached CDR encoder (mcap_ros2.serialize_dynamic) for a type; definition defaults to the
     local ament index."""
-    from mcap_ros2._dynamic import serialize_dynamic
     msgtype = normalize_type(msgtype)
     text = definition if definition is not None else message_definition(msgtype)
     try:
@@ -344,9 +346,6 @@ def decoder_for(msgtype: str, definition: str | None = None) -> Callable[[bytes]
     the trailing padding rclpy/FastCDR writes); definition defaults to the local ament index.
     The same decoder serves our own types and foreign ones, and needs no ROS installation
     (rclpy.serialization would, and only for types built here)."""
-    from mcap.records import Schema
-    from mcap_ros2.decoder import DecoderFactory
-
     msgtype = normalize_type(msgtype)
     text = definition if definition is not None else message_definition(msgtype)
     try:
