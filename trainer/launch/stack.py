@@ -81,12 +81,12 @@ def checkpoint_mismatch(doc: dict[str, Any]) -> str | None:
     """Why the policy's checkpoint cannot drive the bridge of this stack file (its task or image
     size differ), or None. Read before any node starts: a mismatched stack would otherwise run
     with a policy that refuses every observation."""
-    from protocad_ros.checkpoint import CheckpointError, read_checkpoint
+    # torch comes with the checkpoint module: the stack's --help and its nodes do without it here.
+    from protocad_ros.checkpoint import CheckpointError, checkpoint_file, read_checkpoint
 
     path = (doc.get("policy") or {}).get("checkpoint")
     if not path or not Path(path).exists():
         return None   # a random agent, or wait_for_checkpoint: the node checks what arrives
-    from protocad_ros.checkpoint import checkpoint_file
     path = checkpoint_file(path)
     if not path.is_file():
         return None   # a run directory without a checkpoint yet: the node waits or says why
