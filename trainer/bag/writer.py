@@ -13,6 +13,8 @@ import time
 from pathlib import Path
 from typing import Any, Mapping
 
+import mcap.writer as mw
+
 from protocad_ros.atomic import atomic_write_text, remove_stale_temporaries
 from trainer.bag.bag_info import (
     DEFAULT_OFFERED_QOS,
@@ -83,8 +85,6 @@ class BagWriter(FailureRecovery):
                  chunk_size: int = DEFAULT_CHUNK_SIZE, max_bagfile_size: int = 0,
                  max_bagfile_duration_s: float = 0, flush_interval_s: float = 0,
                  custom_data: Mapping[str, str] | None = None, ros_distro: str | None = None):
-        import mcap.writer as mw  # deliberately lazy: the mcap library only where bags are written
-
         check_options(compression, chunk_size, max_bagfile_size, max_bagfile_duration_s, flush_interval_s,
                       custom_data)
         self.bag_dir = Path(bag_dir)
