@@ -192,7 +192,6 @@ def runs_code_version(specs: Iterable[Any]) -> str:
 def machine_info() -> dict[str, Any]:
     import torch
 
-
     cpu = platform.processor() or "unknown"
     try:
         for line in Path("/proc/cpuinfo").read_text().splitlines():
