@@ -22,7 +22,7 @@ only, for every row (the --dreamerv3-sizes rows included). The CPU capability is
 Before and after: `--baseline REV` times every configuration twice, interleaved, once with the
 code of git revision REV (exported to a temporary directory) and once with this tree, and prints
 the speed-up of each pair; the worker is this script either way, so only the code under test
-differs (a baseline without trainer.runs.retain_freed_memory runs glibc's default allocator).
+differs (a baseline without trainer.torch_setup.retain_freed_memory runs glibc's default allocator).
 
 Peer reference: NM512/dreamerv3-torch dmc_vision, timed side by side on the same machine
 (`--peer-sec`, `--peer-gb`; the defaults are the quiet 2-core AVX2-only machine's 18.1 s and
