@@ -251,12 +251,11 @@ class SimBridgeNode(ActionIntake, Stepping, ObservationPublishing, BridgeDiagnos
             # last samples a bounded chance to be acknowledged (or repaired) before exiting;
             # lossless, the backlog of a reader that was stalled too (what exiting would lose).
             lossless = self.lockstep and self.params["lossless"]
-            left_over = flush_publishers((*self._obs_pubs, self.pub_clock),
-                                         LOSSLESS_FLUSH_TIMEOUT_S if lossless else FLUSH_TIMEOUT_S)
-            for topic in left_over if lossless else ():
+            wait_s = LOSSLESS_FLUSH_TIMEOUT_S if lossless else FLUSH_TIMEOUT_S
+            for topic in flush_publishers((*self._obs_pubs, self.pub_clock), wait_s):
                 self.get_logger().warning(
                     f"{topic}: exiting with samples a reader has not acknowledged after "
-                    f"{LOSSLESS_FLUSH_TIMEOUT_S:g} s (a reader stalled or gone)")
+                    f"{wait_s:g} s (a reader stalled or gone): it does not get them")
         except Exception:  # noqa: BLE001 - exiting: the counters below are printed regardless
             pass
         c = self.counters

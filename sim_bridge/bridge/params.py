@@ -102,8 +102,11 @@ PARAMS: tuple[Param, ...] = (
 ACTION_LOW, ACTION_HIGH = -1.0, 1.0
 #: Longest wait, once min_subscribers are matched, for readers already in the graph to match.
 READY_GRACE_S = 2.0
-#: Longest wait at shutdown for reliable readers to acknowledge the last observations.
-FLUSH_TIMEOUT_S = 1.0
+#: Longest wait at shutdown for reliable readers to acknowledge the last observations. Above
+#: Fast DDS's heartbeat period (3 s): a sample a lagging reader missed is repaired only after the
+#: writer's next heartbeat, and a reader still catching up (a recorder after a stall) loses what
+#: the writer takes away by exiting, a loss no sequence gap after it can reveal.
+FLUSH_TIMEOUT_S = 5.0
 #: The same wait in lossless lock-step: long enough for a recorder that was stalled to catch up.
 LOSSLESS_FLUSH_TIMEOUT_S = 30.0
 #: Counters reported on /diagnostics (all cumulative since start).

@@ -140,7 +140,8 @@ def test_realtime_loss_is_counted_exactly_and_named_by_the_dataset(spawn, tmp_pa
     published = int(re.search(r"observations_published=(\d+)", bridge.output()).group(1))
     dt = resp.steps[1][0] - resp.steps[0][0]
     assert set(recorded) <= {i * dt for i in range(published)} and len(set(recorded)) == len(recorded)
-    assert lost[topic] > 0 and len(recorded) + lost[topic] == published, (len(recorded), lost, published)
+    assert lost[topic] > 0 and len(recorded) + lost[topic] == published, \
+        (len(recorded), lost, published, bridge.output()[-1500:])
     report = MCAPDataset([bag], seq_len=4, cache_dir=tmp_path / "cache").report.summary()
     assert "the recorder reported lost messages" in report and str(lost[topic]) in report
 
