@@ -10,7 +10,8 @@ from typing import Any, Callable, Iterable, Mapping, Sequence
 
 import yaml
 
-from protocad_ros.model.config import DEFAULT_CLI_PRESET, apply_overrides, make_config
+from protocad_ros.model.config import apply_overrides, make_config
+from protocad_ros.model.hyperparameters import DEFAULT_CLI_PRESET
 
 MetricsCallback = Callable[[int, Mapping[str, float]], None]
 

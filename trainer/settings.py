@@ -29,7 +29,8 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Any, Sequence, TypeVar
 
-from protocad_ros.model.config import PRESETS, VARIANTS, check_train_memory
+from protocad_ros.model.config import check_train_memory
+from protocad_ros.model.hyperparameters import PRESETS, VARIANTS
 from sim_bridge.contract.contexts import TASKS
 from trainer import cli_values, run_config, torch_setup
 from trainer.run_input import check_settings_section, load_json_object

@@ -32,7 +32,7 @@ from typing import Callable
 import torch
 import torch.nn as nn
 
-from protocad_ros.model.config import BehaviorConfig
+from protocad_ros.model.hyperparameters import BehaviorConfig
 from protocad_ros.model.networks import MLP, ActionHead
 from protocad_ros.model.rssm import State
 

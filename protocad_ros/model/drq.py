@@ -2,7 +2,7 @@
 
 Soft actor-critic on stacks of the last k = 3 frames, with DrQ's image augmentation aug(o):
 replicate-pad by 4 px and crop back at a random integer offset, a new offset per sample and per
-draw.  Settings: protocad_ros.model.config.DrQConfig (the authors' DMC values).  One update, as in
+draw.  Settings: protocad_ros.model.hyperparameters.DrQConfig (the authors' DMC values).  One update, as in
 denisyarats/drq drq.py:
 
   critic (every update), with K target views o'_k = aug(o') and M critic views o_m = aug(o):
@@ -36,7 +36,8 @@ import torch.nn as nn
 
 from protocad_ros.model.agent_base import AgentBase, frozen
 from protocad_ros.model.augment import random_crop
-from protocad_ros.model.config import Config, DrQConfig
+from protocad_ros.model.config import Config
+from protocad_ros.model.hyperparameters import DrQConfig
 from protocad_ros.model.networks import MLP, TanhNormal
 
 __all__ = ["DrQAgent", "PixelEncoder", "DrQActor", "DrQCritic", "stack_frames", "transitions",

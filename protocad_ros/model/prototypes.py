@@ -233,7 +233,7 @@ class ContextModule(nn.Module):
     @classmethod
     def from_config(cls, ctx_cfg, state_dim: int, temporal_consistency: bool = True,
                     num_prototypes: int | None = None) -> "ContextModule":
-        """Build from config.ContextConfig (duck-typed: proto_dim, freeze_prototypes_updates...)."""
+        """Build from hyperparameters.ContextConfig (duck-typed: proto_dim, freeze_prototypes_updates...)."""
         return cls(state_dim=state_dim, proj_dim=ctx_cfg.proto_dim,
                    num_prototypes=ctx_cfg.num_prototypes if num_prototypes is None
                    else num_prototypes,

@@ -23,7 +23,7 @@ from __future__ import annotations
 import torch
 import torch.nn as nn
 
-from protocad_ros.model.config import WorldModelConfig
+from protocad_ros.model.hyperparameters import WorldModelConfig
 from protocad_ros.model.networks import GRUCell, activation
 
 State = dict[str, torch.Tensor]

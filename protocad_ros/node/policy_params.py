@@ -2,7 +2,7 @@
 so that --help, docs and tests read them without importing rclpy or torch."""
 from __future__ import annotations
 
-from protocad_ros.model.config import DEFAULT_CLI_PRESET, PRESETS, VARIANTS
+from protocad_ros.model.hyperparameters import DEFAULT_CLI_PRESET, PRESETS, VARIANTS
 from sim_bridge.contract.contexts import TASKS
 from sim_bridge.nodekit.rosnode import Param, autostart_param, executor_param, remote_lifecycle_param, strict_param
 

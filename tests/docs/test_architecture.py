@@ -127,7 +127,6 @@ def test_no_function_is_longer_than_120_lines():
 MAX_CLASS_LINES, MAX_MODULE_LINES, MAX_FUNC_LINES, MAX_POSITIONAL = 300, 500, 80, 6
 OVER_CAP: dict[str, int] = {
     'module protocad_ros/model/agent.py': 518,
-    'module protocad_ros/model/config.py': 772,
 }
 
 

@@ -37,7 +37,7 @@ from pathlib import Path
 from typing import Sequence
 
 from protocad_ros.checkpoint_signing import SigningError
-from protocad_ros.model.config import DEFAULT_CLI_PRESET, PRESETS, VARIANTS
+from protocad_ros.model.hyperparameters import DEFAULT_CLI_PRESET, PRESETS, VARIANTS
 from sim_bridge.contract import topics as T
 from trainer import cli_values, console
 from trainer.launch import discovery, run_key

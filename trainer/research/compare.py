@@ -55,7 +55,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Callable, Sequence
 
-from protocad_ros.model.config import VARIANTS
+from protocad_ros.model.hyperparameters import VARIANTS
 from sim_bridge.contract.contexts import TASKS
 from trainer import cli_values, console, runs
 from trainer.provenance import stale_install

@@ -15,7 +15,8 @@ import torch
 from helpers.agents import render_batch
 
 from protocad_ros.model.agent import Agent
-from protocad_ros.model.config import WORLD_MODEL_VARIANTS, Config, ConfigError, make_config
+from protocad_ros.model.config import Config, ConfigError, make_config
+from protocad_ros.model.hyperparameters import WORLD_MODEL_VARIANTS
 from protocad_ros.policy import ContextFeatures, Policy
 from protocad_ros.policy import Policy as _Policy
 

@@ -8,7 +8,7 @@ import pytest
 import torch
 
 from protocad_ros.model.behavior import ActorCritic, ImagineFns, lambda_return
-from protocad_ros.model.config import BehaviorConfig
+from protocad_ros.model.hyperparameters import BehaviorConfig
 from protocad_ros.model.networks import TanhNormal, TruncNormal
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
@@ -171,7 +171,7 @@ def test_slow_critic_schedule():
 
 # ---- RSSM pieces used by imagination ----------------------------------------------------------
 def test_categorical_latent_sampling_and_straight_through():
-    from protocad_ros.model.config import WorldModelConfig
+    from protocad_ros.model.hyperparameters import WorldModelConfig
     from protocad_ros.model.rssm import RSSM
 
     rssm = RSSM(1, 8, WorldModelConfig(stoch=2, discrete=4, unimix=0.0))
@@ -187,7 +187,7 @@ def test_categorical_latent_sampling_and_straight_through():
 def test_categorical_samples_are_one_hot_and_never_a_zero_probability_class():
     """Classes of probability 0 (first and last included) are never drawn, each latent draws
     exactly one class, and the mode is the most likely class."""
-    from protocad_ros.model.config import WorldModelConfig
+    from protocad_ros.model.hyperparameters import WorldModelConfig
     from protocad_ros.model.rssm import RSSM
 
     rssm = RSSM(1, 8, WorldModelConfig(stoch=2, discrete=5, unimix=0.0))
@@ -205,7 +205,7 @@ def test_categorical_samples_are_one_hot_and_never_a_zero_probability_class():
 def test_categorical_kl_is_the_kl_of_the_networks_distributions(unimix):
     """From raw network outputs (any offset, as a linear layer gives them), with and without
     unimix: the KL of the distributions the latents are sampled from, never negative."""
-    from protocad_ros.model.config import WorldModelConfig
+    from protocad_ros.model.hyperparameters import WorldModelConfig
     from protocad_ros.model.rssm import RSSM
 
     rssm = RSSM(1, 8, WorldModelConfig(stoch=3, discrete=5, unimix=unimix))
@@ -224,7 +224,7 @@ def test_categorical_kl_is_the_kl_of_the_networks_distributions(unimix):
 
 
 def test_kl_balancing_and_free_nats():
-    from protocad_ros.model.config import WorldModelConfig
+    from protocad_ros.model.hyperparameters import WorldModelConfig
     from protocad_ros.model.rssm import RSSM
 
     rssm = RSSM(1, 8, WorldModelConfig(stoch=3))

@@ -7,7 +7,8 @@ import sys
 
 import pytest
 
-from protocad_ros.model.config import PRESETS, ConfigError, check_train_memory, estimate_train_memory, make_config
+from protocad_ros.model.config import ConfigError, check_train_memory, estimate_train_memory, make_config
+from protocad_ros.model.hyperparameters import PRESETS
 
 
 @pytest.mark.parametrize("key,value,says", [

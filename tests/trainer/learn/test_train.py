@@ -180,7 +180,7 @@ def test_every_config_field_is_an_option_with_the_configs_help_and_the_presets_d
             else [section.name]
         for key in keys:
             assert f"--{key}" in small.stdout, key
-    # The default shown is the chosen preset's; the help is the field's comment in config.py.
+    # The default shown is the chosen preset's; the help is the field's comment in hyperparameters.py.
     assert "(default: 128)" in _help_entry(small.stdout, "--world_model.deter")
     assert "(default: 200)" in _help_entry(paper.stdout, "--world_model.deter")
     assert "paper B" in _help_entry(paper.stdout, "--train.batch_size")

@@ -108,7 +108,8 @@ def test_defaults_quoted_in_help_are_the_configs():
     """'(default train.X = V)' in a command's --help is what the config tree holds."""
     import re
 
-    from protocad_ros.model.config import DEFAULT_CLI_PRESET, make_config
+    from protocad_ros.model.config import make_config
+    from protocad_ros.model.hyperparameters import DEFAULT_CLI_PRESET
     from trainer.launch.loop import DEMO
     from trainer.launch.loop import build_parser as loop_parser
     from trainer.research.online import build_parser as online_parser
