@@ -47,8 +47,8 @@ from protocad_ros.checkpoint_limits import (
     check_top_level_keys,
     max_checkpoint_bytes,
 )
+from protocad_ros.model.agent import make_agent
 from protocad_ros.model.agent_base import AgentBase
-from protocad_ros.model.agents import make_agent
 from protocad_ros.model.config import Config, ConfigError
 
 __all__ = ["save_checkpoint", "save_policy", "read_provenance", "load_checkpoint", "restore_checkpoint", "read_checkpoint",

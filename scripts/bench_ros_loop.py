@@ -77,7 +77,7 @@ def direct(args, with_policy: bool) -> tuple[float, list[float]]:
     torch.set_num_threads(args.threads)
     policy = None
     if with_policy:
-        from protocad_ros.model.agents import make_agent
+        from protocad_ros.model.agent import make_agent
         from protocad_ros.model.config import make_config
         from protocad_ros.policy import Policy
 

@@ -77,7 +77,7 @@ class CheckpointServing:
         return Policy(agent, **self._policy_kwargs()), counters
 
     def _random_policy(self):
-        from protocad_ros.model.agents import make_agent
+        from protocad_ros.model.agent import make_agent
         from protocad_ros.policy import Policy
 
         p = self.params

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from protocad_ros.model.agents import make_agent
+from protocad_ros.model.agent import make_agent
 from protocad_ros.model.config import Config
 from trainer.learn import distributed
 

@@ -94,7 +94,7 @@ def test_keys_that_are_not_ed25519_or_not_keys_are_refused(tmp_path):
 
 def test_a_signed_file_verifies_and_its_signature_does_not_carry_to_other_bytes(tmp_path, pair, capsys):
     from protocad_ros.checkpoint import save_checkpoint
-    from protocad_ros.model.agents import make_agent
+    from protocad_ros.model.agent import make_agent
     from protocad_ros.model.config import make_config
 
     kid, _, trusted = pair

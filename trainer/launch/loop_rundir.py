@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Any, Sequence
 
 from protocad_ros.checkpoint import CheckpointError, architecture_differences, existing_checkpoint_file, read_checkpoint
-from protocad_ros.model.agents import make_agent
+from protocad_ros.model.agent import make_agent
 from protocad_ros.model.config import Config, apply_overrides, plan_prototype_freeze
 from protocad_ros.policy import shipped_policy
 from sim_bridge.contract import topics as T

@@ -13,7 +13,7 @@ import torch
 from helpers.agents import render_batch
 
 from protocad_ros.checkpoint import load_checkpoint, save_checkpoint
-from protocad_ros.model.agents import make_agent
+from protocad_ros.model.agent import make_agent
 from protocad_ros.model.augment import crop_images, random_crop
 from protocad_ros.model.config import ConfigError, make_config
 from protocad_ros.model.drq import DrQAgent, soft_q_target, soft_update, temperature_loss, transitions

@@ -204,7 +204,7 @@ WALKER = "walker_walk"   # 6-d actions, as cheetah_run: another task of the same
 def _save_task(path, task: str, updates: int, seed: int = 0) -> bytes:
     """A small-preset checkpoint of `task`, written as the trainer writes it; its bytes."""
     from protocad_ros.checkpoint import save_checkpoint
-    from protocad_ros.model.agents import make_agent
+    from protocad_ros.model.agent import make_agent
     from protocad_ros.model.config import make_config
     from sim_bridge.contract.contexts import task_actuators
 

@@ -82,7 +82,7 @@ def test_a_default_fleet_serves_only_signed_checkpoints_and_forged_status_comple
     from helpers.agents import save_agent
 
     from protocad_ros.checkpoint import save_checkpoint
-    from protocad_ros.model.agents import make_agent
+    from protocad_ros.model.agent import make_agent
     from protocad_ros.model.config import make_config
 
     dom = ["--domain-id", os.environ["ROS_DOMAIN_ID"]]

@@ -99,7 +99,7 @@ def test_an_explicit_precision_bfloat16_is_kept_and_warned_about(no_bf16, tmp_pa
 def test_auto_in_a_config_resolves_on_each_machine(monkeypatch, tmp_path):
     """A config saying 'auto' (what --precision auto stores) is bfloat16 on a bf16 CPU and
     float32 on an AVX2-only one: the same file, two machines."""
-    from protocad_ros.model.agents import make_agent
+    from protocad_ros.model.agent import make_agent
     from protocad_ros.model.config import make_config
 
     cfg = make_config("pendulum_swingup", "small", **{"train.precision": "auto"})
