@@ -58,6 +58,16 @@ def _cpu_model() -> str:
 
 
 # ---- worker (one configuration, in its own process) ---------------------------------------------
+def retain_freed_memory() -> bool:
+    """What every training command does first: trainer.torch_setup's retain_freed_memory
+    (trainer.runs' before that module was split; a baseline revision may predate both)."""
+    try:
+        from trainer import torch_setup as setup
+    except ImportError:
+        from trainer import runs as setup
+    return getattr(setup, "retain_freed_memory", lambda: False)()
+
+
 def worker(spec: dict) -> dict:
     import numpy as np
     import torch
@@ -66,10 +76,8 @@ def worker(spec: dict) -> dict:
     sys.path.insert(0, spec.get("root", str(ROOT)))
     from protocad_ros.model.agent import Agent
     from protocad_ros.model.config import make_config
-    from trainer import runs
 
-    # What every training command does first (a baseline revision may predate it).
-    retained = getattr(runs, "retain_freed_memory", lambda: False)()
+    retained = retain_freed_memory()
 
     rss0 = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     overrides = dict(spec["overrides"])
