@@ -27,6 +27,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from sim_bridge.contract import topics as T
+from trainer.bag import mcap_io
+from trainer.data.dataset import MCAPDataset
+
 
 def rss_mb(kind: str = "RssAnon") -> float:
     """Resident memory in MB: RssAnon = the process's own memory (what a log larger than RAM
@@ -39,9 +43,6 @@ def rss_mb(kind: str = "RssAnon") -> float:
 
 
 def write_bags(root: Path, steps: int, bags: int, ep_len: int = 500) -> list[Path]:
-    from sim_bridge.contract import topics as T
-    from trainer.bag import mcap_io
-
     rng = np.random.default_rng(0)
     out, per_bag, dt = [], steps // bags, 40_000_000
     new = mcap_io.new_message
@@ -72,8 +73,6 @@ def main() -> int:
     ap.add_argument("--batches", type=int, default=200)
     ap.add_argument("--dir", default=None, help="work directory (default: a temp dir, removed)")
     a = ap.parse_args()
-    from trainer.data.dataset import MCAPDataset
-
     work = Path(a.dir) if a.dir else Path(tempfile.mkdtemp(prefix="bench_dataset_"))
     try:
         t = time.perf_counter()

@@ -20,15 +20,20 @@ import sys
 import tempfile
 from pathlib import Path
 
+import numpy as np
+import torch
+
+# Measure the working tree this script belongs to, not an installed copy of the packages.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from protocad_ros.model.precision import cpu_capability
+from sim_bridge.sim.envs import ContextDMCEnv
+from trainer.research.online_rundir import EpisodeBagWriter
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def record_bags(out: Path, task: str, episodes: int, steps: int) -> None:
-    import numpy as np
-
-    from sim_bridge.sim.envs import ContextDMCEnv
-    from trainer.research.online_rundir import EpisodeBagWriter
-
     env = ContextDMCEnv(task, "train", seed=0, time_limit=2 * steps)
     rng = np.random.default_rng(0)
     dt = int(round(env.control_dt * 1e9))
@@ -80,11 +85,6 @@ def main(argv=None) -> int:
     ap.add_argument("--device", default="cpu")
     ap.add_argument("--precision", default="auto", choices=["auto", "float32", "bfloat16"])
     a = ap.parse_args(argv)
-    sys.path.insert(0, str(ROOT))
-    import torch
-
-    from protocad_ros.model.precision import cpu_capability
-
     gpu = torch.cuda.get_device_name(0) if torch.cuda.is_available() else "no GPU"
     print(f"machine: {os.cpu_count()} cores, CPU capability {cpu_capability()}, {gpu}, torch "
           f"{torch.__version__}; load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}")

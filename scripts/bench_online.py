@@ -27,22 +27,24 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+import torch
+
+# Measure the working tree this script belongs to, not an installed copy of the packages.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from protocad_ros.model.config import make_config
+from protocad_ros.model.precision import cpu_capability, resolve_precision
+from protocad_ros.policy import Policy
+from sim_bridge.sim.envs import ContextDMCEnv
+from trainer.data.dataset import MCAPDataset, TopicMap
+from trainer.learn.trainer import Trainer
+from trainer.research.online_rundir import EpisodeBagWriter
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def worker(spec: dict) -> dict:
-    import numpy as np
-    import torch
-
-    sys.path.insert(0, str(ROOT))
-    from protocad_ros.model.config import make_config
-    from protocad_ros.model.precision import resolve_precision
-    from protocad_ros.policy import Policy
-    from sim_bridge.sim.envs import ContextDMCEnv
-    from trainer.data.dataset import MCAPDataset, TopicMap
-    from trainer.learn.trainer import Trainer
-    from trainer.research.online_rundir import EpisodeBagWriter
-
     torch.set_num_threads(spec["threads"])
     prec = resolve_precision(spec["precision"], "cpu", explicit=True).precision
     cfg = make_config(spec["task"], spec["preset"], spec["variant"], **{"train.precision": prec})
@@ -134,10 +136,6 @@ def main(argv=None) -> int:
     if a.worker:
         print(json.dumps(worker(json.loads(a.worker))))
         return 0
-    sys.path.insert(0, str(ROOT))
-    import torch
-
-    from protocad_ros.model.precision import cpu_capability
     print(f"machine: {os.cpu_count()} cores, torch {torch.__version__}, {a.threads} torch thread(s); "
           f"CPU capability {cpu_capability()}; load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     print(f"{a.task} / {a.preset}; collection {a.steps} agent steps (env steps = action repeat x), "

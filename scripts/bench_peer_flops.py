@@ -16,6 +16,8 @@ import os
 import sys
 from pathlib import Path
 
+from torch.utils.flop_counter import FlopCounterMode
+
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
@@ -33,8 +35,6 @@ def main() -> int:
     gl = os.environ.get("MUJOCO_GL", "egl")
     import dreamer  # the peer's; it sets MUJOCO_GL=osmesa on import
     os.environ["MUJOCO_GL"] = gl
-    from torch.utils.flop_counter import FlopCounterMode
-
     train, calls = dreamer.Dreamer._train, [0]
 
     def counted(self, data):

@@ -43,6 +43,8 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parents[1]
 PEER_V3 = {"sec": 18.1, "rss_gb": 5.37}  # dreamerv3-torch dmc_vision, quiet 2-core AVX2 machine
 
@@ -69,7 +71,8 @@ def retain_freed_memory() -> bool:
 
 
 def worker(spec: dict) -> dict:
-    import numpy as np
+    # torch in the worker (--list and --help answer without it); the project's modules from
+    # spec["root"], this tree or the --baseline revision's, so none of them at the top.
     import torch
 
     torch.set_num_threads(spec["threads"])

@@ -17,7 +17,16 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+import numpy as np
+
+# Measure the working tree this script belongs to, not an installed copy of the packages.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from protocad_ros.model.precision import cpu_capability
+from sim_bridge.contract import topics as T
+from sim_bridge.sim.envs import ContextDMCEnv
+from trainer.bag import mcap_io
+from trainer.research.online_rundir import EpisodeBagWriter
 
 
 def main(argv=None) -> int:
@@ -27,15 +36,6 @@ def main(argv=None) -> int:
     ap.add_argument("--task", default="walker_walk")
     ap.add_argument("--steps", type=int, default=2000)
     a = ap.parse_args(argv)
-    sys.path.insert(0, str(ROOT))
-    import numpy as np
-
-    from protocad_ros.model.precision import cpu_capability
-    from sim_bridge.contract import topics as T
-    from sim_bridge.sim.envs import ContextDMCEnv
-    from trainer.bag import mcap_io
-    from trainer.research.online_rundir import EpisodeBagWriter
-
     print(f"machine: {os.cpu_count()} cores, CPU capability {cpu_capability()}; load average "
           f"{' '.join(f'{x:.2f}' for x in os.getloadavg())}")
     env = ContextDMCEnv(a.task, "train", seed=0, time_limit=2 * a.steps + 2)
