@@ -26,8 +26,20 @@ import threading
 import time
 from pathlib import Path
 
+import numpy as np
+import torch
+
+# Measure the working tree this script belongs to, not an installed copy of the packages.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from protocad_ros.atomic import atomic_open
+from protocad_ros.checkpoint import load_checkpoint, save_checkpoint
+from protocad_ros.model.agent import Agent
+from protocad_ros.model.config import make_config
+from protocad_ros.model.precision import cpu_capability
+from sim_bridge.contract.contexts import task_actuators
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
 
 def parse() -> argparse.Namespace:
@@ -42,7 +54,7 @@ def parse() -> argparse.Namespace:
 
 
 ARGS = parse()
-# DDS on this machine only, in a domain of our own (before rclpy is imported).
+# DDS on this machine only, in a domain of our own (before rclpy is imported, in main).
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
 os.environ.setdefault("AMENT_PREFIX_PATH", sys.prefix)
@@ -50,21 +62,14 @@ os.environ["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), os.environ.g
 if ARGS.udp:
     os.environ["FASTDDS_BUILTIN_TRANSPORTS"] = "UDPv4"
 
-import numpy as np  # noqa: E402
-
 
 def main() -> None:
+    # rclpy, and the receiver that loads it, after the DDS environment above
     import rclpy
-    import torch
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
 
-    from protocad_ros.atomic import atomic_open
-    from protocad_ros.checkpoint import load_checkpoint, save_checkpoint
-    from protocad_ros.model.agent import Agent
-    from protocad_ros.model.config import make_config
     from protocad_ros.node.checkpoint_receiver import CheckpointReceiver, install
-    from sim_bridge.contract.contexts import task_actuators
 
     torch.set_num_threads(1)
     rclpy.init()
@@ -93,8 +98,6 @@ def main() -> None:
                      serving=lambda: "", count=count)
     cpu = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
                 if line.startswith("model name")), platform.machine())
-    from protocad_ros.model.precision import cpu_capability
-
     print(f"machine: {cpu}, {os.cpu_count()} cores, CPU capability {cpu_capability()}; "
           f"transport: {'UDPv4 over loopback' if ARGS.udp else 'Fast DDS default (shared memory)'}")
     print(f"{'preset':7} {'MB':>6} {'chunk':>7} {'n':>4} {'announce ms':>12} {'complete ms':>12} "
