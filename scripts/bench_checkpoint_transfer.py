@@ -137,7 +137,8 @@ def main() -> None:
                         t1 = time.monotonic()
                         data = transfer.verify()
                         t2 = time.monotonic()
-                        install(data, Path(tmp) / "robot" / "agent.pt", load_checkpoint)
+                        install(data, Path(tmp) / "robot" / "agent.pt",   # as a policy node loads it
+                                lambda name, raw: load_checkpoint(name, restore_rng=False, data=raw))
                         t3 = time.monotonic()
                         rows.append((times["announce"] - t0, times["complete"] - t0, t2 - t1, t3 - t2))
                 finally:
