@@ -30,9 +30,17 @@ import tempfile
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
+# Measure the working tree this script belongs to, not an installed copy of the packages.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from protocad_ros.model.precision import cpu_capability
+from sim_bridge.contract import topics as T
+from trainer.bag import mcap_io
+from trainer.launch import discovery
+from trainer.launch.rosprocs import RosStack, robot_namespaces
+
+ROOT = Path(__file__).resolve().parents[1]
+# DDS on this machine only (before rclpy is imported, in `one`); the nodes render headless.
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
@@ -45,12 +53,10 @@ WARMUP = 5   # observations of each group before its timing starts
 
 def one(args) -> dict:
     """One configuration, in this process: M groups, measured; returns the figures."""
+    # rclpy's messages and QoS profiles after the DDS environment set at the top
     from sensor_msgs.msg import Image, JointState
 
     from sim_bridge.contract import qos
-    from sim_bridge.contract import topics as T
-    from trainer.launch import discovery
-    from trainer.launch.rosprocs import RosStack, robot_namespaces
 
     namespaces = robot_namespaces(T.DEFAULT_NAMESPACE, args.one, first=0)
     server = (discovery.LOCALHOST, discovery.free_port()) if args.server else None
@@ -91,8 +97,6 @@ def one(args) -> dict:
             stack.stop_all()
             bag_bytes = sum(f.stat().st_size for f in bag.glob("*")) if args.record else None
             if args.record:   # did the recorder keep up: every step of every group in the bag?
-                from trainer.bag import mcap_io
-
                 counts = mcap_io.BagReader(bag).report.counts
                 recorded = sum(counts.get(T.topic_name(ns, T.STEP_INFO), 0) for ns in namespaces)
     if any(len(t) <= WARMUP + 1 for t in seen.values()):
@@ -115,8 +119,6 @@ def one(args) -> dict:
 
 
 def machine_line() -> str:
-    from protocad_ros.model.precision import cpu_capability
-
     load = " ".join(f"{x:.2f}" for x in os.getloadavg())
     return (f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs, "
             f"torch CPU capability {cpu_capability()}, load average {load}, "
