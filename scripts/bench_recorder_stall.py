@@ -26,17 +26,24 @@ from __future__ import annotations
 import argparse
 import os
 import re
+import shutil
 import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "tests"))
+# Measure the working tree this script belongs to, not an installed copy; its tests' helpers too.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 
-# DDS on this machine only, in a domain of our own (before rclpy is imported).
+from helpers import wait_until
+
+from sim_bridge.contract import topics as T
+from trainer.bag import mcap_io as M
+
+ROOT = Path(__file__).resolve().parents[1]
+# DDS on this machine only, in a domain of our own (before rclpy is imported, in run).
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
 os.environ.setdefault("FASTRTPS_DEFAULT_PROFILES_FILE", str(ROOT / "sim_bridge" / "fastdds_discovery.xml"))
@@ -98,11 +105,7 @@ def steps_at(samples: list[tuple[float, int]], t: float) -> int:
 
 
 def run(args, logdir: Path, stall: bool, index: int) -> dict:
-    from helpers import wait_until
-    from helpers.ros import Probe, Responder
-
-    from sim_bridge.contract import topics as T
-    from trainer.bag import mcap_io as M
+    from helpers.ros import Probe, Responder  # rclpy, after the DDS environment above
 
     ns = f"/stall{index}"
     bag = logdir / f"bag{index}"
@@ -195,8 +198,6 @@ def main() -> None:
     logdir = Path(args.logdir)
     logdir.mkdir(parents=True, exist_ok=True)
     for old in logdir.glob("bag*"):
-        import shutil
-
         shutil.rmtree(old, ignore_errors=True)
     rows = []
     for i in range(args.runs):
