@@ -35,24 +35,33 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+import signal
 import subprocess
 import sys
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "tests"))
+import numpy as np
 
-# DDS on this machine only, in a domain of our own (before rclpy is imported).
+# Measure the working tree this script belongs to, not an installed copy; its tests' helpers too.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+
+from helpers import wait_until
+
+from sim_bridge.contract import topics
+from sim_bridge.contract.contexts import task_actuators
+from sim_bridge.sim.envs import ContextDMCEnv
+
+ROOT = Path(__file__).resolve().parents[1]
+# DDS on this machine only, in a domain of our own (before rclpy is imported, in the functions
+# that use it). torch and the model load in `direct` and main, never in the --echo child.
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
 os.environ.setdefault("MUJOCO_GL", "egl")
 os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
 os.environ.setdefault("AMENT_PREFIX_PATH", sys.prefix)
 os.environ["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
-
-import numpy as np  # noqa: E402
 
 
 def pct(values, q) -> float:
@@ -71,8 +80,6 @@ def mean_run(results: list[dict[str, float]]) -> dict:
 def direct(args, with_policy: bool) -> tuple[float, list[float]]:
     """(agent steps/s, Policy.act latencies in s) with the env in this process."""
     import torch
-
-    from sim_bridge.sim.envs import ContextDMCEnv
 
     torch.set_num_threads(args.threads)
     policy = None
@@ -126,7 +133,7 @@ def echo_node(ns: str, image_only: bool) -> None:
     from rclpy.node import Node
     from sensor_msgs.msg import Image, JointState
 
-    from sim_bridge.contract import qos, topics
+    from sim_bridge.contract import qos
 
     rclpy.init()
     node = Node("bench_echo", namespace=ns)
@@ -152,15 +159,12 @@ def echo_node(ns: str, image_only: bool) -> None:
 def floor(args, logdir: Path, image_only: bool = False) -> dict[str, float]:
     """Round trips/s and latency of the bare rclpy pair (see the module docstring, 5); with
     `image_only` the observation is the image alone (one message per step, not two)."""
-    import signal
-
     import rclpy
-    from helpers import wait_until
     from rclpy.executors import SingleThreadedExecutor
     from rclpy.node import Node
     from sensor_msgs.msg import Image, JointState
 
-    from sim_bridge.contract import qos, topics
+    from sim_bridge.contract import qos
 
     ns = "/bench_floor"
     ctx = rclpy.Context()
@@ -248,13 +252,10 @@ def profile_top(path: Path, n: int = 12) -> list[tuple[float, float, str]]:
 
 
 def ros_loop(args, with_policy: bool, logdir: Path, acks: bool) -> dict[str, float]:
-    import signal
-
-    from helpers import wait_until
     from helpers.ros import Probe, Responder
     from sensor_msgs.msg import JointState
 
-    from sim_bridge.contract import qos, topics
+    from sim_bridge.contract import qos
 
     ns = ("/bench_policy" if with_policy else "/bench_zero") + ("_acked" if acks else "")
     probe = Probe("bench_probe", namespace=ns)
@@ -274,8 +275,6 @@ def ros_loop(args, with_policy: bool, logdir: Path, acks: bool) -> dict[str, flo
             wait_until(lambda: probe.node.count_publishers(probe.topic(topics.ACTION)) > 0, 180,
                        "the policy node")
         else:
-            from sim_bridge.contract.contexts import task_actuators
-
             zero = np.zeros(len(task_actuators(args.task)))
             Responder(probe, lambda info: zero, ns=ns)
         bridge = spawn("bridge" + ns.replace("/", "_"), "-m", "sim_bridge.bridge.node", "--ros-args",
