@@ -8,6 +8,7 @@ share is the `helpers` package next to this file.
 from __future__ import annotations
 
 import os
+import resource
 import subprocess
 import sys
 import zlib
@@ -66,6 +67,59 @@ def pytest_runtest_makereport(item, call):
     report = yield
     setattr(item, f"report_{report.when}", report)
     return report
+
+
+# --cpu-durations=N: the N tests that used the most CPU, printed after the run like --durations.
+# Wall time hides what a test costs while it waits on DDS or a child; on a machine with fewer or
+# slower cores, CPU seconds are what add up. Counted per phase in the process that runs the test:
+# its own CPU and that of the child processes it reaped (a spawned node counts where it is
+# stopped; a run's workers count through the parent that reaped them).
+def pytest_addoption(parser):
+    parser.addoption("--cpu-durations", type=int, default=None, metavar="N",
+                     help="show the N tests that used the most CPU seconds (user + system, with reaped "
+                          "child processes); 0 for all")
+
+
+def cpu_seconds() -> float:
+    own, children = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+    return own.ru_utime + own.ru_stime + children.ru_utime + children.ru_stime
+
+
+def _counted(phase: str):
+    @pytest.hookimpl(wrapper=True)
+    def hook(item, *args):
+        if item.config.getoption("cpu_durations") is None:
+            return (yield)
+        start = cpu_seconds()
+        try:
+            return (yield)
+        finally:
+            item.user_properties.append((f"cpu_s_{phase}", cpu_seconds() - start))
+    return hook
+
+
+pytest_runtest_setup, pytest_runtest_call, pytest_runtest_teardown = map(_counted, ("setup", "call", "teardown"))
+_CPU_BY_TEST: dict[str, float] = {}
+
+
+def pytest_runtest_logreport(report):
+    """On the controller too (pytest-xdist sends each report with its properties): the teardown
+    report carries all three phases."""
+    if report.when == "teardown":
+        cpu = sum(v for k, v in report.user_properties if k.startswith("cpu_s_"))
+        if cpu:
+            _CPU_BY_TEST[report.nodeid] = cpu
+
+
+def pytest_terminal_summary(terminalreporter, config):
+    n = config.getoption("cpu_durations")
+    if n is None or not _CPU_BY_TEST or hasattr(config, "workerinput"):
+        return
+    rows = sorted(_CPU_BY_TEST.items(), key=lambda kv: -kv[1])
+    terminalreporter.write_sep("=", f"CPU seconds, {'all' if n == 0 else f'top {n}'} "
+                                    f"(all tests: {sum(_CPU_BY_TEST.values()):.0f} s)")
+    for nodeid, cpu in rows[:n or None]:
+        terminalreporter.write_line(f"{cpu:8.2f}s  {nodeid}")
 
 
 #: How much of each spawned process's output a failed test prints (its last characters).
