@@ -8,12 +8,14 @@ from __future__ import annotations
 
 import collections
 import threading
+import time
 from typing import Any, Callable
 
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from rclpy.executors import SingleThreadedExecutor
+from rclpy.executors import ExternalShutdownException, ShutdownException, SingleThreadedExecutor
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
 from rclpy.node import Node
 from sensor_msgs.msg import Image, JointState
 
@@ -44,16 +46,26 @@ class Probe:
         self.lock = threading.Lock()
         self.diag: dict[str, dict[str, str]] = {}
         self._keep = []
+        self._closing = False
+        #: What callbacks raised (the spin goes on): a test that waits in vain can print them.
+        self.callback_errors: list[str] = []
         self.sub_diag = self.node.create_subscription(
             DiagnosticArray, topics.DIAGNOSTICS, self._on_diag, qos.diagnostics_qos())
         self._thread = threading.Thread(target=self._spin, daemon=True)
         self._thread.start()
 
     def _spin(self) -> None:
-        try:
-            self.executor.spin()
-        except Exception:  # noqa: BLE001 - the context was shut down under it (close())
-            pass
+        """Spin until close(). A callback that raises is recorded and the spin goes on: the
+        executor's own spin() would end there and leave the probe deaf for the rest of the test."""
+        while not self._closing and self.ctx.ok():
+            try:
+                self.executor.spin_once(timeout_sec=0.1)
+            except (ShutdownException, ExternalShutdownException):
+                return
+            except Exception as exc:  # noqa: BLE001 - a callback's error: recorded, the spin goes on
+                if self._closing or not self.ctx.ok():
+                    return
+                self.callback_errors.append(f"{type(exc).__name__}: {exc}")
 
     def _on_diag(self, msg) -> None:
         with self.lock:
@@ -99,6 +111,7 @@ class Probe:
         return float(v) if v is not None else float("nan")
 
     def close(self) -> None:
+        self._closing = True
         try:
             self.executor.shutdown(timeout_sec=1.0)
         except Exception:  # noqa: BLE001 - closing: best effort
@@ -119,6 +132,25 @@ class _Recorded(collections.UserList):
 
     def matched(self) -> int:
         return self.sub.get_publisher_count()
+
+
+#: What rclpy raises when the middleware refuses a sample (a full KEEP_ALL history).
+RCLError = _rclpy.RCLError
+
+
+def publish_waiting_out_a_full_history(pub, msg, timeout_s: float = 120.0) -> None:
+    """Publish on a KEEP_ALL writer (the action QoS), waiting while its history is full: Fast DDS
+    refuses a sample once 5000 are held that a reliable reader (a recorder frozen that many
+    steps) has not acknowledged; the acknowledgements come on DDS's own threads, as the bridge's
+    lossless writers also wait (sim_bridge/bridge/publishing.py)."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            return pub.publish(msg)
+        except RCLError:
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.05)
 
 
 class Responder:
@@ -170,7 +202,7 @@ class Responder:
         msg.name = list(names if names is not None else
                         self.names or [f"a{i}" for i in range(len(action))])
         msg.effort = [float(v) for v in action]
-        self.pub.publish(msg)
+        publish_waiting_out_a_full_history(self.pub, msg)
         with self.probe.lock:
             self.answered.append(stamp)
 
