@@ -10,13 +10,30 @@ from __future__ import annotations
 
 import multiprocessing as mp
 import signal
+import sys
 import traceback
+import types
+from contextlib import contextmanager
 from multiprocessing.connection import Connection, wait
-from typing import Any, Mapping, Sequence
+from typing import Any, Iterator, Mapping, Sequence
 
 import numpy as np
 
 from sim_bridge.sim.envs import ContextDMCEnv, Observation, check_env_args
+
+
+@contextmanager
+def _workers_skip_the_main_module() -> Iterator[None]:
+    """'spawn' re-imports the parent's __main__ in every child (as __mp_main__). For
+    protocad-online that is the whole trainer with torch: about 1.5 CPU-s and 300 MB per worker,
+    none of which a worker uses (its target lives here). A __main__ without __spec__ or __file__
+    gives the children nothing to re-import; the real one is back as soon as they are started."""
+    main = sys.modules["__main__"]
+    sys.modules["__main__"] = types.ModuleType("__main__")
+    try:
+        yield
+    finally:
+        sys.modules["__main__"] = main
 
 
 class WorkerError(RuntimeError):
@@ -122,7 +139,8 @@ class VectorEnv:
                     parent, child = ctx.Pipe()
                     proc = ctx.Process(target=_worker, name=f"ContextDMCEnv-{task}-{i}", daemon=True,
                                        args=(child, task, split, worker_seed, dict(env_kwargs)))
-                    proc.start()
+                    with _workers_skip_the_main_module():
+                        proc.start()
                     child.close()
                     self._conns.append(parent)
                     self._procs.append(proc)

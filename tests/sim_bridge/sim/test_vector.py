@@ -3,9 +3,12 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
 
 import numpy as np
 import pytest
+from helpers import ROOT
 
 from sim_bridge.contract.contexts import get_task
 from sim_bridge.sim.envs import ContextDMCEnv
@@ -109,3 +112,24 @@ def test_given_contexts_subsets_and_in_process_match_workers():
             frames.append([o.image for o in first + both + one])
     for in_parent, in_worker in zip(*frames):
         np.testing.assert_array_equal(in_parent, in_worker)
+
+
+def test_workers_do_not_import_the_parents_main_module(tmp_path):
+    """'spawn' would re-import the parent's __main__ in each worker: for protocad-online that is
+    torch and the trainer (about 1.5 CPU-s and 300 MB per worker). A main module that counts
+    its imports, started the way protocad-online is (python -m), is imported once."""
+    (tmp_path / "heavy_main.py").write_text(
+        "import os, sys\n"
+        f"open({str(tmp_path / 'imports')!r}, 'a').write(f'{{os.getpid()}}\\n')\n"
+        "if __name__ == '__main__':\n"
+        "    from sim_bridge.sim.vector import VectorEnv\n"
+        "    with VectorEnv('pendulum_swingup', 2, time_limit=4) as venv:\n"
+        "        venv.reset()\n"
+        "        print(os.getpid(), *venv.pids)\n")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(tmp_path), str(ROOT)])}
+    p = subprocess.run([sys.executable, "-m", "heavy_main"], cwd=tmp_path, env=env, capture_output=True,
+                       text=True, timeout=120)
+    assert p.returncode == 0, p.stderr
+    parent, *workers = p.stdout.split()
+    assert len(workers) == 2
+    assert (tmp_path / "imports").read_text().split() == [parent]
