@@ -21,40 +21,52 @@ def standard_context(task: str) -> str:
 
 def iqm(scores: np.ndarray) -> float:
     """Interquartile mean: the mean of the middle 50% (25% trimmed from each end)."""
+    return float(_iqm_last_axis(np.asarray(scores, float)))
+
+
+# The aggregates take each task's scores along the last axis, so bootstrap_ci computes all its
+# replicates in one call (leading axis: replicate); on plain score vectors they give a float.
+def _iqm_last_axis(scores: np.ndarray) -> np.ndarray:
     from scipy.stats import trim_mean
 
-    return float(trim_mean(np.asarray(scores, float), 0.25))
+    return trim_mean(scores, 0.25, axis=-1)
 
 
-def aggregate_mean(per_task: Sequence[np.ndarray]) -> float:
+def _float_or_array(x: np.ndarray) -> float | np.ndarray:
+    return float(x) if np.ndim(x) == 0 else x
+
+
+def aggregate_mean(per_task: Sequence[np.ndarray]) -> float | np.ndarray:
     """Mean over every task x seed score."""
-    return float(np.mean(np.concatenate(per_task)))
+    return _float_or_array(np.mean(np.concatenate(per_task, axis=-1), axis=-1))
 
 
-def aggregate_median(per_task: Sequence[np.ndarray]) -> float:
+def aggregate_median(per_task: Sequence[np.ndarray]) -> float | np.ndarray:
     """Median over tasks of the per-task mean (as the paper and rliable report it)."""
-    return float(np.median([np.mean(s) for s in per_task]))
+    return _float_or_array(np.median(np.stack([np.mean(s, axis=-1) for s in per_task], axis=-1), axis=-1))
 
 
-def aggregate_iqm(per_task: Sequence[np.ndarray]) -> float:
-    return iqm(np.concatenate(per_task))
+def aggregate_iqm(per_task: Sequence[np.ndarray]) -> float | np.ndarray:
+    return _float_or_array(_iqm_last_axis(np.concatenate(per_task, axis=-1)))
 
 
-AGGREGATES: dict[str, Callable[[Sequence[np.ndarray]], float]] = {
+AGGREGATES: dict[str, Callable[[Sequence[np.ndarray]], float | np.ndarray]] = {
     "mean": aggregate_mean, "median": aggregate_median, "iqm": aggregate_iqm}
 
 
-def bootstrap_ci(per_task: Sequence[Sequence[float]], statistic: Callable[[Sequence[np.ndarray]], float],
+def bootstrap_ci(per_task: Sequence[Sequence[float]],
+                 statistic: Callable[[Sequence[np.ndarray]], float | np.ndarray],
                  reps: int = 10_000, confidence: float = 0.95, seed: int = 0) -> tuple[float, float]:
     """Stratified percentile bootstrap interval of `statistic(per_task)`: every replicate
     resamples, independently per task, that task's scores with replacement. A single task is
-    the ordinary bootstrap of its seeds. Deterministic for a seed."""
+    the ordinary bootstrap of its seeds. Deterministic for a seed. `statistic` reduces the
+    last axis (the aggregates above): it gets every replicate at once, (reps, scores) per task."""
     arrays = [np.asarray(s, float) for s in per_task]
     if not arrays or any(a.size == 0 for a in arrays):
         raise ValueError("bootstrap_ci needs at least one score per task")
     rng = np.random.default_rng(seed)
     idx = [rng.integers(0, a.size, size=(reps, a.size)) for a in arrays]
-    stats = np.array([statistic([a[i[r]] for a, i in zip(arrays, idx)]) for r in range(reps)])
+    stats = np.asarray(statistic([a[i] for a, i in zip(arrays, idx)]))
     lo, hi = np.quantile(stats, [(1 - confidence) / 2, 1 - (1 - confidence) / 2])
     return float(lo), float(hi)
 
