@@ -48,6 +48,9 @@ def test_campaign_runs_every_step_without_ros_on_a_tiny_budget(tmp_path):
     assert sorted(r["label"] for r in doc["runs"]) == ["dreamer", "protocad"]
     assert all(r["status"] == "finished" and r["final"] is not None for r in doc["runs"])
     assert all(r["final_train"] is not None and r["prototype_freeze"] in (None, 0) for r in doc["runs"])
+    # the random baseline plays the runs' final evaluation: their 2 contexts, 1 episode each
+    rnd = json.loads(read("compare/pendulum_swingup/random.json"))
+    assert [c["context"] for c in rnd["per_context"]] == [{"m": 0.2}, {"m": 1.8}] and rnd["episodes"] == 2
     names = tar.getnames()
     assert "compare/curves.png" in names
     assert "rerun: not written (rerun-sdk is not installed)" in read("logs/compare.txt")

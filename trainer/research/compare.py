@@ -154,6 +154,20 @@ def plan(a: GridSettings) -> list[RunSpec]:
     return specs
 
 
+def run_protocols(specs: Sequence[RunSpec]) -> dict[str, dict]:
+    """Each task's evaluation protocol as its first compared run recorded it (run.json), for the
+    random baseline; the anchor's runs are scored on the standard context, not on the grid's."""
+    found: dict[str, dict] = {}
+    for s in specs:
+        if s.task in found or s.label == ANCHOR_LABEL:
+            continue
+        try:
+            found[s.task] = json.loads((s.run_dir / "run.json").read_text())["protocol"]
+        except (OSError, ValueError, KeyError, TypeError):
+            continue   # carried from elsewhere, or not started: another run of the task may have it
+    return found
+
+
 def online_argv(spec: RunSpec, a: GridSettings, state: str) -> list[str]:
     argv = [sys.executable, "-m", "trainer.research.online", "--run-dir", str(spec.run_dir),
             "--env-steps", str(a.env_steps), "--device", spec.device, "--threads", str(a.threads),
@@ -375,8 +389,8 @@ class GridSettings:
     random_baseline: bool = arg(False, group="output")
     """evaluate the uniform random policy once per task (OUT/TASK/random.json, the final
     evaluation's contexts and episodes) and report it beside the variants"""
-    random_episodes: int = arg(5, group="output")
-    """episodes per context of --random-baseline"""
+    random_episodes: int | None = arg(None, group="output")
+    """episodes per context of --random-baseline (default: the runs' --final-episodes)"""
     ship: str | None = arg(None, metavar="POLICY_PT", group="output")
     """write the best run's policy here (highest final return on unseen contexts; bfloat16
     weights and provenance, POLICY_PT with .json beside it: trainer.research.ship)"""
@@ -435,7 +449,8 @@ def _run_and_gather(a: GridSettings, argv: Sequence[str] | None) -> tuple[list[d
         return doc
 
     def random_rows(evaluate: bool = True) -> dict:
-        return R.random_baselines(a.tasks, a.out, episodes=a.random_episodes, evaluate=evaluate)
+        return R.random_baselines(a.tasks, a.out, episodes=a.random_episodes, evaluate=evaluate,
+                                  protocols=run_protocols(specs))
 
     # Rewritten as runs finish, at each status line and when cut short: what finished can
     # be committed anytime, and `--report` shows where the others stand.

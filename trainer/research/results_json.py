@@ -16,7 +16,7 @@ import yaml
 from protocad_ros.atomic import atomic_write_text
 from protocad_ros.model.precision import cpu_capability
 from trainer import runs
-from trainer.learn.evaluate import context_label, evaluate_checkpoint
+from trainer.learn.evaluate import DEFAULT_EPISODES, context_label, evaluate_checkpoint, select_contexts
 from trainer.provenance import code_version
 
 SCHEMA_ID = "protocad-compare/1"
@@ -252,18 +252,25 @@ def latest_progress(run_dir: Path) -> tuple[int, int]:
     return 0, 0
 
 
-def random_baselines(tasks: Sequence[str], out: str | Path, *, episodes: int, evaluate: bool = True
-                     ) -> dict[str, dict]:
-    """results.json's `random` entries: the uniform random policy on each task's test contexts,
-    evaluated once (OUT/TASK/random.json; `episodes` per context); evaluate=False: only those
-    already there."""
+def random_baselines(tasks: Sequence[str], out: str | Path, *, episodes: int | None, evaluate: bool = True,
+                     protocols: Mapping[str, Mapping[str, Any]] | None = None) -> dict[str, dict]:
+    """results.json's `random` entries: the uniform random policy on each task's final-evaluation
+    protocol, evaluated once (OUT/TASK/random.json); evaluate=False: only those already there.
+    `protocols[task]` is a run's run.json `protocol`: its contexts, episode length and (unless
+    `episodes` is given) episodes per context, so the baseline plays the episodes the runs were
+    scored on; a task without one gets the paper's protocol (every test context, 1000 env steps)."""
     found = {}
     for task in tasks:
         path = Path(out) / task / "random.json"
         if not path.exists() and not evaluate:
             continue
         if not path.exists():
-            res = evaluate_checkpoint(None, task=task, episodes=episodes, seed=7, progress=False)
+            p = dict((protocols or {}).get(task) or {})
+            split = p.get("eval_split", "test")
+            contexts = select_contexts(task, split, p.get("eval_contexts"), p.get("final_max_contexts", 0))
+            res = evaluate_checkpoint(None, task=task, split=split, contexts=contexts, seed=7, progress=False,
+                                      episodes=episodes or p.get("final_episodes") or DEFAULT_EPISODES,
+                                      time_limit=p.get("time_limit"))
             runs.atomic_write_json(path, res.to_dict())
         found[task] = json.loads(path.read_text())
     return found
