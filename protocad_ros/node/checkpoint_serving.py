@@ -313,3 +313,6 @@ class CheckpointServing:
         with self._lock:
             self.counters["checkpoint_reloads"] += 1
         self.get_logger().info(f"now serving {self._describe_agent()}")
+        # At once too: an episode can end (and its recording with it) before the next period,
+        # and the bag's /diagnostics would then name only the checkpoint served before.
+        self._publish_diagnostics()

@@ -3,7 +3,8 @@ it serves (and the one pending for the next episode, the version being received,
 settings and rollback floor), latency and model-time percentiles, its counters, and one level
 and message saying what needs a look first. A part of PolicyNode, reading its counters and
 pending checkpoint under the node's lock; called by its timer, at each hand-over of a loaded
-checkpoint (launchers wait for pending_checkpoint_updates) and once more at close."""
+checkpoint (launchers wait for pending_checkpoint_updates), when it starts serving it, and
+once more at close."""
 from __future__ import annotations
 
 from typing import Any
