@@ -79,6 +79,9 @@ class ProbeSettings:
     """torch threads"""
     no_progress: bool = False
     """no progress bar"""
+    summarize: list[str] = arg([], nargs="+", metavar="PROBE_JSON")
+    """instead of probing: the tables of these probe JSONs together (a grid's seeds of each
+    variant), as markdown: per variant the mean R^2 over them (min to max) and open-loop errors"""
 
     def plan(self) -> Plan:
         return Plan(episodes=self.episodes, steps=self.steps, skip=self.skip, window=self.window,
@@ -152,6 +155,10 @@ def _params(task: str) -> tuple[str, ...]:
 def run(s: ProbeSettings, command: Sequence[str] = ()) -> int:
     """Probe as the settings say: print the tables, write what was asked for (`command`: the
     argv the JSON records)."""
+    if s.summarize:
+        docs = [probe_report.read_json(p) for p in s.summarize]
+        print(probe_report.summary_markdown(docs))
+        return 0
     t0 = time.monotonic()
     s.plan().check()
     torch_setup.setup_torch(s.threads)

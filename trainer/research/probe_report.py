@@ -93,6 +93,19 @@ def write_json(doc: Mapping[str, Any], path: Path) -> None:
     atomic_write_text(path, json.dumps(doc, indent=2, allow_nan=False) + "\n")
 
 
+def read_json(path: str | Path) -> dict[str, Any]:
+    """A probe JSON, checked against PROBE_SCHEMA (ValueError naming the file)."""
+    try:
+        doc = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as exc:
+        raise ValueError(f"{path}: not a probe JSON: {exc}") from None
+    try:
+        validate(doc)
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
+    return doc
+
+
 # ----------------------------------------------------------------------------- text
 def _fmt(v: float | None, width: int = 6) -> str:
     return "-".rjust(width) if v is None or not math.isfinite(v) else f"{v:{width}.2f}"
@@ -126,6 +139,54 @@ def open_loop_table(open_loop: Mapping[str, Any], horizons: Sequence[int] = HEAD
             cells.append(f"  {mse:>8} / {ol['reward_abs_err'][k - 1]:6.3f}")
         lines.append(f"{split + ' (' + str(ol['n_segments']) + ' seg)':<14}" + "".join(cells))
     return "\n".join(lines)
+
+
+def _mean_range(values: Sequence[float]) -> str:
+    v = [x for x in values if x is not None and math.isfinite(x)]
+    if not v:
+        return "-"
+    return f"{np.mean(v):.2f}" if len(v) == 1 else f"{np.mean(v):.2f} ({min(v):.2f} to {max(v):.2f})"
+
+
+def _r2_table(group: Sequence[Mapping[str, Any]], variant: str, target: str) -> str:
+    feats = list(dict.fromkeys(f for d in group for st in d["probes"].values() for f in st.get(target, {})))
+    lines = [f"| {target}: {variant} ({len(group)}) | " + " | ".join(feats) + " |", "|---" * (len(feats) + 1) + "|"]
+    for setting in SETTINGS:
+        scores = [d["probes"].get(setting, {}).get(target, {}) for d in group]
+        if any(scores):
+            cells = [_mean_range([sc[f]["r2"] for sc in scores if f in sc]) for f in feats]
+            lines.append(f"| {setting} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def _open_loop_rows(group: Sequence[Mapping[str, Any]], variant: str, horizons: Sequence[int]) -> list[str]:
+    rows = []
+    for split in ("test", "train"):
+        curves = [d["open_loop"][split] for d in group if split in d["open_loop"]]
+        cells = []
+        for k in horizons:
+            mse = [c["image_mse"][k - 1] for c in curves if c["image_mse"] and k <= len(c["image_mse"])]
+            dr = [c["reward_abs_err"][k - 1] for c in curves if k <= len(c["reward_abs_err"])]
+            cells.append(f"{np.mean(mse):.4f} / {np.mean(dr):.3f}" if mse and dr else "-")
+        if curves:
+            rows.append(f"| {variant} ({len(curves)}) | {split} | " + " | ".join(cells) + " |")
+    return rows
+
+
+def summary_markdown(docs: Sequence[Mapping[str, Any]], horizons: Sequence[int] = HEADLINE_HORIZONS) -> str:
+    """Probes of several checkpoints (a grid's seeds of each variant) as markdown: per target and
+    variant, the R^2 of each feature in each setting, mean over the checkpoints (min to max);
+    then the open-loop image MSE and reward error at a few horizons, mean over the checkpoints."""
+    by_variant: dict[str, list[Mapping[str, Any]]] = {}
+    for d in docs:
+        by_variant.setdefault(d["variant"], []).append(d)
+    targets = list(dict.fromkeys(t for d in docs for st in d["probes"].values() for t in st))
+    parts = ["R^2 of linear probes on window means, mean over the checkpoints (min to max):"]
+    parts += [_r2_table(group, variant, t) for t in targets for variant, group in sorted(by_variant.items())]
+    head = ["| open loop | split | " + " | ".join(f"k={k}: image MSE / reward abs err" for k in horizons) + " |",
+            "|---|---" + "|---" * len(horizons) + "|"]
+    parts.append("\n".join(head + [r for v, g in sorted(by_variant.items()) for r in _open_loop_rows(g, v, horizons)]))
+    return "\n\n".join(parts)
 
 
 def report_text(doc: Mapping[str, Any]) -> str:

@@ -139,6 +139,40 @@ def test_the_plot_and_the_recording_are_written(probed):
     assert rec["__blueprints"]["rows"] >= 1          # its layout travels with it
 
 
+def test_probes_of_several_seeds_summarize_per_variant(probed, tmp_path, capsys):
+    """--summarize: a grid's probe JSONs together, per variant the mean R^2 over its checkpoints
+    with their range, and the open-loop errors averaged; a file that is not a probe JSON is one
+    error line."""
+    from trainer.research import probe
+
+    doc = json.loads(probed["json"].read_text())
+    better = json.loads(json.dumps(doc))
+    for targets in better["probes"].values():
+        for scores in targets.values():
+            for score in scores.values():
+                score["r2"] += 0.2
+    better["open_loop"]["test"]["reward_abs_err"] = [2 * x for x in doc["open_loop"]["test"]["reward_abs_err"]]
+    other = {**doc, "variant": "dreamer"}
+    paths = []
+    for name, d in (("a", doc), ("b", better), ("c", other)):
+        paths.append(tmp_path / f"{name}.json")
+        paths[-1].write_text(json.dumps(d))
+    assert probe.main(["--summarize", *map(str, paths)]) == 0
+    text = capsys.readouterr().out
+    r = doc["probes"]["test_grid"]["log_m"]["u"]["r2"]
+    mine = text[text.index("| log_m: protocad (2) |"):]
+    row = next(line for line in mine.splitlines() if line.startswith("| test_grid |"))
+    assert row.split(" | ")[1] == f"{np.mean([r, r + 0.2]):.2f} ({r:.2f} to {r + 0.2:.2f})", row
+    theirs = text[text.index("| log_m: dreamer (1) |"):]
+    assert next(x for x in theirs.splitlines() if x.startswith("| test_grid |")).split(" | ")[1] == f"{r:.2f}"
+    e = doc["open_loop"]["test"]["reward_abs_err"][0]
+    loop = next(x for x in text.splitlines() if x.startswith("| protocad (2) | test |"))
+    assert loop.split(" | ")[2].endswith(f"/ {1.5 * e:.3f}"), loop
+    (tmp_path / "bad.json").write_text(json.dumps({"schema": "protocad-probe/1"}))
+    assert probe.main(["--summarize", str(paths[0]), str(tmp_path / "bad.json")]) == 2
+    assert "bad.json" in capsys.readouterr().err
+
+
 def test_help_and_bad_input(capsys, tmp_path):
     from trainer.research import probe
 
