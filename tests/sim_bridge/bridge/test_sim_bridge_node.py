@@ -306,14 +306,15 @@ def test_image_qos_is_overridable_by_parameter(spawn, probe):
 
     bridge = spawn("bridge_qos", *bridge_args("qos_overrides./protocad/image.publisher.reliability:=best_effort"))
 
-    def offered():
-        infos = probe.node.get_publishers_info_by_topic("/protocad/image")
+    def offered(topic: str):
+        infos = probe.node.get_publishers_info_by_topic(topic)
         return infos[0].qos_profile.reliability if infos else None
 
-    wait_until(lambda: offered() is not None, START, "the bridge's image publisher")
-    assert offered() == ReliabilityPolicy.BEST_EFFORT
-    assert probe.node.get_publishers_info_by_topic("/protocad/step_info")[0].qos_profile.reliability == \
-        ReliabilityPolicy.RELIABLE
+    # each writer is discovered on its own: wait for both before reading either
+    wait_until(lambda: offered("/protocad/image") is not None and offered("/protocad/step_info") is not None,
+               START, "the bridge's image and step_info publishers")
+    assert offered("/protocad/image") == ReliabilityPolicy.BEST_EFFORT
+    assert offered("/protocad/step_info") == ReliabilityPolicy.RELIABLE
     assert "unknown parameter" not in bridge.output()
 
 
