@@ -235,14 +235,14 @@ def _config(path: Path, payload: Mapping[str, Any]) -> Config:
 
 
 def _load_into(path: Path, agent: AgentBase, payload: Mapping[str, Any],
-               restore_rng: bool = True) -> dict[str, Any]:
+               restore_rng: bool = True, optimizer_states: bool = True) -> dict[str, Any]:
     try:
         agent.load_state_dict(payload["modules"], strict=True)
     except (RuntimeError, KeyError) as err:
         raise CheckpointError(f"{path}: weights do not fit this agent (config "
                               f"{agent.cfg.variant}/{agent.cfg.preset}): {err}") from None
-    if "optimizers" not in payload:   # a policy file: the agent's optimizers start fresh
-        return dict(payload.get("counters", {}))
+    if "optimizers" not in payload or not optimizer_states:
+        return dict(payload.get("counters", {}))   # a policy file, or an agent that only acts
     opts = agent.optimizers()
     if set(payload["optimizers"]) != set(opts):
         raise CheckpointError(f"{path}: optimizer states {sorted(payload['optimizers'])} do not "
@@ -303,14 +303,17 @@ def _check_weights_fit(path: Path, cfg: Config, action_dim: int, payload: Mappin
 def load_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu",
                     action_dim: int | None = None, *,
                     fits: Callable[[Config, int], None] | None = None,
-                    restore_rng: bool = True, data: bytes | None = None,
+                    restore_rng: bool = True, optimizer_states: bool = True,
+                    data: bytes | None = None,
                     max_bytes: int | None = None) -> tuple[AgentBase, dict[str, Any]]:
     """Rebuild the agent from a checkpoint. Returns (agent, counters).
 
     action_dim, if given, must match the checkpoint's (e.g. the environment's). fits(config,
     action_dim), if given, is called before anything is built and raises (CheckpointMismatch)
     to refuse the file. restore_rng: set torch's global RNG from the file (the trainer's
-    exact resume); False for anything that only serves or evaluates it. data: the file's bytes,
+    exact resume); False for anything that only serves or evaluates it. optimizer_states: load
+    the file's optimizer states (training goes on); False for an agent that only acts, whose
+    optimizers are then never built. data: the file's bytes,
     already read (and verified) by the caller: loaded from, the file is not read again.
     max_bytes: the largest file (and declared archive contents) accepted
     (protocad_ros.checkpoint_limits).
@@ -326,7 +329,7 @@ def load_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu",
         fits(cfg, ckpt_dim)
     _check_weights_fit(path, cfg, ckpt_dim, payload, tensor_bytes)
     agent = make_agent(cfg, ckpt_dim, device=device)
-    counters = _load_into(path, agent, payload, restore_rng)
+    counters = _load_into(path, agent, payload, restore_rng, optimizer_states)
     return agent, counters
 
 

@@ -76,7 +76,7 @@ class Policy:
     @classmethod
     def from_checkpoint(cls, path, device: str | torch.device = "cpu", **kwargs: Any) -> "Policy":
         # Serving a file must not reseed this process (the trainer's resume alone takes its RNG).
-        agent, _ = load_checkpoint(path, device=device, restore_rng=False)
+        agent, _ = load_checkpoint(path, device=device, restore_rng=False, optimizer_states=False)
         return cls(agent, device=device, **kwargs)
 
     def reset(self, batch_size: int = 1) -> None:

@@ -58,19 +58,29 @@ class Agent(AgentBase):
                                    cfg.weight_init)
             self.ac.slow_critic.load_state_dict(self.ac.critic.state_dict())
         self.to(device)
-        wm, bh = cfg.world_model, cfg.behavior
-        self.wm_opt = self._adam(self.wm.parameters(), wm.lr, wm.eps, wm.weight_decay)
-        self.actor_opt = self._adam(self.ac.actor.parameters(), bh.actor_lr, bh.eps,
-                                    bh.weight_decay)
-        self.critic_opt = self._adam(self.ac.critic.parameters(), bh.critic_lr, bh.eps,
-                                     bh.weight_decay)
 
     @property
     def context_dims(self) -> tuple[int, int, int]:
         return self.wm.context_dims
 
-    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
-        return {"world_model": self.wm_opt, "actor": self.actor_opt, "critic": self.critic_opt}
+    def _make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        wm, bh = self.cfg.world_model, self.cfg.behavior
+        return {"world_model": self._adam(self.wm.parameters(), wm.lr, wm.eps, wm.weight_decay),
+                "actor": self._adam(self.ac.actor.parameters(), bh.actor_lr, bh.eps, bh.weight_decay),
+                "critic": self._adam(self.ac.critic.parameters(), bh.critic_lr, bh.eps,
+                                     bh.weight_decay)}
+
+    @property
+    def wm_opt(self) -> torch.optim.Optimizer:
+        return self.optimizers()["world_model"]
+
+    @property
+    def actor_opt(self) -> torch.optim.Optimizer:
+        return self.optimizers()["actor"]
+
+    @property
+    def critic_opt(self) -> torch.optim.Optimizer:
+        return self.optimizers()["critic"]
 
     @property
     def has_decoder(self) -> bool:

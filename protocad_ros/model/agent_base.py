@@ -92,6 +92,7 @@ class AgentBase(nn.Module):
         # here: called after every backward with the parameters about to be stepped.
         self.grad_sync: Callable[[list[nn.Parameter]], None] | None = None
         self._precision: PrecisionChoice | None = None   # resolved on first use (`precision`)
+        self._optimizers: dict[str, torch.optim.Optimizer] | None = None   # built on first use
 
     @property
     def device(self) -> torch.device:
@@ -153,6 +154,13 @@ class AgentBase(nn.Module):
         return batch_to_device(batch, self.action_dim, self.device)
 
     def optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        """{name: optimizer}, built on first use: an agent that only acts (a policy node, an
+        evaluation) never builds them, and building one imports torch's compiler (~1 CPU-s)."""
+        if self._optimizers is None:
+            self._optimizers = self._make_optimizers()
+        return self._optimizers
+
+    def _make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
         raise NotImplementedError
 
     def _sync_grads(self, *optimizers: torch.optim.Optimizer) -> None:

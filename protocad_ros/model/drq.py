@@ -201,13 +201,24 @@ class DrQAgent(AgentBase):
         self.log_alpha = nn.Parameter(torch.tensor(math.log(d.init_temperature)))
         self.target_entropy = -float(self.action_dim)
         self.to(device)
-        self.critic_opt = self._adam(list(self.conv.parameters()) + list(self.critic.parameters()),
-                                     d.lr)
-        self.actor_opt = self._adam(self.actor.parameters(), d.lr)
-        self.alpha_opt = self._adam([self.log_alpha], d.lr)
 
-    def optimizers(self) -> dict[str, torch.optim.Optimizer]:
-        return {"critic": self.critic_opt, "actor": self.actor_opt, "alpha": self.alpha_opt}
+    def _make_optimizers(self) -> dict[str, torch.optim.Optimizer]:
+        lr = self.drq.lr
+        return {"critic": self._adam(list(self.conv.parameters()) + list(self.critic.parameters()), lr),
+                "actor": self._adam(self.actor.parameters(), lr),
+                "alpha": self._adam([self.log_alpha], lr)}
+
+    @property
+    def critic_opt(self) -> torch.optim.Optimizer:
+        return self.optimizers()["critic"]
+
+    @property
+    def actor_opt(self) -> torch.optim.Optimizer:
+        return self.optimizers()["actor"]
+
+    @property
+    def alpha_opt(self) -> torch.optim.Optimizer:
+        return self.optimizers()["alpha"]
 
     @property
     def alpha(self) -> torch.Tensor:

@@ -37,9 +37,21 @@ __all__ = [
     "tc_swav_loss",
     "swav_loss",
     "same_episode_pairs",
+    "random_unit_prototypes",
     "ContextModule",
     "random_shift",
 ]
+
+
+def random_unit_prototypes(num_prototypes: int, dim: int) -> torch.Tensor:
+    """(K, D) random directions on the unit sphere, from torch's global RNG (the values
+    torch.randn would draw).
+
+    On the meta device (a checkpoint's shapes checked without allocating them) there are no
+    values to draw: random and norm ops there run Python references that import sympy and
+    torch's compiler (~1.5 CPU-s at every policy-node start), so the empty tensor is returned."""
+    c = torch.empty(num_prototypes, dim)
+    return c if c.is_meta else F.normalize(c.normal_(), dim=-1)
 
 
 # --------------------------------------------------------------------------------------------
@@ -226,7 +238,7 @@ class ContextModule(nn.Module):
         self.target_projector = copy.deepcopy(self.projector)
         self.target_projector.requires_grad_(False)
         # c_k: random directions on the unit sphere (K, D).
-        self.prototypes = nn.Parameter(F.normalize(torch.randn(num_prototypes, proj_dim), dim=-1))
+        self.prototypes = nn.Parameter(random_unit_prototypes(num_prototypes, proj_dim))
         # EMA updates done so far; a buffer so a resumed checkpoint does not re-copy.
         self.register_buffer("ema_updates", torch.zeros((), dtype=torch.long))
 

@@ -22,7 +22,7 @@ import torch.nn.functional as F
 from protocad_ros.model.augment import random_shift
 from protocad_ros.model.config import Config
 from protocad_ros.model.networks import MLP, ConvDecoder, ConvEncoder
-from protocad_ros.model.prototypes import ContextModule, sinkhorn_knopp
+from protocad_ros.model.prototypes import ContextModule, random_unit_prototypes, sinkhorn_knopp
 from protocad_ros.model.rssm import RSSM
 
 __all__ = ["WorldModel", "DreamerProPrototypes"]
@@ -56,8 +56,7 @@ class DreamerProPrototypes(nn.Module):
         self.num_prototypes, self.proj_dim = c.dreamerpro_num_prototypes, c.proto_dim
         self.obs_proj = nn.Linear(encoder.out_dim, c.proto_dim)
         self.feat_proj = nn.Linear(feat_dim, c.proto_dim)
-        self.prototypes = nn.Parameter(F.normalize(torch.randn(self.num_prototypes,
-                                                               c.proto_dim), dim=-1))
+        self.prototypes = nn.Parameter(random_unit_prototypes(self.num_prototypes, c.proto_dim))
         self.ema_encoder = copy.deepcopy(encoder).requires_grad_(False)
         self.ema_obs_proj = copy.deepcopy(self.obs_proj).requires_grad_(False)
         self.register_buffer("ema_updates", torch.zeros((), dtype=torch.long))

@@ -69,7 +69,7 @@ class CheckpointServing:
 
         # Never the file's RNG state: a served checkpoint must not reseed this process.
         agent, counters = load_checkpoint(path, device=self.params["device"], fits=fits,
-                                          restore_rng=False, data=data,
+                                          restore_rng=False, optimizer_states=False, data=data,
                                           max_bytes=self.params["max_checkpoint_bytes"])
         # `updates` = the agent's own update counter (restored with the weights); the other
         # counters are the trainer's (env steps, episodes, ...), reported as checkpoint/<key>.

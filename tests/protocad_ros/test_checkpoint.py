@@ -3,6 +3,8 @@ clear CheckpointErrors for truncated, corrupt, foreign and incompatible files.""
 from __future__ import annotations
 
 import os
+import subprocess
+import sys
 import zipfile
 
 import numpy as np
@@ -105,6 +107,29 @@ def test_round_trip_same_actions_and_state(tmp_path, trained, frames):
     policy = Policy.from_checkpoint(path)
     a, _ = policy.act(frames["image"][0, 0], np.zeros(6), True)
     assert a.shape == (6,)
+
+
+def test_an_agent_that_only_acts_builds_no_optimizers(tmp_path, trained, frames):
+    """Serving or evaluating a training checkpoint skips its optimizer states: they are never
+    built, and training from the same agent later starts them fresh."""
+    path = save_checkpoint(tmp_path / "agent.pt", trained)
+    agent, _ = load_checkpoint(path, restore_rng=False, optimizer_states=False)
+    policy = Policy(agent, seed=7)
+    policy.act(frames["image"][0, 0], np.zeros(6), True)
+    assert agent._optimizers is None
+    assert all(not opt.state for opt in agent.optimizers().values())
+    assert np.isfinite(agent.train_step(frames)["wm_loss"])
+
+
+def test_serving_a_policy_imports_no_compiler():
+    """Loading a policy (every policy-node and evaluator start) imports neither torch's compiler
+    nor sympy: the optimizers it does not need and the meta-device shape check both did, ~1.3
+    CPU-s per start."""
+    code = ("import sys; from protocad_ros.policy import Policy; "
+            f"Policy.from_checkpoint({str(ROOT / 'protocad_ros/policies/walker_walk.pt')!r}); "
+            "print(sorted(m for m in ('torch._dynamo', 'sympy') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]", out.stdout + out.stderr
 
 
 def test_file_is_weights_only_loadable(tmp_path, trained):

@@ -224,7 +224,7 @@ def evaluate_checkpoint(checkpoint: str | Path | None, *, task: str | None = Non
     if agent is None and checkpoint is not None:
         from protocad_ros.checkpoint import load_checkpoint
 
-        agent, counters = load_checkpoint(checkpoint, device=device)
+        agent, counters = load_checkpoint(checkpoint, device=device, optimizer_states=False)
     if agent is not None:
         cfg = agent.cfg
         task = task or cfg.task

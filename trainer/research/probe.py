@@ -118,7 +118,8 @@ def load(checkpoint: str, device: str) -> tuple[Any, dict[str, Any], Path]:
     if not checkpoint:
         raise ValueError("give a CHECKPOINT (file or run directory)")
     path = existing_checkpoint_file(checkpoint)
-    agent, counters = load_checkpoint(path, device=device, restore_rng=False)
+    agent, counters = load_checkpoint(path, device=device, restore_rng=False,
+                                      optimizer_states=False)
     if not hasattr(agent, "wm"):
         raise ValueError(f"{path}: variant {agent.cfg.variant!r} has no world model to probe")
     return agent, dict(counters or {}), path

@@ -79,7 +79,7 @@ def ship_best(doc: Mapping[str, Any], out: str | Path, results_path: str | Path,
     row = best_run(doc, task, label)
     ckpt = existing_checkpoint_file(row["run_dir"])
     try:
-        agent, counters = load_checkpoint(ckpt, restore_rng=False)
+        agent, counters = load_checkpoint(ckpt, restore_rng=False, optimizer_states=False)
     except CheckpointError as err:
         raise ValueError(f"cannot ship {row['run_dir']}: {err}") from None
     info = runs.read_run_json(row["run_dir"])

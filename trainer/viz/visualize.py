@@ -89,7 +89,7 @@ def load_agent(source: Any, device: str = "cpu") -> Any:
     if isinstance(source, (str, Path)):
         from protocad_ros.checkpoint import load_checkpoint
 
-        agent, _ = load_checkpoint(str(source), device=device)
+        agent, _ = load_checkpoint(str(source), device=device, optimizer_states=False)
         if not hasattr(agent, "embed_sequences"):
             raise ValueError(f"{source}: variant {agent.cfg.variant!r} is model-free: it has no "
                              "latent state or context to show (the world-model variants do)")
