@@ -61,9 +61,9 @@ def update_gradients(agent, batch: dict[str, np.ndarray], precision: str, seed: 
     a.use_precision("float32" if precision == "float32" else "bfloat16")   # as asked, even if emulated
     if precision == "float16":  # DreamerV2's precision; autocast only here (no loss scaling)
         a._autocast = lambda: torch.autocast(a.device.type, dtype=torch.float16)
-    names = {id(p): "world_model" for p in a.wm_opt.param_groups[0]["params"]}
-    names.update({id(p): "actor" for p in a.actor_opt.param_groups[0]["params"]})
-    names.update({id(p): "critic" for p in a.critic_opt.param_groups[0]["params"]})
+    names = {id(p): "world_model" for p in a.optimizers()["world_model"].param_groups[0]["params"]}
+    names.update({id(p): "actor" for p in a.optimizers()["actor"].param_groups[0]["params"]})
+    names.update({id(p): "critic" for p in a.optimizers()["critic"].param_groups[0]["params"]})
     grads: dict[str, list[torch.Tensor]] = {}
 
     def capture(params):

@@ -71,18 +71,6 @@ class Agent(AgentBase):
                                      bh.weight_decay)}
 
     @property
-    def wm_opt(self) -> torch.optim.Optimizer:
-        return self.optimizers()["world_model"]
-
-    @property
-    def actor_opt(self) -> torch.optim.Optimizer:
-        return self.optimizers()["actor"]
-
-    @property
-    def critic_opt(self) -> torch.optim.Optimizer:
-        return self.optimizers()["critic"]
-
-    @property
     def has_decoder(self) -> bool:
         return self.wm.decoder is not None
 
@@ -91,21 +79,21 @@ class Agent(AgentBase):
         """One world-model update. Returns (detached posterior starts (N, ...), metrics)."""
         batch = self.to_batch(batch)
         step = int(self.updates)
-        wm = self.wm
+        wm, opt = self.wm, self.optimizers()["world_model"]
         with self._autocast():
             total, _, post, metrics = wm.loss(batch, step)
-        self.wm_opt.zero_grad(set_to_none=True)
+        opt.zero_grad(set_to_none=True)
         total.backward()
         del total  # the graph is freed by backward; drop the last reference early
-        self._sync_grads(self.wm_opt)
+        self._sync_grads(opt)
         if wm.context is not None:
             wm.context.mask_frozen_prototype_grad(step)
         if wm.dreamerpro is not None:
             wm.dreamerpro.mask_frozen_prototype_grad(step)
         metrics["wm_grad_norm"] = nn.utils.clip_grad_norm_(
-            self.wm_opt.param_groups[0]["params"], self.cfg.world_model.grad_clip)
-        self.wm_opt.step()
-        self.wm_opt.zero_grad(set_to_none=True)  # free the gradients before imagination
+            opt.param_groups[0]["params"], self.cfg.world_model.grad_clip)
+        opt.step()
+        opt.zero_grad(set_to_none=True)  # free the gradients before imagination
         if wm.context is not None:
             wm.context.update_target()  # EMA of the projector after the optimizer step
             wm.context.normalize_prototypes()
@@ -129,23 +117,24 @@ class Agent(AgentBase):
 
         The world model (incl. projector and prototypes) is frozen: no weight gradients there.
         """
-        bh = self.cfg.behavior
+        bh, opts = self.cfg.behavior, self.optimizers()
+        actor_opt, critic_opt = opts["actor"], opts["critic"]
         with frozen(self.wm), self._autocast():
             actor_loss, critic_loss, metrics = self.ac.loss(self.imagine_fns(), start)
-        self.actor_opt.zero_grad(set_to_none=True)
-        self.critic_opt.zero_grad(set_to_none=True)
+        actor_opt.zero_grad(set_to_none=True)
+        critic_opt.zero_grad(set_to_none=True)
         # Disjoint parameter sets (critic input detached): one backward serves both.
         (actor_loss + critic_loss).backward()
         del actor_loss, critic_loss
-        self._sync_grads(self.actor_opt, self.critic_opt)
+        self._sync_grads(actor_opt, critic_opt)
         metrics["actor_grad_norm"] = nn.utils.clip_grad_norm_(
-            self.actor_opt.param_groups[0]["params"], bh.grad_clip)
+            actor_opt.param_groups[0]["params"], bh.grad_clip)
         metrics["critic_grad_norm"] = nn.utils.clip_grad_norm_(
-            self.critic_opt.param_groups[0]["params"], bh.grad_clip)
-        self.actor_opt.step()
-        self.critic_opt.step()
-        self.actor_opt.zero_grad(set_to_none=True)
-        self.critic_opt.zero_grad(set_to_none=True)
+            critic_opt.param_groups[0]["params"], bh.grad_clip)
+        actor_opt.step()
+        critic_opt.step()
+        actor_opt.zero_grad(set_to_none=True)
+        critic_opt.zero_grad(set_to_none=True)
         self.ac.update_slow_critic()
         return metrics
 

@@ -209,18 +209,6 @@ class DrQAgent(AgentBase):
                 "alpha": self._adam([self.log_alpha], lr)}
 
     @property
-    def critic_opt(self) -> torch.optim.Optimizer:
-        return self.optimizers()["critic"]
-
-    @property
-    def actor_opt(self) -> torch.optim.Optimizer:
-        return self.optimizers()["actor"]
-
-    @property
-    def alpha_opt(self) -> torch.optim.Optimizer:
-        return self.optimizers()["alpha"]
-
-    @property
     def alpha(self) -> torch.Tensor:
         return self.log_alpha.exp()
 
@@ -265,31 +253,31 @@ class DrQAgent(AgentBase):
         """One DrQ update (critic; actor + temperature and target every 2nd). Returns floats:
         critic_loss, q_target, q1, batch_reward (+ actor_loss, alpha_loss, alpha, entropy)."""
         self.train()
-        d = self.drq
+        d, opts = self.drq, self.optimizers()
         b = self.to_batch(batch)
         obs, action, reward, discount, nxt, valid = transitions(b, d.frame_stack)
         w = valid.float()
         obs_views = self._aug_views(obs, d.q_augs)
         critic_loss, target, q1 = self.critic_loss(obs_views, action, reward, discount,
                                                    self._aug_views(nxt, d.target_augs), w)
-        self.critic_opt.zero_grad(set_to_none=True)
+        opts["critic"].zero_grad(set_to_none=True)
         critic_loss.backward()
-        self._sync_grads(self.critic_opt)
-        self.critic_opt.step()
+        self._sync_grads(opts["critic"])
+        opts["critic"].step()
         metrics: dict[str, Any] = {"critic_loss": critic_loss.detach(), "q_target": target.mean(),
                                    "q1": q1.mean(), "batch_reward": reward.mean(),
                                    "valid_transitions": w.sum()}
         step = int(self.updates)
         if step % d.actor_update_frequency == 0:
             actor_loss, alpha_loss, entropy = self.actor_alpha_loss(obs_views[0], w)
-            self.actor_opt.zero_grad(set_to_none=True)
+            opts["actor"].zero_grad(set_to_none=True)
             actor_loss.backward()
-            self._sync_grads(self.actor_opt)
-            self.actor_opt.step()
-            self.alpha_opt.zero_grad(set_to_none=True)
+            self._sync_grads(opts["actor"])
+            opts["actor"].step()
+            opts["alpha"].zero_grad(set_to_none=True)
             alpha_loss.backward()
-            self._sync_grads(self.alpha_opt)
-            self.alpha_opt.step()
+            self._sync_grads(opts["alpha"])
+            opts["alpha"].step()
             metrics.update(actor_loss=actor_loss.detach(), alpha_loss=alpha_loss.detach(),
                            entropy=entropy.mean())
         if step % d.critic_target_update_frequency == 0:

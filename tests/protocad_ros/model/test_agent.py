@@ -198,7 +198,7 @@ def test_losses_reach_projector_and_prototypes_only_as_the_paper_says(real_batch
     g = _grads(terms["swav"], [proj, protos])
     assert g[0] > 0 and g[1] > 0
     assert not any(p.requires_grad for p in ctx.target_projector.parameters())
-    opt_ids = {id(p) for p in agent.wm_opt.param_groups[0]["params"]}
+    opt_ids = {id(p) for p in agent.optimizers()["world_model"].param_groups[0]["params"]}
     assert id(ctx.target_projector.weight) not in opt_ids and id(proj) in opt_ids
 
 
