@@ -14,7 +14,9 @@ each, --steps agent steps, actor mode as evaluation acts), then:
   (grouped cross-validation by context), within each mass cluster of it (m < 1, m > 1), and from
   the training contexts to the test contexts;
 * open-loop prediction (trainer/research/probe_collect.py): after 5 observed frames, the image
-  MSE and reward error at each horizon 1..--horizon, on test and on training contexts.
+  MSE and reward error at each horizon 1..--horizon, on test and on training contexts;
+* how far training moved the prototypes c_k from their seeded initial values (1.0: they never
+  trained, as in every walker run before the freeze was scaled to the run).
 
 Outputs: the tables on stdout; --json (schema protocad-probe/1, msgs_docs/results.md), --plot
 (PNG), --rrd (rerun recording of the features coloured by context).
@@ -145,8 +147,30 @@ def document(s: ProbeSettings, agent: Any, *, counters: dict[str, Any], path: Pa
         "probes": probes, "skipped": skipped,
         "open_loop": {split: data.open_loop[split].mean() for split in ("test", "train") if split in data.open_loop},
         "assignment": data.assignment.mean(),
+        "prototypes": prototype_drift(agent, counters.get("prototype_freeze")),
         "seconds": 0.0,
     }
+
+
+def prototype_drift(agent: Any, freeze: int | None = None) -> dict[str, Any] | None:
+    """The cosine of each prototype c_k to its initial direction, summarised (None for a
+    variant without prototypes). Initialisation is seeded by the config alone (Agent), so
+    rebuilding the agent from its config redraws exactly the values training started from.
+    `freeze`: the run's effective prototype freeze (its counters), kept beside the figures."""
+    import torch
+    import torch.nn.functional as F
+
+    from protocad_ros.model.agent import make_agent
+
+    mine = {n: p for n, p in agent.named_parameters() if n.endswith("prototypes")}
+    if not mine:
+        return None
+    initial = dict(make_agent(agent.cfg, agent.action_dim, device="cpu").named_parameters())
+    name, c = next(iter(mine.items()))
+    with torch.no_grad():
+        cos = F.cosine_similarity(c.float().cpu(), initial[name].float(), dim=-1)
+    return {"parameter": name, "cos_to_initial_mean": float(cos.mean()), "cos_to_initial_min": float(cos.min()),
+            "count": int(cos.numel()), "frozen_updates": None if freeze is None else int(freeze)}
 
 
 def _params(task: str) -> tuple[str, ...]:

@@ -78,6 +78,13 @@ PROBE_SCHEMA: dict[str, Any] = {
             "type": "object", "required": ["top_mean", "entropy_mean", "uniform_entropy", "prototypes", "steps"],
             "properties": {"top_mean": _NUM, "entropy_mean": _NUM, "uniform_entropy": _NUM,
                            "prototypes": _INT, "steps": _INT}}]},
+        # absent in probes written before it was measured
+        "prototypes": {"oneOf": [{"type": "null"}, {
+            "type": "object", "required": ["parameter", "cos_to_initial_mean", "cos_to_initial_min", "count",
+                                           "frozen_updates"],
+            "properties": {"parameter": {"type": "string"}, "cos_to_initial_mean": _NUM,
+                           "cos_to_initial_min": _NUM, "count": _INT,
+                           "frozen_updates": {"type": ["integer", "null"]}}}]},
         "seconds": _NUM,
     },
 }
@@ -141,11 +148,12 @@ def open_loop_table(open_loop: Mapping[str, Any], horizons: Sequence[int] = HEAD
     return "\n".join(lines)
 
 
-def _mean_range(values: Sequence[float]) -> str:
+def _mean_range(values: Sequence[float], digits: int = 2) -> str:
     v = [x for x in values if x is not None and math.isfinite(x)]
     if not v:
         return "-"
-    return f"{np.mean(v):.2f}" if len(v) == 1 else f"{np.mean(v):.2f} ({min(v):.2f} to {max(v):.2f})"
+    f = f".{digits}f"
+    return f"{np.mean(v):{f}}" if len(v) == 1 else f"{np.mean(v):{f}} ({min(v):{f}} to {max(v):{f}})"
 
 
 def _r2_table(group: Sequence[Mapping[str, Any]], variant: str, target: str) -> str:
@@ -186,7 +194,19 @@ def summary_markdown(docs: Sequence[Mapping[str, Any]], horizons: Sequence[int] 
     head = ["| open loop | split | " + " | ".join(f"k={k}: image MSE / reward abs err" for k in horizons) + " |",
             "|---|---" + "|---" * len(horizons) + "|"]
     parts.append("\n".join(head + [r for v, g in sorted(by_variant.items()) for r in _open_loop_rows(g, v, horizons)]))
+    rows = [r for v, g in sorted(by_variant.items()) if (r := _prototype_row(g, v))]
+    if rows:
+        parts.append("\n".join(["| prototypes | cosine to their initial values | top assignment probability |",
+                                "|---|---|---|", *rows]))
     return "\n\n".join(parts)
+
+
+def _prototype_row(group: Sequence[Mapping[str, Any]], variant: str) -> str | None:
+    cos = [d["prototypes"]["cos_to_initial_mean"] for d in group if d.get("prototypes")]
+    top = [d["assignment"]["top_mean"] for d in group if d.get("assignment")]
+    if not cos and not top:
+        return None
+    return f"| {variant} ({len(group)}) | {_mean_range(cos, 3) if cos else '-'} | {_mean_range(top, 3) if top else '-'} |"
 
 
 def report_text(doc: Mapping[str, Any]) -> str:
@@ -199,7 +219,18 @@ def report_text(doc: Mapping[str, Any]) -> str:
         parts.append(f"prototype assignment w: top probability {a['top_mean']:.3f} on average (uniform: "
                      f"{1 / a['prototypes']:.3f}), entropy {a['entropy_mean']:.2f} nats of at most "
                      f"{a['uniform_entropy']:.2f}")
+    c = doc.get("prototypes")
+    if c:
+        parts.append(prototypes_line(c, doc["updates"]))
     return "\n\n".join(parts)
+
+
+def prototypes_line(c: Mapping[str, Any], updates: int) -> str:
+    """Whether training moved the prototypes, in one line."""
+    frozen = ("" if c["frozen_updates"] is None
+              else f"; frozen for the first {c['frozen_updates']:,} of its {updates:,} updates")
+    return (f"prototypes c_k: cosine to their seeded initial values {c['cos_to_initial_mean']:.3f} on average, "
+            f"{c['cos_to_initial_min']:.3f} at the least (1.000: never trained){frozen}")
 
 
 # ----------------------------------------------------------------------------- PNG

@@ -125,6 +125,40 @@ def test_the_json_matches_its_schema_with_finite_scores(probed):
     a = doc["assignment"]
     assert a["prototypes"] == 8 and 1 / 8 <= a["top_mean"] <= 1 and 0 <= a["entropy_mean"] <= a["uniform_entropy"]
     assert a["steps"] == 12 * 25
+    c = doc["prototypes"]                                       # untrained: where they started
+    assert c["parameter"] == "wm.context.prototypes" and c["count"] == 8 and c["frozen_updates"] is None
+    assert c["cos_to_initial_mean"] == pytest.approx(1.0, abs=1e-5)
+
+
+def test_the_probe_tells_prototypes_that_trained_from_frozen_ones(tmp_path):
+    """The cosine to the initial prototypes stays 1 inside the freeze and drops once they
+    train, read back from a saved checkpoint as protocad-probe loads it (the initial values are
+    redrawn from the checkpoint's config); a variant without prototypes has none."""
+    from helpers.agents import TINY_OVERRIDES, render_batch
+
+    from protocad_ros.checkpoint import load_checkpoint, save_checkpoint
+    from protocad_ros.model.agent import Agent
+    from protocad_ros.model.config import make_config
+    from trainer.research.probe import prototype_drift
+    from trainer.research.probe_report import prototypes_line
+
+    batch = render_batch(batch=4, length=8)
+    cfg = make_config("pendulum_swingup", "small", "protocad", **TINY_OVERRIDES,
+                      **{"train.seed": 3, "context.freeze_prototypes_updates": 1,
+                         "world_model.lr": 0.03})   # Adam moves each value ~lr a step: make 3 steps show
+    agent = Agent(cfg, 1)
+    agent.train_step(batch)                                    # update 0: inside the freeze
+    assert prototype_drift(agent)["cos_to_initial_mean"] == pytest.approx(1.0, abs=1e-6)
+    for _ in range(3):
+        agent.train_step(batch)
+    save_checkpoint(tmp_path / "ck.pt", agent, {"prototype_freeze": 1})
+    loaded, counters = load_checkpoint(tmp_path / "ck.pt", restore_rng=False, optimizer_states=False)
+    moved = prototype_drift(loaded, counters["prototype_freeze"])
+    assert moved["cos_to_initial_min"] <= moved["cos_to_initial_mean"] < 0.999
+    assert moved["cos_to_initial_mean"] == pytest.approx(prototype_drift(agent)["cos_to_initial_mean"], abs=1e-6)
+    assert "frozen for the first 1 of its 4 updates" in prototypes_line(moved, 4)
+    dreamer = Agent(make_config("pendulum_swingup", "small", "dreamer", **TINY_OVERRIDES), 1)
+    assert prototype_drift(dreamer) is None
 
 
 def test_the_plot_and_the_recording_are_written(probed):
@@ -168,6 +202,8 @@ def test_probes_of_several_seeds_summarize_per_variant(probed, tmp_path, capsys)
     e = doc["open_loop"]["test"]["reward_abs_err"][0]
     loop = next(x for x in text.splitlines() if x.startswith("| protocad (2) | test |"))
     assert loop.split(" | ")[2].endswith(f"/ {1.5 * e:.3f}"), loop
+    protos = next(x for x in text.splitlines() if x.startswith("| protocad (2) |") and "/" not in x)
+    assert protos.split(" | ")[1] == "1.000 (1.000 to 1.000)", protos   # untrained: at their initial values
     (tmp_path / "bad.json").write_text(json.dumps({"schema": "protocad-probe/1"}))
     assert probe.main(["--summarize", str(paths[0]), str(tmp_path / "bad.json")]) == 2
     assert "bad.json" in capsys.readouterr().err
