@@ -60,7 +60,8 @@ def file_signature(path: str | os.PathLike) -> tuple[int, int, int] | None:
 
 
 def file_sha256(path: str | os.PathLike) -> str:
-    """sha256 of a file's bytes (hex): the version id of a checkpoint sent over ROS."""
+    """sha256 of a file's bytes (hex): the version id of a checkpoint sent over ROS, and what
+    an evaluation or a shipped policy names the file it measured by."""
     h = hashlib.sha256()
     with open(path, "rb") as f:
         for block in iter(lambda: f.read(1 << 20), b""):

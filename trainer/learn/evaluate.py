@@ -35,6 +35,7 @@ from typing import Any, Mapping, Sequence
 
 import numpy as np
 
+from protocad_ros.atomic import file_sha256
 from protocad_ros.model.config import Config
 from sim_bridge.contract.contexts import context_label, get_task, task_actuators
 from sim_bridge.sim.rollout import RandomPolicy, rollout
@@ -78,6 +79,7 @@ class EvalResult:
     env_steps: int | None = None      # the checkpoint's training env steps, if known
     seconds: float = 0.0
     mode: str = "in-process"
+    sha256: str | None = None         # the checkpoint file's, so a result names the exact file it measured
 
     @property
     def mean(self) -> float:
@@ -90,8 +92,8 @@ class EvalResult:
         return float(np.median(vals)) if vals else float("nan")
 
     def to_dict(self) -> dict:
-        return {"task": self.task, "split": self.split, "policy": self.policy, "variant": self.variant,
-                "updates": self.updates, "env_steps": self.env_steps, "mode": self.mode,
+        return {"task": self.task, "split": self.split, "policy": self.policy, "sha256": self.sha256,
+                "variant": self.variant, "updates": self.updates, "env_steps": self.env_steps, "mode": self.mode,
                 "seconds": round(self.seconds, 2), "mean_return": self.mean,
                 "median_over_contexts": self.median,
                 "episodes": sum(len(c.returns) for c in self.per_context),
@@ -406,6 +408,7 @@ def run(a: EvaluateSettings) -> int:
     with console.StopFlag() as stop:
         random_tasks = list(a.task)
         for ck in ckpts:
+            sha = file_sha256(ck)   # the file as evaluation began (a live run may replace latest.pt)
             if a.through_ros:
                 r = evaluate_through_ros(str(ck), task=None, split=a.split, episodes=a.episodes,
                                          total_episodes=a.ros_episodes, seed=a.seed,
@@ -417,6 +420,7 @@ def run(a: EvaluateSettings) -> int:
                                         max_contexts=a.max_contexts, seed=a.seed, device=device,
                                         workers=workers, batch=a.batch, time_limit=a.time_limit,
                                         progress=progress, stop=stop)
+            r.sha256 = sha
             results.append(r)
             if a.random and r.task not in random_tasks:
                 random_tasks.append(r.task)

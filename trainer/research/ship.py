@@ -9,11 +9,11 @@ code version(s) and the SHA-256 of the training checkpoint it was cut from.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 from pathlib import Path
 from typing import Any, Mapping
 
+from protocad_ros.atomic import file_sha256
 from protocad_ros.checkpoint import CheckpointError, existing_checkpoint_file, load_checkpoint, save_policy
 from trainer import runs
 from trainer.learn.evaluate import context_label
@@ -41,17 +41,10 @@ def candidates(doc: Mapping[str, Any], task: str | None = None, label: str | Non
     return rows
 
 
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
-
-
 def unseen_evaluation(path: str | Path, checkpoint: Path) -> dict[str, Any]:
     """The summary of `protocad-evaluate CHECKPOINT --random --json PATH` for `checkpoint` on the
-    test split (ValueError if the file evaluates another checkpoint or split)."""
+    test split (ValueError if the file evaluates another checkpoint, another version of it, or
+    another split)."""
     try:
         doc = json.loads(Path(path).read_text())
     except (OSError, ValueError) as exc:
@@ -60,6 +53,9 @@ def unseen_evaluation(path: str | Path, checkpoint: Path) -> dict[str, Any]:
     if not mine:
         raise ValueError(f"--ship-evaluation {path} does not evaluate {checkpoint}")
     r = mine[0]
+    if r.get("sha256") is not None and r["sha256"] != file_sha256(checkpoint):
+        raise ValueError(f"--ship-evaluation {path} evaluated another version of {checkpoint} "
+                         f"(sha256 {r['sha256'][:12]}..., the file's is now {file_sha256(checkpoint)[:12]}...)")
     if r.get("split") != "test":
         raise ValueError(f"--ship-evaluation {path} is on the {r.get('split')!r} split, not the unseen (test) one")
     rnd = next((x for x in doc.get("random", []) if x.get("task") == r["task"]), None)
@@ -93,14 +89,15 @@ def ship_best(doc: Mapping[str, Any], out: str | Path, results_path: str | Path,
                    f"the best final return on {where} among the {len(among)} finished {kind}s of "
                    f"{Path(results_path).name}"),
         "results_json": str(results_path),
-        "results_entry": {k: row[k] for k in ("task", "label", "variant", "seed", "env_steps",
-                                               "updates", "preset", "precision", "final")},
+        "results_entry": {k: row[k] for k in ("task", "label", "variant", "seed", "env_steps", "updates",
+                                               "prototype_freeze", "preset", "precision", "render_quality",
+                                               "reference", "collect_interval", "final") if k in row},
         "grid_command": list(doc.get("command", [])),
         "run_command": list(info.get("argv", [])),
         "resume_commands": list(info.get("resumes_argv", [])),
         "code_versions": list(info.get("code_versions", [])) or [doc.get("code_version", "unknown")],
         "source_checkpoint": str(ckpt),
-        "source_checkpoint_sha256": _sha256(ckpt),
+        "source_checkpoint_sha256": file_sha256(ckpt),
         "counters": {k: v for k, v in counters.items() if isinstance(v, (int, float))},   # not the sampler state
     }
     if evaluation is not None:

@@ -9,6 +9,7 @@ import pytest
 from helpers.agents import tiny_checkpoint
 from helpers.bags import run_cli
 
+from protocad_ros.atomic import file_sha256
 from sim_bridge.contract.contexts import TASKS
 
 
@@ -42,6 +43,9 @@ def test_checkpoints_of_two_tasks_with_random_baseline(tmp_path):
     assert [c["episodes"] for c in pend["per_context"]] == [2, 2]
     assert pend["mean_return"] == pytest.approx(np.mean([c["mean_return"] for c in pend["per_context"]]))
     assert pend["env_steps"] == 1234 and pend["updates"] == 0
+    # each result names the exact file it measured
+    assert pend["sha256"] == file_sha256(tmp_path / "pend" / "checkpoints" / "latest.pt")
+    assert d["results"][1]["sha256"] == file_sha256(b) and d["random"][0]["sha256"] is None
     assert {x["task"] for x in d["random"]} == {"pendulum_swingup", "hopper_stand"}
     s = d["summary"]
     assert s["mean_over_tasks"] == pytest.approx(np.mean(list(s["per_task"].values())))

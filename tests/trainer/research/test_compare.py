@@ -464,6 +464,7 @@ def ship_the_best_policy(out: Path, tmp_path: Path) -> None:
     prov = read_provenance(policy)
     assert prov["results_entry"]["seed"] == best["seed"] and prov["results_entry"]["final"] == best["final"]
     assert prov["run_command"] and prov["code_versions"]
+    assert prov["results_entry"]["prototype_freeze"] == best["prototype_freeze"]   # what decided the run
     assert f"among the {len(doc['runs'])} finished runs of results.json" in prov["what"], prov["what"]
     assert json.loads(policy.with_suffix(".json").read_text())["provenance"] == prov
     assert f"seed {best['seed']}" in r.stdout and str(policy) in r.stdout
@@ -494,12 +495,14 @@ def ship_the_best_policy(out: Path, tmp_path: Path) -> None:
     assert unseen["mean_return"] == measured["results"][0]["mean_return"] and unseen["split"] == "test"
     assert unseen["random_mean_return"] == measured["random"][0]["mean_return"]
     other = next(row for row in doc["runs"] if row["seed"] != best["seed"])
+    another_version = dict(measured["results"][0], sha256="0" * 64)   # the same path, since overwritten
     measured["results"][0]["policy"] = str(Path(other["run_dir"]) / "checkpoints" / "latest.pt")
-    evaluation.write_text(json.dumps(measured))
-    r = subprocess.run([sys.executable, "-m", "trainer.research.compare", "--report", str(out / "results.json"),
-                        "--ship", str(tmp_path / "mismatch.pt"), "--ship-evaluation", str(evaluation)],
-                       capture_output=True, text=True, cwd=ROOT, timeout=300)
-    assert r.returncode == 2 and "does not evaluate" in r.stderr and not (tmp_path / "mismatch.pt").exists()
+    for results, refusal in (([measured["results"][0]], "does not evaluate"), ([another_version], "another version")):
+        evaluation.write_text(json.dumps(dict(measured, results=results)))
+        r = subprocess.run([sys.executable, "-m", "trainer.research.compare", "--report", str(out / "results.json"),
+                            "--ship", str(tmp_path / "mismatch.pt"), "--ship-evaluation", str(evaluation)],
+                           capture_output=True, text=True, cwd=ROOT, timeout=300)
+        assert r.returncode == 2 and refusal in r.stderr and not (tmp_path / "mismatch.pt").exists(), r.stderr
 
     # Only unseen-context finals count: asked for a label without any, a clear error, no file.
     r = subprocess.run([sys.executable, "-m", "trainer.research.compare", "--report", str(out / "results.json"),
