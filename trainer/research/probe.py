@@ -115,7 +115,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 def load(checkpoint: str, device: str) -> tuple[Any, dict[str, Any], Path]:
     """The agent, its counters and the checkpoint file; ValueError for a variant without a
     world model (nothing to probe)."""
-    from protocad_ros.checkpoint import existing_checkpoint_file, load_checkpoint
+    from protocad_ros.checkpoint import existing_checkpoint_file, load_checkpoint, read_provenance
 
     if not checkpoint:
         raise ValueError("give a CHECKPOINT (file or run directory)")
@@ -124,7 +124,8 @@ def load(checkpoint: str, device: str) -> tuple[Any, dict[str, Any], Path]:
                                       optimizer_states=False)
     if not hasattr(agent, "wm"):
         raise ValueError(f"{path}: variant {agent.cfg.variant!r} has no world model to probe")
-    return agent, dict(counters or {}), path
+    # a shipped policy file keeps its run's counters (env steps, prototype freeze) in its provenance
+    return agent, {**read_provenance(path).get("counters", {}), **(counters or {})}, path
 
 
 def document(s: ProbeSettings, agent: Any, *, counters: dict[str, Any], path: Path, data: Collected,

@@ -159,6 +159,13 @@ def test_the_probe_tells_prototypes_that_trained_from_frozen_ones(tmp_path):
     assert "frozen for the first 1 of its 4 updates" in prototypes_line(moved, 4)
     dreamer = Agent(make_config("pendulum_swingup", "small", "dreamer", **TINY_OVERRIDES), 1)
     assert prototype_drift(dreamer) is None
+    # a shipped policy file has no counters of its own: the run's come from its provenance
+    from protocad_ros.checkpoint import save_policy
+    from trainer.research.probe import load
+
+    save_policy(tmp_path / "policy.pt", agent, {"counters": {"prototype_freeze": 1, "env_steps": 40}})
+    _, counters, _ = load(str(tmp_path / "policy.pt"), "cpu")
+    assert counters["prototype_freeze"] == 1 and counters["env_steps"] == 40
 
 
 def test_the_plot_and_the_recording_are_written(probed):
