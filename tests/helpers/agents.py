@@ -57,3 +57,21 @@ def save_agent(path, updates: int, seed: int = 0, task: str = "pendulum_swingup"
     agent.updates.fill_(updates)
     save_checkpoint(path, agent, counters={"env_steps": 100 * updates})
     return agent
+
+
+def bf16_request_policy(dst):
+    """The shipped walker policy as a machine with bf16 arithmetic writes it when its run asked
+    for `--precision bfloat16`: the same bf16 weights, `train.precision: bfloat16` in its config
+    (the shipped file itself says `auto`; the one shipped before 2026-12-06 said bfloat16).
+    None where no walker policy ships."""
+    import torch
+
+    from protocad_ros.policy import shipped_policy
+
+    src = shipped_policy("walker_walk")
+    if src is None:
+        return None
+    payload = torch.load(src, map_location="cpu", weights_only=True)
+    payload["config"]["train"]["precision"] = "bfloat16"
+    torch.save(payload, dst)
+    return dst

@@ -293,14 +293,16 @@ def test_two_bridges_in_one_namespace_are_reported_by_both(spawn, probe):
 
 @pytest.mark.ros
 @pytest.mark.process
-def test_serves_the_shipped_bf16_policy_in_float32_on_a_cpu_without_bf16(spawn, probe):
-    """The shipped policy's config says bfloat16 (the machine that trained it had bf16): on a CPU
-    without bf16 arithmetic ($PROTOCAD_CPU_NO_BF16 makes this one such a CPU for the node's
-    process) the node loads its weights into float32, says so at start, and answers."""
-    from protocad_ros.model.precision import NO_BF16_ENV
-    from protocad_ros.policy import shipped_policy
+def test_serves_a_bf16_policy_in_float32_on_a_cpu_without_bf16(spawn, probe, tmp_path):
+    """A policy whose config says bfloat16 (the machine that trained it had bf16; the shipped
+    walker's weights): on a CPU without bf16 arithmetic ($PROTOCAD_CPU_NO_BF16 makes this one
+    such a CPU for the node's process) the node loads its weights into float32, says so at
+    start, and answers."""
+    from helpers.agents import bf16_request_policy
 
-    path = shipped_policy("walker_walk")
+    from protocad_ros.model.precision import NO_BF16_ENV
+
+    path = bf16_request_policy(tmp_path / "bf16.pt")
     if path is None:
         pytest.skip("the package ships no walker_walk policy")
     f = Feeder(probe)

@@ -1,6 +1,7 @@
-"""Precision is resolved on the machine that trains: the shipped policy's config (written on a
-bf16 machine, `train.precision: bfloat16`) used for --init-policy or resumed on a CPU without
-bf16 arithmetic trains in float32, says so and records it; only --precision bfloat16 on the
+"""Precision is resolved on the machine that trains: a policy whose config was written on a
+bf16 machine asking for `train.precision: bfloat16`, used for --init-policy or resumed on a CPU
+without bf16 arithmetic, trains in float32, says so and records it; the shipped policy's `auto`
+is float32 there without a word; only --precision bfloat16 on the
 command line keeps the emulated path, with a warning. The capability check is overridden
 (`cpu_flags`), so this runs on any machine; the loop's trainer is built as `run()` builds it,
 without the ROS nodes."""
@@ -11,6 +12,7 @@ import json
 import pytest
 import torch
 import yaml
+from helpers.agents import bf16_request_policy
 
 from protocad_ros.model import precision as P
 from protocad_ros.policy import shipped_policy
@@ -40,8 +42,19 @@ def open_loop(s: LoopSettings, model: ModelChoice = ModelChoice()) -> Loop:
     return loop
 
 
-def test_init_policy_and_resume_of_a_bf16_config_train_in_float32_without_bf16(no_bf16, tmp_path, capsys):
+def test_the_shipped_policy_asks_for_auto_and_trains_in_float32_without_bf16(no_bf16, tmp_path, capsys):
     policy = shipped_policy("walker_walk")
+    if policy is None:
+        pytest.skip("the package ships no walker_walk policy")
+    loop = open_loop(LoopSettings(init_policy=str(policy), run_dir=str(tmp_path / "run"), start_eval_episodes=0))
+    assert loop.cfg.train.precision == "auto"
+    assert loop.trainer.agent.precision.precision == "float32" and compute_dtype(loop.trainer.agent) == torch.float32
+    assert "emulate" not in capsys.readouterr().out
+    loop.trainer.close()
+
+
+def test_init_policy_and_resume_of_a_bf16_config_train_in_float32_without_bf16(no_bf16, tmp_path, capsys):
+    policy = bf16_request_policy(tmp_path / "bf16.pt")
     if policy is None:
         pytest.skip("the package ships no walker_walk policy")
     run = tmp_path / "run"
@@ -78,7 +91,7 @@ def test_init_policy_and_resume_of_a_bf16_config_train_in_float32_without_bf16(n
 
 
 def test_an_explicit_precision_bfloat16_is_kept_and_warned_about(no_bf16, tmp_path, capsys):
-    policy = shipped_policy("walker_walk")
+    policy = bf16_request_policy(tmp_path / "bf16.pt")
     if policy is None:
         pytest.skip("the package ships no walker_walk policy")
     run = tmp_path / "run"
