@@ -124,8 +124,11 @@ def load(checkpoint: str, device: str) -> tuple[Any, dict[str, Any], Path]:
                                       optimizer_states=False)
     if not hasattr(agent, "wm"):
         raise ValueError(f"{path}: variant {agent.cfg.variant!r} has no world model to probe")
-    # a shipped policy file keeps its run's counters (env steps, prototype freeze) in its provenance
-    return agent, {**read_provenance(path).get("counters", {}), **(counters or {})}, path
+    if not counters:   # a policy file: its run's counters (env steps, freeze) are in its provenance
+        kept = read_provenance(path).get("counters")
+        counters = ({k: v for k, v in kept.items() if isinstance(v, (int, float))}
+                    if isinstance(kept, dict) else {})
+    return agent, dict(counters), path
 
 
 def document(s: ProbeSettings, agent: Any, *, counters: dict[str, Any], path: Path, data: Collected,

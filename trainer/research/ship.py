@@ -53,9 +53,12 @@ def unseen_evaluation(path: str | Path, checkpoint: Path) -> dict[str, Any]:
     if not mine:
         raise ValueError(f"--ship-evaluation {path} does not evaluate {checkpoint}")
     r = mine[0]
-    if r.get("sha256") is not None and r["sha256"] != file_sha256(checkpoint):
-        raise ValueError(f"--ship-evaluation {path} evaluated another version of {checkpoint} "
-                         f"(sha256 {r['sha256'][:12]}..., the file's is now {file_sha256(checkpoint)[:12]}...)")
+    named = r.get("sha256")
+    if named is not None:
+        actual = file_sha256(checkpoint)
+        if named != actual:   # a crafted value (not a string, any length) is refused, never sliced raw
+            raise ValueError(f"--ship-evaluation {path} evaluated another version of {checkpoint} "
+                             f"(sha256 {str(named)[:12]}..., the file's is now {actual[:12]}...)")
     if r.get("split") != "test":
         raise ValueError(f"--ship-evaluation {path} is on the {r.get('split')!r} split, not the unseen (test) one")
     rnd = next((x for x in doc.get("random", []) if x.get("task") == r["task"]), None)

@@ -496,8 +496,10 @@ def ship_the_best_policy(out: Path, tmp_path: Path) -> None:
     assert unseen["random_mean_return"] == measured["random"][0]["mean_return"]
     other = next(row for row in doc["runs"] if row["seed"] != best["seed"])
     another_version = dict(measured["results"][0], sha256="0" * 64)   # the same path, since overwritten
+    crafted = dict(measured["results"][0], sha256=[1] * 10**5)          # no digest at all
     measured["results"][0]["policy"] = str(Path(other["run_dir"]) / "checkpoints" / "latest.pt")
-    for results, refusal in (([measured["results"][0]], "does not evaluate"), ([another_version], "another version")):
+    for results, refusal in (([measured["results"][0]], "does not evaluate"), ([another_version], "another version"),
+                             ([crafted], "another version")):
         evaluation.write_text(json.dumps(dict(measured, results=results)))
         r = subprocess.run([sys.executable, "-m", "trainer.research.compare", "--report", str(out / "results.json"),
                             "--ship", str(tmp_path / "mismatch.pt"), "--ship-evaluation", str(evaluation)],

@@ -166,6 +166,11 @@ def test_the_probe_tells_prototypes_that_trained_from_frozen_ones(tmp_path):
     save_policy(tmp_path / "policy.pt", agent, {"counters": {"prototype_freeze": 1, "env_steps": 40}})
     _, counters, _ = load(str(tmp_path / "policy.pt"), "cpu")
     assert counters["prototype_freeze"] == 1 and counters["env_steps"] == 40
+    # provenance is the file's word: counters that are no numbers are left out, not trusted
+    save_policy(tmp_path / "odd.pt", agent, {"counters": {"prototype_freeze": "many", "env_steps": 40}})
+    assert load(str(tmp_path / "odd.pt"), "cpu")[1] == {"env_steps": 40}
+    save_policy(tmp_path / "odd.pt", agent, {"counters": ["not", "a", "mapping"]})
+    assert load(str(tmp_path / "odd.pt"), "cpu")[1] == {}
 
 
 def test_the_plot_and_the_recording_are_written(probed):
