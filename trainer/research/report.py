@@ -91,10 +91,22 @@ def _md_table(head: list[str], rows: list[list[str]]) -> str:
 
 
 def aggregate_rows(summary: Mapping[str, Any]) -> tuple[list[str], list[list[str]]]:
-    head = ["variant", "tasks", "mean [95% CI]", "median [95% CI]", "IQM [95% CI]"]
-    rows = [[a["label"], str(a["tasks"]), _ci(*a["mean"]), _ci(*a["median"]), _ci(*a["iqm"])]
-            for a in summary["aggregates"]]
+    """Mean, median and IQM over tasks per variant. A task with fewer than MIN_SEEDS_FOR_CI
+    seeds makes the stratified bootstrap little more than the spread of those few seeds, so
+    such a variant shows its point values without an interval."""
+    head = ["variant", "tasks", "fewest seeds per task", "mean [95% CI]", "median [95% CI]", "IQM [95% CI]"]
+    rows = []
+    for a in summary["aggregates"]:
+        few = a["min_seeds"] < MIN_SEEDS_FOR_CI
+        cells = [f"{a[k][0]:.1f} (no interval below {MIN_SEEDS_FOR_CI} seeds)" if few else _ci(*a[k])
+                 for k in ("mean", "median", "iqm")]
+        rows.append([a["label"], str(a["tasks"]), str(a["min_seeds"]), *cells])
     return head, rows
+
+
+def _over_tasks(summary: Mapping[str, Any]) -> bool:
+    """Whether an over-tasks table says anything a per-task row does not (more than one task)."""
+    return bool(summary["aggregates"]) and max(a["tasks"] for a in summary["aggregates"]) > 1
 
 
 def progress_rows(doc: Mapping[str, Any]) -> tuple[list[str], list[list[str]]]:
@@ -118,8 +130,9 @@ def format_report(doc: Mapping[str, Any]) -> str:
     out = [f"results of {' '.join(doc['command'])}", f"code {doc['code_version']}; "
            f"{_machine_line(doc['machine'])}; grid wall time {doc['wall_time_s'] / 60:.1f} min"
            + carried_sentence(doc), "",
-           _text_table(*table_rows(doc, s)), "", "over tasks (test contexts; stratified bootstrap):",
-           _text_table(*aggregate_rows(s))]
+           _text_table(*table_rows(doc, s))]
+    if _over_tasks(s):
+        out += ["", "over tasks (test contexts; stratified bootstrap):", _text_table(*aggregate_rows(s))]
     paired = paired_lines(doc)
     if paired:
         out += ["", "paired (the primary metric of msgs_docs/results.md):", *paired]
@@ -356,7 +369,7 @@ def _section_body(doc: Mapping[str, Any]) -> list[str]:
     if progress[1]:
         lines += [f"Not finished yet ({len(progress[1])} of {len(doc['runs'])} runs; as of {doc['created']}):", "",
                   _md_table(*progress), ""]
-    if s["aggregates"] and max(a["tasks"] for a in s["aggregates"]) > 1:
+    if _over_tasks(s):
         lines += ["Over tasks (test contexts; 95% stratified bootstrap intervals):", "",
                   _md_table(*aggregate_rows(s)), ""]
     anchor = anchor_rows(doc)

@@ -99,7 +99,7 @@ def summarize(doc: Mapping[str, Any], reps: int = 10_000) -> dict[str, Any]:
     aggregates = []
     for label, tasks in sorted(by_label.items()):
         per_task = [tasks[t] for t in sorted(tasks)]
-        agg = {"label": label, "tasks": len(per_task)}
+        agg = {"label": label, "tasks": len(per_task), "min_seeds": min(len(x) for x in per_task)}
         for name, fn in AGGREGATES.items():
             agg[name] = (fn(per_task), bootstrap_ci(per_task, fn, reps=reps))
         aggregates.append(agg)

@@ -204,6 +204,18 @@ def test_the_paired_difference_is_the_mean_of_per_seed_differences_with_a_t_inte
     assert "(range 20.0-50.0)" in rows[1][5] and "range below 5 seeds" in head[5]
 
 
+def test_over_tasks_a_variant_with_too_few_seeds_on_a_task_shows_no_interval():
+    doc = _paired_doc([10, 20, 30, 40, 50], [5, 25, 20, 30, 45])
+    doc["runs"] += [{**r, "task": "cheetah_run"} for r in doc["runs"] if r["seed"] < 2 or r["label"] == "dreamer"]
+    head, rows = R.aggregate_rows(R.summarize(doc, reps=100))
+    by_label = {r[0]: r for r in rows}
+    assert head[2] == "fewest seeds per task" and by_label["protocad"][2] == "2" and by_label["dreamer"][2] == "5"
+    assert by_label["protocad"][3].endswith("(no interval below 5 seeds)") and "[" not in by_label["protocad"][3]
+    assert "[" in by_label["dreamer"][3]
+    # one task: the over-tasks table would repeat the per-task row, so neither report shows it
+    assert "over tasks" not in R.format_report(_paired_doc([10, 20], [5, 25])).lower()
+
+
 def test_iqm_and_aggregates_match_hand_computed_values():
     # 8 scores: IQM drops the 2 lowest and the 2 highest and averages the middle 4.
     assert R.iqm(np.array([0, 1, 2, 3, 4, 5, 6, 100.0])) == pytest.approx((2 + 3 + 4 + 5) / 4)
