@@ -78,6 +78,7 @@ RESULTS_SCHEMA: dict[str, Any] = {
                 "render_quality": {"enum": ["fast", "default"]},
                 "reference": {"type": "string"}, "collect_interval": _INT,
                 "prototype_freeze": {"type": ["integer", "null"]},
+                "code_versions": {"type": "array", "items": {"type": "string"}},
                 "final_train": _EVAL,
                 "superseded": {"type": "string"},
                 "final": {"oneOf": [{"type": "null"}, _EVAL]},
@@ -151,6 +152,8 @@ def gather_run(task: str, label: str, variant: str, seed: int, run_dir: Path) ->
         pass
     if "prototype_freeze" in res:
         row["prototype_freeze"] = res["prototype_freeze"]
+    if isinstance(info.get("code_versions"), list):   # a grid can span commits and machines: per row
+        row["code_versions"] = [str(v) for v in info["code_versions"]]
     if "updates_per_episode" in proto:
         row["collect_interval"] = int(proto["updates_per_episode"])
     cfg = _saved_config(run_dir)
@@ -172,17 +175,18 @@ def _saved_config(run_dir: Path) -> dict[str, Any]:
 
 
 
-def runs_code_version(specs: Iterable[Any]) -> str:
-    """The code the runs were trained with (run.json `code_versions`, every invocation's), or,
-    for runs that do not record it, the tree that gathered them, saying so."""
+def runs_code_version(rows: Iterable[Mapping[str, Any]]) -> str:
+    """The code the runs were trained with: each row's `code_versions` (run.json's, every
+    invocation's), a carried row's file-level code_version where it has none; runs not started
+    yet ran no code and do not count. Where a run that did start records none, the tree that
+    gathered them, saying so."""
     seen: list[str] = []
-    for s in specs:
-        carried = getattr(s, "carried", None)
-        try:
-            versions = (carried["carried_from"]["code_version"].split(", ") if carried else
-                        json.loads((Path(s.run_dir) / "run.json").read_text()).get("code_versions"))
-        except (OSError, json.JSONDecodeError):
-            versions = None
+    for r in rows:
+        versions = r.get("code_versions")
+        if not versions and r.get("carried_from"):
+            versions = r["carried_from"]["code_version"].split(", ")
+        if not versions and r["status"] == "missing":
+            continue
         if not versions:
             return f"{code_version()} (the gathering tree: the runs do not record their code)"
         seen += [v for v in versions if v not in seen]
@@ -223,7 +227,7 @@ def gather(specs: Iterable[Any], *, command: Sequence[str], env_steps: int, wall
         carried = getattr(s, "carried", None)
         done_here = row["status"] in ("finished", "wall_budget") and row["final"] is not None
         rows.append(carried if carried is not None and not done_here else row)
-    return {"schema": SCHEMA_ID, "command": [str(c) for c in command], "code_version": runs_code_version(specs),
+    return {"schema": SCHEMA_ID, "command": [str(c) for c in command], "code_version": runs_code_version(rows),
             "created": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "machine": machine_info(),
             "budgets": {"env_steps": int(env_steps), "wall_budget_s": wall_budget, "jobs": int(jobs),
                         "threads_per_run": int(threads)},

@@ -99,6 +99,9 @@ def test_grid_runs_in_parallel_resumes_after_ctrl_c_and_reports(tmp_path, spawn)
 
     doc = R.load_results(out / "results.json")         # validates against RESULTS_SCHEMA
     assert len(doc["runs"]) == 2 and {r["status"] for r in doc["runs"]} == {"finished"}
+    for r in doc["runs"]:   # the code each run trained with, both invocations', in its row and the grid's
+        assert r["code_versions"] == json.loads((Path(r["run_dir"]) / "run.json").read_text())["code_versions"]
+        assert set(r["code_versions"]) <= set(doc["code_version"].split(", "))
     for r in doc["runs"]:
         assert r["final"] is not None and set(r["final"]["per_context"]) == {"m=0.2", "m=1.8"}
         assert r["curve"][-1]["tag"] == "final" and r["curve"][-1]["env_steps"] == 800
@@ -149,6 +152,32 @@ def test_results_that_cannot_be_written_do_not_stop_the_runs(tmp_path, capsys):
     assert any(out / "pendulum_swingup" / "dreamer" / "seed0" in c for c in calls[:-1])
     err = capsys.readouterr().err
     assert "could not write the grid's results" in err and "No space left on device" in err
+
+
+def test_the_grid_names_the_code_each_run_trained_with_and_not_started_runs_none(tmp_path):
+    """A grid spans sessions, machines and commits: each row keeps its run's `code_versions`
+    (run.json, every invocation's) and the grid's code_version lists them all; a run not started
+    yet ran no code and does not turn that into 'the gathering tree'. A started run that records
+    none (written before runs did) still does, saying so."""
+    from types import SimpleNamespace
+
+    def spec(seed, run_json=None):
+        run_dir = tmp_path / f"seed{seed}"
+        if run_json is not None:
+            run_dir.mkdir()
+            (run_dir / "run.json").write_text(json.dumps(run_json))
+        return SimpleNamespace(task="walker_walk", label="dreamer", variant="dreamer", seed=seed, run_dir=run_dir)
+
+    done = {"code_versions": ["aaa1111", "bbb2222"], "preset": "small",
+            "result": {"status": "finished", "env_steps": 100, "updates": 10}}
+    args = dict(command=["protocad-compare"], env_steps=100, wall_budget=None, jobs=1, threads=1, wall_time=1.0)
+    doc = R.gather([spec(0, done), spec(1, {**done, "code_versions": ["bbb2222", "ccc3333"]}), spec(2)], **args)
+    R.validate(doc)
+    assert [r.get("code_versions") for r in doc["runs"]] == [["aaa1111", "bbb2222"], ["bbb2222", "ccc3333"], None]
+    assert doc["runs"][2]["status"] == "missing"
+    assert doc["code_version"] == "aaa1111, bbb2222, ccc3333"
+    older = {k: v for k, v in done.items() if k != "code_versions"}
+    assert "the gathering tree" in R.gather([spec(3, older)], **args)["code_version"]
 
 
 def test_results_schema_rejects_a_broken_document(tmp_path):
@@ -440,6 +469,7 @@ def continue_the_grid_on_another_machine(out: Path, args: list[str], tmp_path: P
         assert {k: v for k, v in r.items() if k != "carried_from"} == before[r["seed"]]
         assert r["carried_from"]["results"] == str(committed)
     assert "carried_from" not in doc["runs"][2] and doc["runs"][2]["status"] == "finished"
+    assert doc["runs"][2]["code_versions"] and "gathering tree" not in doc["code_version"]
     assert not (elsewhere / "pendulum_swingup" / "dreamer" / "seed0").exists()
     assert f"dreamer/seed0, dreamer/seed1 finished elsewhere and came from {committed}" in \
         R.markdown_section([doc])
