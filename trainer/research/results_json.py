@@ -153,7 +153,8 @@ def gather_run(task: str, label: str, variant: str, seed: int, run_dir: Path) ->
     if "prototype_freeze" in res:
         row["prototype_freeze"] = res["prototype_freeze"]
     if isinstance(info.get("code_versions"), list):   # a grid can span commits and machines: per row
-        row["code_versions"] = [str(v) for v in info["code_versions"]]
+        # commit ids (+dirty): a crafted run.json's huge or odd entries stay out of results.json
+        row["code_versions"] = [v for v in info["code_versions"] if isinstance(v, str) and len(v) <= 64][:64]
     if "updates_per_episode" in proto:
         row["collect_interval"] = int(proto["updates_per_episode"])
     cfg = _saved_config(run_dir)

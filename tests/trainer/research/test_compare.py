@@ -178,6 +178,9 @@ def test_the_grid_names_the_code_each_run_trained_with_and_not_started_runs_none
     assert doc["code_version"] == "aaa1111, bbb2222, ccc3333"
     older = {k: v for k, v in done.items() if k != "code_versions"}
     assert "the gathering tree" in R.gather([spec(3, older)], **args)["code_version"]
+    crafted = {**done, "code_versions": ["ddd4444", {"a": 1}, "x" * 10_000, *[f"c{i}" for i in range(1000)]]}
+    kept = R.gather([spec(4, crafted)], **args)["runs"][0]["code_versions"]   # bounded, strings only
+    assert kept[:2] == ["ddd4444", "c0"] and len(kept) == 64
 
 
 def test_results_schema_rejects_a_broken_document(tmp_path):
