@@ -313,7 +313,8 @@ def combined(docs: Sequence[Mapping[str, Any]], sources: Sequence[str] | None = 
     'fast' and with dm_control's default look) is one curve per setup, labelled with what
     differs: `LABEL (PRESET preset)`, `LABEL (QUALITY render)` or both; `base_label` keeps the
     variant's own. A run (task, label, setup, seed) in two of them is refused: its curve would
-    count twice."""
+    count twice. Superseded rows count nowhere, curves included, so they are left out: the grid
+    that superseded them (its seeds again) reports beside them."""
     names = list(sources) if sources else [f"document {i + 1}" for i in range(len(docs))]
     setups: dict[tuple[str, str], set[tuple[str, str]]] = {}
     for doc in docs:
@@ -323,6 +324,8 @@ def combined(docs: Sequence[Mapping[str, Any]], sources: Sequence[str] | None = 
     runs, random = [], {}
     for doc, name in zip(docs, names):
         for r in doc["runs"]:
+            if r.get("superseded"):
+                continue
             both = setups[(r["task"], r["label"])]
             differs = [f"{value} {what}" for i, (what, value) in enumerate(zip(("preset", "render"), _setup(r)))
                        if len({setup[i] for setup in both}) > 1]
@@ -345,7 +348,7 @@ def _setup(run: Mapping[str, Any]) -> tuple[str, str]:
     return (str(run["preset"]), str(run.get("render_quality") or "fast"))
 
 
-def _section_body(doc: Mapping[str, Any]) -> list[str]:
+def _section_body(doc: Mapping[str, Any], target: str) -> list[str]:
     s = summarize(doc)
     b = doc["budgets"]
     wall = f", wall budget {b['wall_budget_s'] / 60:.0f} min per run" if b["wall_budget_s"] else ""
@@ -360,7 +363,8 @@ def _section_body(doc: Mapping[str, Any]) -> list[str]:
         lines += [_md_table(head, rows), ""]
     paired = paired_lines(doc)
     if paired:
-        lines += ["Paired (the primary metric of [results.md](msgs_docs/results.md)):", "",
+        plan = _relative_link("msgs_docs/results.md", target)
+        lines += [f"Paired (the primary metric of [results.md]({plan})):", "",
                   *(f"- {p}" for p in paired), ""]
     superseded = superseded_lines(doc)
     if superseded:
@@ -396,12 +400,16 @@ def markdown_section(docs: Sequence[Mapping[str, Any]], image: str | None = None
     for doc, name in zip(docs, names):
         if len(docs) > 1:
             lines += [f"**`{name}`**", ""]
-        lines += _section_body(doc)
+        lines += _section_body(doc, target)
     if image:
-        link = image if os.path.isabs(image) else os.path.relpath(image, Path(target).parent)
-        lines += [f"![test-context return vs env steps]({link})", ""]
+        lines += [f"![test-context return vs env steps]({_relative_link(image, target)})", ""]
     lines.append(END)
     return "\n".join(lines)
+
+
+def _relative_link(path: str, target: str) -> str:
+    """`path` (from the repository root) as a link from the markdown file `target`."""
+    return path if os.path.isabs(path) else os.path.relpath(path, Path(target).parent)
 
 
 def update_readme(readme: Path, section: str) -> None:

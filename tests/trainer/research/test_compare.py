@@ -3,6 +3,7 @@ resumed; results.json against its schema; the statistics against hand-computed v
 plot; the README section regenerated from the committed results.json."""
 from __future__ import annotations
 
+import copy
 import itertools
 import json
 import re
@@ -261,6 +262,24 @@ def test_iqm_and_aggregates_match_hand_computed_values():
     assert lo == hi == 5.0
 
 
+def test_a_superseded_grid_reports_beside_the_grid_that_replaced_it():
+    """The first walker comparison's rows are superseded by the paired grid, which reran their
+    seeds: both files report together, the superseded rows plotting nothing and counting nowhere."""
+    old = R.load_results(ROOT / "msgs_docs" / "results" / "walker_compare_small.json")
+    new = R.load_results(ROOT / "msgs_docs" / "results" / "walker_paired_small.json")
+    assert all(r.get("superseded") for r in old["runs"])
+    both = R.combined([old, new], ["old.json", "new.json"])
+    assert len(both["runs"]) == len(new["runs"])
+    _, mean, _, _ = R.curves(both, "walker_walk", "protocad")
+    _, mean_new, _, _ = R.curves(new, "walker_walk", "protocad")
+    assert np.array_equal(mean, mean_new)
+    unsuperseded = copy.deepcopy(old)
+    for r in unsuperseded["runs"]:
+        del r["superseded"]
+    with pytest.raises(ValueError, match="walker_walk/protocad/seed0 is in both old.json and new.json"):
+        R.combined([unsuperseded, new], ["old.json", "new.json"])
+
+
 def test_the_generated_results_section_regenerates_byte_identically_from_the_committed_json():
     # the files and plot it names in its own first line, regenerated: the page says what they hold
     target = "msgs_docs/results.md"
@@ -320,8 +339,6 @@ def test_an_anchor_at_two_presets_reports_as_two_curves(tmp_path):
     """The small-preset anchor beside the same grid at DreamerV2's sizes (same task, label and
     seeds, another preset): one curve per preset in the plot and the rerun recording; the same
     preset in two files is still refused (its curve would count twice)."""
-    import copy
-
     from trainer.viz.rerun_log import read_recording
 
     small = R.load_results(ROOT / "msgs_docs" / "results" / "walker_anchor_cpu.json")
@@ -350,8 +367,6 @@ def test_an_anchor_rendered_two_ways_reports_as_two_curves(tmp_path):
     """The same anchor rendered with dm_control's default look beside the committed one (same
     preset, a file that predates the field: it rendered 'fast'): one curve per look; a grid
     gathered from run directories records the look its config.yaml names."""
-    import copy
-
     from protocad_ros.model.config import make_config
 
     fast = R.load_results(ROOT / "msgs_docs" / "results" / "walker_anchor_cpu.json")
