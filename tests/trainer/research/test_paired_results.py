@@ -9,8 +9,12 @@ import re
 
 from helpers import ROOT
 
+from trainer.research.probe_report import read_json, summary_markdown
+from trainer.research.statistics import paired_difference, unseen_train_ratio
+
 RESULTS = ROOT / "msgs_docs" / "results" / "walker_paired_small.json"
 RESULTS_MD = ROOT / "msgs_docs" / "results.md"
+PROBES = ROOT / "msgs_docs" / "results" / "walker_paired_probes"
 ARMS = {"protocad": "ProtoCAD", "dreamer": "Dreamer"}
 
 
@@ -62,5 +66,36 @@ def test_results_md_shows_exactly_the_finished_paired_runs():
 def test_results_md_names_how_many_seed_pairs_the_grid_has():
     seeds = {r["seed"] for r in finished_rows() if r["label"] == "protocad"} & \
             {r["seed"] for r in finished_rows() if r["label"] == "dreamer"}
-    stands = re.search(r"#### Where the paired grid stands \([^)]*?(\d) of 5 seed pairs", RESULTS_MD.read_text())
+    stands = re.search(r"#### (?:Where the paired grid stands|The result) \([^)]*?(\d) of 5 seed pairs",
+                       RESULTS_MD.read_text())
     assert stands and int(stands.group(1)) == len(seeds)
+
+
+def test_the_primary_metric_is_reported_as_it_was_fixed_on_five_paired_seeds():
+    """results.md fixed the primary metric before the runs: the mean paired difference on unseen
+    contexts with its 95% t-interval, and the unseen/train ratio per arm. It states them as the
+    committed file gives them, over at least 5 seeds that both arms finished, with the verdict
+    the plan's rule gives."""
+    doc = json.loads(RESULTS.read_text())
+    paired = paired_difference(doc, "walker_walk")
+    assert paired is not None and len(paired["seeds"]) >= 5
+    text = RESULTS_MD.read_text()
+    low, high = paired["ci"]
+    assert f"{paired['mean']:+.1f} [95% t-interval {low:+.1f}, {high:+.1f}]" in text
+    verdict = ("ProtoCAD is ahead" if low > 0 else "ProtoCAD is behind" if high < 0
+               else "No difference shown at this budget")
+    result = text[text.index("#### The result"):]
+    assert verdict in result[:result.index("| seed |")]
+    for label in ARMS:
+        ratio = unseen_train_ratio(doc, "walker_walk", label)
+        assert ratio["n"] >= 5 and f"{ARMS[label]} {ratio['mean']:.2f}" in text, label
+    assert doc["random"]["walker_walk"]["episodes"] == 320
+    assert f"Random policy** on the same 64 x 5: {doc['random']['walker_walk']['mean_return']:.1f}" in text
+
+
+def test_the_probe_tables_in_results_md_are_those_of_both_arms_committed_probes():
+    """Both arms' probes of every finished run are committed, and results.md shows their summary
+    as `protocad-probe --summarize` prints it from those files."""
+    probes = sorted(PROBES.glob("*_seed*.json"))
+    assert {p.stem for p in probes} == {f"{r['label']}_seed{r['seed']}" for r in finished_rows()}
+    assert summary_markdown([read_json(p) for p in probes]) in RESULTS_MD.read_text()
