@@ -319,7 +319,8 @@ def combined(docs: Sequence[Mapping[str, Any]], sources: Sequence[str] | None = 
     setups: dict[tuple[str, str], set[tuple[str, str]]] = {}
     for doc in docs:
         for r in doc["runs"]:
-            setups.setdefault((r["task"], r["label"]), set()).add(_setup(r))
+            if not r.get("superseded"):
+                setups.setdefault((r["task"], r["label"]), set()).add(_setup(r))
     seen: dict[tuple[str, str, int], str] = {}
     runs, random = [], {}
     for doc, name in zip(docs, names):
