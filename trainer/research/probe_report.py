@@ -30,6 +30,7 @@ from protocad_ros.atomic import atomic_write_text
 from sim_bridge.contract.contexts import context_label
 from trainer.research.probe_fit import SETTINGS, Windows
 from trainer.research.results_json import check_schema
+from trainer.runs import load_json_object
 from trainer.viz.context_view import colormap, project
 
 SCHEMA_ID = "protocad-probe/1"
@@ -101,11 +102,12 @@ def write_json(doc: Mapping[str, Any], path: Path) -> None:
 
 
 def read_json(path: str | Path) -> dict[str, Any]:
-    """A probe JSON, checked against PROBE_SCHEMA (ValueError naming the file)."""
+    """A probe JSON, bounded in size and depth and checked against PROBE_SCHEMA (ValueError
+    naming the file)."""
     try:
-        doc = json.loads(Path(path).read_text())
-    except (OSError, ValueError) as exc:
-        raise ValueError(f"{path}: not a probe JSON: {exc}") from None
+        doc = load_json_object(path)
+    except ValueError as exc:
+        raise ValueError(f"not a probe JSON: {exc}") from None
     try:
         validate(doc)
     except ValueError as exc:

@@ -78,7 +78,7 @@ RESULTS_SCHEMA: dict[str, Any] = {
                 "render_quality": {"enum": ["fast", "default"]},
                 "reference": {"type": "string"}, "collect_interval": _INT,
                 "prototype_freeze": {"type": ["integer", "null"]},
-                "code_versions": {"type": "array", "items": {"type": "string"}},
+                "code_versions": {"type": "array", "maxItems": 64, "items": {"type": "string", "maxLength": 64}},
                 "final_train": _EVAL,
                 "superseded": {"type": "string"},
                 "final": {"oneOf": [{"type": "null"}, _EVAL]},
@@ -118,11 +118,11 @@ def _eval_entry(d: Mapping[str, Any]) -> dict[str, Any]:
 def gather_run(task: str, label: str, variant: str, seed: int, run_dir: Path) -> dict[str, Any]:
     """One run directory of protocad-online as a results.json row."""
     run_dir = Path(run_dir)
-    try:
-        info = json.loads((run_dir / "run.json").read_text())
-    except (OSError, json.JSONDecodeError):
+    try:   # written by a run, read as input: bounded in size and depth, an object or nothing
+        info = runs.load_json_object(run_dir / "run.json")
+    except ValueError:
         info = {}
-    res = info.get("result") or {}
+    res = info.get("result") if isinstance(info.get("result"), dict) else {}
     curve, seen = [], set()
     for row in _read_jsonl(run_dir / "eval.jsonl"):
         if row.get("policy", "").startswith("random") or "mean_return" not in row:
@@ -309,11 +309,13 @@ def save_results(doc: Mapping[str, Any], path: Path) -> Path:
 
 
 def load_results(path: str | Path) -> dict[str, Any]:
+    """A results.json, bounded in size and depth and checked against RESULTS_SCHEMA (one
+    ValueError line naming the file)."""
+    doc = runs.load_json_object(path)
     try:
-        doc = json.loads(Path(path).read_text())
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"{path} is not JSON: {exc}") from None
-    validate(doc)
+        validate(doc)
+    except ValueError as exc:
+        raise ValueError(f"{path}: {exc}") from None
     return doc
 
 

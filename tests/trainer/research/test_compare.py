@@ -192,6 +192,38 @@ def test_results_schema_rejects_a_broken_document(tmp_path):
         R.validate(doc)
 
 
+def test_results_and_run_files_read_as_input_are_bounded(tmp_path):
+    """A results.json given to --report / --from-results and a run.json gathered into one are
+    read as a stranger could have written them: one that is too large (a sparse file, nothing
+    allocated), not an object or nested too deep is one error line naming it, or, for a run,
+    a row that says what is known of it; none is read whole before its size is checked."""
+    from trainer.run_input import MAX_RUN_FILE_BYTES
+
+    huge = tmp_path / "huge.json"
+    with huge.open("wb") as f:
+        f.truncate(MAX_RUN_FILE_BYTES + 1)
+    for path, says in ((huge, "more than the limit"), (tmp_path / "list.json", "not an object"),
+                       (tmp_path / "deep.json", "nested")):
+        if path.name == "list.json":
+            path.write_text("[1, 2]")
+        elif path.name == "deep.json":
+            path.write_text("[" * 100_000 + "]" * 100_000)
+        with pytest.raises(ValueError, match=says) as err:
+            R.load_results(path)
+        assert path.name in str(err.value)
+    # not an object: as if absent; an object whose result is no mapping: started, ended unknown
+    for crafted, status in (("[1, 2]", "missing"), (json.dumps({"result": "finished", "code_versions": ["a"]}), "failed")):
+        run_dir = tmp_path / f"run{len(crafted)}"
+        run_dir.mkdir()
+        (run_dir / "run.json").write_text(crafted)
+        row = R.gather_run("walker_walk", "dreamer", "dreamer", 0, run_dir)
+        assert row["status"] == status and row["final"] is None
+    huge_run = tmp_path / "huge_run"
+    huge_run.mkdir()
+    huge.rename(huge_run / "run.json")
+    assert R.gather_run("walker_walk", "dreamer", "dreamer", 0, huge_run)["status"] == "missing"
+
+
 def test_bootstrap_interval_matches_the_exact_bootstrap_distribution():
     # Four seeds: the bootstrap distribution of the mean is the 4**4 = 256 equally likely
     # resamples, enumerated here; a 95% percentile interval must sit at its 2.5% and 97.5%
@@ -270,6 +302,11 @@ def test_a_superseded_grid_reports_beside_the_grid_that_replaced_it():
     assert all(r.get("superseded") for r in old["runs"])
     both = R.combined([old, new], ["old.json", "new.json"])
     assert len(both["runs"]) == len(new["runs"])
+    assert R.labels_of(both, "walker_walk") == ["dreamer", "protocad"]
+    other_look = copy.deepcopy(old)   # a superseded row's setup does not relabel the rows that count
+    for r in other_look["runs"]:
+        r["render_quality"] = "default"
+    assert R.labels_of(R.combined([other_look, new]), "walker_walk") == ["dreamer", "protocad"]
     _, mean, _, _ = R.curves(both, "walker_walk", "protocad")
     _, mean_new, _, _ = R.curves(new, "walker_walk", "protocad")
     assert np.array_equal(mean, mean_new)
