@@ -89,6 +89,8 @@ def test_the_primary_metric_is_reported_as_it_was_fixed_on_five_paired_seeds():
     for label in ARMS:
         ratio = unseen_train_ratio(doc, "walker_walk", label)
         assert ratio["n"] >= 5 and f"{ARMS[label]} {ratio['mean']:.2f}" in text, label
+    readme = (ROOT / "README.md").read_text()   # the front page's row says the same
+    assert f"{paired['mean']:+.1f} [95% t-interval {low:+.1f}, {high:+.1f}]: {verdict}".lower() in readme.lower()
     assert doc["random"]["walker_walk"]["episodes"] == 320
     assert f"Random policy** on the same 64 x 5: {doc['random']['walker_walk']['mean_return']:.1f}" in text
 
