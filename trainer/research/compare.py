@@ -111,10 +111,10 @@ def carry_finished_runs(specs: Sequence[RunSpec], a: GridSettings) -> int:
     wanted = {(s.task, s.label, s.seed): s for s in specs}
     n = 0
     for path in a.from_results:
-        try:
+        try:   # unreadable, too large, not JSON, not a results.json: one line naming the option
             doc = R.load_results(path)
-        except OSError as exc:
-            raise ValueError(f"--from-results {path}: cannot read it ({exc.strerror or exc})") from None
+        except ValueError as exc:
+            raise ValueError(f"--from-results {exc}") from None
         b = doc["budgets"]
         theirs = online_args_of(doc["command"])
         if (b["env_steps"], b["wall_budget_s"]) != (a.env_steps, a.wall_budget) or theirs != a.online_args:
