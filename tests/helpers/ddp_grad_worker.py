@@ -15,8 +15,10 @@ from trainer.learn import distributed
 
 
 def main(work: str) -> int:
-    work_dir = Path(work)
-    ctx, _ = distributed.init("cpu")
+    return distributed.run_entry_point(1, "cpu", lambda ctx, _device: one_update(Path(work), ctx))
+
+
+def one_update(work_dir: Path, ctx: distributed.DistContext) -> int:
     cfg = Config.load(work_dir / "config.yaml")
     data = np.load(work_dir / "batch.npz")
     half = len(data["image"]) // ctx.world_size
@@ -37,7 +39,6 @@ def main(work: str) -> int:
     torch.manual_seed(100 + ctx.rank)
     agent.train_step(batch)
     torch.save(synced, work_dir / f"grads_rank{ctx.rank}.pt")
-    distributed.shutdown(ctx)
     return 0
 
 

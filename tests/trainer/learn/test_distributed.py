@@ -119,6 +119,23 @@ def test_first_update_gradients_are_the_single_process_average(tmp_path):
     assert any(not torch.allclose(local[0][n], local[1][n]) for n in g0)  # the halves differ
 
 
+@pytest.mark.parametrize("code", [0, 3])
+def test_a_finished_rank_ends_with_its_code_and_its_output(code):
+    # Ranks end by os._exit past the closing barrier (distributed.leave): what they printed
+    # must still reach the pipe, and the body's exit code must be the process's. Buffered
+    # stdout, as the console scripts have it: --no-python (torchrun runs a script with -u) and
+    # no PYTHONUNBUFFERED (the suite's environment sets it).
+    env = {k: v for k, v in ENV.items() if k != "PYTHONUNBUFFERED"}
+    out = subprocess.run([*TORCHRUN, "--no-python", sys.executable, str(HELPERS / "ddp_leave_worker.py"), str(code)],
+                         capture_output=True, text=True, timeout=240, cwd=ROOT, env=env)
+    for rank in (0, 1):
+        assert f"rank {rank} of 2 finished" in out.stdout, out.stdout + out.stderr
+    if code == 0:
+        assert out.returncode == 0, out.stdout + out.stderr
+    else:
+        assert out.returncode != 0 and f"exitcode  : {code}" in out.stderr, out.stderr
+
+
 def _children(pid: int) -> list[int]:
     out = []
     for stat in Path("/proc").glob("[0-9]*/stat"):
