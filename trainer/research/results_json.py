@@ -116,47 +116,30 @@ def _eval_entry(d: Mapping[str, Any]) -> dict[str, Any]:
 
 
 def gather_run(task: str, label: str, variant: str, seed: int, run_dir: Path) -> dict[str, Any]:
-    """One run directory of protocad-online as a results.json row."""
+    """One run directory of protocad-online as a results.json row.
+
+    The run's files are read as input: run.json bounded (trainer.runs.load_json_object); an
+    evaluation line or final.json that is torn or out of shape counts as not written; a run.json
+    whose result or protocol is out of shape (a status outside the schema, a count that is no
+    number) gathers the run as failed, with one line on stderr naming the file."""
     run_dir = Path(run_dir)
     try:   # written by a run, read as input: bounded in size and depth, an object or nothing
         info = runs.load_json_object(run_dir / "run.json")
     except ValueError:
         info = {}
-    res = info.get("result") if isinstance(info.get("result"), dict) else {}
-    curve, seen = [], set()
-    for row in _read_jsonl(run_dir / "eval.jsonl"):
-        if row.get("policy", "").startswith("random") or "mean_return" not in row:
-            continue
-        key = (int(row["env_steps"]), row.get("tag", ""))
-        if key in seen:       # an evaluation repeated after a resume: keep the newest
-            curve = [c for c in curve if (c["env_steps"], c["tag"]) != key]
-        seen.add(key)
-        curve.append({"env_steps": int(row["env_steps"]), "mean_return": round(float(row["mean_return"]), 3),
-                      "tag": str(row.get("tag", ""))})
-    curve.sort(key=lambda c: (c["env_steps"], c["tag"] == "final"))
-    final = None
     try:
-        final = _eval_entry(json.loads((run_dir / "eval" / "final.json").read_text()))
-    except (OSError, json.JSONDecodeError, KeyError):
-        pass
-    proto = info.get("protocol") or {}
+        fields = _run_json_fields(info)
+    except (TypeError, ValueError, AttributeError, OverflowError) as exc:
+        print(f"[results] {run_dir / 'run.json'}: {exc}; the run gathers as failed", file=sys.stderr)
+        fields = _run_json_fields({"result": {"status": "failed"}})
     row = {"task": task, "label": label, "variant": variant, "seed": int(seed), "run_dir": str(run_dir),
-            "status": res.get("status", "missing" if not info else "failed"),
-            "env_steps": int(res.get("env_steps", 0)), "updates": int(res.get("updates", 0)),
-            "wall_time_s": float(res.get("wall_time", 0.0)), "precision": str(res.get("precision", "")),
-            "preset": str(info.get("preset", "")), "eval_split": proto.get("eval_split") or "test",
-            "final": final, "curve": curve}
-    try:
-        row["final_train"] = _eval_entry(json.loads((run_dir / "eval" / "final_train.json").read_text()))
-    except (OSError, json.JSONDecodeError, KeyError):
-        pass
-    if "prototype_freeze" in res:
-        row["prototype_freeze"] = res["prototype_freeze"]
-    if isinstance(info.get("code_versions"), list):   # a grid can span commits and machines: per row
-        # commit ids (+dirty): a crafted run.json's huge or odd entries stay out of results.json
-        row["code_versions"] = [v for v in info["code_versions"] if isinstance(v, str) and len(v) <= 64][:64]
-    if "updates_per_episode" in proto:
-        row["collect_interval"] = int(proto["updates_per_episode"])
+           **{k: fields.pop(k) for k in ("status", "env_steps", "updates", "wall_time_s", "precision", "preset",
+                                         "eval_split")},
+           "final": _read_eval(run_dir / "eval" / "final.json"), "curve": _read_curve(run_dir / "eval.jsonl")}
+    final_train = _read_eval(run_dir / "eval" / "final_train.json")
+    if final_train is not None:
+        row["final_train"] = final_train
+    row.update(fields)   # prototype_freeze, code_versions, collect_interval where run.json has them
     cfg = _saved_config(run_dir)
     quality = (cfg.get("train") or {}).get("render_quality")
     if quality:
@@ -164,6 +147,69 @@ def gather_run(task: str, label: str, variant: str, seed: int, run_dir: Path) ->
     if cfg.get("reference"):
         row["reference"] = str(cfg["reference"])
     return row
+
+
+_STATUSES = RESULTS_SCHEMA["properties"]["runs"]["items"]["properties"]["status"]["enum"]
+
+
+def _run_json_fields(info: Mapping[str, Any]) -> dict[str, Any]:
+    """What run.json says of the run (status, counts, preset, protocol); raises TypeError,
+    ValueError, AttributeError or OverflowError where a value is out of shape."""
+    res = info.get("result") if isinstance(info.get("result"), dict) else {}
+    proto = info.get("protocol") or {}
+    status = res.get("status", "missing" if not info else "failed")
+    if status not in _STATUSES:
+        raise ValueError(f"result.status {str(status)[:40]!r} is none of {', '.join(_STATUSES)}")
+    out = {"status": status, "env_steps": _count(res, "env_steps"), "updates": _count(res, "updates"),
+           "wall_time_s": float(res.get("wall_time", 0.0)), "precision": str(res.get("precision", "")),
+           "preset": str(info.get("preset", "")), "eval_split": proto.get("eval_split") or "test"}
+    if out["eval_split"] not in ("test", "train"):
+        raise ValueError(f"protocol.eval_split {str(out['eval_split'])[:40]!r} is neither test nor train")
+    if "prototype_freeze" in res:
+        freeze = res["prototype_freeze"]
+        out["prototype_freeze"] = None if freeze is None else _count(res, "prototype_freeze")
+    if isinstance(info.get("code_versions"), list):   # a grid can span commits and machines: per row
+        # commit ids (+dirty): a crafted run.json's huge or odd entries stay out of results.json
+        out["code_versions"] = [v for v in info["code_versions"] if isinstance(v, str) and len(v) <= 64][:64]
+    if "updates_per_episode" in proto:
+        out["collect_interval"] = _count(proto, "updates_per_episode")
+    return out
+
+
+def _count(d: Mapping[str, Any], key: str) -> int:
+    value = d.get(key, 0)
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or value != int(value):
+        raise ValueError(f"{key} {str(value)[:40]!r} is not a whole number")
+    return int(value)
+
+
+def _read_curve(path: Path) -> list[dict[str, Any]]:
+    """The learning curve from eval.jsonl (the policy's evaluations, newest of a repeated one)."""
+    curve, seen = [], set()
+    for row in _read_jsonl(path):
+        try:
+            if not isinstance(row, dict) or str(row.get("policy", "")).startswith("random") or "mean_return" not in row:
+                continue
+            point = {"env_steps": int(row["env_steps"]), "mean_return": round(float(row["mean_return"]), 3),
+                     "tag": str(row.get("tag", ""))}
+        except (KeyError, TypeError, ValueError, OverflowError):
+            continue   # out of shape: as a torn line is
+        key = (point["env_steps"], point["tag"])
+        if key in seen:       # an evaluation repeated after a resume: keep the newest
+            curve = [c for c in curve if (c["env_steps"], c["tag"]) != key]
+        seen.add(key)
+        curve.append(point)
+    curve.sort(key=lambda c: (c["env_steps"], c["tag"] == "final"))
+    return curve
+
+
+def _read_eval(path: Path) -> dict[str, Any] | None:
+    """An evaluation's JSON (eval/final.json, ...) as a results.json entry; None where it is
+    missing, torn or out of shape."""
+    try:
+        return _eval_entry(runs.load_json_object(path))
+    except (ValueError, TypeError, KeyError, AttributeError, OverflowError):
+        return None
 
 
 def _saved_config(run_dir: Path) -> dict[str, Any]:

@@ -224,6 +224,48 @@ def test_results_and_run_files_read_as_input_are_bounded(tmp_path):
     assert R.gather_run("walker_walk", "dreamer", "dreamer", 0, huge_run)["status"] == "missing"
 
 
+def test_a_run_whose_files_are_out_of_shape_gathers_as_failed_and_keeps_what_is_sound(tmp_path, capsys):
+    """run.json, eval.jsonl and eval/final.json are the run's own files, but a hand edit or a
+    stranger can put any JSON in them: a value of the wrong kind gathers the run as failed with
+    a line naming the file, a bad evaluation line or final.json counts as not written, and the
+    grid's results.json still validates (before, a non-numeric count was a traceback, a status
+    outside the schema a refused results.json)."""
+    good = {"result": {"status": "finished", "env_steps": 1000, "updates": 50, "wall_time": 12.5},
+            "protocol": {"eval_split": "test", "updates_per_episode": 5}, "preset": "small"}
+    crafted = {"status": dict(good, result={**good["result"], "status": "done!"}),
+               "steps": dict(good, result={**good["result"], "env_steps": "1000"}),
+               "fraction": dict(good, result={**good["result"], "updates": 2.5}),
+               "infinite": json.dumps(good).replace("1000", "Infinity"),
+               "protocol": dict(good, protocol=["test"]),
+               "split": dict(good, protocol={"eval_split": "everything"})}
+    rows = []
+    for name, doc in crafted.items():
+        run_dir = tmp_path / name
+        (run_dir / "eval").mkdir(parents=True)
+        (run_dir / "run.json").write_text(doc if isinstance(doc, str) else json.dumps(doc))
+        (run_dir / "eval.jsonl").write_text("\n".join([
+            "[1, 2]", json.dumps({"env_steps": "many", "mean_return": 3.0}),
+            json.dumps({"env_steps": 500, "mean_return": [1]}),
+            json.dumps({"env_steps": 500, "mean_return": 40.25, "tag": ""}), "{torn"]) + "\n")
+        (run_dir / "eval" / "final.json").write_text(json.dumps({"mean_return": "high", "per_context": []}))
+        row = R.gather_run("walker_walk", "dreamer", "dreamer", 0, run_dir)
+        assert row["status"] == "failed", (name, row)
+        assert f"{run_dir / 'run.json'}" in capsys.readouterr().err
+        assert row["curve"] == [{"env_steps": 500, "mean_return": 40.25, "tag": ""}]
+        assert row["final"] is None
+        rows.append(row)
+    sound = tmp_path / "sound"
+    sound.mkdir()
+    (sound / "run.json").write_text(json.dumps(good))
+    row = R.gather_run("walker_walk", "dreamer", "dreamer", 1, sound)
+    assert (row["status"], row["env_steps"], row["updates"], row["collect_interval"], row["preset"]) == \
+        ("finished", 1000, 50, 5, "small")
+    doc = R.gather([], command=["protocad-compare"], env_steps=1000, wall_budget=None, jobs=1, threads=1,
+                   wall_time=1.0)
+    doc["runs"] = [*rows, row]
+    R.validate(doc)
+
+
 def test_bootstrap_interval_matches_the_exact_bootstrap_distribution():
     # Four seeds: the bootstrap distribution of the mean is the 4**4 = 256 equally likely
     # resamples, enumerated here; a 95% percentile interval must sit at its 2.5% and 97.5%
