@@ -189,16 +189,19 @@ def test_connect_mode_streams_to_a_rerun_server(tmp_path, tiny_policy):
         for t, image, action, feats in _steps(tiny_policy, 6):
             view.log_step(t * 20_000_000, image, u=feats.u, w=feats.w, e=feats.e, action=action, reward=1.0)
         view.close()
-        def six_images() -> dict:
+        def six_steps() -> dict:
             if not (saved.exists() and saved.stat().st_size > 0):
                 return {}
             try:
                 rec = read_recording(saved)
             except Exception:  # noqa: BLE001 - mid-write
                 return {}
-            return rec if rec.get("/policy/image", {}).get("rows") == 6 else {}
+            # Every entity checked below: the server writes chunks as they arrive, so its file
+            # can hold the 6th image before the 6th assignment.
+            whole = all(rec.get(e, {}).get("rows") == 6 for e in ("/policy/image", "/policy/assignment"))
+            return rec if whole else {}
 
-        rec = helpers.wait_until(six_images, 20, "the server's recording of 6 images", 0.2)
+        rec = helpers.wait_until(six_steps, 20, "the server's recording of 6 images and assignments", 0.2)
     finally:
         # The whole group: `rerun` is a Python wrapper whose child, the native server, would
         # outlive a signal to the wrapper alone (each run of this test left one behind).
