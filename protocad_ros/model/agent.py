@@ -146,7 +146,8 @@ class Agent(AgentBase):
         """
         self.train()
         start, metrics = self.train_world_model(batch)
-        metrics.update(self.train_behavior(start))
+        if not self.cfg.train.world_model_only:
+            metrics.update(self.train_behavior(start))
         self.updates += 1
         out = self.metrics_to_floats(metrics, self.device)
         out["updates"] = float(int(self.updates))
@@ -164,6 +165,9 @@ class Agent(AgentBase):
         """Filter one step: (state, image uint8 (B, 64, 64, 3), a_{t-1} (B, A), is_first (B,))
         -> (new state, x (B, X), (u, w, e) or (None, None, None)). sample=False takes the
         posterior mean / mode (deterministic)."""
+        if self.wm.true_context_dim:
+            raise ValueError(f"variant {self.cfg.variant!r} reads the true context and trains no "
+                             "policy: it is the world-model study's ceiling, it does not act")
         B = image.shape[0]
         if state is None:
             state = self.initial_state(B)
@@ -192,8 +196,8 @@ class Agent(AgentBase):
         b = self.to_batch(batch)
         with self._autocast():
             embed = self.wm.encoder(self.wm.preprocess(b["image"]))
-            post, _ = self.wm.rssm.observe(embed, b["action"], b["is_first"], sample=sample,
-                                           with_prior=False)
+            post, _ = self.wm.rssm.observe(embed, self.wm.rssm_action(b["action"], b.get("context")),
+                                           b["is_first"], sample=sample, with_prior=False)
         return b, post
 
     @torch.no_grad()
@@ -208,13 +212,13 @@ class Agent(AgentBase):
         np_ = lambda t: None if t is None else t.float().cpu().numpy()  # noqa: E731
         return {"s": np_(s), "u": np_(u), "w": np_(w), "e": np_(e)}
 
-    def _decode(self, s: torch.Tensor) -> torch.Tensor:
+    def _decode(self, s: torch.Tensor, true_context: torch.Tensor | None = None) -> torch.Tensor:
         if self.wm.decoder is None:
             raise ValueError(f"variant {self.cfg.variant!r} has no image decoder "
                              "(DreamerPro is reconstruction-free); check agent.has_decoder")
         with self._autocast():
             ctx = self.wm.context_features(s)
-            mean = self.wm.decoder(self.wm.features(s, ctx if ctx[0] is not None else None))
+            mean = self.wm.decoder(self.wm.features(s, ctx if ctx[0] is not None else None, true_context))
         img = ((mean.float() + 0.5).clamp(0, 1) * 255).round().to(torch.uint8)
         return img.movedim(-3, -1).cpu()
 
@@ -222,8 +226,8 @@ class Agent(AgentBase):
     def reconstruct(self, batch: Mapping[str, Any]) -> np.ndarray:
         """Decoder reconstructions of the posterior: uint8 (B, T, 64, 64, 3)."""
         self.eval()
-        _, post = self._posterior(batch)
-        return self._decode(self.wm.rssm.get_feat(post)).numpy()
+        b, post = self._posterior(batch)
+        return self._decode(self.wm.rssm.get_feat(post), b.get("context")).numpy()
 
     @torch.no_grad()
     def open_loop(self, batch: Mapping[str, Any], context_steps: int = 5,
@@ -243,15 +247,16 @@ class Agent(AgentBase):
             raise ValueError(f"context_steps must be in [1, T-1] = [1, {T - 1}], got "
                              f"{context_steps}")
         H = min(horizon, T - context_steps)
-        ctx_batch = {k: v[:, :context_steps] for k, v in b.items()}
+        action = self.wm.rssm_action(b["action"], b.get("context"))
         with self._autocast():
-            embed = self.wm.encoder(self.wm.preprocess(ctx_batch["image"]))
-            post, _ = self.wm.rssm.observe(embed, ctx_batch["action"], ctx_batch["is_first"],
-                                           sample=False, with_prior=False)
+            embed = self.wm.encoder(self.wm.preprocess(b["image"][:, :context_steps]))
+            post, _ = self.wm.rssm.observe(embed, action[:, :context_steps],
+                                           b["is_first"][:, :context_steps], sample=False,
+                                           with_prior=False)
             state = {"deter": post["deter"][:, -1], "stoch": post["stoch"][:, -1]}
             feats = []
             for t in range(context_steps, context_steps + H):
-                state = self.wm.rssm.img_step(state, b["action"][:, t], sample=False)
+                state = self.wm.rssm.img_step(state, action[:, t], sample=False)
                 feats.append(self.wm.rssm.get_feat(state))
             s = torch.stack(feats, 1).float()
             reward = self.wm.reward(s)
@@ -259,7 +264,9 @@ class Agent(AgentBase):
         out = {"reward_truth": b["reward"][:, window].float().cpu().numpy(),
                "reward_prediction": reward.float().cpu().numpy()}
         if images:
-            out["prediction"] = self._decode(s).numpy()
+            true_context = b.get("context")
+            out["prediction"] = self._decode(
+                s, None if true_context is None else true_context[:, window]).numpy()
             out["truth"] = b["image"][:, window].cpu().numpy()
         return out
 

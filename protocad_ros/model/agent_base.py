@@ -73,6 +73,13 @@ def batch_to_device(batch: Mapping[str, Any], action_dim: int,
     for k in ("action", "reward", "discount"):
         out[k] = t[k].to(device, torch.float32, non_blocking=nb)
     out["is_first"] = t["is_first"].to(device, torch.bool, non_blocking=nb)
+    if "context" in batch:   # the true context (B, T, P), for the variant that reads it
+        ctx = torch.as_tensor(np.asarray(batch["context"], np.float32)
+                              if not torch.is_tensor(batch["context"]) else batch["context"])
+        if ctx.dim() != 3 or tuple(ctx.shape[:2]) != (B, T) or not torch.isfinite(ctx).all():
+            raise ValueError(f"batch['context'] must be finite (B, T, P)=({B}, {T}, P), got "
+                             f"{tuple(ctx.shape)}")
+        out["context"] = ctx.to(device, torch.float32, non_blocking=nb)
     if not torch.isfinite(out["action"]).all() or not torch.isfinite(out["reward"]).all():
         raise ValueError("batch['action'] / batch['reward'] contain NaN or inf")
     return out

@@ -30,8 +30,10 @@ from protocad_ros.model.hyperparameters import (
     MODEL_FREE_PRESET_OVERRIDES,
     PRESET_OVERRIDES,
     PRESETS,
+    PROJECTOR_INPUTS,
     RANGES,
     REFERENCE_SETTINGS,
+    SINKHORN_OVER,
     VARIANT_OWN_SETTINGS,
     VARIANT_TABLE,
     VARIANTS,
@@ -61,7 +63,9 @@ class Config:
     # Which reference config fills what the paper leaves to "the official implementation":
     # 'dreamerpro' (DreamerPro dmc, what the paper used) or 'dreamerv2' (DreamerV2 dmc_vision:
     # 32 x 32 discrete latents without unimix, trunc_normal actor; the anchor's, and the
-    # paper's appendix comparison on standard DMC keeps DreamerV2's settings). REFERENCE_SETTINGS.
+    # paper's appendix comparison on standard DMC keeps DreamerV2's settings) or 'paper'
+    # (DreamerPro's, with the context module exactly as the paper states it, whatever the
+    # context defaults are). REFERENCE_SETTINGS.
     reference: str = "dreamerpro"
     # Weight initialisation: 'glorot' (uniform fan-average, zero biases: the Keras default both
     # references use) or 'torch' (PyTorch's layer defaults, what runs before 2026-12 used).
@@ -177,6 +181,9 @@ class Config:
         check(tr.render_quality in ("fast", "default"),
               f"train.render_quality must be 'fast'|'default', got {tr.render_quality!r}")
         check(tr.batch_size >= 1 and tr.seq_len >= 2, "train.batch_size >= 1, seq_len >= 2")
+        if self.spec.reads_true_context:
+            check(tr.world_model_only, f"variant {self.variant!r} reads the true context from the "
+                  "logs and has no policy to act with it: set train.world_model_only=true")
         if self.spec.representation != "none":
             # SwAV scores drop the first steps and TC-SwAV needs two halves of >= 1 step.
             check(tr.seq_len - ctx.drop_first_steps >= 2,
@@ -184,6 +191,10 @@ class Config:
                   f"(drop_first_steps={ctx.drop_first_steps})")
             check(ctx.num_prototypes >= 1 and ctx.proto_dim >= 1, "context sizes must be >= 1")
             check(0.0 < ctx.ema <= 1.0, "context.ema must be in (0, 1]")
+            check(ctx.projector_input in PROJECTOR_INPUTS, f"context.projector_input must be one of "
+                  f"{PROJECTOR_INPUTS}, got {ctx.projector_input!r}")
+            check(ctx.sinkhorn_over in SINKHORN_OVER, f"context.sinkhorn_over must be one of "
+                  f"{SINKHORN_OVER}, got {ctx.sinkhorn_over!r}")
 
 
 # ------------------------------------------------------------------------------------------------

@@ -30,7 +30,8 @@ class VariantSpec:
     family: 'world_model' (Dreamer's world model + actor-critic in imagination, protocad_ros.model.agent)
         or 'model_free' (DrQ: SAC on frame stacks, protocad_ros.model.drq).
     features: parts of x_t that the decoder / actor / critic read: 's' = RSSM state (h, z),
-        'u' = projection embedding, 'e' = aggregated prototype (the reward head always reads s).
+        'u' = projection embedding, 'e' = aggregated prototype, 'c' = the true context (read
+        from the logs; it also enters the RSSM) (the reward head always reads s).
     representation: the extra representation loss: 'tc_swav' (ProtoCAD's context module),
         'swav' (the context module with in-place SwAV, no temporal consistency), 'dreamerpro'
         (DreamerPro's prototypes, reconstruction-free), 'none'.
@@ -50,6 +51,10 @@ class VariantSpec:
     def uses_context(self) -> bool:
         return self.representation in ("tc_swav", "swav")
 
+    @property
+    def reads_true_context(self) -> bool:
+        return "c" in self.features
+
 
 VARIANT_TABLE: dict[str, VariantSpec] = {v.name: v for v in (
     VariantSpec("protocad", "world_model", ("s", "u", "e"), "tc_swav", True, True,
@@ -64,6 +69,9 @@ VARIANT_TABLE: dict[str, VariantSpec] = {v.name: v for v in (
                 "ProtoCAD ablation 'w/o Projection': x = (s, e)"),
     VariantSpec("no_temporal_consistency", "world_model", ("s", "u", "e"), "swav", True, True,
                 "ProtoCAD ablation 'w/o Temporal Consistency': in-place SwAV"),
+    VariantSpec("dreamer_true_context", "world_model", ("s", "c"), "none", True, False,
+                "Dreamer given the true context (normalized log m, log d into the RSSM and the "
+                "decoder, as cRSSM): the ceiling of what a context can give; world model only"),
     VariantSpec("drq", "model_free", (), "none", False, True,
                 "DrQ (Yarats, Kostrikov & Fergus, ICLR 2021): SAC + random-shift augmentation"),
 )}
@@ -134,6 +142,21 @@ class ContextConfig:
     # refused unless this says it is meant (e.g. to measure fixed random prototypes).
     allow_long_freeze: bool = False
     drop_first_steps: int = 1      # DreamerPro rssm.warm_up: first step out of the SwAV scores
+    # What the projector f_theta reads: 's' = s_t = (z_t sampled, h_t), the paper's; 'h' = the
+    # deterministic state h_t alone (the sampled z is most of s and is noise to a context code
+    # that should hold over an episode; the trained projector suppresses it anyway).
+    projector_input: str = "s"
+    # What one Sinkhorn sample is: 'steps' (every time step, the paper's and DreamerPro's) or
+    # 'half_means' (one per sequence half: with K prototypes and B sequences, per-step
+    # equipartition forces each sequence onto >= K/B prototypes; per-half it can use one).
+    sinkhorn_over: str = "steps"
+    # DreamerPro's same-time cross-view SwAV term (its `swav` loss: each step's prediction
+    # against the other view's target at the same step), added beside TC-SwAV with this weight;
+    # 0 = the paper's TC-SwAV alone.
+    cross_view_scale: float = 0.0
+    # Both augmented views train the world model (DreamerPro doubles the batch with them); false
+    # = the paper's reading: view 2 only yields the targets.
+    both_views_train: bool = False
     swav_scale: float = 1.0        # DreamerPro loss_scales.swav
     aug_pad: int = 3               # DreamerPro aug.max_delta: random shift +-3 px, bilinear
     # The reconstruction loss on x = (s, u, e) also trains projector and prototypes (Algorithm 1,
@@ -234,6 +257,9 @@ class TrainConfig:
     # What one training process may plan to allocate (estimate_train_memory), in GB; 0 = 90% of
     # this machine's memory. Training refuses a config estimated above it before building it.
     memory_limit_gb: float = 0.0
+    # Train the world model only, no actor or critic (the world-model study on fixed logs,
+    # msgs_docs/results.md): an update is the world model's step alone.
+    world_model_only: bool = False
 
 
 # ------------------------------------------------------------------------------------------------
@@ -258,6 +284,7 @@ RANGES: dict[str, tuple[float, float, bool]] = {
     "context.num_prototypes": (1, 1_000_000, True), "context.proto_dim": (1, 16384, True),
     "context.temperature": (0, 1e6, False), "context.sinkhorn_iters": (1, 1000, True),
     "context.sinkhorn_eps": (0, 1e6, False), "context.ema": (0, 1, False),
+    "context.cross_view_scale": (0, 1e6, True),
     "context.freeze_prototypes_updates": (FREEZE_AUTO, 1e12, True),
     "context.freeze_prototypes_fraction": (0, 1, True), "context.drop_first_steps": (0, 1000, True),
     "context.swav_scale": (0, 1e6, True), "context.aug_pad": (0, 32, True),
@@ -328,6 +355,19 @@ MODEL_FREE_PRESET_OVERRIDES: dict[str, dict[str, Any]] = {
 }
 
 
+#: context.projector_input: what f_theta reads (WorldModel.context_input).
+PROJECTOR_INPUTS = ("s", "h")
+#: context.sinkhorn_over: what one Sinkhorn sample is (ContextModule.targets).
+SINKHORN_OVER = ("steps", "half_means")
+
+#: The context module as the paper states it (Table `hyperpara`, sec. 4.2, Algorithm 1).
+PAPER_CONTEXT_SETTINGS: dict[str, Any] = {
+    "context.sinkhorn_eps": 0.05, "context.temperature": 0.1, "context.sinkhorn_iters": 3,
+    "context.ema": 0.05, "context.proto_dim": 32, "context.projector_input": "s",
+    "context.sinkhorn_over": "steps", "context.cross_view_scale": 0.0,
+    "context.both_views_train": False,
+}
+
 #: The reference configs behind `Config.reference`, as overrides of the defaults above (which
 #: are DreamerPro's dmc). DreamerV2: danijar/dreamerv2 dreamerv2/configs.yaml (commit 07d906e),
 #: defaults + dmc_vision: rssm {stoch 32, discrete 32} (no unimix: a DreamerV3 addition),
@@ -337,6 +377,9 @@ MODEL_FREE_PRESET_OVERRIDES: dict[str, dict[str, Any]] = {
 #: win.
 REFERENCE_SETTINGS: dict[str, dict[str, Any]] = {
     "dreamerpro": {},
+    # The paper's own settings, stated: DreamerPro's dmc reference with the context module as
+    # the paper's text and tables define it (whatever the context defaults become).
+    "paper": dict(PAPER_CONTEXT_SETTINGS),
     "dreamerv2": {
         "world_model.discrete": 32,
         "world_model.unimix": 0.0,
@@ -358,6 +401,8 @@ VARIANT_OWN_SETTINGS: dict[str, dict[str, Any]] = {
         "train.collect_interval": 100,
         "train.prefill_episodes": 5,
     },
+    # The true-context ceiling has no policy that could act: it trains its world model only.
+    "dreamer_true_context": {"train.world_model_only": True},
     # DrQ: denisyarats/drq config.yaml (dd040f1) and its paper: batch 512 transitions, one
     # update per agent step (500 per 1000-step episode at A = 2), 1000 seed steps of random
     # actions (= 2 episodes at A = 2, ProtoCAD's N as well).

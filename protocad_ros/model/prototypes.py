@@ -30,13 +30,16 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from protocad_ros.model.augment import random_shift  # (re-export: the two views of Algorithm 1)
+from protocad_ros.model.hyperparameters import SINKHORN_OVER
 
 __all__ = [
+    "SINKHORN_OVER",
     "sinkhorn_knopp",
     "swav_cross_entropy",
     "tc_swav_loss",
     "swav_loss",
     "same_episode_pairs",
+    "context_health",
     "random_unit_prototypes",
     "ContextModule",
     "random_shift",
@@ -54,9 +57,7 @@ def random_unit_prototypes(num_prototypes: int, dim: int) -> torch.Tensor:
     return c if c.is_meta else F.normalize(c.normal_(), dim=-1)
 
 
-# --------------------------------------------------------------------------------------------
-# Sinkhorn-Knopp (online equipartition clustering, SwAV / DreamerPro)
-# --------------------------------------------------------------------------------------------
+# ---- Sinkhorn-Knopp (online equipartition clustering, SwAV / DreamerPro) -------------
 @torch.no_grad()
 def sinkhorn_knopp(scores: torch.Tensor, num_iters: int = 3, eps: float = 0.05) -> torch.Tensor:
     """Soft cluster assignments with equal cluster sizes, computed in log space (no grad).
@@ -95,9 +96,7 @@ def sinkhorn_knopp(scores: torch.Tensor, num_iters: int = 3, eps: float = 0.05) 
     return torch.exp(log_q + math.log(N)).to(scores.dtype)  # (N, K), rows sum to 1
 
 
-# --------------------------------------------------------------------------------------------
-# SwAV-style losses on sequences
-# --------------------------------------------------------------------------------------------
+# ---- SwAV-style losses on sequences --------------------------------------------------
 def swav_cross_entropy(log_w: torch.Tensor, targets: torch.Tensor) -> torch.Tensor:
     """Cross-entropy of predictions against (Sinkhorn) targets, per sample.
 
@@ -175,9 +174,44 @@ def _entropy(p: torch.Tensor) -> torch.Tensor:
     return -(p * torch.log(p.clamp_min(1e-12))).sum(-1)
 
 
-# --------------------------------------------------------------------------------------------
-# The module
-# --------------------------------------------------------------------------------------------
+@torch.no_grad()
+def context_health(u: torch.Tensor, w: torch.Tensor, ubar: torch.Tensor, wbar: torch.Tensor | None,
+                   prototypes: torch.Tensor, initial: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Whether the context module codes anything: figures of one batch of sequences.
+
+    u, ubar: (B, M, D) online / target projections; w, wbar: (B, M, K) predictions and
+    Sinkhorn targets (wbar None: left out); prototypes and their seeded initial values (K, D).
+    The trivial solution of the SwAV loss shows as projections in a cone (proj_cosine near 1),
+    predictions and targets near uniform (entropies near ln K, top probabilities near 1/K) and
+    swav_loss near ln K; a code of the context as sequences whose steps share one prototype
+    (modal_share near 1) and projections that differ between sequences more than within
+    (proj_between_share near 1). Thresholds: trainer/learn/context_health.py.
+    """
+    B, M, D = ubar.shape
+    flat = ubar.reshape(-1, D).float()
+    n = flat.shape[0]
+    # mean over pairs i != j of ubar_i . ubar_j = (|sum ubar|^2 - n) / (n (n - 1))
+    proj_cos = (flat.sum(0).pow(2).sum() - n) / max(n * (n - 1), 1)
+    uf = u.float()
+    centre = uf.reshape(-1, D).mean(0)
+    total_var = (uf - centre).pow(2).sum(-1).mean()
+    between = (uf.mean(1) - centre).pow(2).sum(-1).mean()
+    modal = w.argmax(-1)  # (B, M)
+    counts = torch.zeros(B, w.shape[-1], device=w.device).scatter_add_(
+        1, modal, torch.ones_like(modal, dtype=torch.float32))
+    out = {"swav_pred_entropy": _entropy(w).mean(), "swav_pred_top": w.max(-1).values.mean(),
+           # exp(H(mean assignment)): how many prototypes are effectively in use (<= K).
+           "swav_pred_perplexity": _entropy(w.reshape(-1, w.shape[-1]).mean(0)).exp(),
+           "proj_cosine": proj_cos, "proj_between_share": between / total_var.clamp_min(1e-12),
+           "modal_share": (counts.max(-1).values / M).mean(),
+           "proto_init_cosine": F.cosine_similarity(prototypes.detach().float(), initial.float(), dim=-1).mean()}
+    if wbar is not None:
+        out.update({"swav_target_entropy": _entropy(wbar).mean(), "swav_target_top": wbar.max(-1).values.mean(),
+                    "swav_target_perplexity": _entropy(wbar.reshape(-1, wbar.shape[-1]).mean(0)).exp()})
+    return out
+
+
+# ---- The module ----------------------------------------------------------------------
 class ContextModule(nn.Module):
     """Projector f_theta, EMA target projector f_thetabar and K prototypes c_k (ProtoCAD).
 
@@ -217,8 +251,12 @@ class ContextModule(nn.Module):
     def __init__(self, state_dim: int, *, proj_dim: int = 32, num_prototypes: int = 100,
                  temperature: float = 0.1, sinkhorn_iters: int = 3, sinkhorn_eps: float = 0.05,
                  ema: float = 0.05, freeze_prototypes_steps: int = 0,
-                 temporal_consistency: bool = True, drop_first_steps: int = 1):
+                 temporal_consistency: bool = True, drop_first_steps: int = 1,
+                 sinkhorn_over: str = "steps", cross_view_scale: float = 0.0,
+                 both_views_train: bool = False):
         super().__init__()
+        if sinkhorn_over not in SINKHORN_OVER:
+            raise ValueError(f"sinkhorn_over must be one of {SINKHORN_OVER}, got {sinkhorn_over!r}")
         if not 0.0 < ema <= 1.0:
             raise ValueError(f"ema must be in (0, 1], got {ema}")
         if temperature <= 0:
@@ -232,6 +270,9 @@ class ContextModule(nn.Module):
         self.freeze_prototypes_steps = max(0, int(freeze_prototypes_steps))
         self.temporal_consistency = temporal_consistency
         self.drop_first_steps = drop_first_steps
+        self.sinkhorn_over = sinkhorn_over
+        self.cross_view_scale = float(cross_view_scale)
+        self.both_views_train = bool(both_views_train)
 
         self.projector = nn.Linear(state_dim, proj_dim)  # f_theta
         # f_thetabar: Algorithm 1 "Initialize thetabar = theta"; never receives gradients.
@@ -239,6 +280,9 @@ class ContextModule(nn.Module):
         self.target_projector.requires_grad_(False)
         # c_k: random directions on the unit sphere (K, D).
         self.prototypes = nn.Parameter(random_unit_prototypes(num_prototypes, proj_dim))
+        # The seeded starting directions, for the health metric "have the prototypes moved"
+        # (not saved: the agent's seeded construction redraws them on every load).
+        self.register_buffer("initial_prototypes", self.prototypes.detach().clone(), persistent=False)
         # EMA updates done so far; a buffer so a resumed checkpoint does not re-copy.
         self.register_buffer("ema_updates", torch.zeros((), dtype=torch.long))
 
@@ -253,13 +297,17 @@ class ContextModule(nn.Module):
                    sinkhorn_eps=ctx_cfg.sinkhorn_eps, ema=ctx_cfg.ema,
                    freeze_prototypes_steps=ctx_cfg.freeze_prototypes_updates,
                    temporal_consistency=temporal_consistency,
-                   drop_first_steps=ctx_cfg.drop_first_steps)
+                   drop_first_steps=ctx_cfg.drop_first_steps,
+                   sinkhorn_over=ctx_cfg.sinkhorn_over,
+                   cross_view_scale=ctx_cfg.cross_view_scale,
+                   both_views_train=ctx_cfg.both_views_train)
 
     def extra_repr(self) -> str:
         return (f"K={self.num_prototypes}, D={self.proj_dim}, T={self.temperature}, "
                 f"sinkhorn=({self.sinkhorn_iters}, {self.sinkhorn_eps}), ema={self.ema}, "
                 f"freeze={self.freeze_prototypes_steps}, tc={self.temporal_consistency}, "
-                f"drop_first={self.drop_first_steps}")
+                f"drop_first={self.drop_first_steps}, sinkhorn_over={self.sinkhorn_over}, "
+                f"cross_view={self.cross_view_scale}, both_views={self.both_views_train}")
 
     # ---- prototypes -------------------------------------------------------------------------
     @torch.no_grad()
@@ -353,59 +401,98 @@ class ContextModule(nn.Module):
         return first, first + h
 
     @torch.no_grad()
-    def targets(self, s2: torch.Tensor) -> torch.Tensor:
-        """wbar = Sinkhorn-Knopp(ubar . c): (B, M, S) -> (B, M, K), over all B*M samples."""
-        ubar = F.normalize(self.target_projector(s2), dim=-1)  # (B, M, D)
-        scores = ubar @ self.prototypes.t()  # (B, M, K), no temperature: eps plays that role
-        B, M, K = scores.shape
-        q = sinkhorn_knopp(scores.reshape(B * M, K), self.sinkhorn_iters, self.sinkhorn_eps)
-        return q.reshape(B, M, K)
+    def target_projections(self, s2: torch.Tensor) -> torch.Tensor:
+        """ubar = normalize(f_thetabar(s)): (..., S) -> (..., D), float32."""
+        return F.normalize(self.target_projector(s2.float()), dim=-1)
+
+    @torch.no_grad()
+    def targets(self, ubar: torch.Tensor, halves: tuple[torch.Tensor, torch.Tensor] | None = None
+                ) -> torch.Tensor:
+        """wbar = Sinkhorn-Knopp(ubar . c): target projections (B, M, D) -> (B, M, K).
+
+        sinkhorn_over='steps' (the paper): every one of the B*M steps is a sample, so
+        equipartition spreads each sequence over at least K/B prototypes. 'half_means': one
+        sample per sequence half (the mean of its projections, renormalised; `halves` = the
+        two halves' step indices), 2B samples, and every step of a half gets its half's
+        target: the code can then be one prototype per context, and the halves still predict
+        each other (eq. 5) when the context is constant. Steps in neither half get no target
+        (zeros).
+        """
+        c = self.prototypes.detach().float()
+        B, M, _ = ubar.shape
+        K = c.shape[0]
+        if self.sinkhorn_over == "steps" or halves is None:
+            q = sinkhorn_knopp((ubar @ c.t()).reshape(B * M, K), self.sinkhorn_iters, self.sinkhorn_eps)
+            return q.reshape(B, M, K)
+        means = torch.stack([F.normalize(ubar[:, idx].mean(1), dim=-1) for idx in halves], 1)  # (B, 2, D)
+        q = sinkhorn_knopp((means @ c.t()).reshape(B * 2, K), self.sinkhorn_iters,
+                           self.sinkhorn_eps).reshape(B, 2, K)
+        out = torch.zeros(B, M, K, device=ubar.device)
+        for i, idx in enumerate(halves):
+            out[:, idx] = q[:, i:i + 1].expand(B, len(idx), K)
+        return out
+
+    def _swav_terms(self, log_w: torch.Tensor, wbar: torch.Tensor, halves: tuple[torch.Tensor, torch.Tensor],
+                    pair_mask: torch.Tensor | None) -> torch.Tensor:
+        """The paper's term (TC-SwAV across halves, or in place for the ablation) plus, with
+        cross_view_scale, DreamerPro's same-time term (each step's prediction against its own
+        step's target of the other view) on the paired steps."""
+        idx = torch.cat(halves).to(log_w.device)
+        if self.temporal_consistency:
+            loss = tc_swav_loss(log_w[:, idx], wbar[:, idx], pair_mask)
+        else:
+            loss = swav_loss(log_w, wbar)
+        if self.cross_view_scale:
+            loss = loss + self.cross_view_scale * swav_loss(log_w[:, idx], wbar[:, idx])
+        return loss
 
     def loss(self, s1: torch.Tensor, s2: torch.Tensor, step: int,
              is_first: torch.Tensor | None = None) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """TC-SwAV (or the in-place ablation) between view-1 predictions and view-2 targets.
 
-        s1, s2: (B, M, S) posterior states of views 1 and 2 (gradient flows into s1 only).
+        s1, s2: (B, M, S) posterior states of views 1 and 2 (gradient flows into s1; into s2
+            too with both_views_train, whose predictions then learn view 1's targets).
         step: world-model updates done before this one (freeze window for the prototypes).
         is_first: optional (B, M) bool; with TC, pairs that straddle an episode reset are
             left out (a new context starts there).
-        returns (scalar loss to minimise, metrics: dict of detached 0-dim tensors).
+        returns (scalar loss to minimise, metrics: dict of detached 0-dim tensors: the loss and
+            the module's health, context_health).
+        Computed in float32 whatever the autocast around it: in bf16 the scores of nearby
+        projections round together (SwAV figures came in multiples of 1/32).
         """
         if s1.shape != s2.shape or s1.dim() != 3:
             raise ValueError(f"expected s1, s2 (B, M, S) of the same shape, got "
                              f"{tuple(s1.shape)} and {tuple(s2.shape)}")
         keep = self.kept_steps(s1.shape[1])
-        s1, s2 = s1[:, keep], s2[:, keep]  # (B, M', S), the steps after the warm-up
+        first, second = self.tc_pairs(keep.stop)
+        halves = (first - keep.start, second - keep.start)  # indices among the kept steps
+        pair_mask = None
+        if self.temporal_consistency and is_first is not None:
+            # Segment ids from the full sequence, so resets in dropped steps still count.
+            episode = torch.cumsum(is_first.to(s1.device).long(), dim=1)
+            pair_mask = episode[:, first.to(s1.device)] == episode[:, second.to(s1.device)]
 
         frozen = self.prototypes_frozen(step)
-        # Frozen: the loss still trains the projector, but c_k gets no gradient from it.
-        c = self.prototypes.detach() if frozen else self.prototypes  # (K, D)
-        u = self.project(s1)  # (B, M', D)
-        log_w = torch.log_softmax(self.logits(u, c), dim=-1)  # (B, M', K)
-        wbar = self.targets(s2)  # (B, M', K), no grad
-
-        if self.temporal_consistency:
-            first, second = self.tc_pairs(keep.stop)
-            # tc_swav_loss pairs step j of the first half with step j of the second half.
-            idx = (torch.cat([first, second]) - keep.start).to(log_w.device)
-            pair_mask = None
-            if is_first is not None:
-                # Segment ids from the full sequence, so resets in dropped steps still count.
-                episode = torch.cumsum(is_first.to(s1.device).long(), dim=1)
-                pair_mask = episode[:, first.to(s1.device)] == episode[:, second.to(s1.device)]
-            loss = tc_swav_loss(log_w[:, idx], wbar[:, idx], pair_mask)
-        else:
-            loss = swav_loss(log_w, wbar)
-
-        with torch.no_grad():
-            w = log_w.exp()
-            metrics = {
-                "swav_loss": loss.detach(),
-                "swav_target_entropy": _entropy(wbar).mean(),
-                "swav_pred_entropy": _entropy(w).mean(),
-                # exp(H(mean assignment)): how many prototypes are effectively in use (<= K).
-                "swav_target_perplexity": _entropy(wbar.reshape(-1, wbar.shape[-1]).mean(0)).exp(),
-                "swav_pred_perplexity": _entropy(w.reshape(-1, w.shape[-1]).mean(0)).exp(),
-                "prototypes_frozen": torch.tensor(float(frozen), device=loss.device),
-            }
+        with torch.autocast(device_type=s1.device.type, enabled=False):
+            s1, s2 = s1[:, keep].float(), s2[:, keep].float()  # (B, M', S) after the warm-up
+            # Frozen: the loss still trains the projector, but c_k gets no gradient from it.
+            c = self.prototypes.detach() if frozen else self.prototypes  # (K, D)
+            views = [(s1, s2), (s2, s1)] if self.both_views_train else [(s1, s2)]
+            total, metrics = s1.new_zeros(()), {}
+            for pred_s, tgt_s in views:
+                u = self.project(pred_s)  # (B, M', D)
+                log_w = torch.log_softmax(self.logits(u, c), dim=-1)  # (B, M', K)
+                ubar = self.target_projections(tgt_s)
+                wbar = self.targets(ubar, halves)  # (B, M', K), no grad
+                total = total + self._swav_terms(log_w, wbar, halves, pair_mask)
+                # Health of view 1's predictions against view 2's targets (the paper's pair).
+                metrics = metrics or self.health(u.detach(), log_w.detach().exp(), ubar, wbar)
+            loss = total / len(views)
+        metrics["swav_loss"] = loss.detach()
+        metrics["prototypes_frozen"] = torch.tensor(float(frozen), device=loss.device)
         return loss, metrics
+
+    def health(self, u: torch.Tensor, w: torch.Tensor, ubar: torch.Tensor,
+               wbar: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
+        """context_health of these projections and assignments with this module's prototypes."""
+        return context_health(u, w, ubar, wbar, self.prototypes, self.initial_prototypes)

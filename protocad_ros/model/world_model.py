@@ -4,7 +4,8 @@ and the variant's representation loss (ProtoCAD's context module, or DreamerPro'
 WorldModel.loss for variant 'protocad' (the others switch parts off, as their VariantSpec says):
   1. two views o^(1), o^(2) = random_shift(o) (one shift per sequence, bilinear)
   2. s^(1) = RSSM posterior of view 1 (with grad); s^(2) of view 2 (no grad: it only feeds the
-     EMA target projector, whose Sinkhorn targets carry no gradient anyway)
+     EMA target projector, whose Sinkhorn targets carry no gradient anyway; with
+     context.both_views_train its own predictions learn view 1's targets, with grad)
   3. u, w, e = ContextModule.features(s^(1)); x = (s, u, e)
   4. J_ProtoCAD = KL(post || prior) + image NLL(decoder(x)) + reward NLL(reward(s)) + TC-SwAV
 Its optimiser step, and the target and prototype updates after it, are the Agent's
@@ -24,6 +25,7 @@ from protocad_ros.model.config import Config
 from protocad_ros.model.networks import MLP, ConvDecoder, ConvEncoder
 from protocad_ros.model.prototypes import ContextModule, random_unit_prototypes, sinkhorn_knopp
 from protocad_ros.model.rssm import RSSM
+from sim_bridge.contract.contexts import get_task  # pure data (no ROS): the task's context params
 
 __all__ = ["WorldModel", "DreamerProPrototypes"]
 
@@ -134,18 +136,21 @@ class WorldModel(nn.Module):
         self.cfg, self.variant = cfg, cfg.variant
         wm, ctx = cfg.world_model, cfg.context
         self.encoder = ConvEncoder(wm.cnn_depth, wm.cnn, wm.act, wm.norm)
-        self.rssm = RSSM(action_dim, self.encoder.out_dim, wm)
+        # The true context (variant dreamer_true_context) enters the RSSM beside the action.
+        self.true_context_dim = len(get_task(cfg.task).params) if cfg.spec.reads_true_context else 0
+        self.rssm = RSSM(action_dim + self.true_context_dim, self.encoder.out_dim, wm)
         S = self.rssm.feat_dim
         self.context: ContextModule | None = None
         self.dreamerpro: DreamerProPrototypes | None = None
         if cfg.uses_context:
             self.context = ContextModule.from_config(
-                ctx, state_dim=S, temporal_consistency=cfg.spec.representation == "tc_swav")
+                ctx, state_dim=self.rssm.deter_dim if ctx.projector_input == "h" else S,
+                temporal_consistency=cfg.spec.representation == "tc_swav")
         elif cfg.spec.representation == "dreamerpro":
             self.dreamerpro = DreamerProPrototypes(self.encoder, S, cfg)
         parts = cfg.features
         self.state_dim = S
-        self.feat_dim = S + ctx.proto_dim * (("u" in parts) + ("e" in parts))
+        self.feat_dim = S + ctx.proto_dim * (("u" in parts) + ("e" in parts)) + self.true_context_dim
         self.context_dims = (ctx.proto_dim, ctx.num_prototypes, ctx.proto_dim) \
             if self.context is not None else (0, 0, 0)
         self.decoder = ConvDecoder(self.feat_dim, wm.cnn_depth, wm.cnn, wm.act, wm.norm) \
@@ -160,23 +165,43 @@ class WorldModel(nn.Module):
         """uint8 (..., 64, 64, 3) -> float (..., 3, 64, 64) in [-0.5, 0.5]."""
         return image.movedim(-1, -3).float().div_(255.0).sub_(0.5)
 
+    def context_input(self, s: torch.Tensor) -> torch.Tensor:
+        """What the projector reads of s = (z, h) (..., S): all of it, or h (context.projector_input)."""
+        return s[..., self.rssm.stoch_dim:] if self.cfg.context.projector_input == "h" else s
+
     def context_features(self, s: torch.Tensor):
         """u, w, e of states s (..., S), or (None, None, None) without a context module."""
         if self.context is None:
             return None, None, None
-        return self.context.features(s)
+        return self.context.features(self.context_input(s))
 
-    def features(self, s: torch.Tensor, ctx=None) -> torch.Tensor:
+    def rssm_action(self, action: torch.Tensor, context: torch.Tensor | None) -> torch.Tensor:
+        """The RSSM's action input: a_{t-1}, and the true context beside it for the variant
+        that reads one (ValueError without it)."""
+        if not self.true_context_dim:
+            return action
+        if context is None or context.shape[-1] != self.true_context_dim:
+            raise ValueError(f"variant {self.variant!r} reads the true context ({self.true_context_dim} "
+                             f"values per step) and the batch has " + (
+                                 "none" if context is None else f"{context.shape[-1]}"))
+        return torch.cat([action, context.to(action.dtype)], -1)
+
+    def features(self, s: torch.Tensor, ctx=None, true_context: torch.Tensor | None = None) -> torch.Tensor:
         """x_t for the decoder / actor / critic: s plus the variant's context parts."""
         parts = self.cfg.features
         if len(parts) == 1:
             return s
-        u, _, e = ctx if ctx is not None else self.context.features(s)
         x = [s]
-        if "u" in parts:
-            x.append(u.to(s.dtype))
-        if "e" in parts:
-            x.append(e.to(s.dtype))
+        if "u" in parts or "e" in parts:
+            u, _, e = ctx if ctx is not None else self.context_features(s)
+            if "u" in parts:
+                x.append(u.to(s.dtype))
+            if "e" in parts:
+                x.append(e.to(s.dtype))
+        if "c" in parts:
+            if true_context is None:
+                raise ValueError(f"variant {self.variant!r} reads the true context; none was given")
+            x.append(true_context.to(s.dtype).expand(*s.shape[:-1], self.true_context_dim))
         return torch.cat(x, -1)
 
     def reward(self, s: torch.Tensor) -> torch.Tensor:
@@ -194,7 +219,8 @@ class WorldModel(nn.Module):
         """
         cfg, wm = self.cfg, self.cfg.world_model
         image = self.preprocess(batch["image"])  # (B, T, 3, 64, 64)
-        action, is_first = batch["action"], batch["is_first"]
+        true_context = batch.get("context")
+        action, is_first = self.rssm_action(batch["action"], true_context), batch["is_first"]
         reward = batch["reward"]
         terms: dict[str, torch.Tensor] = {}
         metrics: dict[str, torch.Tensor] = {}
@@ -231,18 +257,22 @@ class WorldModel(nn.Module):
 
         ctx = None
         if self.context is not None:
-            with torch.no_grad():  # view 2: targets only
+            # View 2 yields the targets only (the paper), or trains the world model too
+            # through its own predictions (context.both_views_train, as DreamerPro does).
+            with torch.set_grad_enabled(cfg.context.both_views_train and torch.is_grad_enabled()):
                 s2 = self.rssm.get_feat(self.rssm.observe(
                     self.encoder(view2), action, is_first, with_prior=False)[0])
-            terms["swav"], swav_metrics = self.context.loss(s, s2, step, is_first)
+            terms["swav"], swav_metrics = self.context.loss(
+                self.context_input(s), self.context_input(s2), step, is_first)
             metrics.update(swav_metrics)
-            ctx = self.context.features(s, train_module=cfg.context.recon_trains_context)
+            ctx = self.context.features(self.context_input(s),
+                                        train_module=cfg.context.recon_trains_context)
         elif self.dreamerpro is not None:
             terms["swav"], pro_metrics = self.dreamerpro.loss(embed, s, image, step)
             metrics.update(pro_metrics)
 
         if self.decoder is not None:
-            x = self.features(s, ctx)  # decoder reads x: gradients reach u, e -> projector, c_k
+            x = self.features(s, ctx, true_context)  # decoder reads x: gradients reach u, e -> projector, c_k
             # Target: the view the states were inferred from (view 1).
             terms["image"] = _nll_image(self.decoder(x), image).mean()
 

@@ -202,6 +202,16 @@ def get_task(name: str) -> TaskSpec:
         raise ValueError(f"unknown task {name!r}; valid tasks: {sorted(TASKS)}") from None
 
 
+def normalized_log_context(values: np.ndarray, task: str) -> np.ndarray:
+    """Scale factors (..., P) in the order of `task`'s params -> (log v - mu) / sigma, with mu
+    and sigma of log v over the task's training grid: the true context as a model reads it
+    (unseen contexts land outside [-1.5, 1.5] where the training grid spans it)."""
+    spec = get_task(task)
+    grid = np.log(np.array([[c[p] for p in spec.params] for c in spec.contexts("train")], np.float64))
+    mu, sigma = grid.mean(0), grid.std(0)
+    return (np.log(np.asarray(values, np.float64)) - mu) / np.where(sigma > 0, sigma, 1.0)
+
+
 def context_label(context: Mapping[str, float], split: str | None = None) -> str:
     """'m=0.75 d=1' (or 'train m=0.75 d=1' with the split): how a context is named in tables,
     logs and plots."""

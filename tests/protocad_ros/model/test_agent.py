@@ -16,9 +16,12 @@ from helpers.agents import render_batch
 
 from protocad_ros.model.agent import Agent
 from protocad_ros.model.config import Config, ConfigError, make_config
-from protocad_ros.model.hyperparameters import WORLD_MODEL_VARIANTS
+from protocad_ros.model.hyperparameters import VARIANT_TABLE, WORLD_MODEL_VARIANTS
 from protocad_ros.policy import ContextFeatures, Policy
 from protocad_ros.policy import Policy as _Policy
+
+#: The world-model variants with a policy (the true-context ceiling trains its world model only).
+ACTING = [v for v in WORLD_MODEL_VARIANTS if not VARIANT_TABLE[v].reads_true_context]
 
 B, T = 4, 16  # 4 real sequences of 16 agent steps
 
@@ -115,7 +118,7 @@ def test_variant_features_and_modules(variant, parts):
 
 
 # ---- learning on real frames -------------------------------------------------------------------
-@pytest.mark.parametrize("variant", WORLD_MODEL_VARIANTS)
+@pytest.mark.parametrize("variant", ACTING)
 def test_world_model_loss_decreases_on_real_frames(real_batch, variant):
     torch.manual_seed(0)
     agent = Agent(tiny(variant, **{"world_model.lr": 1e-3}), action_dim=1)
@@ -133,6 +136,24 @@ def test_world_model_loss_decreases_on_real_frames(real_batch, variant):
         assert "swav_loss" in m
     if variant != "dreamerpro":
         assert "image_loss" in m
+
+
+def test_the_true_context_world_model_learns_from_the_context_and_refuses_to_act(real_batch):
+    torch.manual_seed(0)
+    agent = Agent(tiny("dreamer_true_context", **{"world_model.lr": 1e-3, "train.world_model_only": True}),
+                  action_dim=1)
+    B, T = real_batch["image"].shape[:2]
+    batch = {**real_batch, "context": np.full((B, T, 1), 0.5, np.float32)}
+    losses = [agent.train_step(batch)["wm_loss"] for _ in range(24)]
+    assert np.mean(losses[-3:]) < 0.85 * np.mean(losses[:3])
+    assert agent.wm.rssm.action_dim == 2 and agent.wm.feat_dim == agent.wm.state_dim + 1
+    out = agent.open_loop(batch, context_steps=2, horizon=3)
+    assert out["prediction"].shape[1] == 3
+    with pytest.raises(ValueError, match="true context"):
+        agent.train_step(real_batch)            # the context is its input: no batch without it
+    with pytest.raises(ValueError, match="does not act"):
+        agent.observe_step(None, torch.as_tensor(real_batch["image"][:, 0]), torch.zeros(B, 1),
+                           torch.ones(B, dtype=torch.bool))
 
 
 def test_discrete_latents_layernorm_and_bf16_run(real_batch):

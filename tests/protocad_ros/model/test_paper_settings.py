@@ -114,3 +114,26 @@ def test_reference_and_weight_init_are_checked():
     with pytest.raises(ConfigError, match="weight_init"):
         make_config("walker_walk", "small", "dreamer", weight_init="he")
     assert make_config("walker_walk").weight_init == "glorot"    # the references' Keras default
+
+
+#: ProtoCAD's context module as the paper states it: Table `hyperpara` (D 32, T 0.1, SK-itr 3,
+#: SK-eps 0.05, eta 0.05), sec. 4.2 (the projector reads s; one Sinkhorn sample per time step;
+#: TC-SwAV alone; view 2 only yields the targets).
+PAPER_CONTEXT = {"proto_dim": 32, "temperature": 0.1, "sinkhorn_iters": 3, "sinkhorn_eps": 0.05, "ema": 0.05,
+                 "projector_input": "s", "sinkhorn_over": "steps", "cross_view_scale": 0.0,
+                 "both_views_train": False}
+
+
+@pytest.mark.parametrize("preset", ["paper", "small"])
+def test_reference_paper_gives_the_papers_context_settings_whatever_the_defaults(preset):
+    fixes = {"context.sinkhorn_eps": 0.0125, "context.projector_input": "h", "context.sinkhorn_over": "half_means",
+             "context.cross_view_scale": 1.0, "context.both_views_train": True}
+    cfg = make_config("walker_walk", preset, "protocad", reference="paper")
+    assert {k: getattr(cfg.context, k) for k in PAPER_CONTEXT} == PAPER_CONTEXT
+    assert cfg.context.num_prototypes == 100 and cfg.reference == "paper"   # K of the task table
+    # The reference sits under the caller's overrides (as every reference does) ...
+    tried = make_config("walker_walk", preset, "protocad", reference="paper", **fixes)
+    assert {f"context.{k}": getattr(tried.context, k) for k in (n.split(".")[1] for n in fixes)} == fixes
+    # ... and the Dreamer core under it is DreamerPro's, the paper's own.
+    pro = make_config("walker_walk", preset, "protocad")
+    assert tried.world_model == pro.world_model and tried.behavior == pro.behavior

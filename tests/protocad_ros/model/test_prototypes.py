@@ -232,12 +232,14 @@ def test_from_config_maps_config_names():
     from types import SimpleNamespace
     cfg = SimpleNamespace(proto_dim=6, num_prototypes=9, temperature=0.2, sinkhorn_iters=4,
                           sinkhorn_eps=0.0125, ema=0.1, freeze_prototypes_updates=7,
-                          drop_first_steps=0)
+                          drop_first_steps=0, sinkhorn_over="half_means", cross_view_scale=0.5,
+                          both_views_train=True)
     ctx = ContextModule.from_config(cfg, state_dim=11, temporal_consistency=False)
     assert ctx.prototypes.shape == (9, 6) and ctx.projector.in_features == 11
     assert (ctx.temperature, ctx.sinkhorn_iters, ctx.sinkhorn_eps, ctx.ema) == (0.2, 4, 0.0125, 0.1)
     assert ctx.freeze_prototypes_steps == 7 and ctx.drop_first_steps == 0
     assert not ctx.temporal_consistency
+    assert (ctx.sinkhorn_over, ctx.cross_view_scale, ctx.both_views_train) == ("half_means", 0.5, True)
 
 
 def test_loss_uses_target_projector_sinkhorn_and_crossover():
@@ -416,3 +418,90 @@ def test_reconstruction_trains_the_context_module_only_when_asked():
         # the features themselves do not depend on the switch
         u2, w2, e2 = ctx.features(s.detach(), train_module=not train_module)
         torch.testing.assert_close((u.detach(), w.detach(), e.detach()), (u2, w2, e2))
+
+
+# --------------------------------------------------------------------------------------------
+# The settings beside the paper's (issue 51) and the module's health
+# --------------------------------------------------------------------------------------------
+def test_half_means_sinkhorn_gives_each_half_one_target_from_its_mean_projection():
+    g = _gen(11)
+    ctx = _module(sinkhorn_over="half_means")
+    s2 = torch.randn(3, 9, 10, generator=g)
+    ubar = ctx.target_projections(s2[:, 1:])              # kept steps 1..8
+    halves = (torch.arange(0, 4), torch.arange(4, 8))     # (1..4) and (5..8) among the kept
+    wbar = ctx.targets(ubar, halves)
+    means = torch.stack([F.normalize(ubar[:, h].mean(1), dim=-1) for h in halves], 1)
+    ref = sinkhorn_knopp((means @ ctx.prototypes.detach().t()).reshape(6, 5), 3, 0.05).reshape(3, 2, 5)
+    for i, h in enumerate(halves):
+        assert torch.allclose(wbar[:, h], ref[:, i:i + 1].expand(3, 4, 5), atol=1e-6)
+    assert torch.allclose(wbar.sum(-1), torch.ones(3, 8), atol=1e-5)
+    # The loss pairs each half's target with the other half's predictions, as eq. 5.
+    s1 = torch.randn(3, 9, 10, generator=g)
+    loss, _ = ctx.loss(s1, s2, step=0)
+    log_w = torch.log_softmax(ctx.project(s1[:, 1:]) @ ctx.prototypes.detach().t() / 0.1, -1)
+    assert loss.item() == pytest.approx(_tc_reference(log_w.detach(), wbar), rel=1e-5)
+
+
+def test_cross_view_term_adds_the_same_time_swav_and_both_views_train_view_2():
+    g = _gen(12)
+    s1 = torch.randn(2, 9, 10, generator=g, requires_grad=True)
+    s2 = torch.randn(2, 9, 10, generator=g, requires_grad=True)
+    paper = _module()
+    crossed = _module(cross_view_scale=0.5)
+    tc, _ = paper.loss(s1, s2, step=0)
+    both, _ = crossed.loss(s1, s2, step=0)
+    log_w = torch.log_softmax(paper.project(s1[:, 1:]) @ paper.prototypes.detach().t() / 0.1, -1)
+    wbar = paper.targets(paper.target_projections(s2[:, 1:]))
+    assert both.item() == pytest.approx(tc.item() + 0.5 * _inplace_reference(log_w.detach(), wbar), rel=1e-5)
+    tc.backward()
+    assert s2.grad is None                                   # the paper: view 2 yields targets only
+    views = _module(both_views_train=True)
+    loss, _ = views.loss(s1, s2, step=0)
+    loss.backward()
+    assert s2.grad is not None and s2.grad.abs().sum() > 0   # view 2's predictions learn view 1's targets
+    swapped, _ = _module().loss(s2, s1, step=0)
+    assert loss.item() == pytest.approx(0.5 * (tc.item() + swapped.item()), rel=1e-5)
+
+
+def test_swav_runs_in_float32_under_bfloat16_autocast():
+    g = _gen(13)
+    ctx = _module()
+    s1, s2 = torch.randn(2, 9, 10, generator=g), torch.randn(2, 9, 10, generator=g)
+    ref, _ = ctx.loss(s1, s2, step=0)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        loss, metrics = ctx.loss(s1.bfloat16(), s2.bfloat16(), step=0)
+    assert loss.dtype == torch.float32 and metrics["swav_pred_entropy"].dtype == torch.float32
+    # bf16 inputs round s itself; the SwAV arithmetic after that is float32 (no 1/32 steps).
+    ref16, _ = ctx.loss(s1.bfloat16().float(), s2.bfloat16().float(), step=0)
+    assert loss.item() == pytest.approx(ref16.item(), rel=1e-6)
+
+
+def test_health_reads_a_collapsed_and_a_context_coding_batch():
+    from trainer.learn.context_health import collapse_reason
+
+    ctx = _module(num_prototypes=4, proj_dim=4)
+    B, M, K = 4, 6, 4
+    # Collapsed: every projection the same direction, predictions and targets uniform.
+    one = F.normalize(torch.ones(B, M, 4), dim=-1)
+    uniform = torch.full((B, M, K), 1 / K)
+    h = ctx.health(one, uniform, one, uniform)
+    assert float(h["proj_cosine"]) == pytest.approx(1.0, abs=1e-5)
+    assert float(h["swav_pred_top"]) == pytest.approx(0.25) and float(h["swav_target_top"]) == pytest.approx(0.25)
+    assert float(h["swav_pred_perplexity"]) == pytest.approx(4.0, rel=1e-4)
+    reason = collapse_reason({k: float(v) for k, v in h.items()}, K)
+    assert "cone" in reason and "near uniform" in reason
+    # A code of the context: sequence b sits on prototype b at every step, u = c_b.
+    eye = torch.eye(4)
+    u = eye[:, None, :].expand(B, M, 4).clone()
+    w = eye[:, None, :].expand(B, M, K).clone()
+    h = ctx.health(u, w, u, w)
+    # Pairs within a sequence have cosine 1, across sequences 0: (M - 1) / (BM - 1) of them.
+    assert float(h["proj_cosine"]) == pytest.approx((M - 1) / (B * M - 1), abs=1e-5)
+    assert float(h["modal_share"]) == 1.0 and float(h["proj_between_share"]) == pytest.approx(1.0)
+    assert float(h["swav_pred_top"]) == 1.0 and float(h["swav_pred_perplexity"]) == pytest.approx(4.0, rel=1e-4)
+    assert collapse_reason({k: float(v) for k, v in h.items()}, K) is None
+    # The prototypes' cosine to their seeded start: 1 until they move.
+    assert float(h["proto_init_cosine"]) == pytest.approx(1.0)
+    with torch.no_grad():
+        ctx.prototypes.mul_(-1)
+    assert float(ctx.health(u, w, u, w)["proto_init_cosine"]) == pytest.approx(-1.0)
