@@ -51,6 +51,7 @@ from typing import Any, Iterable, Iterator, Mapping, Sequence
 import numpy as np
 
 from protocad_ros.model.agent_base import BATCH_KEYS  # what an agent's train_step reads
+from sim_bridge.contract.contexts import get_task, normalized_log_context
 from trainer.data.records import CacheWriteError, DatasetError, DatasetReport, SourceReport, TopicMap
 from trainer.data.store import (
     SourceStore,
@@ -255,6 +256,32 @@ class MCAPDataset:
         out = {k: np.stack([p[k] for p in parts]) for k in keys if k not in ("stamp", "episode", "step")}
         out["action"] = out["action"].astype(np.float32, copy=False)
         return out
+
+    def check_true_context(self, task: str) -> None:
+        """DatasetError (one line) unless every bag carries the true context of `task`'s
+        parameters (the variant that reads it trains only from such logs)."""
+        params = get_task(task).params
+        for store in self.stores:
+            if store.report.rejected:
+                continue
+            names = store.meta.get("context_names") or []
+            if "context" not in store.arrays or not set(params) <= set(names):
+                raise DatasetError(f"{store.report.path}: no true context of {task} ({', '.join(params)}) "
+                                   "in this bag; the true-context variant reads it from the context topic")
+
+    def true_context(self, index: Sequence[tuple[int, int]], task: str) -> np.ndarray:
+        """The true context of the windows `index` names, as the true-context variant reads it:
+        float32 (B, M, P), normalized log values of `task`'s parameters (normalized_log_context).
+        Steps before a bag's first context message (NaN) read as the training grid's centre."""
+        params = get_task(task).params
+        rows = []
+        for s, r in index:
+            store = self.stores[s]
+            cols = [store.meta["context_names"].index(p) for p in params]
+            rows.append(store.rows(r, self.seq_len)["context"][:, cols])
+        values = np.stack(rows).astype(np.float64)
+        out = normalized_log_context(np.where(np.isfinite(values) & (values > 0), values, np.nan), task)
+        return np.nan_to_num(out, nan=0.0).astype(np.float32)
 
     @staticmethod
     def training_batch(batch: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]:

@@ -182,6 +182,8 @@ def open_logs(s: TrainSettings, cfg, ctx: distributed.DistContext, say: Callable
         raise DatasetError(f"nothing to train on: no window of {cfg.train.seq_len} steps in the logs "
                            "(see the report above)")
     refuse_test_split(ds, s.accept_test_split, say)
+    if cfg.spec.reads_true_context:
+        ds.check_true_context(cfg.task)
     n_act = len(task_actuators(cfg.task))
     if ds.action_dim != n_act:
         raise ValueError(f"the logs carry {ds.action_dim}-d actions {ds.action_names} but {cfg.task} has "

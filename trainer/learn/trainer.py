@@ -31,6 +31,7 @@ from protocad_ros.model.config import plan_prototype_freeze
 from trainer import console, metrics_log, runs, torch_setup
 from trainer.data.dataset import MCAPDataset
 from trainer.learn import distributed
+from trainer.learn.context_health import collapse_reason
 from trainer.learn.schedule import RunCounters
 
 DEFAULT_LOG_EVERY = 10
@@ -97,6 +98,7 @@ class Trainer:
         self._last_log_t = time.monotonic()
         self._last_log_u = self.updates
         self.last_metrics: dict[str, float] = {}
+        self._collapse_warned = False
 
     # ------------------------------------------------------------------ construction helpers
     @classmethod
@@ -158,8 +160,10 @@ class Trainer:
         if self.dataset is None:
             raise RuntimeError("no dataset to train on")
         index = self.dataset.sample_index(self.local_batch)
-        batch = self.dataset.gather(index)
-        m = self.agent.train_step(MCAPDataset.training_batch(batch))
+        batch = MCAPDataset.training_batch(self.dataset.gather(index))
+        if self.cfg.spec.reads_true_context:
+            batch["context"] = self.dataset.true_context(index, self.cfg.task)
+        m = self.agent.train_step(batch)
         m["batch_crc"] = float(zlib.crc32(np.asarray(index, np.int64).tobytes()))
         self.counters["updates"] = self.updates
         self._mean.add({k: v for k, v in m.items() if k not in ("batch_crc", "updates")})
@@ -183,7 +187,20 @@ class Trainer:
         for k in ("env_steps", "episodes"):
             if k in counters:
                 row_extra.setdefault(k, counters[k])
+        self._warn_if_collapsed(means)
         return self.metrics.log(self.updates, means, kind="train", **row_extra)
+
+    def _warn_if_collapsed(self, means: Mapping[str, float]) -> None:
+        """One warning line per process when the context module's health figures say it has
+        collapsed (trainer.learn.context_health; msgs_docs/training.md)."""
+        if self._collapse_warned or not self.dist.is_main or "proj_cosine" not in means:
+            return
+        reason = collapse_reason(means, self.cfg.context.num_prototypes)
+        if reason:
+            self._collapse_warned = True
+            print(f"[train] WARNING: the context module has collapsed at update {self.updates}: "
+                  f"{reason}; its features carry no context (msgs_docs/training.md#context-health)",
+                  flush=True)
 
     def train(self, target_updates: int, *, stop: console.StopFlag | None = None, checkpoint_every: int = 0,
               bar=None, on_update: Callable[[int, dict], None] | None = None, save: bool = True) -> bool:

@@ -182,7 +182,7 @@ def open_loop_errors(agent: Any, batch: Mapping[str, np.ndarray], plan: Plan) ->
     return (diff ** 2).mean((-3, -2, -1)), reward
 
 
-def _add_open_loop(sums: dict[str, OpenLoopSums], split: str, errors: tuple[np.ndarray | None, np.ndarray]) -> None:
+def add_open_loop(sums: dict[str, OpenLoopSums], split: str, errors: tuple[np.ndarray | None, np.ndarray]) -> None:
     image, reward = errors
     acc = sums.setdefault(split, OpenLoopSums(None if image is None else np.zeros(reward.shape[1]),
                                               np.zeros(reward.shape[1])))
@@ -234,5 +234,5 @@ def _measure(agent: Any, batch: Mapping[str, np.ndarray], wave: Sequence[int], s
         out.context_ids.append(np.full(len(feats["h"]), ci))
     if w is not None:
         out.assignment.add(w)
-    _add_open_loop(out.open_loop, split, open_loop_errors(agent, batch, plan))
+    add_open_loop(out.open_loop, split, open_loop_errors(agent, batch, plan))
     out.episodes += len(wave)

@@ -13,21 +13,9 @@ import pytest
 import yaml
 from helpers import ROOT, wait_until
 from helpers.bags import TINY, make_steps, run_cli, write_bag, write_rosbags_bag
+from helpers.training import ckpt_counters, metrics, train_proc
 
 ROBOT = {"image": "/robot/camera", "step_info": "/robot/step", "action": "/robot/cmd", "context": "/robot/ctx"}
-
-
-def metrics(run_dir: Path) -> list[dict]:
-    from trainer.metrics_log import read_metrics
-
-    return [r for r in read_metrics(run_dir / "metrics.jsonl") if r.get("kind") == "train"]
-
-
-def ckpt_counters(path: Path) -> dict:
-    from protocad_ros.checkpoint import read_checkpoint
-
-    p = read_checkpoint(path)
-    return {**p["counters"], "agent_updates": int(p["modules"]["updates"])}
 
 
 @pytest.mark.process
@@ -66,25 +54,18 @@ def test_log_from_another_tool_trains_and_evaluates(tmp_path):
     assert r.returncode == 2 and "--topic KEY=/name" in r.stdout + r.stderr
 
 
-def _train_proc(tmp_path: Path, bag: Path, run_dir: Path, *extra: str) -> subprocess.Popen:
-    args = [sys.executable, "-m", "trainer.learn.train", "--logs", str(bag), *TINY, "--run-dir", str(run_dir),
-            "--cache-dir", str(tmp_path / "cache"), "--log-every", "1", "--seed", "5", *extra]
-    return subprocess.Popen(args, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
-                            start_new_session=True)
-
-
 @pytest.mark.process
 def test_resume_after_kill_continues_from_last_checkpoint(tmp_path):
     bag = write_bag(tmp_path / "bag", make_steps(3, 20))
     N = 8
     # reference: an uninterrupted run
     ref_dir = tmp_path / "ref"
-    p = _train_proc(tmp_path, bag, ref_dir, "--updates", str(N), "--checkpoint-every", "2")
+    p = train_proc(tmp_path, bag, ref_dir, "--updates", str(N), "--checkpoint-every", "2")
     assert p.wait(240) == 0, p.stdout.read()
     ref = {m["update"]: m for m in metrics(ref_dir)}
     # the same run, SIGKILLed after its first checkpoint
     run_dir = tmp_path / "killed"
-    p = _train_proc(tmp_path, bag, run_dir, "--updates", "1000", "--checkpoint-every", "2")
+    p = train_proc(tmp_path, bag, run_dir, "--updates", "1000", "--checkpoint-every", "2")
     ck = run_dir / "checkpoints" / "latest.pt"
     wait_until(ck.exists, 240, "the first checkpoint")
     os.killpg(p.pid, signal.SIGKILL)
@@ -110,7 +91,7 @@ def test_resume_after_kill_continues_from_last_checkpoint(tmp_path):
 def test_ctrl_c_saves_a_checkpoint_and_exits_0(tmp_path):
     bag = write_bag(tmp_path / "bag", make_steps(2, 20))
     run_dir = tmp_path / "run"
-    p = _train_proc(tmp_path, bag, run_dir, "--updates", "100000", "--checkpoint-every", "1000")
+    p = train_proc(tmp_path, bag, run_dir, "--updates", "100000", "--checkpoint-every", "1000")
     wait_until(lambda: (run_dir / "metrics.jsonl").exists() and metrics(run_dir), 240, "training to start")
     os.killpg(p.pid, signal.SIGINT)
     out, _ = p.communicate(timeout=120)
