@@ -105,6 +105,7 @@ setup(
             "protocad-visualize = trainer.viz.visualize:main",
             "protocad-compare = trainer.research.compare:main",
             "protocad-probe = trainer.research.probe:main",
+            "protocad-study = trainer.study.cli:main",
             "protocad-stack = trainer.launch.stack:main",
             "protocad-checkpoint-publisher = trainer.nodes.checkpoint_publisher:main",
             "protocad-keygen = protocad_ros.checkpoint_signing:keygen_main",

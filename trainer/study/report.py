@@ -1,0 +1,101 @@
+"""The study's report: per arm, the mean over seeds with a 95% Student-t interval of each figure
+of its runs' eval.json files, as JSON (schema protocad-study/1) and a markdown table."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any, Mapping, Sequence
+
+import numpy as np
+from scipy import stats
+
+from protocad_ros.atomic import atomic_write_text
+from trainer.study.dataset import TASK
+
+
+def t_interval(values: Sequence[float]) -> tuple[float, float, float]:
+    """Mean and 95% Student-t interval over seeds."""
+    v = np.asarray(values, float)
+    m = float(v.mean())
+    if len(v) < 2:
+        return m, float("nan"), float("nan")
+    half = float(stats.t.ppf(0.975, len(v) - 1) * v.std(ddof=1) / np.sqrt(len(v)))
+    return m, m - half, m + half
+
+
+def figures(doc: Mapping[str, Any]) -> dict[str, float]:
+    """The figures of one run that the report compares."""
+    out: dict[str, float] = {}
+    for split in ("test", "train"):
+        ol = doc["open_loop"][split]
+        img = np.asarray(ol["image_mse"], float)
+        rew = np.asarray(ol["reward_abs_err"], float)
+        out[f"{split}_image_mse_1_50"] = float(img.mean())
+        out[f"{split}_image_mse_h10"] = float(img[9])
+        out[f"{split}_image_mse_h50"] = float(img[-1])
+        out[f"{split}_reward_err_1_50"] = float(rew.mean())
+    for setting in ("test_grid", "test_light", "test_heavy", "train_to_test"):
+        for target in ("log_m", "log_d"):
+            for feat, v in doc["probes"].get(setting, {}).get(target, {}).items():
+                out[f"r2_{setting}_{target}_{feat}"] = float(v["r2"])
+    for k, v in (doc.get("health") or {}).items():
+        out[f"health_{k}"] = float(v)
+    return out
+
+
+def gather(grid: Path) -> dict[str, Any]:
+    arms: dict[str, Any] = {}
+    for f in sorted(grid.glob("*/seed_*/eval.json")):
+        doc = json.loads(f.read_text())
+        arms.setdefault(doc["arm"], []).append(doc)
+    result = {}
+    for arm, docs in arms.items():
+        per = [figures(d) for d in docs]
+        keys = sorted(set.intersection(*(set(p) for p in per)))
+        result[arm] = {"seeds": sorted(d["seed"] for d in docs), "updates": sorted({d["updates"] for d in docs}),
+                       "settings": docs[0]["settings"],
+                       "figures": {k: dict(zip(("mean", "lo", "hi"), t_interval([p[k] for p in per]))) for k in keys},
+                       "per_seed": {str(d["seed"]): f for d, f in zip(docs, per)}}
+    return result
+
+
+ROWS = [("unseen image MSE, h 1-50", "test_image_mse_1_50", 5), ("unseen image MSE, h 10", "test_image_mse_h10", 5),
+        ("unseen image MSE, h 50", "test_image_mse_h50", 5), ("training-context image MSE, h 1-50", "train_image_mse_1_50", 5),
+        ("unseen reward error, h 1-50", "test_reward_err_1_50", 3), ("training reward error, h 1-50", "train_reward_err_1_50", 3),
+        ("log m R2 in the unseen grid, h", "r2_test_grid_log_m_h", 2), ("log m R2 in the unseen grid, u", "r2_test_grid_log_m_u", 2),
+        ("log m R2 light cluster, h", "r2_test_light_log_m_h", 2), ("log m R2 light cluster, u", "r2_test_light_log_m_u", 2),
+        ("log m R2 heavy cluster, h", "r2_test_heavy_log_m_h", 2), ("log m R2 heavy cluster, u", "r2_test_heavy_log_m_u", 2),
+        ("log m R2 train->unseen, h", "r2_train_to_test_log_m_h", 2), ("log m R2 train->unseen, u", "r2_train_to_test_log_m_u", 2),
+        ("log d R2 in the unseen grid, h", "r2_test_grid_log_d_h", 2), ("log d R2 in the unseen grid, u", "r2_test_grid_log_d_u", 2),
+        ("projection cosine", "health_proj_cosine", 2), ("prediction top prob.", "health_swav_pred_top", 3),
+        ("target top prob.", "health_swav_target_top", 3), ("prediction entropy", "health_swav_pred_entropy", 2),
+        ("target entropy", "health_swav_target_entropy", 2), ("modal share in a sequence", "health_modal_share", 2),
+        ("between-sequence share of u", "health_proj_between_share", 2),
+        ("prototypes' cosine to start", "health_proto_init_cosine", 3)]
+
+
+def markdown(result: Mapping[str, Any]) -> str:
+    arms = list(result)
+    head = "| figure | " + " | ".join(f"{a} ({len(result[a]['seeds'])} seeds)" for a in arms) + " |"
+    lines = [head, "|---|" + "---|" * len(arms)]
+    for label, key, digits in ROWS:
+        cells = []
+        for a in arms:
+            f = result[a]["figures"].get(key)
+            cells.append("" if f is None else f"{f['mean']:.{digits}f} [{f['lo']:.{digits}f}, {f['hi']:.{digits}f}]")
+        if any(cells):
+            lines.append(f"| {label} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def write_report(grid: Path, json_path: Path | None = None) -> dict[str, Any]:
+    """Gather GRID, print the markdown table, write the JSON where asked; ValueError if no run
+    has finished."""
+    result = gather(Path(grid))
+    if not result:
+        raise ValueError(f"{grid}: no finished run (GRID/ARM/seed_S/eval.json)")
+    print(markdown(result))
+    doc = {"schema": "protocad-study/1", "task": TASK, "arms": result}
+    if json_path:
+        atomic_write_text(Path(json_path), json.dumps(doc, indent=1))
+    return doc
