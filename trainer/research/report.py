@@ -11,7 +11,7 @@ from typing import Any, Mapping, Sequence
 import numpy as np
 
 from protocad_ros.atomic import atomic_write_text
-from trainer.research.results_json import ANCHOR_LABEL, PAPER_ENV_STEPS
+from trainer.research.results_json import ANCHOR_LABEL, DREAMERV2_SCORES, PAPER_ENV_STEPS
 from trainer.research.statistics import (
     aggregate_mean,
     bootstrap_ci,
@@ -184,11 +184,6 @@ def curves(doc: Mapping[str, Any], task: str, label: str) -> tuple[np.ndarray, n
         lo.append(a)
         hi.append(b)
     return np.array(steps), np.array(mean), np.array(lo), np.array(hi)
-
-
-#: DreamerV2's published per-seed curves on standard DMC (danijar/dreamerv2
-#: scores/dmc-vision-dreamerv2.json @07d906e, the paper's eight tasks up to 300k env steps).
-DREAMERV2_SCORES = Path(__file__).with_name("dreamerv2_dmc_vision.json")
 
 
 def dreamerv2_reference(task: str) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

@@ -41,6 +41,9 @@ PAPER_TABLE1: dict[str, dict[str, tuple[float, float]]] = {
                     "dreamer_context": (845.5, 12.8), "drq": (927.1, 17.7)},
 }
 PAPER_ENV_STEPS = 2_000_000
+#: DreamerV2's published per-seed curves on standard DMC (danijar/dreamerv2
+#: scores/dmc-vision-dreamerv2.json @07d906e, the paper's eight tasks up to 300k env steps).
+DREAMERV2_SCORES = Path(__file__).with_name("dreamerv2_dmc_vision.json")
 #: protocad-compare's label of the anchor (Dreamer on the unrandomized task).
 ANCHOR_LABEL = "dreamer_standard"
 
