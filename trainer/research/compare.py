@@ -7,6 +7,7 @@ directory, run as parallel worker processes, gathered into one `results.json` an
     protocad-compare --out runs/compare-pend ...same flags...   # resumes every unfinished run
     protocad-compare --report runs/compare-pend/results.json --markdown   # README section
     protocad-compare --report anchor/results.json compare/results.json   # two grids in one report
+    protocad-compare --power --power-json power_table.json   # sizes the next paired grid; runs nothing
 
 Each run is `python -m trainer.research.online --run-dir OUT/TASK/LABEL/seedS ...` with its own torch
 thread budget (`--threads`) and device (`--devices`, assigned round robin), its output in
@@ -400,6 +401,13 @@ class GridSettings:
     ship_evaluation: str | None = arg(None, metavar="EVAL_JSON", group="output")
     """with --ship: `protocad-evaluate CHECKPOINT --random --json EVAL_JSON` of the shipped run's
     checkpoint on unseen contexts, kept in the provenance (checked to be that checkpoint's)"""
+    power: bool = arg(False, group="sizing the next comparison (no runs)")
+    """only print the power table that sizes the next paired ProtoCAD - Dreamer grid, as markdown:
+    per paper task at 30k, 60k and 120k env steps the expected effect (the paper's relative gap x
+    DreamerV2's mean there), the pair SD, the pairs for 80%% power at alpha 0.05 and the CPU
+    core-hours (trainer.research.statistics.power_table); the grid's options are ignored"""
+    power_json: str | None = arg(None, metavar="FILE", group="sizing the next comparison (no runs)")
+    """with --power: also write the table as JSON (msgs_docs/results/power_table.json)"""
     status_every: float = arg(300.0, group="output")
     """seconds between status lines"""
     online_args: list[str] = arg([], "online_args", nargs=argparse.REMAINDER)
@@ -473,6 +481,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         a.online_args = a.online_args[1:]
     failed = 0
     try:
+        if a.power_json and not a.power:
+            raise ValueError("--power-json writes the table of --power: give --power")
+        if a.power:
+            table = R.power_table()
+            print(R.power_markdown(table), *("", *R.power_lines(table)), sep="\n", flush=True)
+            if a.power_json:
+                runs.atomic_write_json(Path(a.power_json), table)
+            return 0
         if a.report:
             docs, sources, everything = _reported_docs(a)
         else:

@@ -216,6 +216,35 @@ def anchor_rows(doc: Mapping[str, Any]) -> tuple[list[str], list[list[str]]]:
     return head, rows
 
 
+def power_markdown(table: Mapping[str, Any]) -> str:
+    """statistics.power_table as a markdown table: per task and budget DreamerV2's mean (SD of its
+    seeds), the paper's gap, the expected effect, the pair SD with its source, the pairs for the
+    table's power, the CPU core-hours here and the pairs at 1.5 times the pair SD."""
+    pct = round(100 * table["power"])
+    head = ["task", "env steps", "DreamerV2 mean (SD)", "paper gap", "expected effect", "pair SD (source)",
+            f"pairs for {pct}% power", "CPU core-hours here", "pairs if the pair SD is 1.5x"]
+    source = {"measured": "measured, walker grid", "dreamerv2_seeds": "√2 x DreamerV2's SD"}
+    over = f"over {table['max_pairs']:,}"
+    rows = [[r["task"], f"{r['env_steps'] // 1000}k", f"{r['dreamerv2_mean']:.1f} ({r['dreamerv2_sd']:.1f})",
+             f"{100 * r['paper_gap']:+.1f}%", f"{r['expected_effect']:.1f}",
+             f"{r['pair_sd']:.1f} ({source[r['pair_sd_source']]})",
+             f"{r['pairs_needed']:,}" if r["pairs_needed"] is not None else over,
+             f"{r['core_hours']:,.1f}" if r["core_hours"] is not None else "-",
+             f"{r['pairs_if_sd_1_5x']:,}" if r["pairs_if_sd_1_5x"] is not None else over]
+            for r in table["rows"]]
+    return _md_table(head, rows)
+
+
+def power_lines(table: Mapping[str, Any]) -> list[str]:
+    """The walker grid's power and the cheapest row of statistics.power_table, one line each."""
+    w, c, pct = table["walker_grid"], table["cheapest"], round(100 * table["power"])
+    return [f"walker grid ({w['pairs']} pairs at {w['env_steps'] // 1000}k, pair SD {w['pair_sd']:.1f}): "
+            f"detects {w['detectable_effect']:.1f} with {pct}% power; its power for the paper's gap "
+            f"there ({w['paper_effect']:.1f}): {100 * w['power_for_paper_effect']:.1f}%",
+            f"cheapest to power: {c['task']} at {c['env_steps'] // 1000}k env steps, {c['pairs_needed']} "
+            f"pairs, {c['core_hours']:.1f} CPU core-hours"]
+
+
 def labels_of(doc: Mapping[str, Any], task: str) -> list[str]:
     return sorted({r["label"] for r in doc["runs"] if r["task"] == task and not r.get("superseded")})
 

@@ -2,15 +2,18 @@
 pulls arch, statsmodels, pandas and seaborn for these few functions): a run's score is its final
 mean return on the test contexts; per task and variant the mean over seeds with a percentile
 bootstrap interval; over tasks the mean, median and IQM with stratified bootstrap intervals; and
-a paired comparison's per-seed differences with a Student-t interval."""
+a paired comparison's per-seed differences with a Student-t interval; and, before a paired
+comparison runs, its size: the power of the paired t-test, the pairs it needs and the table that
+sizes the next comparison from the paper's gaps and DreamerV2's published seeds (`power_table`)."""
 from __future__ import annotations
 
+import json
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
 from sim_bridge.contract.contexts import get_task
-from trainer.research.results_json import PAPER_TABLE1
+from trainer.research.results_json import DREAMERV2_SCORES, PAPER_ENV_STEPS, PAPER_TABLE1
 
 
 def standard_context(task: str) -> str:
@@ -136,3 +139,170 @@ def unseen_train_ratio(doc: Mapping[str, Any], task: str, label: str) -> dict[st
     return {"task": task, "label": label, "n": len(ratios), "mean": float(np.mean(ratios)),
             "range": (float(min(ratios)), float(max(ratios)))}
 
+
+
+# ---------------------------------------------------------------------- sizing a paired comparison
+# A paired comparison (as paired_difference reads it) is a two-sided paired t-test at level alpha
+# on n seed pairs whose differences ProtoCAD - Dreamer have standard deviation pair_sd. Its power
+# for a true mean difference `effect` comes from the noncentral t distribution (n - 1 degrees of
+# freedom, noncentrality effect / (pair_sd / sqrt(n))), not the normal approximation, which
+# promises too much at the few pairs these grids afford.
+
+def power_of(effect: float, pair_sd: float, n_pairs: int, alpha: float = 0.05) -> float:
+    """The probability that the two-sided paired t-test at level alpha over n_pairs pairs
+    rejects "no difference" when the true mean difference is `effect` (either sign) and the pairs'
+    differences have standard deviation pair_sd; alpha itself when effect is 0."""
+    from scipy import stats
+
+    _check_test(pair_sd, n_pairs, alpha)
+    df = n_pairs - 1
+    crit = stats.t.ppf(1 - alpha / 2, df)
+    nc = abs(effect) / pair_sd * np.sqrt(n_pairs)
+    # P(T < -crit) as P(T > crit) at -nc: scipy's nct.cdf returns NaN for some tiny lower tails
+    return float(stats.nct.sf(crit, df, nc) + stats.nct.sf(crit, df, -nc))
+
+
+def detectable_effect(pair_sd: float, n_pairs: int, alpha: float = 0.05, power: float = 0.8) -> float:
+    """The smallest true mean paired difference (in return) that the paired t-test over n_pairs
+    pairs detects with probability `power`: power_of(result, pair_sd, n_pairs, alpha) == power."""
+    from scipy.optimize import brentq
+
+    _check_test(pair_sd, n_pairs, alpha)
+    if not alpha < power < 1:
+        raise ValueError(f"power must lie between alpha ({alpha}) and 1, got {power}")
+    hi = pair_sd
+    while power_of(hi, pair_sd, n_pairs, alpha) < power:
+        hi *= 2
+    return float(brentq(lambda e: power_of(e, pair_sd, n_pairs, alpha) - power, 0.0, hi,
+                        xtol=1e-9 * pair_sd, rtol=1e-12))
+
+
+def pairs_needed(effect: float, pair_sd: float, alpha: float = 0.05, power: float = 0.8,
+                 max_pairs: int = 100_000) -> int:
+    """The fewest pairs (at least 2) with which the paired t-test detects a true mean difference
+    `effect` with probability at least `power`; ValueError when even max_pairs do not (an effect
+    of 0 never does)."""
+    _check_test(pair_sd, 2, alpha)
+    if not alpha < power < 1:
+        raise ValueError(f"power must lie between alpha ({alpha}) and 1, got {power}")
+    if power_of(effect, pair_sd, max_pairs, alpha) < power:
+        raise ValueError(f"effect {effect:g} with pair SD {pair_sd:g}: more than {max_pairs} pairs "
+                         f"needed for power {power:g}")
+    lo, hi = 1, 2   # power grows with the pairs: lo fails (or is below 2), hi succeeds
+    while power_of(effect, pair_sd, hi, alpha) < power:
+        lo, hi = hi, min(2 * hi, max_pairs)
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        lo, hi = (lo, mid) if power_of(effect, pair_sd, mid, alpha) >= power else (mid, hi)
+    return hi
+
+
+def _check_test(pair_sd: float, n_pairs: int, alpha: float) -> None:
+    if not (np.isfinite(pair_sd) and pair_sd > 0):
+        raise ValueError(f"pair_sd must be a positive number, got {pair_sd}")
+    if int(n_pairs) != n_pairs or n_pairs < 2:
+        raise ValueError(f"a paired t-test needs at least 2 pairs, got {n_pairs}")
+    if not 0 < alpha < 1:
+        raise ValueError(f"alpha must lie between 0 and 1, got {alpha}")
+
+
+def dreamerv2_curve(task: str, env_steps: int) -> tuple[float, float]:
+    """DreamerV2's published seeds on the standard task at `env_steps` (a point of the vendored
+    curves, trainer/research/dreamerv2_dmc_vision.json): the mean over its seeds and their
+    standard deviation (ddof 1). ValueError for a task or an env-step count the file does not
+    hold (the curves are not interpolated)."""
+    rs = [c for c in json.loads(DREAMERV2_SCORES.read_text())["curves"] if c["task"] == task]
+    if not rs:
+        raise ValueError(f"DreamerV2's published curves have no task {task!r} "
+                         f"(they have {', '.join(sorted(PAPER_TABLE1))})")
+    steps = sorted(set.intersection(*(set(c["env_steps"]) for c in rs)))
+    if env_steps not in steps:
+        raise ValueError(f"DreamerV2's published {task} curves have no point at {env_steps:,} env steps "
+                         f"(they have {', '.join(f'{s:,}' for s in steps)})")
+    v = np.array([c["return"][c["env_steps"].index(env_steps)] for c in rs], float)
+    return float(v.mean()), float(v.std(ddof=1))
+
+
+#: The paired walker_walk grid of issue 42 (msgs_docs/results/walker_paired_small.json): ProtoCAD -
+#: Dreamer on the 64 unseen contexts at 30k env steps, seeds 0-4, small preset.
+WALKER_GRID_DIFFS = (21.1, -59.6, 42.1, -70.8, -23.4)
+WALKER_GRID_ENV_STEPS = 30_000
+#: Measured: a 30k-env-step small-preset run (2,900 updates, bf16) takes about 1.6 h of one core.
+CORE_HOURS_PER_30K = 1.6
+POWER_BUDGETS = (30_000, 60_000, 120_000)
+
+
+def _pairs_or_none(effect: float, pair_sd: float, alpha: float, power: float, max_pairs: int) -> int | None:
+    try:
+        return pairs_needed(effect, pair_sd, alpha, power, max_pairs)
+    except ValueError:
+        return None
+
+
+def paper_gap(task: str) -> float:
+    """The paper's relative gap on unseen dynamics at 2M env steps (Table 1): ProtoCAD / Dreamer - 1."""
+    return PAPER_TABLE1[task]["protocad"][0] / PAPER_TABLE1[task]["dreamer"][0] - 1
+
+
+def power_table(budgets: Sequence[int] = POWER_BUDGETS, alpha: float = 0.05, power: float = 0.8,
+                core_hours_per_30k: float = CORE_HOURS_PER_30K, max_pairs: int = 100_000) -> dict[str, Any]:
+    """What the next paired ProtoCAD-vs-Dreamer grid costs to power, for each of the paper's eight
+    tasks at each env-step budget (a point of DreamerV2's published curves), as JSON-able data:
+
+    * `expected_effect` = the paper's relative gap at 2M env steps (paper_gap) x DreamerV2's mean
+      at that budget. The assumption: the paper's relative gap carried to the curve's level at a
+      smaller budget (nothing measured says the gap is that size so early; it may be smaller);
+    * `pair_sd`: walker_walk at 30k, the measured SD of the walker grid's paired differences
+      (`pair_sd_source` "measured"); elsewhere sqrt(2) x the SD of DreamerV2's seeds at that
+      budget, the SD of a difference of two independent runs ("dreamerv2_seeds"; paired env
+      draws make the true one smaller where the arms' returns correlate: on walker_walk at 30k
+      the measured SD is half this estimate);
+    * `pairs_needed` for `power` at `alpha` (null above max_pairs), and the CPU cost here:
+      2 runs per pair x core_hours_per_30k per 30k env steps, linear in env steps;
+      `pairs_if_sd_1_5x`: the pairs if the pair SD is 1.5 times the one assumed (an SD from five
+      seeds is that uncertain and more).
+
+    `walker_grid`: the effect the walker grid could detect with `power` (and what the normal
+    approximation would claim), its power for the paper's walker_walk gap carried to 30k, and the
+    independent-pair SD the other rows assume, for that row. `cheapest`: the row with the fewest
+    core-hours. Values rounded as msgs_docs/results/power_table.json holds them."""
+    from scipy import stats
+
+    diffs = np.array(WALKER_GRID_DIFFS)
+    measured_sd = float(diffs.std(ddof=1))
+    rows = []
+    for task in sorted(PAPER_TABLE1):
+        gap = paper_gap(task)
+        for steps in budgets:
+            mean, sd = dreamerv2_curve(task, steps)
+            effect = gap * mean
+            measured = task == "walker_walk" and steps == WALKER_GRID_ENV_STEPS
+            pair_sd = measured_sd if measured else float(np.sqrt(2) * sd)
+            n, n_wide = (_pairs_or_none(effect, f * pair_sd, alpha, power, max_pairs) for f in (1.0, 1.5))
+            hours_per_run = core_hours_per_30k * steps / 30_000
+            rows.append({"task": task, "env_steps": steps, "dreamerv2_mean": round(mean, 1),
+                         "dreamerv2_sd": round(sd, 1), "paper_gap": round(gap, 4),
+                         "expected_effect": round(effect, 1), "pair_sd": round(pair_sd, 1),
+                         "pair_sd_source": "measured" if measured else "dreamerv2_seeds",
+                         "pairs_needed": n, "core_hours": None if n is None else round(2 * n * hours_per_run, 1),
+                         "pairs_if_sd_1_5x": n_wide})
+    walker_mean, walker_sd = dreamerv2_curve("walker_walk", WALKER_GRID_ENV_STEPS)
+    walker_effect = paper_gap("walker_walk") * walker_mean
+    z = stats.norm.ppf(1 - alpha / 2) + stats.norm.ppf(power)
+    cheapest = min((r for r in rows if r["core_hours"] is not None), key=lambda r: r["core_hours"])
+    return {
+        "what": "pairs a paired ProtoCAD - Dreamer grid needs to detect the paper's gap, per task and budget",
+        "test": "two-sided paired t-test, power from the noncentral t distribution",
+        "alpha": alpha, "power": power, "max_pairs": max_pairs, "paper_env_steps": PAPER_ENV_STEPS,
+        "core_hours_per_run_per_30k_env_steps": core_hours_per_30k, "runs_per_pair": 2,
+        "dreamerv2": "danijar/dreamerv2 scores/dmc-vision-dreamerv2.json @07d906e (5 seeds, standard DMC)",
+        "rows": rows,
+        "walker_grid": {"env_steps": WALKER_GRID_ENV_STEPS, "pairs": len(diffs),
+                        "diffs": list(WALKER_GRID_DIFFS), "pair_sd": round(measured_sd, 1),
+                        "detectable_effect": round(detectable_effect(measured_sd, len(diffs), alpha, power), 1),
+                        "detectable_effect_normal_approximation": round(z * measured_sd / np.sqrt(len(diffs)), 1),
+                        "independent_pair_sd": round(float(np.sqrt(2) * walker_sd), 1),
+                        "paper_effect": round(walker_effect, 1),
+                        "power_for_paper_effect": round(power_of(walker_effect, measured_sd, len(diffs), alpha), 3)},
+        "cheapest": {k: cheapest[k] for k in ("task", "env_steps", "pairs_needed", "core_hours")},
+    }
