@@ -5,6 +5,7 @@ committed table and results.md's figures are what the code computes now."""
 from __future__ import annotations
 
 import json
+import re
 
 import numpy as np
 import pytest
@@ -23,6 +24,7 @@ from trainer.research.statistics import (
 )
 
 TABLE = ROOT / "msgs_docs" / "results" / "power_table.json"
+RESULTS_MD = ROOT / "msgs_docs" / "results.md"
 WALKER_GRID = ROOT / "msgs_docs" / "results" / "walker_paired_small.json"
 
 
@@ -84,6 +86,23 @@ def test_the_walker_grid_constants_are_its_committed_paired_differences():
 
 def test_the_committed_power_table_is_what_the_code_computes():
     assert json.loads(TABLE.read_text()) == power_table()
+
+
+def test_results_md_states_the_walker_grids_power_and_the_table_as_computed():
+    """The paragraph beside the walker grid's result and the sizing section's table carry the
+    committed table's figures, so the page cannot drift from the code."""
+    table = json.loads(TABLE.read_text())
+    walker = table["walker_grid"]
+    text = " ".join(RESULTS_MD.read_text().split())   # line breaks as spaces
+    result = text[text.index("#### The result (2026-12-07"):text.index("**The mechanism, measured**")]
+    stated = re.search(r"detect with 80% power is a mean paired difference of \*\*([0-9.]+)\*\*", result)
+    assert stated, "results.md states the walker grid's detectable effect"
+    assert float(stated.group(1)) == round(detectable_effect(np.std(WALKER_GRID_DIFFS, ddof=1), 5), 1)
+    assert float(stated.group(1)) == walker["detectable_effect"]
+    assert f"power {100 * walker['power_for_paper_effect']:.1f}%" in result
+    assert f"({walker['paper_effect']:.1f} points)" in result
+    page = RESULTS_MD.read_text()
+    assert power_markdown(table) in page[page.index("### Sizing the next RL comparison (issue 51, point 4)"):]
 
 
 def test_protocad_compare_power_prints_and_writes_the_table(tmp_path, capsys):
