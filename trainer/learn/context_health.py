@@ -8,8 +8,6 @@ from __future__ import annotations
 import math
 from typing import Any, Mapping
 
-import torch
-
 #: Target projections in a cone: their mean pairwise cosine at least this (the collapsed walker
 #: policy of 2026-12 read 0.83; a module that codes B contexts in B directions reads ~1/B).
 COLLAPSE_PROJ_COSINE = 0.8
@@ -33,17 +31,19 @@ def collapse_reason(metrics: Mapping[str, float], num_prototypes: int) -> str | 
     return "; ".join(reasons) or None
 
 
-@torch.no_grad()
-def health_of_states(agent: Any, s: torch.Tensor) -> dict[str, float] | None:
-    """The context module's health on posterior states s (B, M, S) without augmentation: the
-    online and target projections of the same states, Sinkhorn targets as training computes
-    them (None for a variant without the module)."""
+def health_of_states(agent: Any, s: Any) -> dict[str, float] | None:
+    """The context module's health on posterior states s (B, M, S; numpy or torch) without
+    augmentation: the online and target projections of the same states, Sinkhorn targets as
+    training computes them (None for a variant without the module)."""
+    import torch
+
     ctx = agent.wm.context
     if ctx is None:
         return None
+    s = torch.as_tensor(s)
     keep = ctx.kept_steps(s.shape[1])
     first, second = ctx.tc_pairs(keep.stop)
-    with torch.autocast(device_type=s.device.type, enabled=False):
+    with torch.no_grad(), torch.autocast(device_type=s.device.type, enabled=False):
         x = agent.wm.context_input(s[:, keep].float().to(agent.device))
         u = ctx.project(x)
         w = torch.softmax(ctx.logits(u), dim=-1)

@@ -33,6 +33,7 @@ import numpy as np
 
 from sim_bridge.contract.contexts import get_task
 from trainer import settings, torch_setup
+from trainer.learn.context_health import collapse_reason
 from trainer.learn.evaluate import select_contexts
 from trainer.provenance import code_version
 from trainer.research import probe_report
@@ -136,6 +137,8 @@ def document(s: ProbeSettings, agent: Any, *, counters: dict[str, Any], path: Pa
     """The protocad-probe/1 JSON of one probed checkpoint (probes fitted here)."""
     cfg = agent.cfg
     probes, skipped = run_probes(windows, s.seed)
+    health = ({k: float(np.mean([h[k] for h in data.health])) for k in data.health[0]}
+              if data.health else None)
     counts = np.bincount(windows.context, minlength=len(data.contexts))
     env_steps = counters.get("env_steps")
     return {
@@ -151,6 +154,8 @@ def document(s: ProbeSettings, agent: Any, *, counters: dict[str, Any], path: Pa
         "probes": probes, "skipped": skipped,
         "open_loop": {split: data.open_loop[split].mean() for split in ("test", "train") if split in data.open_loop},
         "assignment": data.assignment.mean(),
+        "health": health,
+        "collapsed": collapse_reason(health, cfg.context.num_prototypes) if health else None,
         "prototypes": prototype_drift(agent, counters.get("prototype_freeze")),
         "seconds": 0.0,
     }

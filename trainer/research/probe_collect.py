@@ -26,6 +26,7 @@ import numpy as np
 from sim_bridge.sim.rollout import Trajectory, rollout
 from sim_bridge.sim.vector import VectorEnv
 from trainer import console
+from trainer.learn.context_health import health_of_states
 from trainer.research.probe_fit import Windows
 
 PIXELS = 64 * 64 * 3
@@ -104,6 +105,7 @@ class Collected:
     context_ids: list[np.ndarray] = field(default_factory=list)
     open_loop: dict[str, OpenLoopSums] = field(default_factory=dict)
     assignment: AssignmentSums = field(default_factory=AssignmentSums)
+    health: list[dict[str, float]] = field(default_factory=list)   # per wave of unseen contexts
     episodes: int = 0
 
     def windows(self, params: Sequence[str]) -> Windows:
@@ -234,5 +236,7 @@ def _measure(agent: Any, batch: Mapping[str, np.ndarray], wave: Sequence[int], s
         out.context_ids.append(np.full(len(feats["h"]), ci))
     if w is not None:
         out.assignment.add(w)
+    if agent.wm.context is not None and split == "test":
+        out.health.append(health_of_states(agent, agent.embed_sequences(batch)["s"][:, plan.skip:]))
     add_open_loop(out.open_loop, split, open_loop_errors(agent, batch, plan))
     out.episodes += len(wave)

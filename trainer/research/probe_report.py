@@ -79,7 +79,9 @@ PROBE_SCHEMA: dict[str, Any] = {
             "type": "object", "required": ["top_mean", "entropy_mean", "uniform_entropy", "prototypes", "steps"],
             "properties": {"top_mean": _NUM, "entropy_mean": _NUM, "uniform_entropy": _NUM,
                            "prototypes": _INT, "steps": _INT}}]},
-        # absent in probes written before it was measured
+        # absent in probes written before they were measured
+        "health": {"oneOf": [{"type": "null"}, {"type": "object", "additionalProperties": _NUM}]},
+        "collapsed": {"type": ["string", "null"]},
         "prototypes": {"oneOf": [{"type": "null"}, {
             "type": "object", "required": ["parameter", "cos_to_initial_mean", "cos_to_initial_min", "count",
                                            "frozen_updates"],
@@ -221,10 +223,22 @@ def report_text(doc: Mapping[str, Any]) -> str:
         parts.append(f"prototype assignment w: top probability {a['top_mean']:.3f} on average (uniform: "
                      f"{1 / a['prototypes']:.3f}), entropy {a['entropy_mean']:.2f} nats of at most "
                      f"{a['uniform_entropy']:.2f}")
+    h = doc.get("health")
+    if h:
+        parts.append(health_line(h, doc.get("collapsed")))
     c = doc.get("prototypes")
     if c:
         parts.append(prototypes_line(c, doc["updates"]))
     return "\n\n".join(parts)
+
+
+def health_line(h: Mapping[str, float], collapsed: str | None = None) -> str:
+    """The context module's health figures on the unseen contexts, and whether they say collapsed."""
+    return (f"context health on the unseen contexts (msgs_docs/training.md#context-health): projection cosine "
+            f"{h['proj_cosine']:.2f}, top probability {h['swav_pred_top']:.3f} predicted / "
+            f"{h['swav_target_top']:.3f} targets, entropy {h['swav_pred_entropy']:.2f} / {h['swav_target_entropy']:.2f}, "
+            f"modal share {h['modal_share']:.2f}, between-sequence share of u {h['proj_between_share']:.2f}"
+            + (f"; COLLAPSED: {collapsed}" if collapsed else ""))
 
 
 def prototypes_line(c: Mapping[str, Any], updates: int) -> str:

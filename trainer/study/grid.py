@@ -11,7 +11,6 @@ from pathlib import Path
 from typing import Any, Mapping, Sequence
 
 import numpy as np
-import torch
 
 from protocad_ros.atomic import atomic_write_text
 from protocad_ros.model.config import Config, make_config
@@ -141,7 +140,7 @@ def evaluate(agent: Any, eval_dir: Path) -> dict[str, Any]:
             out.context_ids.append(np.full(len(feats["h"]), len(out.contexts) - 1))
         add_open_loop(out.open_loop, split, open_loop_errors(agent, batch, plan))
         if agent.wm.context is not None and split == "test":
-            health.append(health_of_states(agent, torch.as_tensor(agent.embed_sequences(batch)["s"][:, plan.skip:])))
+            health.append(health_of_states(agent, agent.embed_sequences(batch)["s"][:, plan.skip:]))
     probes, skipped = run_probes(out.windows(get_task(TASK).params), plan.seed)
     ol = {split: out.open_loop[split].mean() for split in ("test", "train")}
     return {"open_loop": ol, "probes": probes, "skipped": skipped,

@@ -128,6 +128,12 @@ def test_the_json_matches_its_schema_with_finite_scores(probed):
     c = doc["prototypes"]                                       # untrained: where they started
     assert c["parameter"] == "wm.context.prototypes" and c["count"] == 8 and c["frozen_updates"] is None
     assert c["cos_to_initial_mean"] == pytest.approx(1.0, abs=1e-5)
+    h = doc["health"]                                           # the module's health on the unseen contexts
+    assert h["proto_init_cosine"] == pytest.approx(1.0, abs=1e-5)
+    assert 1 / 8 <= h["swav_pred_top"] <= 1 and 1 / 8 <= h["swav_target_top"] <= 1
+    assert -1 <= h["proj_cosine"] <= 1 and 0 <= h["modal_share"] <= 1
+    from trainer.research.probe_report import report_text
+    assert "context health on the unseen contexts" in report_text(doc)   # what the command prints
 
 
 def test_the_probe_tells_prototypes_that_trained_from_frozen_ones(tmp_path):
