@@ -50,14 +50,26 @@ def final_evaluation(rundir: LoopRunDir, updates: int, device: str, stop: consol
                               progress=False if a.no_progress else None, stop=stop)
     if stop.stop:
         return None
-    print(format_table(res, rnd), flush=True)
+    # The policy the run started from (--init-policy, the demo's shipped one) on the same
+    # contexts, episodes and seeds: whether training helped, side by side.
+    start = None
+    if rundir.init_policy:
+        start = evaluate_checkpoint(rundir.init_policy, episodes=a.eval_episodes,
+                                    contexts=[r.context for r in res.per_context],
+                                    seed=rundir.cfg.train.seed + 7, device=device,
+                                    time_limit=a.episode_length * rundir.cfg.train.action_repeat,
+                                    progress=False if a.no_progress else None, stop=stop)
+        if stop.stop:
+            return None
+    print(format_table(res, start, rnd), flush=True)
     if a.demo and not rundir.init_policy:
         print("[loop] what to expect: the demo trains a few hundred updates, far from the "
               "~6k Pendulum Swingup needs before DreamerV2's own seeds show learning, so its "
               "policy scores near the random one; a policy that learned: README 'Results'.",
               flush=True)
     out = rundir.path / "eval" / f"test_{updates:06d}.json"
-    runs.atomic_write_json(out, {**res.to_dict(), "random": rnd.to_dict()})
+    runs.atomic_write_json(out, {**res.to_dict(), "random": rnd.to_dict(),
+                                 **({"start_policy": start.to_dict()} if start is not None else {})})
     return out
 
 

@@ -100,29 +100,36 @@ class EvalResult:
                 "per_context": [c.to_dict() for c in self.per_context]}
 
 
-def format_table(result: EvalResult, baseline: EvalResult | None = None) -> str:
-    """Plain aligned text: one row per context with episodes, mean, std (and the baseline)."""
+def format_table(result: EvalResult, *baselines: EvalResult | None) -> str:
+    """Plain aligned text: one row per context with episodes, mean, std, and for each baseline
+    (another policy on the same contexts) its mean and the difference to it."""
+    others = [b for b in baselines if b is not None]
     head = ["context", "episodes", "mean return", "std"]
-    if baseline is not None:
-        head += [f"{baseline.policy} mean", "diff"]
-    base = {context_label(c.context): c for c in baseline.per_context} if baseline else {}
+    for b in others:
+        head += [f"{_short(b.policy)} mean", "diff"]
+    base = [{context_label(c.context): c for c in b.per_context} for b in others]
     rows = []
     for c in result.per_context:
         r = [context_label(c.context), str(len(c.returns)), f"{c.mean:.1f}", f"{c.std:.1f}"]
-        if baseline is not None:
-            b = base.get(context_label(c.context))
+        for table in base:
+            b = table.get(context_label(c.context))
             r += [f"{b.mean:.1f}" if b else "-", f"{c.mean - b.mean:+.1f}" if b else "-"]
         rows.append(r)
     total = ["mean over contexts", str(sum(len(c.returns) for c in result.per_context)),
              f"{result.mean:.1f}", ""]
-    if baseline is not None:
-        total += [f"{baseline.mean:.1f}", f"{result.mean - baseline.mean:+.1f}"]
+    for b in others:
+        total += [f"{b.mean:.1f}", f"{result.mean - b.mean:+.1f}"]
     rows.append(total)
     title = (f"{result.task} on {result.split} contexts: {result.policy}"
              + (f" ({result.variant}, {result.updates} updates" if result.variant else "")
              + (f", {result.env_steps} env steps" if result.env_steps is not None and result.variant else "")
              + (")" if result.variant else "") + f" [{result.mode}, {result.seconds:.0f}s]")
     return title + "\n" + _align(head, rows)
+
+
+def _short(policy: str) -> str:
+    """A column name for a policy: 'random', or its file's name."""
+    return Path(policy).name if policy not in ("random", "agent") else policy
 
 
 def format_summary(results: Sequence[EvalResult]) -> str:

@@ -76,10 +76,18 @@ def continue_from_a_policy_file(trained, tmp_path):
     r = run_cli("trainer.launch.loop", "--init-policy", policy, "--start-eval-episodes", "2", "--seed", "5",
                 "--episode-length", "16", "--prefill-episodes", "1", "--cycles", "1",
                 "--updates-per-episode", str(C), "--batch-size", "4", "--seq-len", "8", "--threads", "1",
-                "--eval-episodes", "0", "--no-visualize", "--run-dir", run,
+                "--eval-episodes", "1", "--eval-max-contexts", "2", "--no-visualize", "--run-dir", run,
                 "--domain-id", os.environ["ROS_DOMAIN_ID"], "--no-progress", timeout=400)
     assert r.returncode == 0, loop_failure(r, run)
     assert "against the random policy on 2 unseen-context episode(s)" in r.stdout
+    # the closing table: the trained checkpoint beside the policy it started from and the random
+    # one, on the same contexts
+    final = json.loads(next((run / "eval").glob("test_*.json")).read_text())
+    contexts = [c["context"] for c in final["per_context"]]
+    assert len(contexts) == 2 and final["start_policy"]["policy"] == str(policy)
+    assert [c["context"] for c in final["start_policy"]["per_context"]] == contexts
+    assert [c["context"] for c in final["random"]["per_context"]] == contexts
+    assert "pendulum_swingup.pt mean" in r.stdout and "random mean" in r.stdout
     start = json.loads((run / "eval" / "start.json").read_text())
     assert start["mode"] == "through ROS" and start["random"]["mode"] == "through ROS"
     assert sum(len(c["returns"]) for c in start["per_context"]) == 2
