@@ -7,38 +7,32 @@ directory, run as parallel worker processes, gathered into one `results.json` an
     protocad-compare --out runs/compare-pend ...same flags...   # resumes every unfinished run
     protocad-compare --report runs/compare-pend/results.json --markdown   # README section
     protocad-compare --report anchor/results.json compare/results.json   # two grids in one report
-    protocad-compare --power --power-json power_table.json   # sizes the next paired grid; runs nothing
+    protocad-compare --power-json power_table.json       # sizes the next paired grid; runs nothing
 
 Each run is `python -m trainer.research.online --run-dir OUT/TASK/LABEL/seedS ...` with its own torch
 thread budget (`--threads`) and device (`--devices`, assigned round robin), its output in
 RUN_DIR/online.log. Re-running the same command skips finished runs and resumes the others
-from trainer.research import results as R
 from their last checkpoint (`protocad-online --resume`: weights, optimisers, RNG, sampler;
 counters from the bags on disk, which all count); a run killed before its first checkpoint
-resumes from its bags. Ctrl-C
-(or SIGTERM) asks every run to stop cleanly (checkpoint, no final evaluation) and exits 130;
-the runs also die with this process if it is killed outright (PR_SET_PDEATHSIG).
+resumes from its bags. Ctrl-C (or SIGTERM) asks every run to stop cleanly (checkpoint, no final
+evaluation) and exits 130; the runs also die with this process if it is killed outright.
 
 Budgets: every run stops at `--env-steps`, or earlier when its own training wall time (carried
 across resumes) reaches `--wall-budget`; either way it then runs the final evaluation on all
-test contexts and saves its checkpoint and curves. results.json records which budget ended
-each run and the env steps it reached.
+test contexts and saves its checkpoint and curves (results.json: which budget ended it, where).
 
 Runs that span machines: OUT/results.json is rewritten each time a run finishes, at each status
 line and when the grid is interrupted, so the rows of the finished runs can be committed at any
 time, and `--report OUT/results.json` shows how far the others got (env steps, updates, latest
-evaluation). Another
-machine then continues the grid with `--from-results THAT.json`: the finished runs recorded
-there count as done (their rows are kept as they are, with where they came from) and only the
-others run. Their budgets and the arguments after `--` must be this grid's.
+evaluation). Another machine then continues the grid with `--from-results THAT.json`: the
+finished runs recorded there count as done (their rows are kept as they are, with where they
+came from) and only the others run. Their budgets and the arguments after `--` must be this grid's.
 
 `--anchor-seeds S...` adds the sanity anchor of the RL core: `dreamer` at DreamerV2's dmc_vision
-settings (`reference=dreamerv2`: 32 x 32 discrete latents, trunc_normal actor) trained and
-evaluated on the unrandomized task (the default context, m=1 / m=1,d=1), label
-`dreamer_standard`, to set beside DreamerV2's published curves on standard DMC.
+settings (`reference=dreamerv2`) trained and evaluated on the unrandomized task (m=1 / m=1,d=1),
+label `dreamer_standard`, to set beside DreamerV2's published curves on standard DMC.
 
-Everything after `--` goes to every `protocad-online` run unchanged (preset, C, eval options,
-`--set` overrides).
+Everything after `--` goes to every `protocad-online` run unchanged (preset, C, `--set` ...).
 """
 from __future__ import annotations
 
@@ -402,12 +396,10 @@ class GridSettings:
     """with --ship: `protocad-evaluate CHECKPOINT --random --json EVAL_JSON` of the shipped run's
     checkpoint on unseen contexts, kept in the provenance (checked to be that checkpoint's)"""
     power: bool = arg(False, group="sizing the next comparison (no runs)")
-    """only print the power table that sizes the next paired ProtoCAD - Dreamer grid, as markdown:
-    per paper task at 30k, 60k and 120k env steps the expected effect (the paper's relative gap x
-    DreamerV2's mean there), the pair SD, the pairs for 80%% power at alpha 0.05 and the CPU
-    core-hours (trainer.research.statistics.power_table); the grid's options are ignored"""
+    """only print the table that sizes the next paired grid (statistics.power_table: per paper task
+    and budget the expected effect, pair SD, pairs for 80%% power, core-hours); runs nothing"""
     power_json: str | None = arg(None, metavar="FILE", group="sizing the next comparison (no runs)")
-    """with --power: also write the table as JSON (msgs_docs/results/power_table.json)"""
+    """--power, and write the table as JSON too (msgs_docs/results/power_table.json)"""
     status_every: float = arg(300.0, group="output")
     """seconds between status lines"""
     online_args: list[str] = arg([], "online_args", nargs=argparse.REMAINDER)
@@ -481,14 +473,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         a.online_args = a.online_args[1:]
     failed = 0
     try:
-        if a.power_json and not a.power:
-            raise ValueError("--power-json writes the table of --power: give --power")
-        if a.power:
-            table = R.power_table()
-            print(R.power_markdown(table), *("", *R.power_lines(table)), sep="\n", flush=True)
-            if a.power_json:
-                runs.atomic_write_json(Path(a.power_json), table)
-            return 0
+        if a.power or a.power_json:
+            return R.print_power_table(a.power_json)
         if a.report:
             docs, sources, everything = _reported_docs(a)
         else:

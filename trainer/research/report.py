@@ -16,6 +16,7 @@ from trainer.research.statistics import (
     aggregate_mean,
     bootstrap_ci,
     paired_difference,
+    power_table,
     standard_context,
     summarize,
     unseen_train_ratio,
@@ -243,6 +244,16 @@ def power_lines(table: Mapping[str, Any]) -> list[str]:
             f"there ({w['paper_effect']:.1f}): {100 * w['power_for_paper_effect']:.1f}%",
             f"cheapest to power: {c['task']} at {c['env_steps'] // 1000}k env steps, {c['pairs_needed']} "
             f"pairs, {c['core_hours']:.1f} CPU core-hours"]
+
+
+def print_power_table(json_path: str | None = None) -> int:
+    """`protocad-compare --power`: print statistics.power_table as markdown and its two summary
+    lines; write it as JSON too where asked (msgs_docs/results/power_table.json). Returns 0."""
+    table = power_table()
+    print(power_markdown(table), *("", *power_lines(table)), sep="\n", flush=True)
+    if json_path:
+        atomic_write_text(Path(json_path), json.dumps(table, indent=1) + "\n")
+    return 0
 
 
 def labels_of(doc: Mapping[str, Any], task: str) -> list[str]:

@@ -59,6 +59,7 @@ from trainer.research.report import (
     plot_curves,
     power_lines,
     power_markdown,
+    print_power_table,
     progress_rows,
     readme_section,
     superseded_lines,
@@ -109,7 +110,7 @@ __all__ = [
     'gather', 'gather_run', 'iqm',
     'labels_of', 'latest_progress', 'load_results', 'log_curves_rerun', 'machine_info',
     'markdown_section', 'paired_difference', 'paired_lines', 'pairs_needed', 'plot_curves', 'power_lines',
-    'power_markdown', 'power_of', 'power_table', 'progress_rows',
+    'power_markdown', 'print_power_table', 'power_of', 'power_table', 'progress_rows',
     'random_baselines', 'readme_section', 'runs_code_version', 'save_results', 'standard_context',
     'summarize', 'superseded_lines', 'table_rows', 'unseen_train_ratio', 'update_readme', 'validate',
     'write_reports']
