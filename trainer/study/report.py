@@ -59,6 +59,30 @@ def gather(grid: Path) -> dict[str, Any]:
     return result
 
 
+#: The study's primary figure (results.md, fixed before its results): unseen-context image MSE
+#: over open-loop horizons 1-50; an arm is ahead of Dreamer where its paired interval lies below 0.
+PRIMARY = "test_image_mse_1_50"
+
+
+def paired(result: Mapping[str, Any], arm: str, base: str = "dreamer", key: str = PRIMARY) -> dict[str, Any] | None:
+    """arm - base of one figure, paired by seed (the seeds both ran: the same data order), with
+    its mean and 95% t-interval; None where either arm has no run."""
+    a, b = result.get(arm), result.get(base)
+    seeds = sorted(set(a["per_seed"]) & set(b["per_seed"]), key=int) if a and b else []
+    if not seeds:
+        return None
+    d = [a["per_seed"][s][key] - b["per_seed"][s][key] for s in seeds]
+    m, lo, hi = t_interval(d)
+    verdict = "lower" if hi < 0 else "higher" if lo > 0 else "no difference shown"
+    return {"arm": arm, "base": base, "figure": key, "seeds": [int(s) for s in seeds], "differences": d,
+            "mean": m, "lo": lo, "hi": hi, "verdict": verdict}
+
+
+def paired_line(p: Mapping[str, Any]) -> str:
+    return (f"{p['arm']} - {p['base']}, {p['figure']} over {len(p['seeds'])} seeds: {p['mean']:+.5f} "
+            f"[95% t-interval {p['lo']:+.5f}, {p['hi']:+.5f}]: {p['verdict']}")
+
+
 ROWS = [("unseen image MSE, h 1-50", "test_image_mse_1_50", 5), ("unseen image MSE, h 10", "test_image_mse_h10", 5),
         ("unseen image MSE, h 50", "test_image_mse_h50", 5), ("training-context image MSE, h 1-50", "train_image_mse_1_50", 5),
         ("unseen reward error, h 1-50", "test_reward_err_1_50", 3), ("training reward error, h 1-50", "train_reward_err_1_50", 3),
@@ -94,8 +118,9 @@ def write_report(grid: Path, json_path: Path | None = None) -> dict[str, Any]:
     result = gather(Path(grid))
     if not result:
         raise ValueError(f"{grid}: no finished run (GRID/ARM/seed_S/eval.json)")
-    print(markdown(result))
-    doc = {"schema": "protocad-study/1", "task": TASK, "arms": result}
+    pairs = [p for arm in result if arm != "dreamer" and (p := paired(result, arm)) is not None]
+    print(markdown(result), *("", *map(paired_line, pairs)), sep="\n")
+    doc = {"schema": "protocad-study/1", "task": TASK, "arms": result, "paired": pairs}
     if json_path:
         atomic_write_text(Path(json_path), json.dumps(doc, indent=1))
     return doc

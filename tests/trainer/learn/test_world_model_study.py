@@ -117,4 +117,14 @@ def test_the_study_report_gives_each_arm_its_mean_and_t_interval_over_seeds(tmp_
     assert mse["mean"] == pytest.approx(0.012)
     assert mse["hi"] - mse["mean"] == pytest.approx(0.002 * 4.3027 / 3 ** 0.5, rel=1e-3)
     assert arm["figures"]["r2_test_grid_log_m_h"]["mean"] == pytest.approx(0.6)
+    # A second arm on the same seeds: its paired difference to Dreamer, the primary figure.
+    for seed, mse in enumerate([0.009, 0.010, 0.012]):
+        d = tmp_path / "grid" / "protocad_chosen" / f"seed_{seed}"
+        d.mkdir(parents=True)
+        (d / "eval.json").write_text(json.dumps(_eval_doc("protocad_chosen", seed, mse, 0.5)))
+    assert study.main(["report", "--grid", str(tmp_path / "grid"), "--json", str(out)]) == 0
+    (pair,) = json.loads(out.read_text())["paired"]
+    assert pair["arm"] == "protocad_chosen" and pair["base"] == "dreamer" and pair["seeds"] == [0, 1, 2]
+    assert pair["differences"] == pytest.approx([-0.001, -0.002, -0.002])
+    assert pair["mean"] == pytest.approx(-0.005 / 3) and pair["verdict"] == "lower"
     assert study.main(["report", "--grid", str(tmp_path / "empty")]) == 2
