@@ -32,6 +32,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import stat
 import time
 import zipfile
 from pathlib import Path
@@ -219,12 +220,46 @@ def read_checkpoint_file(path: str | os.PathLike, max_bytes: int | None = None) 
 
 
 def _read_file(path: Path, max_bytes: int) -> bytes:
-    if not path.is_file():
-        raise CheckpointError(f"{path}: no such checkpoint file")
-    size = path.stat().st_size
-    if size > max_bytes:   # before reading it: a huge file costs nothing
-        raise CheckpointError(f"{path}: {size} bytes, more than the limit of {max_bytes} (max_checkpoint_bytes)")
-    return path.read_bytes()
+    """One bounded read: the file is opened once, its size checked on that descriptor (fstat),
+    and at most that size plus one byte (never more than max_bytes + 1) read from it; the path
+    is never opened again. A file that grows after its size check (a writer still at it, or a
+    stranger's file that becomes a sparse 4 GiB one) is refused, naming what was read."""
+    try:   # O_NONBLOCK: a FIFO put in its place must not hang the opener (refused just below)
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    except FileNotFoundError:
+        raise CheckpointError(f"{path}: no such checkpoint file") from None
+    except OSError as err:
+        raise CheckpointError(f"{path}: cannot open: {err.strerror or err}") from None
+    with open(fd, "rb", buffering=0) as f:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise CheckpointError(f"{path}: not a regular file (no such checkpoint file)")
+        size = st.st_size
+        if size > max_bytes:   # before reading it: a huge file costs nothing
+            raise CheckpointError(f"{path}: {size} bytes, more than the limit of {max_bytes} (max_checkpoint_bytes)")
+        data = _read_at_most(f, size)
+        extra = len(f.read(1) or b"")   # one byte more: the file is longer than it was checked
+    if extra:
+        raise CheckpointError(f"{path}: grew after its size check ({size} bytes): {len(data) + extra} bytes "
+                              f"read, more than was checked; refused (the limit is {max_bytes} bytes, "
+                              "max_checkpoint_bytes)")
+    return data
+
+
+def _read_at_most(f: io.RawIOBase, size: int) -> bytes:
+    """Up to `size` bytes from a raw file: one read (one allocation) unless it comes back short."""
+    first = f.read(size) or b""
+    if len(first) >= size or not first:
+        return first
+    parts = [first]
+    got = len(first)
+    while got < size:
+        more = f.read(size - got)
+        if not more:
+            break
+        parts.append(more)
+        got += len(more)
+    return b"".join(parts)
 
 
 def _config(path: Path, payload: Mapping[str, Any]) -> Config:

@@ -271,8 +271,10 @@ def verify_file(checkpoint: str | os.PathLike, sha256: str, size: int,
 
 def sign_file(checkpoint: str | os.PathLike, key: Ed25519PrivateKey, seq: int | None = None) -> Manifest:
     """Write FILE.sig for a checkpoint file (its task, variant, preset, updates from the file)."""
-    checkpoint = Path(checkpoint)
-    return sign_bytes(checkpoint, checkpoint.read_bytes(), key, seq)
+    from protocad_ros.checkpoint import read_checkpoint_file
+
+    checkpoint = Path(checkpoint)   # the one bounded read every checkpoint reader makes
+    return sign_bytes(checkpoint, read_checkpoint_file(checkpoint), key, seq)
 
 
 def sign_bytes(checkpoint: str | os.PathLike, data: bytes, key: Ed25519PrivateKey,

@@ -215,8 +215,8 @@ def keyed_node(tmp_path):
 def test_a_file_swapped_between_verification_and_load_is_never_served(keyed_node, tmp_path, monkeypatch):
     """The attack: exchange the checkpoint for a stranger's between the read that is hashed and
     verified and the read that is loaded, then exchange it back (the file's (mtime, inode, size)
-    are the verified one's again). A hook on every open of the checkpoint makes exactly that
-    exchange around any read after the first; the node reads the file once, so it serves the
+    are the verified one's again). A hook on every open of the checkpoint (open, and os.open: the
+    bounded read opens a descriptor) makes exactly that exchange around any read after the first; the node reads the file once, so it serves the
     signed version and the stranger's bytes are never loaded."""
     import builtins
 
@@ -248,8 +248,25 @@ def test_a_file_swapped_between_verification_and_load_is_never_served(keyed_node
             os.rename(tmp_path / "genuine.pt", path)
         return io.BytesIO(data) if "b" in mode else io.StringIO(data.decode(errors="replace"))
 
+    real_os_open = os.open
+
+    def hooked_os_open(file, flags, *args, **kw):   # the checkpoint reader opens a descriptor
+        if isinstance(file, int) or os.fspath(file) != str(path):
+            return real_os_open(file, flags, *args, **kw)
+        reads.append(1)
+        if len(reads) == 1:
+            return real_os_open(file, flags, *args, **kw)
+        os.rename(path, tmp_path / "genuine.pt")       # exchange: the descriptor is the stranger's ...
+        os.rename(evil, path)
+        try:
+            return real_os_open(file, flags, *args, **kw)
+        finally:
+            os.rename(path, evil)                      # ... and back
+            os.rename(tmp_path / "genuine.pt", path)
+
     monkeypatch.setattr(builtins, "open", hooked_open)
     monkeypatch.setattr(io, "open", hooked_open)
+    monkeypatch.setattr(os, "open", hooked_os_open)
     node._check_file(str(path))
     monkeypatch.undo()
     pending = node._pending_policy
