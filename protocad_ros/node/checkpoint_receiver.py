@@ -276,7 +276,7 @@ class CheckpointReceiver:
             return None
         if self.trusted is not None and a.seq <= (floor := self._rollback_floor()):
             return self.ROLLBACK, (f"rollback: sequence number {a.seq} is not above {floor}, the "
-                                   "newest version this node holds")
+                                   "newest version this node holds (or min_checkpoint_seq - 1)")
         why = self._fits(a)
         return (self.MISMATCH, f"does not fit: {why}") if why else None
 

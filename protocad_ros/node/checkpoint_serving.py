@@ -163,9 +163,14 @@ class CheckpointServing:
                 self.rollback = RollbackFloor(state, p["checkpoint"])
             except RollbackStateError as e:
                 raise ConfigError(str(e)) from None
+            minimum = (f"; no version signed below min_checkpoint_seq {p['min_checkpoint_seq']}"
+                       if p["min_checkpoint_seq"] else "")
             self.get_logger().info(f"serving only checkpoints signed by trusted key(s) "
                                    f"{', '.join(sorted(self.trusted))}; rollback floor "
-                                   f"{self.rollback.seq} ({self.rollback.path})")
+                                   f"{self.rollback.seq} ({self.rollback.path}){minimum}")
+        elif p["min_checkpoint_seq"]:
+            raise ConfigError(f"min_checkpoint_seq:={p['min_checkpoint_seq']} without trusted_keys: only "
+                              "signed versions carry a sequence number; give -p trusted_keys:=LEARNER.pub")
         elif p["checkpoint_topic"] and not p["allow_unsigned"]:
             raise ConfigError(f"checkpoint_topic:={p['checkpoint_topic']} without trusted_keys: anyone on "
                               "this DDS domain could replace the served model; give -p trusted_keys:="
@@ -191,7 +196,7 @@ class CheckpointServing:
         newest = self._newest_seq()
         if manifest.seq <= newest:
             raise RollbackRejected(f"rollback: sequence number {manifest.seq} is not above {newest}, "
-                                   "the newest version this node holds")
+                                   "the newest version this node holds (or min_checkpoint_seq - 1)")
         return manifest.seq
 
     def _configure_seq(self, path: str, sha: str, size: int) -> None:
@@ -296,11 +301,14 @@ class CheckpointServing:
         return pending[3] if pending is not None else self.ckpt_sha
 
     def _newest_seq(self) -> int:
-        """Sequence number of the newest signed version held (served or pending); -1: none."""
+        """Sequence number of the newest signed version held (served or pending), or the one
+        below min_checkpoint_seq when that is higher: no new version at or below it is taken;
+        -1: none."""
         with self._lock:
             pending = self._pending_policy
         floor = self.rollback.seq if self.rollback is not None else -1
-        return max(self.ckpt_seq, floor, pending[4] if pending is not None else -1)
+        return max(self.ckpt_seq, floor, pending[4] if pending is not None else -1,
+                   self.params["min_checkpoint_seq"] - 1)
 
     def _swap_if_pending(self) -> None:
         with self._lock:

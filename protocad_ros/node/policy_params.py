@@ -34,6 +34,13 @@ PARAMS: tuple[Param, ...] = (
           "number this node held (its rollback floor), apart from the checkpoint, so that losing "
           "FILE.sig does not lower it. Default: beside the first trusted key, "
           "KEY.served-<hash of the checkpoint path>.json."),
+    Param("min_checkpoint_seq", 0, "With trusted_keys: the lowest sequence number of a signed "
+          "version this node takes (over checkpoint_topic, or a changed file): an older signed "
+          "version replayed while the publisher is down is refused as a rollback from the first "
+          "message, also on a brand-new node whose rollback floor is still empty. The file served "
+          "at start is checked against rollback_state only. 0: none. protocad-fleet sets the time "
+          "it started its publisher, in ms (the publisher's current number: seq is the signer's clock).",
+          range=(0, 2**62), units="seq"),
     Param("max_checkpoint_bytes", 512 << 20, "Largest checkpoint accepted over checkpoint_topic "
           "(a bigger announced version is refused before any chunk is kept) or loaded from the "
           "checkpoint file (the file, and the sizes its archive entries declare, checked before "

@@ -36,7 +36,7 @@ import time
 from pathlib import Path
 from typing import Sequence
 
-from protocad_ros.checkpoint_signing import SigningError
+from protocad_ros.checkpoint_signing import SigningError, next_seq
 from protocad_ros.model.hyperparameters import DEFAULT_CLI_PRESET, PRESETS, VARIANTS
 from sim_bridge.contract import topics as T
 from trainer import cli_values, console
@@ -95,6 +95,13 @@ def build_parser() -> argparse.ArgumentParser:
                     help="no signatures: the publisher does not sign and the policy nodes serve unsigned "
                          "checkpoints received over --checkpoint-topic (anyone on the domain can replace "
                          "the model; msgs_docs/security.md)")
+    ap.add_argument("--min-checkpoint-seq", type=cli_values.non_negative_int, default=None, metavar="SEQ",
+                    help="with --trusted-key: the policy nodes take no signed version below SEQ (their rollback "
+                         "floor from the first message, also on a brand-new robot). Default: with "
+                         "--publish-checkpoint, the time this fleet starts its publisher in ms (seq is the "
+                         "signer's clock: every version it signs is above, every one signed before is "
+                         "refused); else 0, none (on an actor machine give the publisher's current seq: "
+                         "its /diagnostics or FILE.sig)")
     ap.add_argument("--ready-timeout", type=float, default=120.0, help="seconds each node may take to start")
     ap.add_argument("--open-control-plane", action="store_true",
                     help="let other processes reset episodes and change the nodes' lifecycle states "
@@ -127,7 +134,10 @@ def run(a: argparse.Namespace) -> int:
             if a.record:
                 stack.start_recorder(a.record, namespaces=namespaces, ready_timeout=a.ready_timeout)
                 print(f"[fleet] recording {len(namespaces)} robot(s) into {a.record}", flush=True)
+            min_seq = a.min_checkpoint_seq or 0
             if a.publish_checkpoint:
+                if a.min_checkpoint_seq is None and trusted is not None:
+                    min_seq = next_seq()   # before the publisher starts: each version it signs is above
                 topic = a.checkpoint_topic or "/" + T.DEFAULT_NAMESPACE.strip("/") + "/" + T.CHECKPOINT
                 stack.start_checkpoint_publisher(a.publish_checkpoint, topic=topic, ready_timeout=a.ready_timeout,
                                                  signing_key=signing_key.private if signing_key else None)
@@ -143,7 +153,7 @@ def run(a: argparse.Namespace) -> int:
                         variant=a.variant, preset=a.preset,
                         ready_timeout=a.ready_timeout, ns=ns, checkpoint_topic=a.checkpoint_topic,
                         closed_control=not a.open_control_plane, trusted_keys=trusted,
-                        allow_unsigned=a.allow_unsigned)
+                        allow_unsigned=a.allow_unsigned, min_checkpoint_seq=min_seq if trusted else 0)
                     if a.wait_for_checkpoint:
                         stack.wait_checkpoint_loaded(policy, a.ready_timeout, ns=ns)
                 else:

@@ -358,15 +358,17 @@ class RosStack:
                      seed: int = 0, device: str = "cpu", preset: str | None = None, variant: str | None = None,
                      num_threads: int = 0, ready_timeout: float = 120.0, ns: str | None = None,
                      checkpoint_topic: str | None = None, closed_control: bool = False,
-                     trusted_keys: str | Path | None = None, allow_unsigned: bool = False) -> NodeProc:
+                     trusted_keys: str | Path | None = None, allow_unsigned: bool = False,
+                     min_checkpoint_seq: int = 0) -> NodeProc:
         """trusted_keys: the public key(s) whose signature a checkpoint needs (the run key's);
-        allow_unsigned: with checkpoint_topic and no keys, start anyway (said loudly)."""
+        allow_unsigned: with checkpoint_topic and no keys, start anyway (said loudly);
+        min_checkpoint_seq: no signed version below it is taken (the policy's floor from the start)."""
         args = ["--ros-args", *self._params(
             checkpoint=str(checkpoint) if checkpoint else None, wait_for_checkpoint=wait_for_checkpoint,
             reload_poll_s=float(reload_poll_s), task=task, mode=mode, exploration_noise=float(exploration_noise),
             seed=seed, device=device, preset=preset, variant=variant, num_threads=num_threads,
             checkpoint_topic=checkpoint_topic, trusted_keys=str(trusted_keys) if trusted_keys else None,
-            allow_unsigned=allow_unsigned or None,
+            allow_unsigned=allow_unsigned or None, min_checkpoint_seq=int(min_checkpoint_seq) or None,
             **({"remote_lifecycle": False} if closed_control else {})),
             *self._ns_args(ns)]
         proc = self._spawn(self.key("policy", ns), "protocad_ros.node.policy_node", args)

@@ -156,6 +156,64 @@ def test_a_replayed_older_version_is_refused_live_after_a_restart_and_after_its_
 
 @pytest.mark.ros
 @pytest.mark.process
+def test_a_new_robot_with_a_minimum_seq_refuses_a_replayed_older_version_from_the_first_message(
+        spawn, probe, tmp_path):
+    """Issue 54, point 5: the publisher is down, a stranger replays a captured older signed
+    version to a brand-new robot (no file, no rollback state). Without a floor the robot
+    installs it; with min_checkpoint_seq (the publisher's current number) it is refused from the
+    first message, and the publisher's next version is still taken."""
+    learner, _, pub = _keys(tmp_path / "keys")
+    v1, a1 = _version(tmp_path, "v1", 5, 1)
+    old = sign(a1, learner)                         # captured earlier
+    current = old.seq + 60_000                      # the publisher's number a minute later
+    fake = FakeCheckpointPublisher(probe)
+
+    def new_robot(name: str, *extra: str):
+        with probe.lock:
+            probe.diag.clear()
+        served = tmp_path / name / "agent.pt"
+        served.parent.mkdir()
+        proc = spawn(name, *_keyed(served, pub, f"rollback_state:={tmp_path / name / 'floor.json'}", *extra))
+        wait_until(lambda: probe.node_diag("policy").get("lifecycle_state") == "active" or not proc.alive(),
+                   START, f"{name} to be active")
+        assert proc.alive(), proc.output()
+        assert probe.node_diag("policy")["checkpoint_rollback_floor"] == "-1"   # brand-new: no floor kept
+        return proc, served
+
+    # Before: a new robot without a minimum installs the replayed version.
+    p0, served0 = new_robot("no_floor")
+    fake.send(old, chunks(v1, SIZE))
+    wait_until(lambda: probe.node_diag("policy").get("pending_checkpoint_updates") == "5", 60,
+               "the replayed v1 installed by a robot without a floor")
+    assert served0.read_bytes() == v1
+    assert p0.stop() == 0
+
+    # After: with min_checkpoint_seq the same replay is refused from the first message.
+    p1, served1 = new_robot("with_floor", f"min_checkpoint_seq:={current}")
+    assert f"no version signed below min_checkpoint_seq {current}" in p1.output()
+    fake.send(old, chunks(v1, SIZE))
+    wait_until(lambda: probe.counter("policy", "checkpoint_rollbacks_rejected") >= 1, 30, "the replay refused")
+    assert f"rollback: sequence number {old.seq} is not above {current - 1}" in p1.output()
+    d = probe.node_diag("policy")
+    assert d["agent"] == "random" and d["pending_checkpoint_updates"] == "-1" and not served1.exists(), d
+    v2, a2 = _version(tmp_path, "v2", 7, 2)         # the publisher is back: its next version is taken
+    fake.send(sign(a2, learner, current), chunks(v2, SIZE))
+    wait_until(lambda: probe.node_diag("policy").get("pending_checkpoint_updates") == "7", 60, "v2 installed")
+    assert served1.read_bytes() == v2
+    assert p1.stop() == 0
+    fake.close()
+
+
+@pytest.mark.ros
+@pytest.mark.process
+def test_min_checkpoint_seq_without_trusted_keys_is_a_configuration_error(spawn, tmp_path):
+    proc = spawn("min_seq_unsigned", *policy_args(f"checkpoint:={tmp_path / 'agent.pt'}", "min_checkpoint_seq:=5"))
+    wait_until(lambda: not proc.alive(), START, "the node to exit")
+    assert proc.p.returncode == 2 and "min_checkpoint_seq:=5 without trusted_keys" in proc.output(), proc.output()
+
+
+@pytest.mark.ros
+@pytest.mark.process
 def test_a_flood_of_refused_announcements_is_counted_and_logged_once_per_cause(spawn, probe, tmp_path):
     learner, stranger, pub = _keys(tmp_path / "keys")
     served = tmp_path / "robot" / "agent.pt"

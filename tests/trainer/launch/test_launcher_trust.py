@@ -153,3 +153,61 @@ def test_fleet_refuses_a_checkpoint_topic_without_a_key_to_trust(tmp_path):
                         "--domain-id", os.environ["ROS_DOMAIN_ID"]], capture_output=True, text=True, timeout=120)
     assert r.returncode == 2 and "--trusted-key" in r.stderr and "--allow-unsigned" in r.stderr, r.stderr
     assert len(r.stderr.strip().splitlines()) == 1 and not (tmp_path / "run" / "logs").exists()
+
+
+class _RecordingStack:
+    """Stands in for RosStack in protocad-fleet's run(): records what would be started, in order."""
+
+    calls: list = []
+
+    def __init__(self, *a, **kw):
+        self.procs, self.domain_id = {}, 0
+
+    def describe_discovery(self) -> str:
+        return "recorded"
+
+    def start_checkpoint_publisher(self, checkpoint, **kw):
+        self.calls.append(("publisher", time.time_ns() // 1_000_000))
+
+    def start_policy(self, **kw):
+        self.calls.append(("policy", kw))
+
+    def start_bridge(self, **kw):
+        return type("Done", (), {"p": type("P", (), {"poll": staticmethod(lambda: 0)})()})()
+
+    def stop_all(self):
+        return {}
+
+    def forged_note(self):
+        return ""
+
+
+@pytest.mark.parametrize("publishes", [True, False])
+def test_a_fleet_gives_its_policies_the_publishers_current_seq_as_their_floor(tmp_path, monkeypatch, publishes):
+    """Issue 54, point 5: with --publish-checkpoint and keys, the policy nodes start with
+    min_checkpoint_seq = the time the fleet starts its publisher (the publisher signs every
+    version with its clock, so all it announces is above and every version signed before is
+    refused); an actor machine (no publisher) has none unless --min-checkpoint-seq says."""
+    from trainer.launch import fleet
+
+    _RecordingStack.calls = []
+    monkeypatch.setattr(fleet, "RosStack", _RecordingStack)
+    before = time.time_ns() // 1_000_000
+    args = ["--checkpoint", str(tmp_path / "p.pt"), "--checkpoint-topic", "/protocad/checkpoint",
+            "--run-dir", str(tmp_path / "run"), "--episodes", "1"]
+    if publishes:
+        args += ["--publish-checkpoint", str(tmp_path / "learner.pt")]
+    else:
+        generate_keypair(tmp_path / "k.key", tmp_path / "k.pub")
+        args += ["--trusted-key", str(tmp_path / "k.pub")]
+    assert fleet.run(fleet.build_parser().parse_args(args)) == 0
+    policy = next(kw for what, kw in _RecordingStack.calls if what == "policy")
+    if publishes:
+        published = next(t for what, t in _RecordingStack.calls if what == "publisher")
+        assert before <= policy["min_checkpoint_seq"] <= published, (before, policy, published)
+    else:
+        assert policy["min_checkpoint_seq"] == 0
+    args += ["--min-checkpoint-seq", "1234"]
+    _RecordingStack.calls = []
+    assert fleet.run(fleet.build_parser().parse_args(args)) == 0
+    assert next(kw for what, kw in _RecordingStack.calls if what == "policy")["min_checkpoint_seq"] == 1234
