@@ -182,21 +182,6 @@ def robot_namespaces(base: str, robots: int, first: int | None = None) -> list[s
 DISCOVERY_SERVER = "discovery_server"   # its process name in a RosStack
 
 
-#: /diagnostics is open to every participant: the launchers record a rate-limited copy of it
-#: (each of our nodes reports about once a second) within a byte budget, so a stranger's flood
-#: of it costs the disk at most this much (trainer/nodes/record_budget.py).
-DIAGNOSTICS_RATE_LIMIT_HZ = 20.0
-DIAGNOSTICS_BYTE_BUDGET = 64 << 20
-
-
-def recorder_budget_args(topics: Iterable[str]) -> list[str]:
-    """The recorder options that bound what `topics` can cost the disk (the launchers' use)."""
-    if T.DIAGNOSTICS not in topics:
-        return []
-    return ["--rate-limit", f"{T.DIAGNOSTICS}={DIAGNOSTICS_RATE_LIMIT_HZ:g}",
-            "--byte-budget", f"{T.DIAGNOSTICS}={DIAGNOSTICS_BYTE_BUDGET}"]
-
-
 class RosStack:
     """The node processes of one run, sharing a ROS domain: one robot in `namespace`, or
     several (`ns` of each start_* call; process names then carry '@NS')."""
@@ -426,7 +411,7 @@ class RosStack:
                   for ns in (namespaces or [self.namespace]) for t in default_topics(ns)]
         topics += [t for t in extra_topics]
         args = ["-o", str(bag), "--namespace", self.namespace, "--flush-interval", "1.0",
-                "--topics", *topics, *recorder_budget_args(topics)]
+                "--topics", *topics]   # bounded by the recorder's defaults (record_budget.contract_bounds)
         wants = recorder_endpoints(wait_topics)
         old = self.graph.snapshot("recorder", "/", wants)
         # A super client: it reads topic types from the graph before it subscribes to them.

@@ -65,6 +65,8 @@ STRING_ARRAY_PARAMETERS = {
     "exclude_topics": "topics not to record",
     "rate_limits": "TOPIC=HZ: a rate limit of its own",
     "byte_budgets": "TOPIC=BYTES: a byte budget of its own",
+    "byte_rate_limits": "TOPIC=BYTES_PER_S: a byte-rate limit of its own",
+    "message_limits": "TOPIC=BYTES: a message size limit of its own",
 }
 
 
@@ -75,7 +77,8 @@ class RecorderNode(TopicSubscriber, LossAccounting, BagWriting, RecorderGuard, P
     compression, chunk_size, max_bagfile_size, max_bagfile_duration, flush_interval,
     queue_depth, discovery_interval, status_interval, and the disk budget's (trainer/nodes/
     record_budget.py) max_topic_rate, max_topic_bytes, max_total_bytes, min_free_disk,
-    flood_factor, rate_limits and byte_budgets (TOPIC=NUMBER lists). `qos_overrides` ({topic: policies}) and
+    flood_factor, rate_limits, byte_budgets, byte_rate_limits and message_limits (TOPIC=NUMBER
+    lists, over the contract topics' defaults: record_budget.contract_bounds). `qos_overrides` ({topic: policies}) and
     `custom_data` are constructor-only (the command line's YAML file and KEY=VALUE list)."""
 
     #: run_node's bound on the close: the drain of a backlog, then closing the bag.
@@ -93,7 +96,8 @@ class RecorderNode(TopicSubscriber, LossAccounting, BagWriting, RecorderGuard, P
                  status_interval: float = 0.0, max_topic_rate: float = 0.0, max_topic_bytes: int = 0,
                  max_total_bytes: int = 0, min_free_disk: int = DEFAULT_MIN_FREE_DISK,
                  flood_factor: float = DEFAULT_FLOOD_FACTOR, rate_limits: Sequence[str] = (),
-                 byte_budgets: Sequence[str] = (), node_name: str = "recorder", **node_kwargs: Any):
+                 byte_budgets: Sequence[str] = (), byte_rate_limits: Sequence[str] = (),
+                 message_limits: Sequence[str] = (), node_name: str = "recorder", **node_kwargs: Any):
         super().__init__(node_name, **node_kwargs)
         p = self._declare_parameters(
             (("output", output or default_output()), ("namespace", namespace),
@@ -111,14 +115,20 @@ class RecorderNode(TopicSubscriber, LossAccounting, BagWriting, RecorderGuard, P
              ("max_total_bytes", int(max_total_bytes)), ("min_free_disk", int(min_free_disk)),
              ("flood_factor", float(flood_factor))),
             {"topics": topics, "exclude_topics": exclude_topics, "rate_limits": rate_limits,
-             "byte_budgets": byte_budgets})
+             "byte_budgets": byte_budgets, "byte_rate_limits": byte_rate_limits, "message_limits": message_limits})
         self.params = p
+
+        def per_topic(key: str) -> dict[str, float]:
+            return {self.resolve_topic_name(t): v for t, v in parse_topic_values(p[key], key).items()}
+
         self.budget = RecordBudget(BudgetLimits(
             max_topic_rate=p["max_topic_rate"], max_topic_bytes=p["max_topic_bytes"],
             max_total_bytes=p["max_total_bytes"], flood_factor=p["flood_factor"],
-            rates={self.resolve_topic_name(t): v for t, v in parse_topic_values(p["rate_limits"], "rate_limits").items()},
-            topic_bytes={self.resolve_topic_name(t): v
-                         for t, v in parse_topic_values(p["byte_budgets"], "byte_budgets").items()}))
+            rates=per_topic("rate_limits"), topic_bytes=per_topic("byte_budgets"),
+            byte_rates=per_topic("byte_rate_limits"), message_bytes=per_topic("message_limits"),
+            namespace=p["namespace"]))
+        for off in self.budget.limits.turned_off():
+            self.get_logger().warning(f"{off} turned off (0): a flood on it is not bounded (msgs_docs/recorder.md)")
         self.stop_reason: str | None = None
         self._select_topics(p, qos_overrides)   # before the bag: a bad regex leaves no bag behind
         self._open_bag(p, custom_data)
@@ -183,7 +193,9 @@ def start_recorder(args: argparse.Namespace) -> RecorderNode:
                 status_interval=args.status_interval, max_topic_rate=args.max_topic_rate,
                 max_topic_bytes=args.max_topic_bytes, max_total_bytes=args.max_total_bytes,
                 min_free_disk=args.min_free_disk, flood_factor=args.flood_factor,
-                rate_limits=args.rate_limits, byte_budgets=args.byte_budgets, node_name=args.node_name)
+                rate_limits=args.rate_limits, byte_budgets=args.byte_budgets,
+                byte_rate_limits=args.byte_rate_limits, message_limits=args.message_limits,
+                node_name=args.node_name)
     except (mcap_io.BagWriteError, ValueError) as exc:
         raise ConfigError(str(exc)) from None
     if lease_profile is not None:   # not with another rmw, nor with 0 (the profile's own)

@@ -135,7 +135,7 @@ class BagWriting:
             lines.append(f"  write errors: {self.errors}")
         lines += self._loss_lines()
         if self.budget.dropped:
-            lines.append("  DROPPED by the budget (rate / topic bytes / bag bytes): " + ", ".join(
+            lines.append("  DROPPED by the budget (message size / rate / byte rate / topic bytes / bag bytes): " + ", ".join(
                 f"{t}: {sum(r.values())} ({', '.join(f'{k} {n}' for k, n in sorted(r.items()))})"
                 for t, r in sorted(self.budget.dropped.items())))
         if self.budget.floods:
