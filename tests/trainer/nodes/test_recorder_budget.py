@@ -341,3 +341,22 @@ def test_the_default_recorder_bounds_large_diagnostics_and_image_floods_flags_bo
             late[rec_msg.topic] = late.get(rec_msg.topic, 0) + 1
     assert counts[info_t] == sent["info"] and counts[image_t] == sent["image"], (counts, sent)
     assert late.get(info_t, 0) >= 20 and late.get(image_t, 0) >= 20, late   # recording went on
+
+
+@pytest.mark.ros
+@pytest.mark.process
+def test_zero_turns_a_default_bound_off_with_a_warning(tmp_path):
+    rec = recorder(tmp_path / "bag", T.DIAGNOSTICS, "--rate-limit", f"{T.DIAGNOSTICS}=0",
+                   "--max-message-bytes", "/protocad/image=0")
+    try:
+        wait_until(lambda: (tmp_path / "bag").is_dir() or rec.poll() is not None, 60, "the recorder's bag")
+        time.sleep(0.5)
+        rec.send_signal(signal.SIGINT)
+        out, _ = rec.communicate(timeout=60)
+    finally:
+        if rec.poll() is None:
+            rec.kill()
+    assert rec.returncode == 0, out
+    warnings = [x for x in out.splitlines() if "turned off (0): a flood on it is not bounded" in x]
+    assert len(warnings) == 2 and "WARN" in warnings[0], out
+    assert "/diagnostics: rate limit" in warnings[0] and "/protocad/image: message size limit" in warnings[1], out
