@@ -96,18 +96,31 @@ DIAGNOSTICS_BOUNDS = TopicBounds(rate_hz=DIAGNOSTICS_RATE_LIMIT_HZ, message_byte
                                  budget_bytes=DIAGNOSTICS_BYTE_BUDGET)
 
 
-def contract_bounds(topic: str, namespace: str = T.DEFAULT_NAMESPACE) -> TopicBounds | None:
-    """The default bounds of `topic` (None: none): /diagnostics, /clock, and a contract topic
-    (image, step_info, ..., clock) in `namespace` or a namespace below it (a fleet's robots)."""
-    if topic == T.DIAGNOSTICS:
-        return DIAGNOSTICS_BOUNDS
-    if topic == T.CLOCK:
-        return CONTRACT_BOUNDS["clock"]
+def contract_name(topic: str, namespace: str = T.DEFAULT_NAMESPACE) -> str | None:
+    """The contract's name for `topic` (None: not a contract topic): /diagnostics, /clock, or a
+    relative contract name (image, step_info, ..., clock) of a topic in `namespace` or a
+    namespace below it (a fleet's robots)."""
+    if topic in (T.DIAGNOSTICS, T.CLOCK):
+        return topic
     parent, _, name = topic.rpartition("/")
     ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
     if name in CONTRACT_BOUNDS and (parent == ns or parent.startswith(ns + "/")):
-        return CONTRACT_BOUNDS[name]
+        return name
     return None
+
+
+def contract_type(topic: str, namespace: str = T.DEFAULT_NAMESPACE) -> str | None:
+    """The message type the contract gives `topic` (None: not a contract topic)."""
+    name = contract_name(topic, namespace)
+    return None if name is None else T.TYPES[T.CLOCK if name == "clock" else name]
+
+
+def contract_bounds(topic: str, namespace: str = T.DEFAULT_NAMESPACE) -> TopicBounds | None:
+    """The default bounds of `topic` (None: none), a contract topic (contract_name)."""
+    name = contract_name(topic, namespace)
+    if name is None:
+        return None
+    return DIAGNOSTICS_BOUNDS if name == T.DIAGNOSTICS else CONTRACT_BOUNDS["clock" if name == T.CLOCK else name]
 
 
 #: What the recorder writes into metadata.yaml custom_data.

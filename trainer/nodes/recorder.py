@@ -55,7 +55,7 @@ from trainer.nodes.recorder_cli import (  # noqa: F401
 )
 from trainer.nodes.recorder_guard import EXIT_BUDGET, RecorderGuard  # noqa: F401
 from trainer.nodes.recorder_loss import LossAccounting
-from trainer.nodes.recorder_topics import DEFAULT_QUEUE_DEPTH, TopicSubscriber, history_name
+from trainer.nodes.recorder_topics import DEFAULT_QUEUE_DEPTH, EXIT_TYPE_MISMATCH, TopicSubscriber, history_name  # noqa: F401
 from trainer.nodes.recorder_writing import DRAIN_LIMIT_S, EXIT_WRITE_FAILED, BagWriting, default_output  # noqa: F401
 
 #: The string-array parameters and their descriptions (declared with their type: an empty

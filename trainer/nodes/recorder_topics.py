@@ -14,7 +14,10 @@ from sim_bridge.contract import topics as T
 from trainer.bag import mcap_io
 from trainer.bag.rosmsg import interface_module
 from trainer.data.records import MULTIPLE_PUBLISHERS_KEY
+from trainer.nodes.record_budget import contract_type
 
+#: Exit status when a contract topic is offered with another type than the contract's.
+EXIT_TYPE_MISMATCH = 5
 #: Relative contract topics recorded by default (resolved in --namespace), plus the bridge's
 #: clock there (topics.clock_topic: /clock in the default namespace).
 DEFAULT_RELATIVE_TOPICS = (T.IMAGE, T.STEP_INFO, T.CONTEXT, T.ACTION, T.CONTEXT_FEATURES, T.BRIDGE_INFO)
@@ -138,11 +141,14 @@ class TopicSubscriber:
         return False
 
     def _discover(self) -> None:
-        if self.writer.closed:
+        if self.writer.closed or self.done.is_set():
             return
         for topic, types in self.get_topic_names_and_types():
             if topic in self._subs or not self._want(topic):
                 continue
+            expected = contract_type(topic, self.params["namespace"])
+            if expected is not None and set(types) != {expected}:
+                return self._claimed_with_another_type(topic, types, expected)
             if len(types) != 1:
                 self._warn_once(f"types:{topic}", f"topic {topic} has several types {types}; "
                                 "not recorded (as rosbag2)")
@@ -154,6 +160,17 @@ class TopicSubscriber:
                 self._subscribe(topic, types[0], pubs)
             except Exception as exc:  # noqa: BLE001 - unknown type, import error...
                 self._warn_once(f"sub:{topic}", f"cannot record {topic} [{types[0]}]: {exc}")
+
+    def _claimed_with_another_type(self, topic: str, types: Sequence[str], expected: str) -> None:
+        """A contract topic offered with a type that is not the contract's (a stranger who
+        claimed the name first): its writers and the bridge's can never match, so a bridge
+        waiting for its readers would wait forever. One ERROR line; the recording ends (a
+        closed bag, EXIT_TYPE_MISMATCH), which ends a launcher's run."""
+        self.stop_reason = (f"{topic} is offered as {', '.join(sorted(types))}, but its contract type is "
+                            f"{expected} (another participant claimed the topic with another type)")
+        self.get_logger().error(f"recording stopped: {self.stop_reason}")
+        self.exit_code = EXIT_TYPE_MISMATCH
+        self.done.set()
 
     def _subscribe(self, topic: str, msgtype: str, pubs: Sequence[Any]) -> None:
         msg_class = _import_message(msgtype)

@@ -211,3 +211,30 @@ def test_a_fleet_gives_its_policies_the_publishers_current_seq_as_their_floor(tm
     _RecordingStack.calls = []
     assert fleet.run(fleet.build_parser().parse_args(args)) == 0
     assert next(kw for what, kw in _RecordingStack.calls if what == "policy")["min_checkpoint_seq"] == 1234
+
+
+def test_a_contract_topic_claimed_with_another_type_ends_the_stack_non_zero_in_one_line(spawn, probe, tmp_path):
+    """Issue 54, point 4: a stranger advertises /protocad/step_info as std_msgs/String before a
+    default stack starts. Before, the recorder subscribed with the stranger's type, the bridge
+    waited for its second reader forever (0 steps in 90 s). Now the recorder's ERROR line names
+    the topic and both types, and protocad-stack exits non-zero within 60 s."""
+    from std_msgs.msg import String
+
+    squat = probe.node.create_publisher(String, "/protocad/step_info", 10)
+    squat.publish(String(data="mine"))
+    (tmp_path / "stack.yaml").write_text("bridge: {task: pendulum_swingup, episode_length: 30}\n"
+                                         f"policy: {{num_threads: 1}}\nrecorder: {{output: {tmp_path / 'bag'}}}\n")
+    started = time.monotonic()
+    stack = spawn("stack", "-m", "trainer.launch.stack", str(tmp_path / "stack.yaml"),
+                  "--log-dir", str(tmp_path / "logs"))
+    wait_until(lambda: not stack.alive(), 60, "the stack to exit")
+    took = time.monotonic() - started
+    out = stack.output()
+    assert stack.p.returncode not in (0, None), out[-3000:]
+    log = (tmp_path / "logs" / "recorder.log").read_text()
+    errors = [ln for ln in log.splitlines() if "[ERROR]" in ln]
+    assert len(errors) == 1, log   # the node says it once (the stack shows it, then the log's tail)
+    assert "/protocad/step_info is offered as std_msgs/msg/String" in errors[0], errors
+    assert "its contract type is sensor_msgs/msg/JointState" in errors[0], errors
+    assert errors[0].split("] ", 1)[-1] in out and "recorder exited with code 5" in out, out[-3000:]
+    print(f"the stack exited {stack.p.returncode} after {took:.1f} s")
