@@ -28,6 +28,7 @@ from sensor_msgs.msg import Image, JointState
 from protocad_ros.atomic import file_signature, remove_stale_temporaries
 from protocad_ros.live_view import LiveView
 from protocad_ros.node.action_publishing import ActEvent, ActionPublishing
+from protocad_ros.node.bridge_pairing import BridgePairing
 from protocad_ros.node.checkpoint_receiver import CheckpointReceiver
 from protocad_ros.node.checkpoint_serving import CheckpointServing
 from protocad_ros.node.diagnostics import PolicyDiagnostics
@@ -54,13 +55,14 @@ ACTION_FLUSH_TIMEOUT_S = 30.0
 __all__ = ["ActEvent", "COUNTERS", "PARAMS", "PolicyNode", "main"]
 
 
-class PolicyNode(ObservationPairing, ActionPublishing, CheckpointServing, PolicyDiagnostics,
+class PolicyNode(ObservationPairing, BridgePairing, ActionPublishing, CheckpointServing, PolicyDiagnostics,
                  ManagedNode):
     """See the module docstring; parameters in PARAMS, counters in COUNTERS. A managed node
     (sim_bridge/nodekit/lifecycle.py): configure loads the checkpoint (or builds the random agent) and
     starts its file watcher, activate serves, deactivate stops answering, cleanup drops the
     model. This class wires the node's ROS interfaces, state and lifecycle; its parts, one file
-    each: ObservationPairing (image, step_info and bridge_info in, paired by stamp),
+    each: ObservationPairing (image, step_info and bridge_info in, paired by stamp), BridgePairing
+    (bridge_info believed only from the writer of those observations),
     ActionPublishing (the model step, action and context_features out, act callbacks),
     CheckpointServing (loading, watching and swapping checkpoints) and PolicyDiagnostics
     (/diagnostics)."""
@@ -120,9 +122,10 @@ class PolicyNode(ObservationPairing, ActionPublishing, CheckpointServing, Policy
                                                  obs_qos, event_callbacks=watch(self.resolve_topic_name(topics.STEP_INFO)))
         self.bridge: topics.BridgeInfo | None = None
         self._announcer_checked_at, self._announcer_present = -1e9, False
-        self.sub_bridge_info = self.create_subscription(JointState, topics.BRIDGE_INFO, self._on_bridge_info,
+        self.sub_bridge_info = self.create_subscription(JointState, topics.BRIDGE_INFO, self._on_bridge_info_heard,
                                                         qos.announcement_qos(),
                                                         event_callbacks=watch(self.resolve_topic_name(topics.BRIDGE_INFO)))
+        self._start_bridge_pairing()
         self.diag_timer = self.create_timer(p["diagnostics_period_s"], self._publish_diagnostics)
         install_parameter_guards(self, PARAMS, lambda name, value: None,
                                  lambda reason: self._count("parameters_rejected",
@@ -293,6 +296,7 @@ class PolicyNode(ObservationPairing, ActionPublishing, CheckpointServing, Policy
         except Exception:  # noqa: BLE001 - exiting: the last diagnostics are best effort
             pass
         self.shutdown_lifecycle()
+        self._stop_bridge_pairing()
         try:
             for topic in flush_publishers((self.pub_action, self.pub_features), ACTION_FLUSH_TIMEOUT_S):
                 self.get_logger().warning(f"{topic}: exiting with samples a reader has not acknowledged "

@@ -88,7 +88,7 @@ COUNTERS = ("observations_answered", "episodes", "images_received", "images_reje
             "unpaired_dropped", "checkpoint_reloads", "checkpoint_load_errors",
             "act_callback_errors", "unknown_parameters", "parameters_rejected",
             "observations_lost", "observations_skipped", "fragments_discarded", "step_info_received",
-            "mismatched_observations", "awaiting_bridge_info", "bridge_info_rejected",
+            "mismatched_observations", "awaiting_bridge_info", "bridge_info_rejected", "bridge_info_ignored",
             "observations_while_inactive", "checkpoint_transfers", "checkpoint_transfers_rejected",
             "checkpoint_signatures_rejected", "checkpoint_rollbacks_rejected",
             "checkpoint_limits_rejected", "checkpoint_mismatches", "checkpoint_chunks_dropped",

@@ -12,7 +12,7 @@ are for people):
 
 Only from the nodes this launcher started (`expect(fqn, pid)`): anyone on the domain can publish
 a /diagnostics status under any name, so each message is taken with its writer's GID
-(trainer/launch/sender_gid.py) and a status is believed only when that writer belongs to the
+(sim_bridge/nodekit/sender_gid.py) and a status is believed only when that writer belongs to the
 process started for the status's node (its process id in the GID, this machine's host bytes)
 and, once the graph knows the writer, to a node of that name. Anything else is ignored and
 counted (`forged`), with one line on stderr per name. A managed node is ready when its
@@ -30,9 +30,9 @@ import sys
 from typing import Callable, Iterable
 
 from sim_bridge.contract import topics as T
+from sim_bridge.nodekit.sender_gid import SenderSubscription, gid_pid
 from trainer.console import wait_until
 from trainer.launch import discovery
-from trainer.launch.sender_gid import SenderSubscription, gid_pid
 
 #: How long one get_state call may take before it is asked again.
 GET_STATE_TIMEOUT_S = 2.0

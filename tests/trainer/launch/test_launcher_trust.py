@@ -238,3 +238,33 @@ def test_a_contract_topic_claimed_with_another_type_ends_the_stack_non_zero_in_o
     assert "its contract type is sensor_msgs/msg/JointState" in errors[0], errors
     assert errors[0].split("] ", 1)[-1] in out and "recorder exited with code 5" in out, out[-3000:]
     print(f"the stack exited {stack.p.returncode} after {took:.1f} s")
+
+
+def test_a_forged_bridge_info_does_not_stop_a_stack(spawn, probe, tmp_path):
+    """Issue 54, point 3: a stranger publishes one bridge_info naming another task to a running
+    stack. Before, the policy refused its real bridge ("not answering ...: the checkpoint is for
+    pendulum_swingup, the bridge runs walker_walk") and protocad-stack stopped 4 s later with
+    exit 1. Now the policy believes bridge_info only from the writer of its observations (by
+    writer GID): the forged one is ignored, counted and logged once, and the stack keeps
+    answering."""
+    from sensor_msgs.msg import JointState
+
+    (tmp_path / "stack.yaml").write_text("bridge: {task: pendulum_swingup, episode_length: 30}\n"
+                                         "policy: {num_threads: 1}\nrecorder: false\n")
+    stack = spawn("stack", "-m", "trainer.launch.stack", str(tmp_path / "stack.yaml"),
+                  "--log-dir", str(tmp_path / "logs"))
+    wait_until(lambda: "[stack] running" in stack.output() or not stack.alive(), 240, "the stack to run")
+    wait_until(lambda: "episode 1 " in stack.output() or not stack.alive(), 120, "a first episode")
+    forged = probe.node.create_publisher(JointState, "/protocad/bridge_info", qos.announcement_qos())
+    forged.publish(topics.fill_bridge_info(JointState(), topics.BridgeInfo(
+        task="walker_walk", action_names=[f"a{i}" for i in range(6)], control_dt=0.025, image_size=64)))
+    wait_until(lambda: probe.counter("/protocad/policy", "bridge_info_ignored") >= 1 or not stack.alive(), 60,
+               "the forged bridge_info ignored")
+    episodes = stack.output().count("finished: return")
+    wait_until(lambda: stack.output().count("finished: return") >= episodes + 2 or not stack.alive(), 120,
+               "two more episodes after the forgery")
+    out = stack.output()
+    assert stack.alive() and "not answering this sim bridge" not in out, out[-3000:]
+    ignored = [ln for ln in out.splitlines() if "ignored a bridge_info (task 'walker_walk')" in ln]
+    assert len(ignored) == 1, out[-3000:]
+    assert stack.stop(signal.SIGINT, timeout=60) == 0, stack.output()[-3000:]

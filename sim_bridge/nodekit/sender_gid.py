@@ -2,7 +2,8 @@
 
 rclpy's subscription callbacks get a message and, at most, its timestamps and sequence numbers;
 rcl hands the publisher's GID to C callers (`rmw_message_info_t.publisher_gid`). A launcher that
-must believe only the nodes it started (trainer/launch/rosgraph.py) needs that GID, so
+must believe only the nodes it started (trainer/launch/rosgraph.py), or a policy only its bridge's
+announcement (protocad_ros/node/bridge_pairing.py), needs that GID, so
 `SenderSubscription` is an rcl subscription made through rclpy's own binding but taken from
 here: `rcl_take_serialized_message` through ctypes, then rclpy's deserializer. It is not added
 to any executor; `take()` drains it when its owner spins.
