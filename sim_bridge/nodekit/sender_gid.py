@@ -90,6 +90,12 @@ class SenderSubscription:
         """(message, writer GID) of each message waiting, oldest first, at most `limit`."""
         from rclpy.serialization import deserialize_message
 
+        for data, gid, _ in self.take_raw(limit):
+            yield deserialize_message(data, self.msg_type), gid
+
+    def take_raw(self, limit: int = 1000) -> Iterator[tuple[bytes, tuple[int, ...], dict[str, int]]]:
+        """(CDR bytes, writer GID, message info as rclpy's dict names it: source_timestamp,
+        received_timestamp, publication_sequence_number) of each message waiting, at most `limit`."""
         info = _MessageInfo()
         for _ in range(limit):
             with self._sub:
@@ -97,8 +103,9 @@ class SenderSubscription:
                                                            ctypes.byref(info), None)
             if rc != RCL_RET_OK:   # RCL_RET_SUBSCRIPTION_TAKE_FAILED: nothing waiting
                 return
-            data = ctypes.string_at(self._buf.buffer, self._buf.buffer_length)
-            yield deserialize_message(data, self.msg_type), tuple(info.publisher_gid.data)
+            yield (ctypes.string_at(self._buf.buffer, self._buf.buffer_length), tuple(info.publisher_gid.data),
+                   {"source_timestamp": int(info.source_timestamp), "received_timestamp": int(info.received_timestamp),
+                    "publication_sequence_number": int(info.publication_sequence_number)})
 
     def destroy(self) -> None:
         self._sub.destroy_when_not_in_use()

@@ -13,7 +13,8 @@ Usage: python -m trainer.nodes.recorder -o BAG [--topics T ...] [--namespace /pr
        ros2 run trainer record --ros-args -p output:=BAG -p compression:=lz4
 
 Its parts: recorder_topics.py (which topics; discovery; subscriptions and their QoS),
-recorder_loss.py (sequence gaps, stalls past the DDS lease), recorder_writing.py (writing,
+recorder_loss.py (sequence gaps, stalls past the DDS lease), recorder_announcements.py
+(bridge_info only from its bridge), recorder_writing.py (writing,
 draining, closing), recorder_guard.py over record_budget.py (the disk budget), recorder_cli.py
 (the command line's options). Here: the node's parameters and wiring, and the entry point.
 """
@@ -44,6 +45,7 @@ from trainer.nodes.record_budget import (
     RecordBudget,
     parse_topic_values,
 )
+from trainer.nodes.recorder_announcements import AnnouncementFilter
 
 # UNSUPPORTED_OPTIONS and the exit codes are imported from here (tests, msgs_docs/recorder.md).
 from trainer.nodes.recorder_cli import (  # noqa: F401
@@ -70,7 +72,7 @@ STRING_ARRAY_PARAMETERS = {
 }
 
 
-class RecorderNode(TopicSubscriber, LossAccounting, BagWriting, RecorderGuard, ProtocadNode):
+class RecorderNode(TopicSubscriber, AnnouncementFilter, LossAccounting, BagWriting, RecorderGuard, ProtocadNode):
     """Records topics into a BagWriter. Every constructor argument is also a ROS parameter of
     the same name (a --ros-args -p override wins): output, topics, namespace, all_topics,
     regex (include), exclude_regex, exclude_topics, include_hidden_topics, no_discovery,
@@ -131,6 +133,7 @@ class RecorderNode(TopicSubscriber, LossAccounting, BagWriting, RecorderGuard, P
             self.get_logger().warning(f"{off} turned off (0): a flood on it is not bounded (msgs_docs/recorder.md)")
         self.stop_reason: str | None = None
         self._select_topics(p, qos_overrides)   # before the bag: a bad regex leaves no bag behind
+        self._start_announcement_filter()
         self._open_bag(p, custom_data)
         self.disk_floor = DiskFloor(self.writer.bag_dir, p["min_free_disk"])
         # Where a flood is reported; made now, so readers have matched it when one comes.

@@ -14,7 +14,7 @@ from sim_bridge.contract import topics as T
 from trainer.bag import mcap_io
 from trainer.bag.rosmsg import interface_module
 from trainer.data.records import MULTIPLE_PUBLISHERS_KEY
-from trainer.nodes.record_budget import contract_type
+from trainer.nodes.record_budget import contract_name, contract_type
 
 #: Exit status when a contract topic is offered with another type than the contract's.
 EXIT_TYPE_MISMATCH = 5
@@ -181,8 +181,12 @@ class TopicSubscriber:
                               type_hash=type_hash)
         qos = apply_qos_override(subscription_qos(offered, self.params["queue_depth"]),
                                  self._qos_overrides.get(topic))
+        on_message = self._on_message
+        if contract_name(topic, self.params["namespace"]) == T.BRIDGE_INFO:   # only its bridge's
+            self._filter_announcements(topic, msg_class, qos)
+            on_message = self._on_announcement_heard
         self._subs[topic] = self.create_subscription(
-            msg_class, topic, functools.partial(self._on_message, topic), qos, raw=True,
+            msg_class, topic, functools.partial(on_message, topic), qos, raw=True,
             event_callbacks=None if topic in MANY_PUBLISHERS_BY_DESIGN else self.publisher_watch.callbacks(topic))
         from sim_bridge.contract.qos import describe
 

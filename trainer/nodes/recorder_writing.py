@@ -114,6 +114,7 @@ class BagWriting:
         executor = self.executor
         if executor is not None and not self.done.is_set() and self.context.ok():
             self.drain(executor)
+        self._stop_announcement_filter()   # held announcements: the bridge's written, others left out
         if self.stall_watch is not None:
             self.stall_watch.stop()
         with self._lock:
@@ -143,6 +144,9 @@ class BagWriting:
                 f"{t}: {f['rate_hz']:g} msg/s against {f['recent_hz']:g}" for t, f in sorted(self.budget.floods.items())))
         if self.stop_reason:
             lines.append(f"  RECORDING STOPPED: {self.stop_reason}")
+        if self.ignored_announcements:
+            lines.append("  LEFT OUT (not written by the bridge; marked in the metadata): " + ", ".join(
+                f"{t}: {n}" for t, n in sorted(self.ignored_announcements.items())))
         several = self.publisher_watch.ever
         if several:
             lines.append("  SEVERAL PUBLISHERS (marked in the metadata): " + ", ".join(

@@ -1,0 +1,90 @@
+"""The bridge's announcement in the bag only from the bridge (mixed into RecorderNode, as
+recorder_topics.py is). A stranger's `bridge_info` naming another task would otherwise sit in the
+bag beside the bridge's, and a reader of the bag could take it for what the bridge ran (issue 54).
+
+rclpy's message info has no writer GID, so a contract `bridge_info` topic is read a second time
+through sim_bridge.nodekit.sender_gid.SenderSubscription (raw: the bytes go to the bag
+untouched), and a message is recorded only when its writer's participant (the first 12 bytes of
+its GID) also writes image and step_info in the same namespace: that namespace's bridge. The
+plain subscription stays (it wakes the take and keeps the several-publishers mark); what it
+delivers is not written. A message from another writer waits up to ANNOUNCEMENT_GRACE_S for its
+writer's endpoints to show in the graph, then is left out, counted (the summary and
+custom_data.protocad_ignored_bridge_info) and logged once per writer."""
+from __future__ import annotations
+
+import json
+import time
+from typing import Any
+
+from sim_bridge.contract import topics as T
+from sim_bridge.nodekit.sender_gid import SenderSubscription
+
+#: Seconds a message may wait for its writer's observation topics to show in the graph.
+ANNOUNCEMENT_GRACE_S = 5.0
+#: How often announcements are taken with their writer (also as soon as one is heard).
+TAKE_PERIOD_S = 0.2
+#: Bytes of a GID that name the writer's participant (the DDS GUID prefix).
+PARTICIPANT_BYTES = 12
+#: custom_data key: {topic: messages left out}.
+IGNORED_KEY = "protocad_ignored_bridge_info"
+
+
+class AnnouncementFilter:
+    """Mixed into RecorderNode: it has _on_message, writer, _lock, get_logger and _warn_once."""
+
+    def _start_announcement_filter(self) -> None:
+        self._senders: dict[str, SenderSubscription] = {}
+        self._held: dict[str, list[tuple[bytes, tuple, dict, float]]] = {}
+        self.ignored_announcements: dict[str, int] = {}
+        self._announcement_timer = None
+
+    def _filter_announcements(self, topic: str, msg_class: Any, qos: Any) -> None:
+        """Record `topic` (a contract bridge_info) from its namespace's bridge only."""
+        self._senders[topic] = SenderSubscription(self, msg_class, topic, qos)
+        if self._announcement_timer is None:
+            self._announcement_timer = self.create_timer(TAKE_PERIOD_S, self._take_announcements)
+
+    def _on_announcement_heard(self, topic: str, _data: bytes, _info: Any) -> None:
+        self._take_announcements()
+
+    def _bridges(self, topic: str) -> set[tuple]:
+        """Participants that write both image and step_info beside `topic`."""
+        ns = topic.rpartition("/")[0] or "/"
+        found = [{tuple(e.endpoint_gid)[:PARTICIPANT_BYTES]
+                  for e in self.get_publishers_info_by_topic(T.topic_name(ns, name))}
+                 for name in (T.IMAGE, T.STEP_INFO)]
+        return found[0] & found[1]
+
+    def _take_announcements(self, final: bool = False) -> None:
+        now = time.monotonic()
+        for topic, sender in self._senders.items():
+            held = self._held.setdefault(topic, [])
+            held += [(data, gid, info, now) for data, gid, info in sender.take_raw()]
+            if not held:
+                continue
+            bridges, keep = self._bridges(topic), []
+            for data, gid, info, since in held:
+                who = gid[:PARTICIPANT_BYTES]
+                if who in bridges:
+                    self._on_message(topic, data, info)
+                elif final or now - since >= ANNOUNCEMENT_GRACE_S:
+                    self._ignore_announcement(topic, who)
+                else:
+                    keep.append((data, gid, info, since))
+            self._held[topic] = keep
+
+    def _ignore_announcement(self, topic: str, who: tuple) -> None:
+        with self._lock:
+            self.ignored_announcements[topic] = self.ignored_announcements.get(topic, 0) + 1
+            self.writer.custom_data = {**(self.writer.custom_data or {}),
+                                       IGNORED_KEY: json.dumps(self.ignored_announcements, sort_keys=True)}
+        self._warn_once(f"announcement:{topic}:{bytes(who).hex()}",
+                        f"{topic}: left a message out of the bag: its writer (participant "
+                        f"{bytes(who).hex()}) writes no image and step_info beside it, not the bridge")
+
+    def _stop_announcement_filter(self) -> None:
+        if self._senders:
+            self._take_announcements(final=True)
+        for sender in self._senders.values():
+            sender.destroy()
+        self._senders = {}
