@@ -54,10 +54,13 @@ class PolicyDiagnostics:
         several = self.publisher_watch.summary()
         values["multiple_publishers"] = several
         values["multiple_publishers_detected"] = self.publisher_watch.detected
+        values.update(self.type_watch.diagnostics())
+        claimed = values["type_mismatches"]
         unsigned = self.unsigned_topic
-        level = ("ERROR" if self.mismatch else
+        level = ("ERROR" if self.mismatch or claimed else
                  "WARN" if bad or unknown or several or unsigned or self.agent_kind == "random" else "OK")
         message = (f"not answering: {self.mismatch}" if self.mismatch else
+                   f"offered with another type than the contract's: {claimed}" if claimed else
                    f"several publishers on {several} (a second bridge? an impostor?)" if several else
                    f"unknown parameters ignored: {unknown}" if unknown else
                    f"{state}: not answering" if state != "active" else

@@ -48,6 +48,7 @@ from sim_bridge.nodekit.rosnode import (
     install_parameter_guards,
     run_node,
 )
+from sim_bridge.nodekit.type_watch import TopicTypeWatch
 
 NODE_NAME = "policy"
 #: Seconds a closing policy gives its readers to acknowledge the last actions (see close()).
@@ -126,6 +127,8 @@ class PolicyNode(ObservationPairing, BridgePairing, ActionPublishing, Checkpoint
                                                         qos.announcement_qos(),
                                                         event_callbacks=watch(self.resolve_topic_name(topics.BRIDGE_INFO)))
         self._start_bridge_pairing()
+        # A contract topic claimed by a stranger with another type never matches: said, not a hang.
+        self.type_watch = TopicTypeWatch(self)
         self.diag_timer = self.create_timer(p["diagnostics_period_s"], self._publish_diagnostics)
         install_parameter_guards(self, PARAMS, lambda name, value: None,
                                  lambda reason: self._count("parameters_rejected",

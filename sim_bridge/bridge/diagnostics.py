@@ -48,8 +48,11 @@ class BridgeDiagnostics:
         several = self.publisher_watch.summary()   # on the topics it subscribes to (action)
         values["multiple_publishers"] = several
         values["first_action_publisher_only"] = self.params["first_action_publisher_only"]
+        values.update(self.type_watch.diagnostics())
+        claimed = values["type_mismatches"]
         status = make_status(self._diag_name, self.params["task"], values,
-                             "ERROR" if others else "WARN" if warn or unknown or several else "OK",
+                             "ERROR" if others or claimed else "WARN" if warn or unknown or several else "OK",
+                             f"offered with another type than the contract's: {claimed}" if claimed else
                              f"another publisher on {', '.join(others)} (a second bridge in this "
                              "namespace?)" if others else
                              f"several publishers on {several} (an impostor?)" if several else

@@ -50,6 +50,7 @@ from sim_bridge.nodekit.rosnode import (
     install_parameter_guards,
     run_node,
 )
+from sim_bridge.nodekit.type_watch import TopicTypeWatch
 
 NODE_NAME = "sim_bridge"
 __all__ = ["COUNTERS", "PARAMS", "PUBLISH_RETRY_S", "RCLError", "SimBridgeNode", "episode_contexts", "main"]
@@ -128,6 +129,8 @@ class SimBridgeNode(ActionIntake, Stepping, ObservationPublishing, BridgeDiagnos
                                                            also=self._on_action_matched))
         self.srv_reset = (self.create_service(Trigger, topics.RESET_SERVICE, self._on_reset)
                           if p["reset_service"] else None)
+        # A contract topic claimed by a stranger with another type never matches: said, not a hang.
+        self.type_watch = TopicTypeWatch(self)
         self.diag_timer = self.create_timer(p["diagnostics_period_s"], self._publish_diagnostics)
         install_parameter_guards(self, PARAMS, self._apply_param, self._parameter_rejected)
         self._obs_pubs = (self.pub_image, self.pub_info, self.pub_context)
