@@ -36,7 +36,7 @@ def contract_type(topic: str, namespace: str) -> str | None:
         return topics.TYPES[topics.DIAGNOSTICS]
     parent, _, name = topic.rpartition("/")
     ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
-    return topics.TYPES.get(name) if parent == ns and not name.startswith("/") else None
+    return topics.TYPES.get(name) if parent == ns else None
 
 
 class TopicTypeWatch:
