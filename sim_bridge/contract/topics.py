@@ -63,6 +63,22 @@ def clock_topic(namespace: str) -> str:
     return CLOCK if ns in ("/", DEFAULT_NAMESPACE) else topic_name(ns, "clock")
 
 
+def contract_topic_type(topic: str, namespace: str = DEFAULT_NAMESPACE, *, nested: bool = False) -> str | None:
+    """The type the contract gives `topic` as seen from `namespace` (None: not a contract topic):
+    /diagnostics, /clock or the namespace's clock topic, or a relative contract name (image,
+    step_info, ...) in the namespace; nested=True also in any namespace below it (a recorder of
+    a fleet's robots)."""
+    if topic in (CLOCK, clock_topic(namespace)):
+        return TYPES[CLOCK]
+    if topic == DIAGNOSTICS:
+        return TYPES[DIAGNOSTICS]
+    parent, _, name = topic.rpartition("/")
+    ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
+    if parent == ns or (nested and parent.startswith(ns + "/")):
+        return TYPES[CLOCK] if name == "clock" else TYPES.get(name)
+    return None
+
+
 def topic_name(namespace: str, relative: str) -> str:
     """Fully qualified topic name, e.g. ('/protocad', 'image') -> '/protocad/image'."""
     if relative.startswith("/"):

@@ -27,18 +27,6 @@ from sim_bridge.contract import topics
 TYPE_CHECK_PERIOD_S = 1.0
 
 
-def contract_type(topic: str, namespace: str) -> str | None:
-    """The contract's type for `topic` as a node in `namespace` joins it (None: not a contract
-    topic): a relative contract name in the namespace, /diagnostics, or its clock topic."""
-    if topic in (topics.CLOCK, topics.clock_topic(namespace)):
-        return topics.TYPES[topics.CLOCK]
-    if topic == topics.DIAGNOSTICS:
-        return topics.TYPES[topics.DIAGNOSTICS]
-    parent, _, name = topic.rpartition("/")
-    ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
-    return topics.TYPES.get(name) if parent == ns else None
-
-
 class TopicTypeWatch:
     """The contract topics a node joins that the graph shows with another type (see the module
     docstring). `check()` runs on the node's timer; the rest is read by its diagnostics."""
@@ -56,7 +44,7 @@ class TopicTypeWatch:
         ns = self._node.get_namespace()
         out = {}
         for endpoint in (*self._node.publishers, *self._node.subscriptions):
-            expected = contract_type(endpoint.topic_name, ns)
+            expected = topics.contract_topic_type(endpoint.topic_name, ns)
             if expected is not None:
                 out[endpoint.topic_name] = expected
         return out

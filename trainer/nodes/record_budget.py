@@ -109,12 +109,6 @@ def contract_name(topic: str, namespace: str = T.DEFAULT_NAMESPACE) -> str | Non
     return None
 
 
-def contract_type(topic: str, namespace: str = T.DEFAULT_NAMESPACE) -> str | None:
-    """The message type the contract gives `topic` (None: not a contract topic)."""
-    name = contract_name(topic, namespace)
-    return None if name is None else T.TYPES[T.CLOCK if name == "clock" else name]
-
-
 def contract_bounds(topic: str, namespace: str = T.DEFAULT_NAMESPACE) -> TopicBounds | None:
     """The default bounds of `topic` (None: none), a contract topic (contract_name)."""
     name = contract_name(topic, namespace)

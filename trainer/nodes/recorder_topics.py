@@ -14,7 +14,7 @@ from sim_bridge.contract import topics as T
 from trainer.bag import mcap_io
 from trainer.bag.rosmsg import interface_module
 from trainer.data.records import MULTIPLE_PUBLISHERS_KEY
-from trainer.nodes.record_budget import contract_name, contract_type
+from trainer.nodes.record_budget import contract_name
 
 #: Exit status when a contract topic is offered with another type than the contract's.
 EXIT_TYPE_MISMATCH = 5
@@ -146,7 +146,7 @@ class TopicSubscriber:
         for topic, types in self.get_topic_names_and_types():
             if topic in self._subs or not self._want(topic):
                 continue
-            expected = contract_type(topic, self.params["namespace"])
+            expected = T.contract_topic_type(topic, self.params["namespace"], nested=True)
             if expected is not None and set(types) != {expected}:
                 return self._claimed_with_another_type(topic, types, expected)
             if len(types) != 1:

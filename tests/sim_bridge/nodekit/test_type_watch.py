@@ -11,7 +11,7 @@ from helpers.policy import policy_args
 from helpers.ros import Probe
 from std_msgs.msg import String
 
-from sim_bridge.nodekit.type_watch import contract_type
+from sim_bridge.contract.topics import contract_topic_type as contract_type
 
 START = 120.0   # two nodes starting side by side on a loaded 2-core machine
 CONTRACT = "sensor_msgs/msg/JointState"
@@ -32,6 +32,10 @@ def test_contract_types_of_the_topics_a_node_joins():
     assert contract_type("/protocad/checkpoint", "/protocad") is None       # not in the contract's TYPES
     assert contract_type("/other/action", "/robot1") is None                # another namespace's
     assert contract_type("/parameter_events", "/robot1") is None
+    # a recorder of a fleet sees the robots' namespaces below its own
+    assert contract_type("/protocad/robot0/action", "/protocad") is None
+    assert contract_type("/protocad/robot0/action", "/protocad", nested=True) == CONTRACT
+    assert contract_type("/protocad/robot0/clock", "/protocad", nested=True) == "rosgraph_msgs/msg/Clock"
 
 
 @pytest.mark.ros
