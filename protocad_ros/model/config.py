@@ -28,6 +28,7 @@ from protocad_ros.atomic import atomic_write_text
 from protocad_ros.model.hyperparameters import (
     FREEZE_AUTO,
     MODEL_FREE_PRESET_OVERRIDES,
+    PAPER_CONTEXT_SETTINGS,
     PRESET_OVERRIDES,
     PRESETS,
     PROJECTOR_INPUTS,
@@ -306,12 +307,19 @@ def plan_prototype_freeze(cfg: "Config", start: int, end: int) -> int | None:
 
 def _migrate(d: Mapping[str, Any]) -> Mapping[str, Any]:
     """Configs written before the freeze scaled to the run recorded DreamerPro's 10,000 as a
-    default, not a choice (no run here was that long): read it as auto."""
+    default, not a choice (no run here was that long): read it as auto. A saved config from
+    before the context settings of 2026-12-07 (its context section whole, without
+    projector_input) trained the paper's context module: it reads as that, whatever the
+    defaults are now."""
     ctx = d.get("context")
-    if (isinstance(ctx, Mapping) and "freeze_prototypes_fraction" not in ctx
-            and ctx.get("freeze_prototypes_updates") == 10000):
-        return {**d, "context": {**ctx, "freeze_prototypes_updates": FREEZE_AUTO}}
-    return d
+    if not isinstance(ctx, Mapping):
+        return d
+    if "freeze_prototypes_fraction" not in ctx and ctx.get("freeze_prototypes_updates") == 10000:
+        ctx = {**ctx, "freeze_prototypes_updates": FREEZE_AUTO}
+    if "drop_first_steps" in ctx and "projector_input" not in ctx:
+        ctx = {**{k.split(".", 1)[1]: v for k, v in PAPER_CONTEXT_SETTINGS.items()
+                  if k.split(".", 1)[1] not in ctx}, **ctx}
+    return {**d, "context": ctx}
 
 # ------------------------------------------------------------------------------------------------
 # Construction

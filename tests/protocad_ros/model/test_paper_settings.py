@@ -137,3 +137,20 @@ def test_reference_paper_gives_the_papers_context_settings_whatever_the_defaults
     # ... and the Dreamer core under it is DreamerPro's, the paper's own.
     pro = make_config("walker_walk", preset, "protocad")
     assert tried.world_model == pro.world_model and tried.behavior == pro.behavior
+
+
+def test_a_config_saved_before_the_context_settings_reads_as_the_papers():
+    from protocad_ros.checkpoint import read_checkpoint
+    from protocad_ros.model.config import Config
+    from protocad_ros.policy import shipped_policy
+
+    saved = read_checkpoint(shipped_policy("walker_walk"))["config"]
+    assert "projector_input" not in saved["context"]           # trained before they existed
+    cfg = Config.from_dict(saved)
+    assert {k: getattr(cfg.context, k) for k in PAPER_CONTEXT} == PAPER_CONTEXT
+    # A whole context section with the settings keeps them; a partial one (a user's --config
+    # file) takes the defaults for what it leaves out.
+    now = make_config("walker_walk", "small", "protocad", **{"context.sinkhorn_over": "half_means"}).to_dict()
+    assert Config.from_dict(now).context.sinkhorn_over == "half_means"
+    partial = {"task": "walker_walk", "context": {"num_prototypes": 7}}
+    assert Config.from_dict(partial).context.projector_input == make_config("walker_walk").context.projector_input
