@@ -11,6 +11,7 @@ from scipy import stats
 
 from protocad_ros.atomic import atomic_write_text
 from trainer.study.dataset import TASK
+from trainer.study.grid import ARMS
 
 
 def t_interval(values: Sequence[float]) -> tuple[float, float, float]:
@@ -99,7 +100,9 @@ ROWS = [("unseen image MSE, h 1-50", "test_image_mse_1_50", 5), ("unseen image M
 
 
 def markdown(result: Mapping[str, Any]) -> str:
-    arms = list(result)
+    """The figures of each arm (mean [95% t-interval] over its seeds), one column an arm in the
+    order of the study's arm table."""
+    arms = sorted(result, key=lambda a: list(ARMS).index(a) if a in ARMS else len(ARMS))
     head = "| figure | " + " | ".join(f"{a} ({len(result[a]['seeds'])} seeds)" for a in arms) + " |"
     lines = [head, "|---|" + "---|" * len(arms)]
     for label, key, digits in ROWS:

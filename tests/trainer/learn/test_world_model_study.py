@@ -128,3 +128,18 @@ def test_the_study_report_gives_each_arm_its_mean_and_t_interval_over_seeds(tmp_
     assert pair["differences"] == pytest.approx([-0.001, -0.002, -0.002])
     assert pair["mean"] == pytest.approx(-0.005 / 3) and pair["verdict"] == "lower"
     assert study.main(["report", "--grid", str(tmp_path / "empty")]) == 2
+
+
+@pytest.mark.parametrize("name", ["study_ab.json"])
+def test_the_committed_study_tables_in_results_md_are_its_json_files(name):
+    """results.md's tables of the world-model study are what `protocad-study report` makes of
+    the committed JSON, and every arm ran every seed it names for the same updates."""
+    from helpers import ROOT
+
+    from trainer.study.report import markdown
+
+    doc = json.loads((ROOT / "msgs_docs" / "results" / name).read_text())
+    assert doc["schema"] == "protocad-study/1" and doc["task"] == "walker_walk"
+    for arm in doc["arms"].values():
+        assert len(arm["seeds"]) >= 3 and len(arm["updates"]) == 1 and set(arm["per_seed"]) == set(map(str, arm["seeds"]))
+    assert markdown(doc["arms"]) in (ROOT / "msgs_docs" / "results.md").read_text()
