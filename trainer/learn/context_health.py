@@ -14,6 +14,10 @@ COLLAPSE_PROJ_COSINE = 0.8
 #: Predictions and targets both near uniform: entropy at least this share of ln K, i.e. each
 #: step spread over K^0.8 prototypes or more (40 of 100), where a code needs one or a few.
 COLLAPSE_ENTROPY_SHARE = 0.8
+#: ... and either for this many updates in a row: every setting passes through a cone while
+#: its projector and prototypes find their way (updates 25-125 of the walker A/B, results.md);
+#: the paper's settings stay there, the healthy ones leave it within 100 updates.
+COLLAPSE_PERSIST_UPDATES = 150
 
 
 def collapse_reason(metrics: Mapping[str, float], num_prototypes: int) -> str | None:
@@ -29,6 +33,31 @@ def collapse_reason(metrics: Mapping[str, float], num_prototypes: int) -> str | 
         reasons.append(f"predictions and targets near uniform (entropy {pred:.2f} and {target:.2f} "
                        f"of ln K = {ln_k:.2f})")
     return "; ".join(reasons) or None
+
+
+class CollapseWatch:
+    """Reads the logged rows of a run and says once when its context module has collapsed: the
+    collapse_reason condition held on every row for COLLAPSE_PERSIST_UPDATES updates."""
+
+    def __init__(self, num_prototypes: int, persist_updates: int = COLLAPSE_PERSIST_UPDATES):
+        self.num_prototypes, self.persist_updates = int(num_prototypes), int(persist_updates)
+        self.since: int | None = None   # first logged update of the current collapse
+        self.warned = False
+
+    def update(self, update: int, metrics: Mapping[str, float]) -> str | None:
+        """The warning line (once per run), or None; rows without the figures are left alone."""
+        if self.warned or "proj_cosine" not in metrics:
+            return None
+        reason = collapse_reason(metrics, self.num_prototypes)
+        if not reason:
+            self.since = None
+            return None
+        self.since = update if self.since is None else self.since
+        if update - self.since < self.persist_updates:
+            return None
+        self.warned = True
+        return (f"WARNING: the context module has collapsed (since update {self.since}, now {update}): "
+                f"{reason}; its features carry no context (msgs_docs/training.md#context-health)")
 
 
 def health_of_states(agent: Any, s: Any) -> dict[str, float] | None:

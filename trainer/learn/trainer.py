@@ -31,7 +31,7 @@ from protocad_ros.model.config import plan_prototype_freeze
 from trainer import console, metrics_log, runs, torch_setup
 from trainer.data.dataset import MCAPDataset
 from trainer.learn import distributed
-from trainer.learn.context_health import collapse_reason
+from trainer.learn.context_health import CollapseWatch
 from trainer.learn.schedule import RunCounters
 
 DEFAULT_LOG_EVERY = 10
@@ -98,7 +98,7 @@ class Trainer:
         self._last_log_t = time.monotonic()
         self._last_log_u = self.updates
         self.last_metrics: dict[str, float] = {}
-        self._collapse_warned = False
+        self._collapse = CollapseWatch(cfg.context.num_prototypes)
 
     # ------------------------------------------------------------------ construction helpers
     @classmethod
@@ -191,16 +191,11 @@ class Trainer:
         return self.metrics.log(self.updates, means, kind="train", **row_extra)
 
     def _warn_if_collapsed(self, means: Mapping[str, float]) -> None:
-        """One warning line per process when the context module's health figures say it has
-        collapsed (trainer.learn.context_health; msgs_docs/training.md)."""
-        if self._collapse_warned or not self.dist.is_main or "proj_cosine" not in means:
-            return
-        reason = collapse_reason(means, self.cfg.context.num_prototypes)
-        if reason:
-            self._collapse_warned = True
-            print(f"[train] WARNING: the context module has collapsed at update {self.updates}: "
-                  f"{reason}; its features carry no context (msgs_docs/training.md#context-health)",
-                  flush=True)
+        """One warning line per run when the context module's health figures say it has
+        collapsed (trainer/learn/context_health.py; msgs_docs/training.md)."""
+        line = self._collapse.update(self.updates, means) if self.dist.is_main else None
+        if line:
+            print(f"[train] {line}", flush=True)
 
     def train(self, target_updates: int, *, stop: console.StopFlag | None = None, checkpoint_every: int = 0,
               bar=None, on_update: Callable[[int, dict], None] | None = None, save: bool = True) -> bool:

@@ -42,13 +42,31 @@ def test_health_is_logged_and_the_collapse_warning_fires_only_on_a_collapsing_se
     assert "collapsed" not in r.stdout + r.stderr
 
     # Sinkhorn and softmax temperatures so high that targets and predictions are uniform: the
-    # trivial solution of the SwAV loss, from the first update on. One line, once.
-    r = _train(tmp_path, bag, "collapsing", "--updates", "4", *COLLAPSING)
+    # trivial solution of the SwAV loss, from the first update on. One line, once, when it has
+    # lasted COLLAPSE_PERSIST_UPDATES.
+    r = _train(tmp_path, bag, "collapsing", "--updates", "180", "--log-every", "10", *COLLAPSING)
     assert r.returncode == 0, r.stdout + r.stderr
     lines = [x for x in r.stdout.splitlines() if "context module has collapsed" in x]
     assert len(lines) == 1 and "WARNING" in lines[0] and "near uniform" in lines[0], r.stdout
-    assert "training.md#context-health" in lines[0]
+    assert "(since update 10, now 160)" in lines[0] and "training.md#context-health" in lines[0]
     assert metrics(tmp_path / "collapsing")[-1]["swav_pred_entropy"] == pytest.approx(2.079, abs=0.01)
+
+
+def test_the_collapse_warning_waits_out_the_cone_every_setting_passes_through():
+    """The walker A/B's shapes (results.md): every setting's projections sit in a cone for a
+    while early on; the healthy ones leave it within 100 updates, the paper's stays."""
+    from trainer.learn.context_health import COLLAPSE_PERSIST_UPDATES, CollapseWatch
+
+    cone, spread = {"proj_cosine": 0.9, "swav_pred_entropy": 3.0, "swav_target_entropy": 2.0}, \
+        {"proj_cosine": 0.4, "swav_pred_entropy": 3.0, "swav_target_entropy": 2.0}
+    healthy = CollapseWatch(100)
+    rows = [(u, cone if 50 <= u <= 125 else spread) for u in range(25, 801, 25)]
+    assert [healthy.update(u, m) for u, m in rows] == [None] * len(rows)
+    collapsed = CollapseWatch(100)
+    lines = [(u, line) for u in range(25, 801, 25) if (line := collapsed.update(u, cone if u >= 50 else spread))]
+    assert [u for u, _ in lines] == [50 + COLLAPSE_PERSIST_UPDATES]   # once, after it lasted
+    assert "since update 50" in lines[0][1] and "cone" in lines[0][1]
+    assert CollapseWatch(100).update(25, {"wm_loss": 1.0}) is None      # a variant without the module
 
 
 @pytest.mark.process
