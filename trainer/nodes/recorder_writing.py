@@ -24,6 +24,10 @@ def default_output() -> str:
     return datetime.now().strftime("rosbag2_%Y_%m_%d-%H_%M_%S")
 
 
+#: MCAP stores times as uint64 ns; log times stay below this (year 2262) to leave headroom.
+_MAX_TIME_NS = 2 ** 63
+
+
 class BagWriting:
     """Mixed into RecorderNode: it has budget, stop_reason, stall_watch, publisher_watch, _lock
     and _warn_once; _account (the loss) and _within_budget (the disk budget) see each message
@@ -51,8 +55,12 @@ class BagWriting:
             recv = getattr(info, "received_timestamp", None)
             src = getattr(info, "source_timestamp", None)
             seq = getattr(info, "publication_sequence_number", 0) or 0
-        if not recv:
+        # An MCAP time is an unsigned 64-bit count of ns: a time outside it (a forged or broken
+        # message info) would fail the chunk's close and with it the whole bag's.
+        if not isinstance(recv, int) or not 0 < recv < _MAX_TIME_NS:
             recv = time.time_ns()
+        if not isinstance(src, int) or not 0 < src < _MAX_TIME_NS:
+            src = None
         with self._lock:
             if self.writer.closed:
                 return
