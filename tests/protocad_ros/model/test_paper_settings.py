@@ -54,9 +54,9 @@ def test_dreamerpro_runs_at_its_released_dmc_settings(task):
 
 
 def test_dreamerpro_at_protocad_settings_is_the_ablation_option():
-    own, same = make_config("walker_walk", "paper", "dreamerpro"), make_config(
-        "walker_walk", "paper", "dreamerpro", own_settings=False)
-    ours = make_config("walker_walk", "paper", "protocad")
+    own, same = make_config("walker_walk", "paper", "dreamerpro", reference="paper"), make_config(
+        "walker_walk", "paper", "dreamerpro", own_settings=False, reference="paper")
+    ours = make_config("walker_walk", "paper", "protocad", reference="paper")
     assert not same.own_settings
     for section, key in (("train", "batch_size"), ("train", "seq_len"), ("context", "sinkhorn_eps"),
                          ("train", "prefill_episodes")):
@@ -67,7 +67,7 @@ def test_dreamerpro_at_protocad_settings_is_the_ablation_option():
 
 
 def test_protocad_defaults_are_the_paper_tables_and_dreamerpro_where_it_defers():
-    cfg = make_config("walker_walk", "paper", "protocad")
+    cfg = make_config("walker_walk", "paper", "protocad", reference="paper")
     # Table hyperpara: D 32, T 0.1, SK-itr 3, SK-eps 0.05, eta 0.05; B 16, M 50, H 15; K (setting_k)
     assert (cfg.context.proto_dim, cfg.context.temperature, cfg.context.sinkhorn_iters,
             cfg.context.sinkhorn_eps, cfg.context.ema) == (32, 0.1, 3, 0.05, 0.05)
