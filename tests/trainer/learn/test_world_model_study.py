@@ -148,7 +148,7 @@ def test_the_study_report_gives_each_arm_its_mean_and_t_interval_over_seeds(tmp_
     assert study.main(["report", "--grid", str(tmp_path / "empty")]) == 2
 
 
-@pytest.mark.parametrize("name", ["study_ab.json"])
+@pytest.mark.parametrize("name", ["study_ab.json", "study.json"])
 def test_the_committed_study_tables_in_results_md_are_its_json_files(name):
     """results.md's tables of the world-model study are what `protocad-study report` makes of
     the committed JSON, and every arm ran every seed it names for the same updates."""
@@ -160,4 +160,10 @@ def test_the_committed_study_tables_in_results_md_are_its_json_files(name):
     assert doc["schema"] == "protocad-study/1" and doc["task"] == "walker_walk"
     for arm in doc["arms"].values():
         assert len(arm["seeds"]) >= 3 and len(arm["updates"]) == 1 and set(arm["per_seed"]) == set(map(str, arm["seeds"]))
-    assert markdown(doc["arms"]) in (ROOT / "msgs_docs" / "results.md").read_text()
+    page = (ROOT / "msgs_docs" / "results.md").read_text()
+    assert markdown(doc["arms"]) in page
+    if name == "study.json":   # the study proper: its four arms, 5 seeds each, and the primary figure
+        assert set(doc["arms"]) == {"dreamer", "protocad_paper", "protocad_chosen", "true_context"}
+        assert all(len(a["seeds"]) >= 5 for a in doc["arms"].values())
+        (primary,) = [p for p in doc["paired"] if p["arm"] == "protocad_chosen"]
+        assert f"{primary['mean']:+.5f} [95% t-interval {primary['lo']:+.5f}, {primary['hi']:+.5f}]" in page
