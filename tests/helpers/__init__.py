@@ -64,3 +64,15 @@ def wait_exit(proc: Proc, timeout: float) -> int:
     """The exit status of `proc` once it has ended by itself."""
     wait_until(lambda: not proc.alive(), timeout, f"{proc.args} to exit", 0.05)
     return proc.p.returncode
+
+
+def interrupt(proc: subprocess.Popen, timeout: float = 60) -> str:
+    """Ctrl-C a child started with text pipes: its output once it has exited (killed when it
+    has not within `timeout`)."""
+    proc.send_signal(signal.SIGINT)
+    try:
+        out, _ = proc.communicate(timeout=timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        out, _ = proc.communicate()
+    return out

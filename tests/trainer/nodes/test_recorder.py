@@ -10,7 +10,7 @@ import time
 
 import numpy as np
 import pytest
-from helpers import wait_until
+from helpers import interrupt, wait_until
 
 from sim_bridge.contract import topics as T
 from trainer.bag import mcap_io as M
@@ -273,8 +273,7 @@ def test_include_and_exclude_regex_select_topics_as_ros2_bag_record(ros, tmp_pat
             time.sleep(0.01)
         time.sleep(1.0)
         assert [t for t, p in pubs.items() if p.get_subscription_count()] == ["/a/keep"]
-        rec.send_signal(signal.SIGINT)
-        out, _ = rec.communicate(timeout=60)
+        out = interrupt(rec)
     finally:
         if rec.poll() is None:
             rec.kill()
@@ -327,8 +326,7 @@ def test_loss_while_frozen_is_counted_exactly_and_shown_by_the_dataset(ros, tmp_
             if i < 1000 or i >= 2000:
                 time.sleep(0.001)
         time.sleep(2.0)
-        rec.send_signal(signal.SIGINT)
-        out, _ = rec.communicate(timeout=60)
+        out = interrupt(rec)
     assert rec.returncode == 0, out
     recorded = M.BagReader(bag).report.counts[T.topic_name(NS, T.STEP_INFO)]
     info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
@@ -362,8 +360,7 @@ def test_a_stall_past_the_lease_is_reported_though_no_later_sample_shows_a_gap(r
             time.sleep(frozen)
             rec.send_signal(signal.SIGCONT)
             time.sleep(1.0)
-        rec.send_signal(signal.SIGINT)
-        out, _ = rec.communicate(timeout=60)
+        out = interrupt(rec)
     assert rec.returncode == 0, out
     info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
     marked = json.loads(info["custom_data"]["protocad_stalls_past_lease"])

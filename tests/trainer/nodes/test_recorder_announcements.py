@@ -6,7 +6,6 @@ and logged once. Real processes over DDS: the recorder, and two participants in 
 from __future__ import annotations
 
 import json
-import signal
 import subprocess
 import sys
 import time
@@ -14,7 +13,7 @@ import time
 import numpy as np
 import pytest
 import yaml
-from helpers import wait_until
+from helpers import interrupt, wait_until
 from helpers.ros import Probe, publisher_node
 
 from sim_bridge.contract import qos
@@ -48,8 +47,7 @@ def test_a_strangers_bridge_info_is_left_out_of_the_bag(tmp_path):
             pub_info.publish(JointState(name=["reward"], position=[0.0]))
             time.sleep(0.05)
         time.sleep(7.0)   # past the grace a stranger's message gets to show it writes observations
-        rec.send_signal(signal.SIGINT)
-        out, _ = rec.communicate(timeout=60)
+        out = interrupt(rec)
     finally:
         if rec.poll() is None:
             rec.kill()

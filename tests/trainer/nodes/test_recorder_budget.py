@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import base64
 import json
-import signal
 import subprocess
 import sys
 import time
@@ -16,7 +15,7 @@ import time
 import numpy as np
 import pytest
 import yaml
-from helpers import wait_until
+from helpers import interrupt, wait_until
 
 from sim_bridge.contract import topics as T
 from trainer.bag import mcap_io as M
@@ -243,8 +242,7 @@ def test_a_diagnostics_flood_is_rate_limited_and_flagged_in_the_bag_and_on_diagn
         deadline = time.monotonic() + 30
         while "flood on /diagnostics" not in heard and time.monotonic() < deadline:
             executor.spin_once(timeout_sec=0.05)
-        rec.send_signal(signal.SIGINT)
-        out, _ = rec.communicate(timeout=60)
+        out = interrupt(rec)
     finally:
         if rec.poll() is None:
             rec.kill()
@@ -319,8 +317,7 @@ def test_the_default_recorder_bounds_large_diagnostics_and_image_floods_flags_bo
         after = time.time_ns()
         phase(2.0)
         time.sleep(1.0)
-        rec.send_signal(signal.SIGINT)
-        out, _ = rec.communicate(timeout=60)
+        out = interrupt(rec)
     finally:
         if rec.poll() is None:
             rec.kill()
@@ -351,8 +348,7 @@ def test_zero_turns_a_default_bound_off_with_a_warning(tmp_path):
     try:
         wait_until(lambda: (tmp_path / "bag").is_dir() or rec.poll() is not None, 60, "the recorder's bag")
         time.sleep(0.5)
-        rec.send_signal(signal.SIGINT)
-        out, _ = rec.communicate(timeout=60)
+        out = interrupt(rec)
     finally:
         if rec.poll() is None:
             rec.kill()
