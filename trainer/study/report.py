@@ -10,6 +10,7 @@ import numpy as np
 from scipy import stats
 
 from protocad_ros.atomic import atomic_write_text
+from trainer.run_input import load_json_object
 from trainer.study.dataset import TASK
 from trainer.study.grid import ARMS
 
@@ -47,11 +48,15 @@ def figures(doc: Mapping[str, Any]) -> dict[str, float]:
 def gather(grid: Path) -> dict[str, Any]:
     arms: dict[str, Any] = {}
     for f in sorted(grid.glob("*/seed_*/eval.json")):
-        doc = json.loads(f.read_text())
-        arms.setdefault(doc["arm"], []).append(doc)
+        doc = load_json_object(f)   # bounded: a run directory may hold anything
+        try:
+            doc["figures"] = figures(doc)
+            arms.setdefault(str(doc["arm"]), []).append(doc)
+        except (KeyError, TypeError, ValueError, IndexError) as exc:
+            raise ValueError(f"{f}: not a protocad-study eval.json ({type(exc).__name__}: {exc})") from None
     result = {}
     for arm, docs in arms.items():
-        per = [figures(d) for d in docs]
+        per = [d.pop("figures") for d in docs]
         keys = sorted(set.intersection(*(set(p) for p in per)))
         result[arm] = {"seeds": sorted(d["seed"] for d in docs), "updates": sorted({d["updates"] for d in docs}),
                        "settings": docs[0]["settings"],

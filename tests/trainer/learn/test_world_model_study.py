@@ -146,6 +146,10 @@ def test_the_study_report_gives_each_arm_its_mean_and_t_interval_over_seeds(tmp_
     assert pair["differences"] == pytest.approx([-0.001, -0.002, -0.002])
     assert pair["mean"] == pytest.approx(-0.005 / 3) and pair["verdict"] == "lower"
     assert study.main(["report", "--grid", str(tmp_path / "empty")]) == 2
+    bad = tmp_path / "grid" / "dreamer" / "seed_9"
+    bad.mkdir()
+    (bad / "eval.json").write_text(json.dumps({"arm": "dreamer", "open_loop": []}))   # crafted, wrong shape
+    assert study.main(["report", "--grid", str(tmp_path / "grid")]) == 2               # one line, no traceback
 
 
 @pytest.mark.parametrize("name", ["study_ab.json", "study.json"])
