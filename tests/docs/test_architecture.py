@@ -18,7 +18,7 @@ PACKAGES = ("protocad_ros", "sim_bridge", "trainer")
 MAX_MODULES = 12
 #: Where ROS may appear at all: the node and launch side. Everything else trains and evaluates
 #: on a machine without ROS (protocad_ros.model above all).
-ROS_UNITS = {"protocad_ros.node", "sim_bridge.contract", "sim_bridge.nodekit", "sim_bridge.bridge",
+ROS_UNITS = {"protocad_ros.node", "protocad_ros.robot", "sim_bridge.contract", "sim_bridge.nodekit", "sim_bridge.bridge",
              "trainer.nodes", "trainer.launch", "trainer.ros2cli"}
 
 
