@@ -9,6 +9,7 @@ from typing import Any
 
 import numpy as np
 
+from sim_bridge.bridge.commands import CommandRejected
 from sim_bridge.bridge.params import ACTION_HIGH, ACTION_LOW
 from sim_bridge.contract import topics
 
@@ -49,11 +50,6 @@ class ActionIntake:
         self._throttle.warning(
             counter, f"action rejected ({counter}, {self.counters[counter]} so far): {why}")
 
-    def _on_attributed_action(self, msg, info) -> None:
-        """first_action_publisher_only: rclpy passes the message info (its sequence number) to
-        a two-argument callback."""
-        self._on_action(msg, info)
-
     def _on_action(self, msg, info=None) -> None:
         now = time.monotonic()
         stamp = topics.stamp_to_ns(msg.header.stamp)
@@ -92,17 +88,7 @@ class ActionIntake:
                 if stamp in self._answered_stamps:
                     return self._reject("rejected_duplicate",
                                         f"stamp {topics.format_stamp(stamp)} was already answered")
-            clipped = np.clip(a, ACTION_LOW, ACTION_HIGH)
-            if np.any(clipped != a):
-                self.counters["actions_clipped"] += 1
-                self._throttle.warning(
-                    "actions_clipped", f"action {a.tolist()} clipped to [{ACTION_LOW}, "
-                    f"{ACTION_HIGH}] ({self.counters['actions_clipped']} so far)")
-            self.counters["actions_accepted"] += 1
-            self._answered_stamps.append(stamp)
-            sent = self._published.get(stamp)
-            if sent is not None:
-                self.latency.add(now - sent)
+            clipped = self._accept(a, stamp, now)
             if self.lockstep:
                 self._answer = clipped
                 self._pending_stamp = None
@@ -115,6 +101,54 @@ class ActionIntake:
                         f"{topics.format_stamp(self._newest_stamp)}; {self.counters['late_actions']} late so far)")
                 if stamp > self._held_stamp:
                     self._held, self._held_stamp = clipped, stamp
+
+    def _accept(self, a: np.ndarray, stamp: int, now: float) -> np.ndarray:
+        """A valid answer to `stamp`, clipped and counted. Called under _cond."""
+        clipped = np.clip(a, ACTION_LOW, ACTION_HIGH)
+        if np.any(clipped != a):
+            self.counters["actions_clipped"] += 1
+            self._throttle.warning(
+                "actions_clipped", f"action {a.tolist()} clipped to [{ACTION_LOW}, "
+                f"{ACTION_HIGH}] ({self.counters['actions_clipped']} so far)")
+        self.counters["actions_accepted"] += 1
+        first = stamp not in self._answered_stamps
+        self._answered_stamps.append(stamp)
+        sent = self._published.get(stamp)
+        if sent is not None and first:
+            self.latency.add(now - sent)
+        return clipped
+
+    def _on_command(self, msg, info=None) -> None:
+        """Adapter mode: a Float64MultiArray carries no stamp, so in lock-step the first command
+        after an observation answers it (one arriving with none awaiting an answer is counted
+        in commands_unsolicited and dropped); in real time the latest command is applied."""
+        now = time.monotonic()
+        with self._cond:
+            other = self._other_publisher(info)
+            if not self._go:
+                self.counters["actions_while_inactive"] += 1
+                return
+            self.counters["actions_received"] += 1
+            if other is not None:
+                return self._reject("rejected_other_publisher", other)
+            try:
+                a = self.commands.action(msg.data)
+            except CommandRejected as e:
+                return self._reject(e.counter, str(e))
+            stamp = self._pending_stamp if self.lockstep else self._newest_stamp
+            if stamp is None:
+                self.counters["commands_unsolicited"] += 1
+                self._throttle.warning(
+                    "commands_unsolicited", f"command {list(msg.data)} arrived while no observation "
+                    f"awaits an answer: dropped ({self.counters['commands_unsolicited']} so far)")
+                return
+            clipped = self._accept(a, stamp, now)
+            if self.lockstep:
+                self._answer = clipped
+                self._pending_stamp = None
+                self._cond.notify_all()
+            else:
+                self._held, self._held_stamp = clipped, stamp
 
     def _on_reset(self, request, response):
         with self._cond:

@@ -18,6 +18,11 @@ and publishes the next episode's is_first observation.
 Real-time: the env steps at control_rate_hz with the latest valid action (zeros before the
 first one of an episode); actions answering an older observation than the newest one are
 counted late (and still used if newer than the held one).
+
+Camera option and adapter mode (camera_out.py, commands.py): the image topic may carry a real
+camera's frame (any size, another encoding, or JPEG/PNG on image/compressed), and actions may
+come as a robot's Float64MultiArray commands through a joint map, so the policy node's robot
+path runs without a robot.
 """
 from __future__ import annotations
 
@@ -29,15 +34,19 @@ from typing import Any
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
 from rosgraph_msgs.msg import Clock
-from sensor_msgs.msg import Image, JointState
+from sensor_msgs.msg import JointState
+from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
 from sim_bridge.bridge.action_intake import ActionIntake
+from sim_bridge.bridge.camera_out import CameraOut
+from sim_bridge.bridge.commands import CommandAdapter
 from sim_bridge.bridge.diagnostics import BridgeDiagnostics
 from sim_bridge.bridge.params import COUNTERS, FLUSH_TIMEOUT_S, LOSSLESS_FLUSH_TIMEOUT_S, PARAMS, episode_contexts
 from sim_bridge.bridge.publishing import PUBLISH_RETRY_S, ObservationPublishing, RCLError
 from sim_bridge.bridge.stepping import Stepping
 from sim_bridge.contract import qos, topics
+from sim_bridge.contract.contexts import task_actuators
 from sim_bridge.nodekit.lifecycle import ManagedNode
 from sim_bridge.nodekit.publisher_watch import FirstPublisherLock, PublisherWatch
 from sim_bridge.nodekit.rosnode import (
@@ -100,12 +109,15 @@ class SimBridgeNode(ActionIntake, Stepping, ObservationPublishing, BridgeDiagnos
         # Every ROS interface exists in every state (the graph shows the node's topics even
         # while unconfigured); observations go out only while active (lifecycle publishers,
         # and _publish checks _go), actions are taken only while active.
+        self.camera = CameraOut(p)
+        self.commands: CommandAdapter | None = None   # adapter mode, from configure
         self._img_msg, self._info_msg, self._ctx_msg, self._clock_msg = (
-            Image(), JointState(), JointState(), Clock())
+            self.camera.msg_type(), JointState(), JointState(), Clock())
         lossless = self._obs_lossless = p["mode"] == "lockstep" and p["lossless"]
         obs_qos = self._obs_qos = qos.observation_qos(lossless)
         # A profile of its own: rclpy's QoS overriding changes the profile object it is given.
-        self.pub_image = self.create_lifecycle_publisher(Image, topics.IMAGE, qos.observation_qos(lossless),
+        self.pub_image = self.create_lifecycle_publisher(self.camera.msg_type, self.camera.topic,
+                                                         qos.observation_qos(lossless),
                                                          qos_overriding_options=qos.overridable())
         self.pub_info = self.create_lifecycle_publisher(JointState, topics.STEP_INFO, obs_qos)
         self.pub_context = self.create_lifecycle_publisher(JointState, topics.CONTEXT, obs_qos)
@@ -121,11 +133,17 @@ class SimBridgeNode(ActionIntake, Stepping, ObservationPublishing, BridgeDiagnos
         # first_action_publisher_only its actions are refused too.
         self.publisher_watch = PublisherWatch(self._on_new_publisher)
         self._action_lock = FirstPublisherLock() if p["first_action_publisher_only"] else None
+        # Adapter mode takes a robot's commands instead of the contract's actions, never both.
+        adapter = p["action_input"] == "float64_multi_array"
+        action_type, action_topic, on_action = ((Float64MultiArray, p["command_topic"], self._on_command)
+                                                if adapter else (JointState, topics.ACTION, self._on_action))
         self.sub_action = self.create_subscription(
-            JointState, topics.ACTION,
-            self._on_action if self._action_lock is None else self._on_attributed_action, qos.action_qos(),
-            qos_overriding_options=qos.overridable(),
-            event_callbacks=self.publisher_watch.callbacks(self.resolve_topic_name(topics.ACTION),
+            action_type, action_topic,
+            # first_action_publisher_only: rclpy passes the message info (its sequence number)
+            # to a two-argument callback.
+            on_action if self._action_lock is None else (lambda msg, info: on_action(msg, info)),
+            qos.action_qos(), qos_overriding_options=qos.overridable(),
+            event_callbacks=self.publisher_watch.callbacks(self.resolve_topic_name(action_topic),
                                                            also=self._on_action_matched))
         self.srv_reset = (self.create_service(Trigger, topics.RESET_SERVICE, self._on_reset)
                           if p["reset_service"] else None)
@@ -168,6 +186,8 @@ class SimBridgeNode(ActionIntake, Stepping, ObservationPublishing, BridgeDiagnos
         if self._thread is not None and self._thread.is_alive():
             raise RuntimeError("the previous stepping thread has not ended")
         p = self.params
+        if p["action_input"] == "float64_multi_array":   # a bad map: before anything starts
+            self.commands = CommandAdapter.load(p["command_map"], task_actuators(p["task"]))
         self._stop.clear()
         self._env_error: BaseException | None = None
         self._env_ready = threading.Event()
@@ -194,7 +214,10 @@ class SimBridgeNode(ActionIntake, Stepping, ObservationPublishing, BridgeDiagnos
             f"{p['task']} ({p['split']} contexts, seed {p['seed']}) in {p['mode']} mode: "
             f"{self.action_dim}-d actions {self.action_names}, control_dt "
             f"{self.dt_ns / 1e9:g} s, {p['episode_length']} steps/episode; topics under "
-            f"{self.get_namespace()}; QoS {qos.describe(self._obs_qos)}")
+            f"{self.get_namespace()}; QoS {qos.describe(self._obs_qos)}"
+            + ("" if self.camera.native else f"; camera {self.camera.describe()}")
+            + (f"; commands on {self.sub_action.topic_name} for joints {list(self.commands.map.joint_names)}"
+               if self.commands else ""))
 
     def activate_node(self) -> None:
         with self._cond:   # the stepping thread starts (or resumes) once it sees this

@@ -32,6 +32,7 @@ def episode_contexts(task: str, split: str, schedule: str, fixed: str) -> list[d
 
 
 MODES = ("lockstep", "realtime")
+ACTION_INPUTS = ("joint_state", "float64_multi_array")
 
 PARAMS: tuple[Param, ...] = (
     Param("task", "pendulum_swingup", "Context-randomized DMC task (sim_bridge.contract.contexts.TASKS).",
@@ -93,6 +94,29 @@ PARAMS: tuple[Param, ...] = (
     Param("reset_service", True, "Serve the reset service (reset: end the episode, start a "
           "new one). false: the service is not created, so nobody on the domain can cut "
           "episodes short. Off in protocad-fleet.", read_only=True),
+    # A real camera's frame (issue 53): the policy's camera input exercised without a robot.
+    Param("camera_height", 0, "Height of the published frame; 0 = image_size (the square "
+          "render, unchanged). Rendered by the same camera: the centered square of a wider "
+          "frame shows what the square render shows.", range=(0, 4096), units="px"),
+    Param("camera_width", 0, "Width of the published frame; 0 = image_size.", range=(0, 4096),
+          units="px"),
+    Param("camera_encoding", "rgb8", "Raw transport: the Image encoding published.",
+          choices=("rgb8", "bgr8", "rgba8", "bgra8", "mono8")),
+    Param("camera_transport", "raw", "raw: sensor_msgs/Image on image; compressed: "
+          "sensor_msgs/CompressedImage on image/compressed (image_transport's name), "
+          "camera_format encoded.", choices=("raw", "compressed")),
+    Param("camera_format", "jpeg", "Compressed transport: jpeg or png.", choices=("jpeg", "png")),
+    Param("jpeg_quality", 90, "Compressed transport, jpeg: the encoder's quality.",
+          range=(1, 100)),
+    # A robot's command interface (issue 53): the policy node's Float64MultiArray output.
+    Param("action_input", "joint_state", "joint_state: actions on action (the contract); "
+          "float64_multi_array: std_msgs/Float64MultiArray commands on command_topic in the "
+          "robot's joint order and units, turned into actions through command_map (adapter "
+          "mode).", choices=ACTION_INPUTS),
+    Param("command_topic", "commands", "Adapter mode: where commands arrive (e.g. "
+          "/forward_position_controller/commands)."),
+    Param("command_map", "", "Adapter mode: the joint map YAML the policy node loads "
+          "(msgs_docs/robot.md); empty = the task's actuators in order, scale 1, offset 0."),
     autostart_param(),
     remote_lifecycle_param(),
     strict_param(),
@@ -116,4 +140,5 @@ COUNTERS = ("steps", "episodes", "observations_published", "observations_republi
             "rejected_duplicate", "actions_clipped", "late_actions", "lockstep_timeouts",
             "realtime_overruns", "resets_requested", "unknown_parameters",
             "parameters_rejected", "actions_while_inactive", "rejected_other_publisher",
-            "multiple_publishers_detected", "publish_waits", "remote_transitions_refused")
+            "multiple_publishers_detected", "publish_waits", "remote_transitions_refused",
+            "commands_unsolicited")

@@ -25,7 +25,7 @@ class ObservationPublishing:
         img, info, ctx = self._img_msg, self._info_msg, self._ctx_msg
         if not republish:
             self._return = 0.0 if obs.is_first else self._return + float(obs.reward)
-            topics.fill_image(img, obs.image, stamp)
+            self.camera.fill(img, obs.image, stamp)
             topics.fill_step_info(info, topics.StepInfo(
                 float(obs.reward), float(obs.discount), bool(obs.is_first), bool(obs.is_last),
                 bool(obs.is_terminal), int(obs.episode), int(obs.step), self._return), stamp)

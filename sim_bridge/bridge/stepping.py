@@ -23,7 +23,8 @@ class Stepping:
         return ContextDMCEnv(p["task"], split=p["split"], seed=p["seed"],
                              action_repeat=p["action_repeat"], image_size=p["image_size"],
                              render_quality=p["render_quality"],
-                             time_limit=p["episode_length"] * p["action_repeat"])
+                             time_limit=p["episode_length"] * p["action_repeat"],
+                             camera_size=self.camera.render_size)
 
     def _run(self) -> None:
         """The stepping thread of one configured run: build the env, wait for activation and

@@ -83,6 +83,10 @@ def check_env_args(task: str, split: str = "train", seed: Any = 0, **kwargs: Any
         value = opts[name]
         if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
             raise ValueError(f"{name} must be a positive integer, got {value!r}")
+    camera = opts["camera_size"]
+    if camera is not None and not (len(camera) == 2 and all(
+            isinstance(v, (int, np.integer)) and not isinstance(v, bool) and v >= 1 for v in camera)):
+        raise ValueError(f"camera_size must be (height, width) in pixels, got {camera!r}")
     if opts["render_quality"] not in RENDER_QUALITIES:
         raise ValueError(f"unknown render_quality {opts['render_quality']!r}; "
                          f"valid: {list(RENDER_QUALITIES)}")
@@ -104,16 +108,23 @@ class ContextDMCEnv:
     context draw and initial state come from (seed, k) alone, so two runs with one seed see
     the same episodes whatever they did before, and a resumed run (built again with the number
     of its next episode) sees the episodes an uninterrupted one would have.
+    ``camera_size`` (height, width) renders every frame at that size instead of the square
+    image_size, through the same camera: MuJoCo's field of view is vertical, so the centered
+    square of a wider frame shows what the square render shows (a real camera's frame, for the
+    sim bridge's camera option; the model's input is then `sim_bridge.contract.camera.model_image`
+    of it).
     """
 
     def __init__(self, task: str, split: str = "train", seed: int | np.random.SeedSequence = 0, *,
                  action_repeat: int = 2, image_size: int = 64,
                  render_quality: RenderQuality = "fast",
                  context: Mapping[str, float] | None = None, time_limit: int = 1000,
-                 scale_inertia: bool = False, first_episode: int | None = None):
+                 scale_inertia: bool = False, first_episode: int | None = None,
+                 camera_size: tuple[int, int] | None = None):
         self.spec, self._fixed_context = check_env_args(
             task, split, seed, action_repeat=action_repeat, image_size=image_size,
-            render_quality=render_quality, context=context, time_limit=time_limit)
+            render_quality=render_quality, context=context, time_limit=time_limit,
+            camera_size=camera_size)
         self.split, self.action_repeat, self.time_limit = split, int(action_repeat), int(time_limit)
         self.image_size, self.render_quality = int(image_size), render_quality
         self.scale_inertia = bool(scale_inertia)
@@ -161,14 +172,15 @@ class ContextDMCEnv:
 
         # Offscreen buffer and MSAA are fixed when the GL context is created (by the Camera).
         vis = model.vis
+        height, width = (int(v) for v in camera_size) if camera_size else (self.image_size,) * 2
         if render_quality == "fast":
             vis.quality.offsamples = 0
-            vis.global_.offwidth = vis.global_.offheight = self.image_size
+            vis.global_.offwidth, vis.global_.offheight = width, height
         else:
-            vis.global_.offwidth = max(vis.global_.offwidth, self.image_size)
-            vis.global_.offheight = max(vis.global_.offheight, self.image_size)
+            vis.global_.offwidth = max(vis.global_.offwidth, width)
+            vis.global_.offheight = max(vis.global_.offheight, height)
         # One persistent camera: physics.render() would rebuild an mjvScene every frame.
-        self._camera = Camera(self.physics, height=self.image_size, width=self.image_size,
+        self._camera = Camera(self.physics, height=height, width=width,
                               camera_id=CAMERA_IDS.get(self.spec.domain, 0))
         if render_quality == "fast":
             flags = self._camera.scene.flags
@@ -236,7 +248,7 @@ class ContextDMCEnv:
                              is_terminal=is_terminal)
 
     def render(self) -> np.ndarray:
-        """The current frame, (image_size, image_size, 3) uint8."""
+        """The current frame, (image_size, image_size, 3) uint8, or camera_size x 3."""
         # Camera.render returns a flipped view of its reused buffer: copy it out.
         return self._camera.render().copy()
 
