@@ -50,18 +50,38 @@ def make_steps(episodes: int, length: int, *, first_episode: int = 0, t0_ns: int
     return steps
 
 
+COMPRESSED_IMAGE = "sensor_msgs/msg/CompressedImage"
+
+
+def fill_jpeg(msg, image: np.ndarray, stamp: int, quality: int = 90):
+    """A camera's compressed transport: a sensor_msgs/CompressedImage of `image` as JPEG."""
+    from sim_bridge.contract import camera
+
+    T.set_stamp(msg.header.stamp, stamp)
+    msg.header.frame_id = T.IMAGE_FRAME_ID
+    msg.format = "jpeg"
+    data = camera.encode_compressed(image, "jpeg", quality)
+    msg.data = np.frombuffer(data, np.uint8) if isinstance(msg.data, np.ndarray) else data
+    return msg
+
+
 def write_bag(bag_dir: Path, steps: list[dict], *, namespace: str = "/protocad", chunk_size: int = 1 << 20,
               extra_topics: dict[str, int] | None = None, duplicate_stamps: set[int] | None = None,
-              compression: str = "zstd") -> Path:
+              compression: str = "zstd", image_type: str = T.TYPES[T.IMAGE], fill_image=T.fill_image,
+              image_topic: str = T.IMAGE) -> Path:
     """The ROS path's layout with trainer.bag.mcap_io.BagWriter. A step without 'action' (None) is
     left unanswered; stamps in duplicate_stamps are written twice (image + step_info);
-    extra_topics {topic: count} adds std_msgs/String messages on foreign topics."""
+    extra_topics {topic: count} adds std_msgs/String messages on foreign topics. A camera's
+    frames: image_type COMPRESSED_IMAGE with fill_image=fill_jpeg, on image_topic
+    (e.g. image/compressed)."""
     from trainer.bag import mcap_io
 
     names = {k: T.topic_name(namespace, k) for k in (T.IMAGE, T.STEP_INFO, T.CONTEXT, T.ACTION)}
+    names[T.IMAGE] = T.topic_name(namespace, image_topic)
+    types = {**T.TYPES, T.IMAGE: image_type}
     with mcap_io.BagWriter(bag_dir, chunk_size=chunk_size, compression=compression) as w:
         for rel, topic in names.items():
-            w.add_topic(topic, T.TYPES[rel])
+            w.add_topic(topic, types[rel])
         for t in extra_topics or {}:
             w.add_topic(t, "std_msgs/msg/String")
         new = mcap_io.new_message
@@ -73,7 +93,7 @@ def write_bag(bag_dir: Path, steps: list[dict], *, namespace: str = "/protocad",
                                                                  st["split"], s), s + 1)
                 w.write_message(names[T.STEP_INFO], T.fill_step_info(new(T.TYPES[T.STEP_INFO]), T.StepInfo(
                     st["reward"], 1.0, st["is_first"], st["is_last"], False, st["episode"], st["step"]), s), s + 2)
-                w.write_message(names[T.IMAGE], T.fill_image(new(T.TYPES[T.IMAGE]), st["image"], s), s + 3)
+                w.write_message(names[T.IMAGE], fill_image(new(image_type), st["image"], s), s + 3)
             if st.get("action") is not None:
                 w.write_message(names[T.ACTION], T.fill_action(new(T.TYPES[T.ACTION]), st["action"],
                                                                [f"a{i}" for i in range(len(st["action"]))], s), s + 4)
@@ -85,15 +105,17 @@ def write_bag(bag_dir: Path, steps: list[dict], *, namespace: str = "/protocad",
     return bag_dir
 
 
-def write_rosbags_bag(bag_dir: Path, steps: list[dict], topics: dict[str, str]) -> Path:
+def write_rosbags_bag(bag_dir: Path, steps: list[dict], topics: dict[str, str], *,
+                      image_type: str = T.TYPES[T.IMAGE], fill_image=T.fill_image) -> Path:
     """The same content written by ANOTHER tool: the rosbags library (rosbag2 MCAP storage,
     its own CDR serializer and message definitions), under the topic names in `topics`
-    {'image': '/robot/camera', 'step_info': ..., 'action': ..., 'context': ...}."""
+    {'image': '/robot/camera', 'step_info': ..., 'action': ..., 'context': ...}; a camera's
+    JPEG frames with image_type COMPRESSED_IMAGE, fill_image=fill_jpeg."""
     from rosbags.rosbag2 import StoragePlugin, Writer
     from rosbags.typesys import Stores, get_typestore
 
     ts = get_typestore(Stores.ROS2_JAZZY)
-    Image, JointState = ts.types["sensor_msgs/msg/Image"], ts.types["sensor_msgs/msg/JointState"]
+    Image, JointState = ts.types[image_type], ts.types["sensor_msgs/msg/JointState"]
     Header, Time = ts.types["std_msgs/msg/Header"], ts.types["builtin_interfaces/msg/Time"]
 
     def header():
@@ -104,7 +126,7 @@ def write_rosbags_bag(bag_dir: Path, steps: list[dict], topics: dict[str, str]) 
         return JointState(header=header(), name=[], position=e, velocity=e, effort=e)
 
     with Writer(bag_dir, version=9, storage_plugin=StoragePlugin.MCAP) as w:
-        conns = {k: w.add_connection(t, "sensor_msgs/msg/Image" if k == "image" else "sensor_msgs/msg/JointState",
+        conns = {k: w.add_connection(t, image_type if k == "image" else "sensor_msgs/msg/JointState",
                                      typestore=ts) for k, t in topics.items()}
         for st in steps:
             s = st["stamp"]
@@ -114,9 +136,10 @@ def write_rosbags_bag(bag_dir: Path, steps: list[dict], topics: dict[str, str]) 
             w.write(conns["step_info"], s + 2, ts.serialize_cdr(T.fill_step_info(js(), T.StepInfo(
                 st["reward"], 1.0, st["is_first"], st["is_last"], False, st["episode"], st["step"]), s),
                 "sensor_msgs/msg/JointState"))
-            img = Image(header=header(), height=0, width=0, encoding="", is_bigendian=0, step=0,
-                        data=np.zeros(0, np.uint8))
-            w.write(conns["image"], s + 3, ts.serialize_cdr(T.fill_image(img, st["image"], s), "sensor_msgs/msg/Image"))
+            img = (Image(header=header(), format="", data=np.zeros(0, np.uint8)) if image_type == COMPRESSED_IMAGE
+                   else Image(header=header(), height=0, width=0, encoding="", is_bigendian=0, step=0,
+                              data=np.zeros(0, np.uint8)))
+            w.write(conns["image"], s + 3, ts.serialize_cdr(fill_image(img, st["image"], s), image_type))
             if st.get("action") is not None:
                 w.write(conns["action"], s + 4, ts.serialize_cdr(
                     T.fill_action(js(), st["action"], ["torque"], s), "sensor_msgs/msg/JointState"))

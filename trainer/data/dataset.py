@@ -5,8 +5,12 @@ What it reads
     ``.mcap`` files, and folders of bags (every directory below that holds ``.mcap`` files is
     one bag). Logs written by this project (recorder, ``protocad-online``) and by other tools
     (``rosbags``, rosbag2) read the same as long as the message types match the topic
-    contract (sim_bridge/contract/topics.py): image ``sensor_msgs/msg/Image`` rgb8, step_info and
-    action and context ``sensor_msgs/msg/JointState``. Topic names are configurable
+    contract (sim_bridge/contract/topics.py): step_info and action and context
+    ``sensor_msgs/msg/JointState``; image ``sensor_msgs/msg/Image`` or, from a robot's camera,
+    any size in a common encoding or ``sensor_msgs/msg/CompressedImage`` (JPEG/PNG): every
+    frame becomes the model's image through ``sim_bridge.contract.camera.model_image`` (cropped,
+    ``crop``, and area-resized to ``image_size``), the function the policy node runs on a robot;
+    a frame already at the model's size passes bit-exact. Topic names are configurable
     (:class:`TopicMap`, CLI ``--topic image=/cam/rgb``); defaults are the contract topics in
     ``/protocad``.
 
@@ -27,8 +31,8 @@ whose predecessor is unknown; ``reward[t]`` is the reward arriving with obs t. T
 Memory
     Each bag is streamed once into an on-disk store (``images.u8`` raw uint8 frames read
     back through ``np.memmap``, small per-step ``.npy`` arrays also memory-mapped, and an
-    ``index.json``) in a cache directory keyed by the bag's files (path, size, mtime) and
-    the topic map, so a second run (or the next loop cycle) reuses it. Only the segment
+    ``index.json``) in a cache directory keyed by the bag's files (path, size, mtime), the
+    topic map and the image size and crop (when not the model's 64x64 center), so a second run (or the next loop cycle) reuses it. Only the segment
     index lives in RAM; frames stay uint8 on disk until a batch is sampled.
 
 Nothing is hidden: :class:`DatasetReport` lists truncated files, read errors, foreign
@@ -52,7 +56,16 @@ import numpy as np
 
 from protocad_ros.model.agent_base import BATCH_KEYS  # what an agent's train_step reads
 from sim_bridge.contract.contexts import get_task, normalized_log_context
-from trainer.data.records import CacheWriteError, DatasetError, DatasetReport, SourceReport, TopicMap
+from trainer.data.records import (
+    DEFAULT_CROP,
+    DEFAULT_IMAGE_SIZE,
+    CacheWriteError,
+    DatasetError,
+    DatasetReport,
+    ImageSpec,
+    SourceReport,
+    TopicMap,
+)
 from trainer.data.store import (
     SourceStore,
     cache_key,
@@ -85,8 +98,12 @@ class MCAPDataset:
     def __init__(self, paths: Iterable[str | Path] = (), *, topics: TopicMap | None = None,
                  seq_len: int = 50, seed: int = 0, cache_dir: str | Path | None = None,
                  image_shape: Sequence[int] | None = None, action_dim: int | None = None,
-                 verbose: bool = False, cache_budget_gb: float | None = None):
+                 verbose: bool = False, cache_budget_gb: float | None = None,
+                 image_size: int | None = None, crop: str = DEFAULT_CROP):
         self.topics = topics or TopicMap()
+        # Every frame becomes this (image_shape's size when given, else the model's 64).
+        self.image = ImageSpec(int(image_size or (image_shape[0] if image_shape else DEFAULT_IMAGE_SIZE)),
+                               crop)
         # LRU budget of the frame cache (entries this dataset uses are never evicted).
         self.cache_budget_gb = default_cache_budget_gb() if cache_budget_gb is None else float(cache_budget_gb)
         self.seq_len = int(seq_len)
@@ -121,20 +138,23 @@ class MCAPDataset:
             rid = f"{src.resolve()}|{topics.step_info}"
             if rid in self._known:
                 continue
-            key = cache_key(src, topics)
+            key = cache_key(src, topics, self.image)
             entry = self.cache_dir / key
             cached = (entry / "index.json").exists()
             if cached:
                 try:
                     store = SourceStore(entry)
-                except Exception:  # noqa: BLE001 - corrupt cache entry: rebuild it
+                    # An entry from before frames were resized may hold a camera's own size.
+                    if store.image_shape and tuple(store.image_shape) != (self.image.size, self.image.size, 3):
+                        raise ValueError(f"frames of {store.image_shape}, not the model's")
+                except Exception:  # noqa: BLE001 - corrupt or outdated cache entry: rebuild it
                     shutil.rmtree(entry, ignore_errors=True)
                     cached = False
             if not cached:
                 if self.verbose:
                     print(f"[dataset] indexing {src} ...", file=sys.stderr, flush=True)
                 entry.parent.mkdir(parents=True, exist_ok=True)
-                ingest_source(src, topics, entry)
+                ingest_source(src, topics, entry, self.image)
                 store = SourceStore(entry)
             os.utime(entry)   # last use, for the LRU budget
             store.report.cached = cached
@@ -308,9 +328,13 @@ def main(argv: Sequence[str] | None = None) -> int:
     ap.add_argument("--seq-len", type=int, default=50)
     ap.add_argument("--cache-dir", default=None)
     ap.add_argument("--json", default=None, help="also write the report as JSON here")
+    ap.add_argument("--image-size", type=int, default=DEFAULT_IMAGE_SIZE,
+                    help="every frame is cropped and resized to this square (the model's)")
+    ap.add_argument("--crop", default=DEFAULT_CROP, help="the part of each frame the model sees: "
+                    "center (the largest centered square), full, or x,y,w,h in pixels")
     a = ap.parse_args(argv)
     ds = MCAPDataset(a.logs, topics=TopicMap.parse(a.topic, a.namespace), seq_len=a.seq_len,
-                     cache_dir=a.cache_dir, verbose=True)
+                     cache_dir=a.cache_dir, verbose=True, image_size=a.image_size, crop=a.crop)
     print(ds.report.summary(verbose=True))
     if a.json:
         Path(a.json).write_text(json.dumps(ds.report.to_dict(), indent=2))

@@ -10,8 +10,9 @@ from typing import Any
 
 import numpy as np
 
+from sim_bridge.contract import camera
 from sim_bridge.contract import topics as T
-from trainer.data.records import REQUIRED_KEYS, SourceReport
+from trainer.data.records import REQUIRED_KEYS, ImageSpec, SourceReport
 
 
 @dataclass
@@ -34,6 +35,7 @@ class BagColumns:
     seen_img: set[int] = field(default_factory=set)
     dup: dict[str, int] = field(default_factory=dict)
     decode_errors: dict[str, int] = field(default_factory=dict)
+    image: ImageSpec = field(default_factory=ImageSpec)
 
     def take(self, key: str, topic: str, msg: Any, img_f: Any) -> None:
         """Keep one decoded message; raises (ValueError...) for a message to count as undecodable."""
@@ -62,7 +64,8 @@ class BagColumns:
         if stamp in self.seen_img:
             self.dup[topic] = self.dup.get(topic, 0) + 1
             return
-        img = T.read_image(msg, expected_hw=self.hw)
+        # The policy node's own function: a frame at the model's size passes bit-exact.
+        img = camera.model_image(msg, self.image.size, camera.Crop.parse(self.image.crop))
         if self.hw is None:
             self.hw = (img.shape[0], img.shape[1])
         img_f.write(np.ascontiguousarray(img).tobytes())

@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import Any, Iterable
 
 from sim_bridge.contract import topics as T
+from sim_bridge.contract.camera import Crop
 
 STORE_VERSION = 1
 #: metadata.yaml custom_data key the recorder writes: {topic: most publishers matched at once}
@@ -15,12 +16,36 @@ MULTIPLE_PUBLISHERS_KEY = "protocad_multiple_publishers"
 SMALL_STORE_STEPS = 200_000    # stores with more steps keep even their per-step arrays on disk
 REQUIRED_KEYS = ("image", "step_info", "action")
 TOPIC_KEYS = ("image", "step_info", "action", "context")
+#: The types taken per key, the contract's first: a camera's frames may come compressed (any
+#: size and common encoding: every frame goes through sim_bridge.contract.camera.model_image).
 EXPECTED_TYPES = {
-    "image": T.TYPES[T.IMAGE],
-    "step_info": T.TYPES[T.STEP_INFO],
-    "action": T.TYPES[T.ACTION],
-    "context": T.TYPES[T.CONTEXT],
+    "image": (T.TYPES[T.IMAGE], "sensor_msgs/msg/CompressedImage"),
+    "step_info": (T.TYPES[T.STEP_INFO],),
+    "action": (T.TYPES[T.ACTION],),
+    "context": (T.TYPES[T.CONTEXT],),
 }
+#: The model's image size (protocad_ros.model.config: train.image_size) and the part of a
+#: camera's frame it sees, unless a dataset is told otherwise.
+DEFAULT_IMAGE_SIZE = 64
+DEFAULT_CROP = "center"
+
+
+@dataclass(frozen=True)
+class ImageSpec:
+    """What every frame becomes in the store: `camera.model_image(msg, size, crop)`, so a bag of
+    a robot's camera (any size, encoding, JPEG/PNG) trains on what its policy will see."""
+
+    size: int = DEFAULT_IMAGE_SIZE
+    crop: str = DEFAULT_CROP
+
+    def __post_init__(self):
+        if not isinstance(self.size, int) or isinstance(self.size, bool) or self.size < 1:
+            raise ValueError(f"image size must be a positive integer, got {self.size!r}")
+        object.__setattr__(self, "crop", str(Crop.parse(self.crop)))   # ValueError naming it
+
+    @property
+    def is_default(self) -> bool:
+        return (self.size, self.crop) == (DEFAULT_IMAGE_SIZE, DEFAULT_CROP)
 # Contract topics that a training dataset does not need (listed as unused, not as foreign).
 KNOWN_UNUSED = (T.CONTEXT_FEATURES, T.BRIDGE_INFO, T.CLOCK, T.DIAGNOSTICS, "/rosout", "/parameter_events",
                 "/tf", "/tf_static")

@@ -27,6 +27,7 @@ from trainer.data.records import (
     SMALL_STORE_STEPS,
     STORE_VERSION,
     CacheWriteError,
+    ImageSpec,
     SourceReport,
     TopicMap,
 )
@@ -48,11 +49,13 @@ def source_identity(source: Path) -> list[tuple[str, int, int]]:
     return ident
 
 
-def cache_key(source: Path, topics: TopicMap) -> str:
+def cache_key(source: Path, topics: TopicMap, image: ImageSpec = ImageSpec()) -> str:
     h = hashlib.sha256()
-    h.update(json.dumps({"v": STORE_VERSION, "path": str(Path(source).resolve()),
-                         "files": source_identity(source), "topics": topics.as_dict()},
-                        sort_keys=True).encode())
+    what = {"v": STORE_VERSION, "path": str(Path(source).resolve()),
+            "files": source_identity(source), "topics": topics.as_dict()}
+    if not image.is_default:   # the model's 64x64 center keeps the keys entries always had
+        what["image"] = [image.size, image.crop]
+    h.update(json.dumps(what, sort_keys=True).encode())
     return h.hexdigest()[:24]
 
 
@@ -146,7 +149,7 @@ class SourceStore:
         return out
 
 
-def ingest_source(source: Path, topics: TopicMap, entry: Path) -> None:
+def ingest_source(source: Path, topics: TopicMap, entry: Path, image: ImageSpec = ImageSpec()) -> None:
     """Stream one bag once into ENTRY (written under a temp name, renamed when complete; a
     failure or Ctrl-C leaves no partial entry behind)."""
     tmp = entry.with_name(entry.name + f".tmp-{os.getpid()}")
@@ -155,7 +158,7 @@ def ingest_source(source: Path, topics: TopicMap, entry: Path) -> None:
     tmp.mkdir(parents=True)
     try:
         try:
-            _ingest_into(source, topics, tmp)
+            _ingest_into(source, topics, tmp, image)
         except OSError as exc:    # np.save / index.json on a full disk
             raise CacheWriteError(tmp, exc) from exc
     except BaseException:
@@ -213,12 +216,12 @@ def multiple_publishers(source: Path, used: Iterable[str]) -> dict[str, int]:
     return {str(t): int(n) for t, n in marked.items()} if isinstance(marked, dict) else {}
 
 
-def _ingest_into(source: Path, topics: TopicMap, tmp: Path) -> None:
+def _ingest_into(source: Path, topics: TopicMap, tmp: Path, image: ImageSpec) -> None:
     t0 = time.monotonic()
     rep = SourceReport(path=str(source), files=[str(f) for f in source_files(source)])
     by_key = {k: v for k, v in topics.as_dict().items() if v}
     reader = mcap_io.BagReader(str(source))
-    st = _stream_bag(reader, by_key, rep, tmp)
+    st = _stream_bag(reader, by_key, rep, tmp, image)
 
     _report_reading(rep, reader.report, source, by_key)
     rep.decode_errors = st.decode_errors
@@ -233,16 +236,17 @@ def _ingest_into(source: Path, topics: TopicMap, tmp: Path) -> None:
     rep.ingest_seconds = round(time.monotonic() - t0, 3)
     meta.update(version=STORE_VERSION, source=str(source), identity=source_identity(source),
                 topics=topics.as_dict(), num_images=st.n_img, image_shape=rep.image_shape,
+                image_crop=image.crop,
                 report=asdict(rep))
     (tmp / "index.json").write_text(json.dumps(meta))
 
 
-def _stream_bag(reader: Any, by_key: dict[str, str], rep: SourceReport, tmp: Path) -> BagColumns:
+def _stream_bag(reader: Any, by_key: dict[str, str], rep: SourceReport, tmp: Path, image: ImageSpec) -> BagColumns:
     """One pass over the mapped topics. A message of the wrong type condemns its topic; one that
     does not decode is counted and skipped; a reader failure mid-stream keeps what came before;
     a write error on the cache stops the ingest (CacheWriteError)."""
     key_of = {v: k for k, v in by_key.items()}
-    st = BagColumns()
+    st = BagColumns(image=image)
     bad_type: set[str] = set()
     with open(tmp / "images.u8", "wb") as img_f:
         try:
@@ -251,10 +255,10 @@ def _stream_bag(reader: Any, by_key: dict[str, str], rep: SourceReport, tmp: Pat
                 key = key_of.get(topic)
                 if key is None or topic in bad_type:
                     continue
-                if m.msgtype != EXPECTED_TYPES[key]:
+                if m.msgtype not in EXPECTED_TYPES[key]:
                     bad_type.add(topic)
                     rep.type_errors.append(f"{topic} (mapped as {key}) has type {m.msgtype}, "
-                                           f"expected {EXPECTED_TYPES[key]}")
+                                           f"expected {' or '.join(EXPECTED_TYPES[key])}")
                     continue
                 try:
                     st.take(key, topic, reader.decode(m), img_f)

@@ -24,6 +24,7 @@ from protocad_ros.model.config import plan_prototype_freeze
 from sim_bridge.contract.contexts import task_actuators
 from trainer import cli_values, console, runs, settings
 from trainer.data.dataset import DatasetError, MCAPDataset, TopicMap, default_cache_dir
+from trainer.data.records import DEFAULT_CROP
 from trainer.data.store import find_sources, multiple_publishers
 from trainer.learn import distributed
 from trainer.learn.trainer import DEFAULT_LOG_EVERY, CheckpointWriteError, RanksDiverged, Trainer
@@ -46,6 +47,10 @@ class TrainSettings:
     namespace: list[str] | None = arg(None, metavar="NS", group="logs")
     """namespace(s) of the contract topics in the logs (default /protocad); several = one robot
     each, e.g. the bags of `protocad-loop --robots 2`: --namespace /protocad/robot0 /protocad/robot1"""
+    crop: str | None = arg(None, metavar="center|full|X,Y,W,H", group="logs")
+    """the part of each camera frame the model sees before it is resized to train.image_size
+    (sim_bridge.contract.camera, what the policy node does on a robot; default center: the
+    largest centered square). Frames already at the model's size are taken whole"""
     cache_dir: str | None = arg(None, group="logs")
     """dataset cache (default $PROTOCAD_CACHE_DIR or ~/.cache/protocad-ros/dataset)"""
     cache_budget_gb: float | None = arg(None, group="logs")
@@ -78,6 +83,7 @@ class TrainSettings:
         (ValueError naming the first one whose type is not its option's)."""
         saved = {"logs": run_json.get("logs"), "topic": run_json.get("topics_args") or [],
                  "namespace": run_json.get("namespace"), "cache_dir": run_json.get("cache_dir"),
+                 "crop": run_json.get("crop"),
                  "updates": run_json.get("updates"), "checkpoint_every": run_json.get("checkpoint_every"),
                  "log_every": run_json.get("log_every"), "rerun": run_json.get("rerun"),
                  "accept_test_split": bool(run_json.get("accept_test_split")),
@@ -172,7 +178,8 @@ def open_logs(s: TrainSettings, cfg, ctx: distributed.DistContext, say: Callable
         distributed.barrier_if(ctx)
     ds = MCAPDataset(s.logs, topics=TopicMap.parse(s.topic, namespaces[0]), seq_len=cfg.train.seq_len,
                      seed=cfg.train.seed, cache_dir=s.cache_dir, verbose=ctx.is_main,
-                     cache_budget_gb=s.cache_budget_gb)
+                     cache_budget_gb=s.cache_budget_gb, image_size=cfg.train.image_size,
+                     crop=s.crop or DEFAULT_CROP)
     for ns in namespaces[1:]:   # the same logs, read once more per robot namespace
         ds.add(s.logs, topics=TopicMap.parse(s.topic, ns))
     if ctx.is_main:
@@ -238,7 +245,7 @@ def _train(s: TrainSettings, model: settings.ModelChoice, config_args: list[str]
     freeze = trainer.plan_prototype_freeze(target)
     namespaces = [n for n in (s.namespace or []) if n] or None
     run_json.update(kind="train", argv=sys.argv, logs=[str(Path(p).resolve()) for p in s.logs],
-                    topics_args=list(s.topic), namespace=namespaces,
+                    topics_args=list(s.topic), namespace=namespaces, crop=s.crop,
                     cache_dir=str(Path(s.cache_dir).resolve()) if s.cache_dir else None, task=cfg.task,
                     variant=cfg.variant, preset=cfg.preset, seed=cfg.train.seed, device=device, updates=target,
                     checkpoint_every=s.checkpoint_every, log_every=s.log_every,
