@@ -133,18 +133,7 @@ class SimBridgeNode(ActionIntake, Stepping, ObservationPublishing, BridgeDiagnos
         # first_action_publisher_only its actions are refused too.
         self.publisher_watch = PublisherWatch(self._on_new_publisher)
         self._action_lock = FirstPublisherLock() if p["first_action_publisher_only"] else None
-        # Adapter mode takes a robot's commands instead of the contract's actions, never both.
-        adapter = p["action_input"] == "float64_multi_array"
-        action_type, action_topic, on_action = ((Float64MultiArray, p["command_topic"], self._on_command)
-                                                if adapter else (JointState, topics.ACTION, self._on_action))
-        self.sub_action = self.create_subscription(
-            action_type, action_topic,
-            # first_action_publisher_only: rclpy passes the message info (its sequence number)
-            # to a two-argument callback.
-            on_action if self._action_lock is None else (lambda msg, info: on_action(msg, info)),
-            qos.action_qos(), qos_overriding_options=qos.overridable(),
-            event_callbacks=self.publisher_watch.callbacks(self.resolve_topic_name(action_topic),
-                                                           also=self._on_action_matched))
+        self.sub_action = self._subscribe_actions(p)
         self.srv_reset = (self.create_service(Trigger, topics.RESET_SERVICE, self._on_reset)
                           if p["reset_service"] else None)
         # A contract topic claimed by a stranger with another type never matches: said, not a hang.
@@ -158,6 +147,20 @@ class SimBridgeNode(ActionIntake, Stepping, ObservationPublishing, BridgeDiagnos
         else:
             self.get_logger().info("autostart:=false: unconfigured, waiting for lifecycle "
                                    f"transitions on {self._diag_name}/change_state")
+
+    def _subscribe_actions(self, p: dict[str, Any]):
+        """Actions on `action`, or in adapter mode a robot's commands instead (never both)."""
+        adapter = p["action_input"] == "float64_multi_array"
+        action_type, action_topic, on_action = ((Float64MultiArray, p["command_topic"], self._on_command)
+                                                if adapter else (JointState, topics.ACTION, self._on_action))
+        return self.create_subscription(
+            action_type, action_topic,
+            # first_action_publisher_only: rclpy passes the message info (its sequence number)
+            # to a two-argument callback.
+            on_action if self._action_lock is None else (lambda msg, info: on_action(msg, info)),
+            qos.action_qos(), qos_overriding_options=qos.overridable(),
+            event_callbacks=self.publisher_watch.callbacks(self.resolve_topic_name(action_topic),
+                                                           also=self._on_action_matched))
 
     def _reset_run_state(self) -> None:
         """State of one configured run (stepping thread <-> executor thread, under _cond)."""

@@ -12,7 +12,7 @@ import threading
 import numpy as np
 import pytest
 import yaml
-from helpers import wait_exit
+from helpers import wait_exit, wait_until
 from helpers.ros import Probe, publish_waiting_out_a_full_history
 from sensor_msgs.msg import CompressedImage, Image, JointState
 from std_msgs.msg import Float64MultiArray
@@ -176,3 +176,22 @@ def test_a_command_map_that_does_not_fit_is_a_configuration_error(spawn, tmp_pat
     out = proc.output()
     assert "configuration error" in out and "command_map" in out and "no_such_actuator" in out, out
     assert "Traceback" not in out
+
+
+@pytest.mark.ros
+@pytest.mark.process
+def test_a_command_while_no_observation_awaits_an_answer_is_counted_and_dropped(spawn, probe):
+    """Lock-step, adapter mode: a command has no stamp, so one arriving before any observation
+    (the bridge active, waiting for a second reader) answers nothing: counted, dropped."""
+    ns = "/adp_early"
+    pub = probe.publisher("commands", Float64MultiArray, ns=ns)
+    proc = spawn("adp_early", *bridge_args("pendulum_swingup", ns, "action_input:=float64_multi_array",
+                                           "min_subscribers:=2"))
+    wait_until(lambda: probe.node_diag(f"{ns}/sim_bridge").get("lifecycle_state") == "active"
+               and pub.get_subscription_count() == 1, START, "the bridge active, the command matched")
+    pub.publish(Float64MultiArray(data=[0.5]))
+    wait_until(lambda: probe.counter(f"{ns}/sim_bridge", "commands_unsolicited") == 1, 30,
+               "commands_unsolicited == 1")
+    diag = probe.node_diag(f"{ns}/sim_bridge")
+    assert (diag["actions_received"], diag["actions_accepted"], diag["steps"]) == ("1", "0", "0"), diag
+    assert proc.alive()
