@@ -139,8 +139,8 @@ class ActionIntake:
             if stamp is None:
                 self.counters["commands_unsolicited"] += 1
                 self._throttle.warning(
-                    "commands_unsolicited", f"command {list(msg.data)} arrived while no observation "
-                    f"awaits an answer: dropped ({self.counters['commands_unsolicited']} so far)")
+                    "commands_unsolicited", f"a command arrived while no observation awaits an answer: "
+                    f"dropped ({self.counters['commands_unsolicited']} so far)")
                 return
             clipped = self._accept(a, stamp, now)
             if self.lockstep:

@@ -195,3 +195,20 @@ def test_a_command_while_no_observation_awaits_an_answer_is_counted_and_dropped(
     diag = probe.node_diag(f"{ns}/sim_bridge")
     assert (diag["actions_received"], diag["actions_accepted"], diag["steps"]) == ("1", "0", "0"), diag
     assert proc.alive()
+
+
+@pytest.mark.ros
+@pytest.mark.process
+def test_adapter_mode_in_real_time_takes_the_latest_command(spawn, probe, tmp_path):
+    """Real time: each command (no stamp) is taken as the one to hold, none refused as stale."""
+    names = task_actuators("walker_walk")
+    path = write_map(tmp_path / "robot.yaml", names)
+    client = Client(probe, "/adp_rt", n_actions=len(names), joint_map=load_joint_map(path, names))
+    proc = spawn("adp_rt", *bridge_args("walker_walk", "/adp_rt", "mode:=realtime", "control_rate_hz:=40.0",
+                                        "episode_length:=20", "action_input:=float64_multi_array",
+                                        f"command_map:={path}"))
+    assert wait_exit(proc, START) == 0, proc.output()
+    out = proc.output()
+    accepted = re.findall(r"actions_accepted=(\d+)", out)
+    assert accepted and int(accepted[0]) >= 1 and len(client.steps) == 21, out
+    assert "rejected" not in out.split("stopped:")[-1] and "commands_unsolicited" not in out, out
