@@ -32,8 +32,9 @@ Memory
     Each bag is streamed once into an on-disk store (``images.u8`` raw uint8 frames read
     back through ``np.memmap``, small per-step ``.npy`` arrays also memory-mapped, and an
     ``index.json``) in a cache directory keyed by the bag's files (path, size, mtime), the
-    topic map and the image size and crop (when not the model's 64x64 center), so a second run (or the next loop cycle) reuses it. Only the segment
-    index lives in RAM; frames stay uint8 on disk until a batch is sampled.
+    topic map and the image size and crop (when not the model's 64x64 center), so a second
+    run (or the next loop cycle) reuses it. Only the segment index lives in RAM; frames stay
+    uint8 on disk until a batch is sampled.
 
 Nothing is hidden: :class:`DatasetReport` lists truncated files, read errors, foreign
 (unused) topics, duplicates, gaps, incomplete steps, missing actions and skipped short
