@@ -41,7 +41,8 @@ class ActionPublishing:
         t0 = time.monotonic()
         action, feats = self.policy.act(image, self._prev_action, bool(info.is_first))
         self.act_time.add(time.monotonic() - t0)
-        action = np.asarray(action, np.float32).reshape(-1)
+        # The model's action, or the safe action while disabled; its command out to a robot first.
+        action = self.robot.answer(np.asarray(action, np.float32).reshape(-1), stamp)
         amsg = topics.fill_action(JointState(), action, self.action_names, stamp)
         u, w, e = (np.asarray(getattr(feats, k, ()), np.float32).reshape(-1) for k in "uwe")
         fmsg = topics.fill_context_features(JointState(), u, w, e, stamp)

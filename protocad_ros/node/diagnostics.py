@@ -67,6 +67,7 @@ class PolicyDiagnostics:
                    "accepting UNSIGNED checkpoints over checkpoint_topic (allow_unsigned)" if unsigned else
                    "random agent" if self.agent_kind == "random" else
                    "rejected inputs or checkpoint errors" if bad else "serving")
+        level, message = self.robot.report(values, level, message)   # watchdog, enable switch
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()
         arr.status = [make_status(self._diag_name, self.task, values, level, message)]

@@ -35,6 +35,7 @@ from protocad_ros.node.diagnostics import PolicyDiagnostics
 from protocad_ros.node.observation_pairing import ObservationPairing
 from protocad_ros.node.policy_params import COUNTERS, PARAMS
 from protocad_ros.node.refusal_log import RefusalLog
+from protocad_ros.robot.robot_output import RobotOutput
 from sim_bridge.contract import qos, topics
 from sim_bridge.contract.contexts import task_actuators
 from sim_bridge.nodekit.lifecycle import ManagedNode
@@ -134,6 +135,8 @@ class PolicyNode(ObservationPairing, BridgePairing, ActionPublishing, Checkpoint
                                  lambda reason: self._count("parameters_rejected",
                                                             f"parameter change rejected: {reason}"))
         self._diag_name = self.get_fully_qualified_name()
+        # A robot's command interface and the fail-safe (protocad_ros/robot/).
+        self.robot = RobotOutput(self, p, self._count)
         if p["autostart"]:
             self.autostart()
         else:
@@ -224,6 +227,7 @@ class PolicyNode(ObservationPairing, BridgePairing, ActionPublishing, Checkpoint
             names = []
         self.action_names = names if len(names) == self.action_dim else [
             f"a{i}" for i in range(self.action_dim)]
+        self.robot.configure(self.action_names)
         self.policy.reset()
         self._reset_filter()
         try:
@@ -255,10 +259,12 @@ class PolicyNode(ObservationPairing, BridgePairing, ActionPublishing, Checkpoint
             f"{self.resolve_topic_name(topics.IMAGE)}")
         # The config's precision is a request: resolved here, on this node's device.
         self.get_logger().info(self.policy.agent.precision.describe())
+        self.robot.activate()
 
     def deactivate_node(self) -> None:
         # Halves of observations that arrived before: they will not be answered.
         self._unpaired.clear()
+        self.robot.deactivate()
 
     def cleanup_node(self) -> None:
         self._stop.set()
@@ -272,6 +278,7 @@ class PolicyNode(ObservationPairing, BridgePairing, ActionPublishing, Checkpoint
                 raise RuntimeError("the checkpoint watcher did not end within 10 s")
         if self.live_view is not None:
             self.live_view.close()
+        self.robot.cleanup()
         self._release_model()
 
     # ------------------------------------------------------------------ callbacks

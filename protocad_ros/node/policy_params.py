@@ -82,6 +82,34 @@ PARAMS: tuple[Param, ...] = (
     executor_param(),
 )
 
+# A robot's command interface and the fail-safe (protocad_ros/robot/, msgs_docs/policy.md).
+COMMAND_PARAMS: tuple[Param, ...] = (
+    Param("command_output", "", "Also send each answer as a robot's command on command_topic: "
+          "float64_multi_array (std_msgs/Float64MultiArray, a ros2_control forward command "
+          "controller) or joint_trajectory (trajectory_msgs/JointTrajectory, one point), in the "
+          "joint order and units of command_map. Empty: none (the action topic alone).",
+          choices=("", "float64_multi_array", "joint_trajectory")),
+    Param("command_topic", "commands", "Where the commands go (remap or set it to the controller's, "
+          "e.g. /forward_position_controller/commands)."),
+    Param("command_map", "", "YAML joint map (sim_bridge/contract/joint_map.py): the robot's joints "
+          "in its order, each driven by one action through offset + scale * action, with an optional "
+          "max_rate; checked at configure (a bad map: configuration error). Empty: one joint per "
+          "action, named after it, unscaled."),
+    Param("trajectory_time_from_start_s", 0.1, "joint_trajectory: the point's time_from_start "
+          "(header.stamp is the observation's).", range=(0.0, 3600.0), units="s"),
+    Param("input_timeout_s", 0.5, "Real-time use (command_output set, or latest_only): when no fresh "
+          "observation was answered for this long, the safe action goes out on command_topic (again "
+          "every input_timeout_s) and /diagnostics is ERROR until the next one.",
+          range=(0.01, 3600.0), units="s"),
+    Param("safe_action", "zero", "What goes out while disabled or while the watchdog is tripped: zero "
+          "(action 0 through the map: each joint at its offset) or hold (the last command sent), "
+          "rate limited like every command.", choices=("zero", "hold")),
+    Param("enabled_at_start", "auto", "Whether the model's commands go out from the start: auto = "
+          "false with command_output (enable with ~/enable or the enable topic), true otherwise.",
+          choices=("auto", "true", "false")),
+)
+PARAMS += COMMAND_PARAMS
+
 COUNTERS = ("observations_answered", "episodes", "images_received", "images_rejected",
             "rejected_image_encoding", "rejected_image_size", "rejected_image_data",
             "step_info_rejected", "duplicate_observations", "stale_observations", "sim_time_restarts",
@@ -93,3 +121,6 @@ COUNTERS = ("observations_answered", "episodes", "images_received", "images_reje
             "checkpoint_signatures_rejected", "checkpoint_rollbacks_rejected",
             "checkpoint_limits_rejected", "checkpoint_mismatches", "checkpoint_chunks_dropped",
             "remote_transitions_refused")
+# The robot's command interface and the fail-safe.
+COUNTERS += ("commands_sent", "safe_commands_sent", "commands_rate_limited", "watchdog_trips",
+             "watchdog_clears", "enable_switches")

@@ -5,7 +5,8 @@
   msgs_docs documents.
 - `declare_all`: declares a table with clear errors (`ConfigError`) for wrong types, values out
   of range, values outside a choice list; integers given for float parameters are accepted
-  (`-p control_rate_hz:=10`); unknown `-p` overrides are reported with a warning.
+  (`-p control_rate_hz:=10`), and so are true/false for a string parameter whose choices are
+  those words; unknown `-p` overrides are reported with a warning.
 - `run_node`: the `main()` of a node: argparse (`--help` lists the ROS parameters; everything
   after `--ros-args` goes to ROS), spin, clean shutdown on Ctrl-C / SIGTERM (exit 0, no
   traceback), exit 2 on a configuration error.
@@ -116,6 +117,12 @@ def declare_all(node, params: Sequence[Param]) -> dict[str, Any]:
             given = overrides[p.name].value
             if isinstance(given, int) and not isinstance(given, bool):
                 overrides[p.name] = Parameter(p.name, Parameter.Type.DOUBLE, float(given))
+        if isinstance(overrides, dict) and p.choices and p.name in overrides:
+            # `-p x:=true` reaches rclpy as a bool; a string parameter whose choices are the
+            # words true and false (enabled_at_start: auto, true, false) takes the word.
+            given = overrides[p.name].value
+            if isinstance(given, bool) and str(given).lower() in p.choices:
+                overrides[p.name] = Parameter(p.name, Parameter.Type.STRING, str(given).lower())
         try:
             value = node.declare_parameter(p.name, p.default, p.descriptor()).value
         except ParameterException as e:
