@@ -230,18 +230,72 @@ def test_the_rate_limit_bounds_each_change(spawn, probe, tmp_path):
     cmds = Commands(probe)
     start(spawn, probe, f, cmds, "command_output:=float64_multi_array",
           f"command_map:={write_map(tmp_path, text)}", "enabled_at_start:=true", QUIET_WATCHDOG)
+    client = probe.node.create_client(SetBool, "/protocad/policy/enable")
     wanted = []
     for i in range(12):
         action, _ = answer(f, cmds, 1_000 * (i + 1), i)
         wanted.append(jmap.to_robot(action))
         time.sleep(0.05)
+    # Disabled: the safe action (each joint at its offset) goes through the limit too.
+    assert client.wait_for_service(timeout_sec=30)
+    done = client.call_async(SetBool.Request(data=False))
+    wait_until(done.done, SWITCH_BOUND_S, "the enable service's answer")
+    safe = jmap.to_robot(np.zeros(4))
+    _, command = answer(f, cmds, 13_000, 12)
+    wanted.append(safe)
     with cmds.lock:
         got = list(cmds.got)
     # Tolerance: the test's receive times jitter against the node's send times (DDS, the executor).
     jitter_s = 0.1
+    ratios = []
     for (ta, a), (tb, b) in zip(got, got[1:]):
-        assert np.all(np.abs(np.asarray(b.data) - a.data) <= rate * (tb - ta + jitter_s) + 1e-9), (a.data, b.data)
+        change = np.abs(np.asarray(b.data) - a.data)
+        assert np.all(change <= rate * (tb - ta + jitter_s) + 1e-9), (a.data, b.data, tb - ta)
+        ratios.append(float(np.max(change / (rate * (tb - ta)))))
     limited = [not np.allclose(g.data, w, rtol=0, atol=1e-9) for (_, g), w in zip(got, wanted)]
+    print(f"rate limit: {sum(limited)} of {len(got)} commands limited; largest change "
+          f"{max(ratios):.3f} x max_rate * dt (dt from the arrival times)")
     assert any(limited) and not limited[0]   # the first command has nothing to be limited against
+    far = np.max(np.abs(np.asarray(got[-2][1].data) - safe)) > rate * (got[-1][0] - got[-2][0] + jitter_s)
+    print(f"rate limit: the safe pose {'beyond' if far else 'within'} one step's reach; the command after "
+          f"disabling {'reached it' if np.allclose(command, safe) else 'moved towards it'}")
+    assert not far or not np.allclose(command, safe), "the safe action jumped past the rate limit"
     wait_until(lambda: probe.counter("policy", "commands_rate_limited") == sum(limited), 5,
                "commands_rate_limited counted")
+
+
+@pytest.mark.ros
+@pytest.mark.process
+def test_a_supervisors_latched_word_reaches_a_node_started_later(spawn, probe, tmp_path):
+    jmap = load_joint_map(write_map(tmp_path), ACTIONS)
+    f = Feeder(probe)
+    cmds = Commands(probe)
+    switch = probe.publisher("enable", Bool, qos.announcement_qos())
+    switch.publish(Bool(data=True))   # before the node exists
+    start(spawn, probe, f, cmds, "command_output:=float64_multi_array", f"command_map:={write_map(tmp_path)}",
+          QUIET_WATCHDOG)
+    wait_until(lambda: probe.node_diag("policy").get("enabled") == "true", 10, "the latched enable taken")
+    action, command = answer(f, cmds, 1_000, 0)
+    assert not np.allclose(action, 0.0) and np.allclose(command, jmap.to_robot(action), atol=1e-9)
+    assert probe.node_diag("policy")["enable_switches"] == "1"
+
+
+@pytest.mark.ros
+@pytest.mark.process
+def test_the_watchdog_without_command_output_reports_only(spawn, probe):
+    """A real-time simulator (latest_only): the bridge takes an action only as the answer to an
+    observation, so the watchdog says ERROR and sends nothing on action."""
+    f = Feeder(probe)
+    policy = spawn("policy", *args("latest_only:=true", "input_timeout_s:=0.5"))
+    wait_until(lambda: f.ready() or not policy.alive(), START, "the policy's subscriptions and publishers to match")
+    for i in range(2):
+        f.obs(1_000 * (i + 1), i, is_first=i == 0)
+        f.wait_answers(i + 1, "an answer")
+    wait_until(lambda: probe.node_diag("policy").get("_level") == 2, 10, "diagnostics at ERROR")
+    d = probe.node_diag("policy")
+    assert d["watchdog_trips"] == "1" and d["safe_commands_sent"] == "0" and d["enabled"] == "true", d
+    assert len(f.actions) == 2
+    f.obs(3_000, 2)
+    f.wait_answers(3, "the answer after the stall")
+    wait_until(lambda: probe.counter("policy", "watchdog_clears") == 1, 10, "the watchdog cleared")
+    assert len(f.actions) == 3 and probe.node_diag("policy")["_level"] < 2
