@@ -54,6 +54,13 @@ class RobotOutput:
 
     def activate(self) -> None:
         self._disarm()
+        if self.commands.kind:
+            self._node.get_logger().info(
+                f"commands as {self.commands.kind} on {self.commands.topic} for joints "
+                f"{list(self.commands.joint_map.joint_names)}; " + (
+                    "enabled" if self.switch.enabled else
+                    f"DISABLED (safe action {self.safe_kind}) until enabled on ~/enable or the enable topic")
+                + (f"; watchdog {self.watchdog.timeout_s:g} s" if self.watchdog is not None else ""))
 
     def deactivate(self) -> None:
         self._disarm()
