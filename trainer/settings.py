@@ -118,10 +118,37 @@ def add_settings(parser: argparse.ArgumentParser, cls: type, title: str | None =
             where.add_argument(f.name, default=default, **options)
 
 
+def table_settings(name: str, params: Sequence[Any], forms: dict[str, dict[str, Any] | None]) -> type:
+    """A settings class whose fields are the rows of a node's parameter table (rows with name,
+    default, description and choices: sim_bridge.nodekit.rosnode.Param), so that the node's own
+    command line is generated from the parameters it declares: the flag `--name-with-dashes`,
+    the row's type, default, choices and description as its help, unless `forms[name]` says
+    otherwise (`flags`, a `default` of the command line's own, and what else `arg` takes);
+    `forms[name] = None`: no option (another option gives the value)."""
+    fields = []
+    for p in params:
+        form = forms.get(p.name, {})
+        if form is None:
+            continue
+        form = dict(form)
+        flags = form.pop("flags", ())
+        array = isinstance(p.default, tuple)
+        default = form.pop("default", list(p.default) if array else p.default)
+        hint: Any = list[str] if array else type(p.default)
+        if p.choices:
+            form.setdefault("choices", p.choices)
+        form.setdefault("help", p.description)
+        fields.append((p.name, hint | None if default is None else hint, arg(default, *flags, **form)))
+    return dataclasses.make_dataclass(name, fields)
+
+
 def settings_parser(prog: str, description: str, sections: Sequence[tuple[str | None, type]],
-                    defaults: dict[str, Any] | None = None) -> argparse.ArgumentParser:
+                    defaults: dict[str, Any] | None = None, epilog: str | None = None) -> argparse.ArgumentParser:
+    """A command's parser, generated from its settings classes: `sections` ((help group title
+    or None, class)) in order; the epilog is the order of precedence where ModelChoice is one."""
     with_config = any(cls is ModelChoice for _, cls in sections)
-    parser = argparse.ArgumentParser(prog=prog, description=description, epilog=PRECEDENCE if with_config else None,
+    parser = argparse.ArgumentParser(prog=prog, description=description,
+                                     epilog=PRECEDENCE if with_config else epilog,
                                      formatter_class=cli_values.HelpFormatter)
     for title, cls in sections:
         add_settings(parser, cls, title, defaults)

@@ -1,8 +1,9 @@
 """rclpy plumbing shared by the protocad nodes (sim bridge, policy).
 
 - `Param`: one row of a node's parameter table. The same table declares the ROS parameters
-  (ParameterDescriptor with description, range, read_only), prints `--help`, and is what
-  msgs_docs documents.
+  (ParameterDescriptor with description, range, read_only), prints `--help` (or generates a
+  node's own command line: trainer.settings.table_settings), and is what msgs_docs documents.
+  `with_defaults`: the table with a command line's values as the declared defaults.
 - `declare_all`: declares a table with clear errors (`ConfigError`) for wrong types, values out
   of range, values outside a choice list; integers given for float parameters are accepted
   (`-p control_rate_hz:=10`), and so are true/false for a string parameter whose choices are
@@ -16,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import collections
+import dataclasses
 import os
 import signal
 import sys
@@ -39,7 +41,7 @@ class ConfigError(Exception):
 @dataclass(frozen=True)
 class Param:
     name: str
-    default: bool | int | float | str
+    default: bool | int | float | str | tuple[str, ...]   # a tuple: a string array
     description: str
     read_only: bool = True
     range: tuple[float, float] | None = None   # inclusive, for int and float parameters
@@ -48,13 +50,19 @@ class Param:
 
     @property
     def type_name(self) -> str:
-        return {bool: "bool", int: "int", float: "double", str: "string"}[type(self.default)]
+        return {bool: "bool", int: "int", float: "double", str: "string", tuple: "string[]"}[type(self.default)]
+
+    @property
+    def ros_default(self) -> Any:
+        """The default as declare_parameter takes it (a list for a string array)."""
+        return list(self.default) if isinstance(self.default, tuple) else self.default
 
     def descriptor(self):
         from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
 
         types = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
-                 float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING}
+                 float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING,
+                 tuple: ParameterType.PARAMETER_STRING_ARRAY}   # the type an empty list cannot say
         d = ParameterDescriptor(name=self.name, type=types[type(self.default)],
                                 description=self.description, read_only=self.read_only)
         if self.choices:
@@ -92,7 +100,7 @@ class Param:
         if self.units:
             extra.append(self.units)
         extra.append("read-only" if self.read_only else "settable at run time")
-        default = repr(self.default) if isinstance(self.default, str) else self.default
+        default = repr(self.default) if isinstance(self.default, str) else self.ros_default
         return (f"  {self.name} ({self.type_name}, default {default}; {', '.join(extra)})\n"
                 f"      {self.description}")
 
@@ -124,9 +132,11 @@ def declare_all(node, params: Sequence[Param]) -> dict[str, Any]:
             if isinstance(given, bool) and str(given).lower() in p.choices:
                 overrides[p.name] = Parameter(p.name, Parameter.Type.STRING, str(given).lower())
         try:
-            value = node.declare_parameter(p.name, p.default, p.descriptor()).value
+            value = node.declare_parameter(p.name, p.ros_default, p.descriptor()).value
         except ParameterException as e:
             raise ConfigError(f"parameter {p.name}: {e}".replace("\n", " ")) from None
+        if isinstance(p.default, tuple):
+            value = list(value or [])
         reason = p.check(value)
         if reason:
             raise ConfigError(reason)
@@ -145,7 +155,19 @@ def declare_all(node, params: Sequence[Param]) -> dict[str, Any]:
     return values
 
 
+def with_defaults(params: Sequence[Param], values: dict[str, Any]) -> tuple[Param, ...]:
+    """The table with `values` (a node's own command line's) as the declared defaults, each
+    of its row's type: a `-p` override still wins over them."""
+    def typed(p: Param, v: Any) -> Any:
+        return tuple(str(x) for x in v) if isinstance(p.default, tuple) else type(p.default)(v)
+
+    return tuple(dataclasses.replace(p, default=typed(p, values[p.name])) if p.name in values else p
+                 for p in params)
+
+
 def _type_ok(p: Param, value: Any) -> bool:
+    if isinstance(p.default, tuple):
+        return isinstance(value, (list, tuple)) and all(isinstance(x, str) for x in value)
     if isinstance(p.default, bool):
         return isinstance(value, bool)
     if isinstance(p.default, int):

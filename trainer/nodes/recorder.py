@@ -15,8 +15,9 @@ Usage: python -m trainer.nodes.recorder -o BAG [--topics T ...] [--namespace /pr
 Its parts: recorder_topics.py (which topics; discovery; subscriptions and their QoS),
 recorder_loss.py (sequence gaps, stalls past the DDS lease), recorder_announcements.py
 (bridge_info only from its bridge), recorder_writing.py (writing,
-draining, closing), recorder_guard.py over record_budget.py (the disk budget), recorder_cli.py
-(the command line's options). Here: the node's parameters and wiring, and the entry point.
+draining, closing), recorder_guard.py over record_budget.py (the disk budget), recorder_params.py
+(the node's parameters), recorder_cli.py (the command line, generated from them). Here: the
+node's wiring and the entry point.
 """
 from __future__ import annotations
 
@@ -28,23 +29,15 @@ from typing import Any, Mapping, Sequence
 
 import rclpy.logging
 from diagnostic_msgs.msg import DiagnosticArray
-from rcl_interfaces.msg import ParameterDescriptor, ParameterType
 
 from sim_bridge.contract import topics as T
 from sim_bridge.contract.qos import diagnostics_qos
 from sim_bridge.nodekit.fastdds_profile import announced_lease, participant_lease
 from sim_bridge.nodekit.publisher_watch import PublisherWatch
 from sim_bridge.nodekit.rosbase import ProtocadNode
-from sim_bridge.nodekit.rosnode import ConfigError, KeyThrottle, run_node
+from sim_bridge.nodekit.rosnode import ConfigError, KeyThrottle, declare_all, run_node, with_defaults
 from trainer.bag import mcap_io
-from trainer.nodes.record_budget import (
-    DEFAULT_FLOOD_FACTOR,
-    DEFAULT_MIN_FREE_DISK,
-    BudgetLimits,
-    DiskFloor,
-    RecordBudget,
-    parse_topic_values,
-)
+from trainer.nodes.record_budget import BudgetLimits, DiskFloor, RecordBudget, parse_topic_values
 from trainer.nodes.recorder_announcements import AnnouncementFilter
 
 # UNSUPPORTED_OPTIONS and the exit codes are imported from here (tests, msgs_docs/recorder.md).
@@ -57,68 +50,29 @@ from trainer.nodes.recorder_cli import (  # noqa: F401
 )
 from trainer.nodes.recorder_guard import EXIT_BUDGET, RecorderGuard  # noqa: F401
 from trainer.nodes.recorder_loss import LossAccounting
+from trainer.nodes.recorder_params import PARAMS
 from trainer.nodes.recorder_topics import DEFAULT_QUEUE_DEPTH, EXIT_TYPE_MISMATCH, TopicSubscriber, history_name  # noqa: F401
 from trainer.nodes.recorder_writing import DRAIN_LIMIT_S, EXIT_WRITE_FAILED, BagWriting, default_output  # noqa: F401
 
-#: The string-array parameters and their descriptions (declared with their type: an empty
-#: list's type cannot be inferred).
-STRING_ARRAY_PARAMETERS = {
-    "topics": "topics to record (empty: the contract topics in `namespace` and /clock)",
-    "exclude_topics": "topics not to record",
-    "rate_limits": "TOPIC=HZ: a rate limit of its own",
-    "byte_budgets": "TOPIC=BYTES: a byte budget of its own",
-    "byte_rate_limits": "TOPIC=BYTES_PER_S: a byte-rate limit of its own",
-    "message_limits": "TOPIC=BYTES: a message size limit of its own",
-}
-
 
 class RecorderNode(TopicSubscriber, AnnouncementFilter, LossAccounting, BagWriting, RecorderGuard, ProtocadNode):
-    """Records topics into a BagWriter. Every constructor argument is also a ROS parameter of
-    the same name (a --ros-args -p override wins): output, topics, namespace, all_topics,
-    regex (include), exclude_regex, exclude_topics, include_hidden_topics, no_discovery,
-    compression, chunk_size, max_bagfile_size, max_bagfile_duration, flush_interval,
-    queue_depth, discovery_interval, status_interval, and the disk budget's (trainer/nodes/
-    record_budget.py) max_topic_rate, max_topic_bytes, max_total_bytes, min_free_disk,
-    flood_factor, rate_limits, byte_budgets, byte_rate_limits and message_limits (TOPIC=NUMBER
-    lists, over the contract topics' defaults: record_budget.contract_bounds). `qos_overrides` ({topic: policies}) and
-    `custom_data` are constructor-only (the command line's YAML file and KEY=VALUE list)."""
+    """Records topics into a BagWriter. Its ROS parameters are the table recorder_params.PARAMS,
+    declared with `values` (the command line's) as their defaults: a --ros-args -p override
+    wins; the per-topic lists (rate_limits, byte_budgets, byte_rate_limits, message_limits:
+    TOPIC=NUMBER) are over the contract topics' defaults (record_budget.contract_bounds).
+    `qos_overrides` ({topic: policies}) and `custom_data` are constructor-only (the command
+    line's YAML file and KEY=VALUE list)."""
 
     #: run_node's bound on the close: the drain of a backlog, then closing the bag.
     shutdown_budget_s = DRAIN_LIMIT_S + 10.0
 
-    def __init__(self, *, output: str | None = None, topics: Sequence[str] = (),
-                 namespace: str = T.DEFAULT_NAMESPACE, all_topics: bool = False,
-                 exclude_regex: str = "", compression: str = "zstd", regex: str = "",
-                 exclude_topics: Sequence[str] = (), include_hidden_topics: bool = False,
-                 no_discovery: bool = False, qos_overrides: Mapping[str, Mapping[str, Any]] | None = None,
-                 custom_data: Mapping[str, str] | None = None,
-                 chunk_size: int = mcap_io.DEFAULT_CHUNK_SIZE, max_bagfile_size: int = 0,
-                 max_bagfile_duration: float = 0.0, flush_interval: float = 1.0,
-                 queue_depth: int = DEFAULT_QUEUE_DEPTH, discovery_interval: float = 0.2,
-                 status_interval: float = 0.0, max_topic_rate: float = 0.0, max_topic_bytes: int = 0,
-                 max_total_bytes: int = 0, min_free_disk: int = DEFAULT_MIN_FREE_DISK,
-                 flood_factor: float = DEFAULT_FLOOD_FACTOR, rate_limits: Sequence[str] = (),
-                 byte_budgets: Sequence[str] = (), byte_rate_limits: Sequence[str] = (),
-                 message_limits: Sequence[str] = (), node_name: str = "recorder", **node_kwargs: Any):
+    def __init__(self, values: Mapping[str, Any] | None = None, *,
+                 qos_overrides: Mapping[str, Mapping[str, Any]] | None = None,
+                 custom_data: Mapping[str, str] | None = None, node_name: str = "recorder", **node_kwargs: Any):
         super().__init__(node_name, **node_kwargs)
-        p = self._declare_parameters(
-            (("output", output or default_output()), ("namespace", namespace),
-             ("all_topics", bool(all_topics)), ("exclude_regex", exclude_regex),
-             ("regex", regex), ("include_hidden_topics", bool(include_hidden_topics)),
-             ("no_discovery", bool(no_discovery)),
-             ("compression", compression), ("chunk_size", int(chunk_size)),
-             ("max_bagfile_size", int(max_bagfile_size)),
-             ("max_bagfile_duration", float(max_bagfile_duration)),
-             ("flush_interval", float(flush_interval)),
-             ("queue_depth", int(queue_depth)),
-             ("discovery_interval", float(discovery_interval)),
-             ("status_interval", float(status_interval)),
-             ("max_topic_rate", float(max_topic_rate)), ("max_topic_bytes", int(max_topic_bytes)),
-             ("max_total_bytes", int(max_total_bytes)), ("min_free_disk", int(min_free_disk)),
-             ("flood_factor", float(flood_factor))),
-            {"topics": topics, "exclude_topics": exclude_topics, "rate_limits": rate_limits,
-             "byte_budgets": byte_budgets, "byte_rate_limits": byte_rate_limits, "message_limits": message_limits})
-        self.params = p
+        values = {k: v for k, v in (values or {}).items() if v is not None}
+        values["output"] = values.get("output") or default_output()
+        p = self.params = declare_all(self, with_defaults(PARAMS, values))
 
         def per_topic(key: str) -> dict[str, float]:
             return {self.resolve_topic_name(t): v for t, v in parse_topic_values(p[key], key).items()}
@@ -159,16 +113,6 @@ class RecorderNode(TopicSubscriber, AnnouncementFilter, LossAccounting, BagWriti
             f"chunk {p['chunk_size']} B, split size {p['max_bagfile_size']} B / duration "
             f"{p['max_bagfile_duration']} s, {history_name(p['queue_depth'])})")
 
-    def _declare_parameters(self, scalars: Sequence[tuple[str, Any]],
-                            string_arrays: Mapping[str, Sequence[str]]) -> dict[str, Any]:
-        """Declares every parameter with the constructor's value as its default; returns the
-        values in effect (a --ros-args -p override wins)."""
-        p = {key: self.declare_parameter(key, default).value for key, default in scalars}
-        for key, description in STRING_ARRAY_PARAMETERS.items():
-            p[key] = list(self.declare_parameter(key, list(string_arrays[key]), ParameterDescriptor(
-                type=ParameterType.PARAMETER_STRING_ARRAY, description=description)).value or [])
-        return p
-
     def _warn_once(self, key: str, text: str) -> None:
         if key not in self._warned:
             self._warned.add(key)
@@ -182,23 +126,12 @@ def start_recorder(args: argparse.Namespace) -> RecorderNode:
         compression = args.compression or STORAGE_PRESETS.get(args.storage_preset_profile or "none", "zstd")
         qos_overrides = load_qos_overrides(args.qos_profile_overrides_path) \
             if args.qos_profile_overrides_path else None
+        values = {p.name: getattr(args, p.name) for p in PARAMS if hasattr(args, p.name)}
+        values.update(topics=[*args.topics, *args.topics_opt], compression=compression,
+                      discovery_interval=args.polling_interval / 1000.0)
         with participant_lease(args.lease_duration) as lease_profile:
-            node = RecorderNode(
-                output=args.output, topics=[*args.topics, *args.topics_opt],
-                namespace=args.namespace, all_topics=args.all_topics, regex=args.regex,
-                exclude_regex=args.exclude_regex, exclude_topics=args.exclude_topics,
-                include_hidden_topics=args.include_hidden_topics, no_discovery=args.no_discovery,
-                qos_overrides=qos_overrides, custom_data=parse_custom_data(args.custom_data),
-                compression=compression,
-                chunk_size=args.chunk_size, max_bagfile_size=args.max_bagfile_size,
-                max_bagfile_duration=args.max_bagfile_duration, flush_interval=args.flush_interval,
-                queue_depth=args.queue_depth, discovery_interval=args.polling_interval / 1000.0,
-                status_interval=args.status_interval, max_topic_rate=args.max_topic_rate,
-                max_topic_bytes=args.max_topic_bytes, max_total_bytes=args.max_total_bytes,
-                min_free_disk=args.min_free_disk, flood_factor=args.flood_factor,
-                rate_limits=args.rate_limits, byte_budgets=args.byte_budgets,
-                byte_rate_limits=args.byte_rate_limits, message_limits=args.message_limits,
-                node_name=args.node_name)
+            node = RecorderNode(values, qos_overrides=qos_overrides, custom_data=parse_custom_data(args.custom_data),
+                                node_name=args.node_name)
     except (mcap_io.BagWriteError, ValueError) as exc:
         raise ConfigError(str(exc)) from None
     if lease_profile is not None:   # not with another rmw, nor with 0 (the profile's own)

@@ -1,19 +1,20 @@
 """The recorder's command line (`ros2 run trainer record`, built in trainer/nodes/recorder.py's
-start_recorder): `ros2 bag record`'s options of Jazzy that it has, its own, the disk budget's
-(recorder_guard.py), and those it refuses with the reason; the option values that need parsing
-(--custom-data, --qos-profile-overrides-path). No ROS here."""
+start_recorder), generated: its ROS parameters' options from their table (recorder_params.py,
+`RECORD_FORMS` naming the flags `ros2 bag record` of Jazzy gives them), the options of the
+command line alone from `RecordCommand`, and `ros2 bag record`'s options it refuses, with the
+reason; the option values that need parsing (--custom-data, --qos-profile-overrides-path).
+No ROS here."""
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass
 from typing import Any, Sequence
 
 import yaml
 
-from sim_bridge.contract import topics as T
-from trainer.bag import mcap_io
-from trainer.nodes.recorder_guard import add_budget_options
 from trainer.nodes.recorder_loss import DEFAULT_LEASE_S
-from trainer.nodes.recorder_topics import DEFAULT_QUEUE_DEPTH
+from trainer.nodes.recorder_params import PARAMS
+from trainer.settings import arg, settings_parser, table_settings
 
 #: `ros2 bag record` (Jazzy) options this recorder does not have, and why (each is refused
 #: with that reason rather than silently ignored).
@@ -44,6 +45,74 @@ UNSUPPORTED_OPTIONS: dict[str, str] = {
 STORAGE_PRESETS = {"none": "zstd", "fastwrite": "none", "zstd_fast": "zstd", "zstd_small": "zstd"}
 
 
+OWN = "this recorder's own options"
+BUDGET = "the disk budget (a flood from any participant must not fill the disk)"
+
+#: How the command line gives the ROS parameters whose option is not `--name-with-dashes`
+#: (`ros2 bag record`'s names), and their help groups (trainer.settings.table_settings).
+RECORD_FORMS: dict[str, dict[str, Any] | None] = {
+    "output": {"flags": ("-o", "--output"), "default": None},
+    "topics": {"flags": ("topics",), "nargs": "*"},
+    "all_topics": {"flags": ("-a", "--all", "--all-topics")},
+    "regex": {"flags": ("-e", "--regex")},
+    "exclude_topics": {"metavar": "TOPIC"},
+    "discovery_interval": None,   # given in ms: --polling-interval
+    "max_bagfile_size": {"flags": ("-b", "--max-bag-size")},
+    "max_bagfile_duration": {"flags": ("-d", "--max-bag-duration")},
+    **{k: {"group": OWN} for k in ("namespace", "chunk_size", "flush_interval", "queue_depth", "status_interval")},
+    "compression": {"group": OWN, "default": None},   # unset: --storage-preset-profile's
+    "max_topic_rate": {"group": BUDGET, "metavar": "HZ"},
+    "rate_limits": {"group": BUDGET, "flags": ("--rate-limit",), "metavar": "TOPIC=HZ"},
+    "max_topic_bytes": {"group": BUDGET, "metavar": "BYTES"},
+    "byte_budgets": {"group": BUDGET, "flags": ("--byte-budget",), "metavar": "TOPIC=BYTES"},
+    "byte_rate_limits": {"group": BUDGET, "flags": ("--byte-rate-limit",), "metavar": "TOPIC=BYTES_PER_S"},
+    "message_limits": {"group": BUDGET, "flags": ("--max-message-bytes",), "metavar": "TOPIC=BYTES"},
+    "max_total_bytes": {"group": BUDGET, "metavar": "BYTES"},
+    "min_free_disk": {"group": BUDGET, "metavar": "BYTES"},
+    "flood_factor": {"group": BUDGET, "metavar": "X"},
+}
+RecorderParams = table_settings("RecorderParams", PARAMS, RECORD_FORMS)
+
+
+@dataclass
+class RecordCommand:
+    """The options of the command line alone (not ROS parameters): how the node starts, and
+    `ros2 bag record`'s that only have one value here."""
+
+    storage: str = arg("mcap", "-s", "--storage", choices=("mcap",))
+    """storage identifier (only mcap; default mcap)"""
+    topics_opt: list[str] = arg([], "--topics", metavar="TOPIC")
+    """space-delimited list of topics to record (as the positional ones)"""
+    polling_interval: int = arg(200, "-p", "--polling-interval", metavar="MS")
+    """milliseconds between graph polls for topics that appear late (default 200): the
+    discovery_interval parameter"""
+    qos_profile_overrides_path: Any = arg(None, type=argparse.FileType("r"), metavar="YAML")
+    """QoS for specific topics, as ros2 bag record: {/topic: {reliability: reliable|best_effort,
+    durability: volatile|transient_local, history: keep_last|keep_all, depth: N}}"""
+    serialization_format: str = arg("cdr", "-f", "--serialization-format", choices=("cdr",))
+    """serialization format (only cdr, what every rmw here uses)"""
+    storage_preset_profile: str | None = arg(None, choices=sorted(STORAGE_PRESETS))
+    """rosbag2's MCAP presets, as chunk compression: fastwrite = none, zstd_fast / zstd_small /
+    none = zstd"""
+    custom_data: list[str] = arg([], nargs="*", metavar="KEY=VALUE")
+    """stored under custom_data in metadata.yaml (as ros2 bag record)"""
+    node_name: str = "recorder"
+    """ROS node name (default recorder)"""
+    log_level: str = arg("info", choices=("debug", "info", "warn", "error", "fatal"))
+    """the node's log level"""
+    disable_keyboard_controls: bool = False
+    """accepted for compatibility: this recorder has no keyboard controls"""
+    lease_duration: float = arg(DEFAULT_LEASE_S, metavar="S", group=OWN)
+    """the DDS participant lease the recorder announces: a stall (SIGSTOP, a debugger, an
+    overloaded machine) shorter than this loses nothing, since reliable KEEP_ALL writers (a
+    lock-step bridge) keep what it has not acknowledged (and pause after 5,000 samples); a
+    longer one makes the writers drop it and its backlog, which the recorder counts as LOST when
+    the next sample comes; the stall itself is reported (STALLED, metadata
+    protocad_stalls_past_lease). A recorder killed outright stays in the graph this long. 0: Fast
+    DDS's own (20 s, or the profile's). Command line only: it must be known before the node
+    exists"""
+
+
 class _Unsupported(argparse.Action):
     def __init__(self, option_strings, dest, **kw):
         kw.setdefault("nargs", "*")
@@ -55,102 +124,18 @@ class _Unsupported(argparse.Action):
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(
-        prog="ros2 run trainer record",
-        description="Record ROS 2 topics into a rosbag2-compatible MCAP bag directory "
-                    "(NAME/NAME_0.mcap ... + metadata.yaml). Options follow `ros2 bag record` of "
-                    "Jazzy (same names, same meanings: -e/--regex includes, --exclude-regex "
-                    "excludes); its options this recorder lacks are refused with the reason. Every "
-                    "option is also a ROS parameter (--ros-args -p name:=value), except "
-                    "--lease-duration (needed before the node exists). SIGINT/SIGTERM close "
-                    "the bag cleanly; a write error (disk full) closes it and exits 3.",
-        formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_rosbag2_options(ap)
-    add_own_options(ap)
-    add_budget_options(ap)
+    ap = settings_parser(
+        "ros2 run trainer record",
+        "Record ROS 2 topics into a rosbag2-compatible MCAP bag directory "
+        "(NAME/NAME_0.mcap ... + metadata.yaml). Options follow `ros2 bag record` of "
+        "Jazzy (same names, same meanings: -e/--regex includes, --exclude-regex "
+        "excludes); its options this recorder lacks are refused with the reason. Every "
+        "option that sets a ROS parameter (recorder_params.PARAMS) can also be given as one "
+        "(--ros-args -p name:=value, which wins). SIGINT/SIGTERM close the bag cleanly; a "
+        "write error (disk full) closes it and exits 3.",
+        [(None, RecordCommand), (None, RecorderParams)])
     add_refused_options(ap)
     return ap
-
-
-def add_rosbag2_options(ap: argparse.ArgumentParser) -> None:
-    """The options `ros2 bag record` of Jazzy has, with its names and meanings."""
-    ap.add_argument("-o", "--output", default=None,
-                    help="bag directory to create (default: rosbag2_YYYY_MM_DD-HH_MM_SS)")
-    ap.add_argument("-s", "--storage", default="mcap", choices=("mcap",),
-                    help="storage identifier (only mcap; default mcap)")
-    ap.add_argument("topics", nargs="*", default=[],
-                    help="topics to record (default, with no topic, -a or -e: the contract topics "
-                         "image, step_info, context, action, context_features in --namespace, and /clock)")
-    ap.add_argument("--topics", dest="topics_opt", nargs="+", default=[], metavar="TOPIC",
-                    help="space-delimited list of topics to record (as the positional ones)")
-    ap.add_argument("-a", "--all", dest="all_topics", action="store_true",
-                    help="record every topic (hidden ones excluded)")
-    ap.add_argument("--all-topics", dest="all_topics", action="store_true", help="same as -a")
-    ap.add_argument("-e", "--regex", default="",
-                    help="record only topics matching this regular expression (re.search); "
-                         "-a overrides it")
-    ap.add_argument("--exclude-regex", default="",
-                    help="do not record topics matching this regular expression; works on top of "
-                         "-a, --topics and -e")
-    ap.add_argument("--exclude-topics", nargs="+", default=[], metavar="TOPIC",
-                    help="topics not to record; works on top of -a, --topics and -e")
-    ap.add_argument("--include-hidden-topics", action="store_true",
-                    help="with -a or -e: hidden topics too")
-    ap.add_argument("--no-discovery", action="store_true",
-                    help="record only topics present at start-up")
-    ap.add_argument("-p", "--polling-interval", type=int, default=200, metavar="MS",
-                    help="milliseconds between graph polls for topics that appear late (default 200)")
-    ap.add_argument("--qos-profile-overrides-path", type=argparse.FileType("r"), default=None,
-                    metavar="YAML", help="QoS for specific topics, as ros2 bag record: "
-                    "{/topic: {reliability: reliable|best_effort, durability: volatile|transient_local, "
-                    "history: keep_last|keep_all, depth: N}}")
-    ap.add_argument("-f", "--serialization-format", default="cdr", choices=("cdr",),
-                    help="serialization format (only cdr, what every rmw here uses)")
-    ap.add_argument("-b", "--max-bag-size", dest="max_bagfile_size", type=int, default=0,
-                    help="split the bag at this file size in bytes (0: no split; >= 1024)")
-    ap.add_argument("-d", "--max-bag-duration", dest="max_bagfile_duration", type=float,
-                    default=0.0, help="split the bag after this many seconds (0: no split)")
-    ap.add_argument("--storage-preset-profile", choices=sorted(STORAGE_PRESETS), default=None,
-                    help="rosbag2's MCAP presets, as chunk compression: fastwrite = none, "
-                         "zstd_fast / zstd_small / none = zstd")
-    ap.add_argument("--custom-data", nargs="*", default=[], metavar="KEY=VALUE",
-                    help="stored under custom_data in metadata.yaml (as ros2 bag record)")
-    ap.add_argument("--node-name", default="recorder", help="ROS node name (default recorder)")
-    ap.add_argument("--log-level", choices=("debug", "info", "warn", "error", "fatal"), default="info")
-    ap.add_argument("--disable-keyboard-controls", action="store_true",
-                    help="accepted for compatibility: this recorder has no keyboard controls")
-
-
-def add_own_options(ap: argparse.ArgumentParser) -> None:
-    """Options `ros2 bag record` does not have: the contract's namespace, the MCAP chunks, the
-    subscriptions' history, the status log and the DDS lease."""
-    g = ap.add_argument_group("this recorder's own options")
-    g.add_argument("--namespace", default=T.DEFAULT_NAMESPACE,
-                   help="namespace of the default contract topics (default /protocad)")
-    g.add_argument("--compression", choices=("zstd", "lz4", "none"), default=None,
-                   help="MCAP chunk compression (default zstd)")
-    g.add_argument("--chunk-size", type=int, default=mcap_io.DEFAULT_CHUNK_SIZE,
-                   help=f"uncompressed chunk size in bytes (smaller: less lost on SIGKILL; default "
-                        f"{mcap_io.DEFAULT_CHUNK_SIZE})")
-    g.add_argument("--flush-interval", type=float, default=1.0,
-                   help="write the open chunk at least every this many seconds (0: only by "
-                        "size); bounds what a SIGKILL loses (default 1.0)")
-    g.add_argument("--queue-depth", type=int, default=DEFAULT_QUEUE_DEPTH,
-                   help="history of the subscriptions: 0 = KEEP_ALL (default: a backlog of any size "
-                        "holds KEEP_ALL writers back instead of being dropped), N > 0 = KEEP_LAST(N) "
-                        "(never holds a writer back; drops the oldest of a deeper backlog, counted)")
-    g.add_argument("--status-interval", type=float, default=0.0,
-                   help="log message counts every this many seconds (0: off)")
-    g.add_argument("--lease-duration", type=float, default=DEFAULT_LEASE_S, metavar="S",
-                   help="the DDS participant lease the recorder announces: a stall (SIGSTOP, a "
-                        "debugger, an overloaded machine) shorter than this loses nothing, since "
-                        "reliable KEEP_ALL writers (a lock-step bridge) keep what it has not "
-                        "acknowledged (and pause after 5,000 samples); a longer one makes the "
-                        "writers drop it and its backlog, which the recorder counts as LOST when "
-                        "the next sample comes; the stall itself is reported (STALLED, metadata "
-                        "protocad_stalls_past_lease). A recorder killed outright stays in the graph "
-                        "this long. 0: Fast DDS's own (20 s, or the profile's). Command line "
-                        f"only: it must be known before the node exists (default {DEFAULT_LEASE_S:g})")
 
 
 def add_refused_options(ap: argparse.ArgumentParser) -> None:
