@@ -1,22 +1,11 @@
 """The recorder's side of its disk budget (trainer/nodes/record_budget.py holds the budget
 itself, without ROS): what RecorderNode does with each message's verdict (drop it, end the
-recording with a closed bag, flag a flood on /diagnostics) and the command-line options."""
+recording with a closed bag, flag a flood on /diagnostics); its options are parameters (recorder_params.py)."""
 from __future__ import annotations
 
-import argparse
 import time
 
 from sim_bridge.nodekit.rosnode import make_status
-from trainer.nodes.record_budget import (
-    DEFAULT_FLOOD_FACTOR,
-    DEFAULT_MIN_FREE_DISK,
-    DIAGNOSTICS_BYTE_BUDGET,
-    DIAGNOSTICS_MESSAGE_BYTES,
-    DIAGNOSTICS_RATE_LIMIT_HZ,
-    IMAGE_BYTES_PER_S,
-    IMAGE_MESSAGE_BYTES,
-    STEP_TOPIC_RATE_HZ,
-)
 
 #: Exit status when the bag's byte budget or the free-disk floor ended the recording (the bag
 #: is closed and valid).
@@ -81,40 +70,3 @@ class RecorderGuard:
             self._diag_pub.publish(arr)
         except Exception as exc:  # noqa: BLE001 - the flag in the bag stands; the status is extra
             self._warn_once("flood-diag", f"cannot publish the flood on /diagnostics: {exc}")
-
-
-def add_budget_options(ap: argparse.ArgumentParser) -> None:
-    """The disk budget's options of `ros2 run trainer record` (each also a ROS parameter)."""
-    g = ap.add_argument_group("the disk budget (a flood from any participant must not fill the disk)")
-    g.add_argument("--max-topic-rate", type=float, default=0.0, metavar="HZ",
-                   help="record at most this many messages per second of each topic (2 s of burst); "
-                        "the rest are dropped and counted (0: no limit beyond the contract topics' "
-                        "defaults; default 0)")
-    g.add_argument("--rate-limit", dest="rate_limits", nargs="+", default=[], metavar="TOPIC=HZ",
-                   help="a rate limit for one topic, over --max-topic-rate and its default (contract topics: "
-                        f"{STEP_TOPIC_RATE_HZ:g} msg/s, /diagnostics {DIAGNOSTICS_RATE_LIMIT_HZ:g}); 0 turns it "
-                        "off (with a WARNING)")
-    g.add_argument("--max-topic-bytes", type=int, default=0, metavar="BYTES",
-                   help="stop recording a topic once it has this many bytes in the bag (counted; "
-                        "0: no limit; default 0)")
-    g.add_argument("--byte-budget", dest="byte_budgets", nargs="+", default=[], metavar="TOPIC=BYTES",
-                   help="a byte budget for one topic, over --max-topic-bytes and its default "
-                        f"(/diagnostics {DIAGNOSTICS_BYTE_BUDGET}); 0 turns it off (with a WARNING)")
-    g.add_argument("--byte-rate-limit", dest="byte_rate_limits", nargs="+", default=[], metavar="TOPIC=BYTES_PER_S",
-                   help="a byte-rate limit for one topic, over its default (image "
-                        f"{IMAGE_BYTES_PER_S}, the other contract topics less); 0 turns it off (with a WARNING)")
-    g.add_argument("--max-message-bytes", dest="message_limits", nargs="+", default=[], metavar="TOPIC=BYTES",
-                   help="the largest message recorded on one topic, over its default (image "
-                        f"{IMAGE_MESSAGE_BYTES}, /diagnostics {DIAGNOSTICS_MESSAGE_BYTES}, ...); larger ones "
-                        "are dropped and counted; 0 turns it off (with a WARNING)")
-    g.add_argument("--max-total-bytes", type=int, default=0, metavar="BYTES",
-                   help="end the recording (closed, valid bag; exit 4) once the bag holds this many "
-                        "message bytes (0: no limit; default 0)")
-    g.add_argument("--min-free-disk", type=int, default=DEFAULT_MIN_FREE_DISK, metavar="BYTES",
-                   help="end the recording (closed, valid bag; exit 4) when the disk under the bag "
-                        f"has less free space than this (0: off; default {DEFAULT_MIN_FREE_DISK})")
-    g.add_argument("--flood-factor", type=float, default=DEFAULT_FLOOD_FACTOR, metavar="X",
-                   help="flag a topic whose rate or byte rate over a second is X times its recent "
-                        "figure (and at least 100 msg/s or 10 MB/s), or above what its bounds let through "
-                        "(unbounded: 5000 msg/s or 64 MiB/s), in the bag's metadata "
-                        f"(protocad_floods) and on /diagnostics (0: off; default {DEFAULT_FLOOD_FACTOR:g})")
