@@ -27,10 +27,12 @@ import os
 import shutil
 import socket
 import sys
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable
+from typing import Any, Callable, Sequence
 
 from trainer.console import wait_until
+from trainer.settings import arg, build, settings_parser
 
 DEFAULT_PORT = 11811
 LOCALHOST = "127.0.0.1"
@@ -95,22 +97,23 @@ listen_arg = _argtype(parse_listen)
 DEFAULT_LISTEN = (LOCALHOST, DEFAULT_PORT)
 
 
-def add_args(ap: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
-    """--discovery-server / --start-discovery-server, the same on every launcher."""
-    g = ap.add_mutually_exclusive_group()
-    g.add_argument("--discovery-server", type=server_list_arg, default=None, metavar="HOST:PORT",
-                   help="discover through this running Fast DDS Discovery Server instead of multicast "
-                        f"(sets {SERVER_ENV} for every node; default: ${SERVER_ENV} if set)")
-    g.add_argument("--start-discovery-server", type=listen_arg, nargs="?", default=None,
-                   const=DEFAULT_LISTEN, metavar="[HOST:]PORT",
-                   help=f"start a Discovery Server (fast-discovery-server, default {LOCALHOST}:{DEFAULT_PORT}) "
-                        "before the nodes, stop it after them, and discover through it; listen on "
-                        "this machine's fleet-facing address to let actor groups on other machines "
-                        "join (0.0.0.0 works but exposes it everywhere)")
+@dataclass
+class DiscoverySettings:
+    """--discovery-server / --start-discovery-server, the same on every launcher that starts
+    nodes (a base of its settings)."""
+
+    discovery_server: str | None = arg(None, type=server_list_arg, metavar="HOST:PORT", exclusive="discovery")
+    """discover through this running Fast DDS Discovery Server instead of multicast (sets
+    ROS_DISCOVERY_SERVER for every node; default: $ROS_DISCOVERY_SERVER if set)"""
+    start_discovery_server: tuple | None = arg(None, type=listen_arg, nargs="?", const=DEFAULT_LISTEN,
+                                               metavar="[HOST:]PORT", exclusive="discovery")
+    """start a Discovery Server (fast-discovery-server, default 127.0.0.1:11811) before the
+    nodes, stop it after them, and discover through it; listen on this machine's fleet-facing
+    address to let actor groups on other machines join (0.0.0.0 works but exposes it everywhere)"""
 
 
 def from_args(a: Any) -> tuple[str | None, tuple[str, int] | None]:
-    """(server address to use, (host, port) to start one on) from add_args' options (or
+    """(server address to use, (host, port) to start one on) from DiscoverySettings' fields (or
     settings with those fields; a saved [host, port] list becomes a tuple again)."""
     start = getattr(a, "start_discovery_server", None)
     return getattr(a, "discovery_server", None), tuple(start) if start is not None else None
@@ -215,25 +218,29 @@ def wait_listening(pid: int, port: int, alive: Callable[[], str | None], timeout
                timeout=timeout, alive=alive)
 
 
+@dataclass
+class DiscoveryServerSettings:
+    """protocad-discovery-server's options."""
+
+    listen: tuple = arg(DEFAULT_LISTEN, type=listen_arg, metavar="[HOST:]PORT")
+    """address to listen on (default 127.0.0.1:11811: this machine only; this machine's
+    fleet-facing address for other machines; 0.0.0.0 is warned about)"""
+    server_id: int = 0
+    """the server's position in ROS_DISCOVERY_SERVER lists of several servers"""
+    print_profile: list[str] | None = arg(None, metavar="ADDRESS")
+    """print the environment's Fast DDS profile with these interface addresses allowed beside
+    127.0.0.1 (for FASTRTPS_DEFAULT_PROFILES_FILE on a fleet's machines) and exit"""
+
+
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="protocad-discovery-server", description=__doc__.split("\n\n")[0],
-                                 epilog="Then, in every shell of the fleet: export "
-                                        f"{SERVER_ENV}=HOST:PORT (and {SUPER_ENV}=TRUE for ros2 topic/node "
-                                        "introspection), or give the launchers --discovery-server HOST:PORT.")
-    ap.add_argument("--listen", type=_argtype(parse_listen), default=(LOCALHOST, DEFAULT_PORT), metavar="[HOST:]PORT",
-                    help=f"address to listen on (default {LOCALHOST}:{DEFAULT_PORT}: this machine only; "
-                         "this machine's fleet-facing address for other machines; 0.0.0.0 is warned about)")
-    ap.add_argument("--server-id", type=int, default=0,
-                    help="the server's position in ROS_DISCOVERY_SERVER lists of several servers")
-    ap.add_argument("--print-profile", nargs="+", metavar="ADDRESS", default=None,
-                    help="print the environment's Fast DDS profile with these interface addresses "
-                         "allowed beside 127.0.0.1 (for FASTRTPS_DEFAULT_PROFILES_FILE on a fleet's "
-                         "machines) and exit")
-    return ap
+    return settings_parser("protocad-discovery-server", __doc__.split("\n\n")[0], [(None, DiscoveryServerSettings)],
+                           epilog=f"Then, in every shell of the fleet: export {SERVER_ENV}=HOST:PORT (and "
+                                  f"{SUPER_ENV}=TRUE for ros2 topic/node introspection), or give the launchers "
+                                  "--discovery-server HOST:PORT.")
 
 
-def main(argv=None) -> int:
-    a = build_parser().parse_args(argv)
+def main(argv: Sequence[str] | None = None) -> int:
+    a = build(DiscoveryServerSettings, vars(build_parser().parse_args(argv)))
     if a.print_profile:
         try:
             print(fleet_profile(a.print_profile), end="")

@@ -30,9 +30,11 @@ end by themselves after N episodes per robot. Node logs in --log-dir.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
@@ -43,74 +45,88 @@ from trainer import cli_values, console
 from trainer.launch import discovery, run_key
 from trainer.launch.rosprocs import NodeFailed, RosStack, robot_namespaces
 from trainer.launch.stack import checkpoint_mismatch
+from trainer.settings import arg, build, settings_parser
+
+
+@dataclass
+class FleetSettings(discovery.DiscoverySettings):
+    """protocad-fleet's options: this machine's share of the fleet (and how it discovers)."""
+
+    robots: int = arg(1, type=cli_values.positive_int)
+    """robots (actor groups / recorded namespaces) on this machine"""
+    first_robot: int = arg(0, type=cli_values.non_negative_int)
+    """number of the first robot: /protocad/robotFIRST ... (distinct per machine)"""
+    no_actors: bool = False
+    """start no actor group (e.g. only the recorder)"""
+    record: str | None = arg(None, metavar="BAG")
+    """also record the robots' topics into this bag"""
+    task: str = "pendulum_swingup"
+    """the actor groups' task"""
+    variant: str | None = arg(None, choices=VARIANTS)
+    """the learner's variant (default: the policy node's, protocad): the policy's random agent
+    until a checkpoint arrives, and checkpoints of another variant are refused"""
+    preset: str | None = arg(None, choices=PRESETS,
+                             help=f"the learner's model preset (default: the policy node's, {DEFAULT_CLI_PRESET}): "
+                                  "checkpoints of other layer sizes are refused while the random agent serves")
+    checkpoint: str | None = None
+    """the policy nodes' checkpoint (default: random actions); with --checkpoint-topic their own
+    copy of what they receive"""
+    checkpoint_topic: str | None = arg(None, metavar="TOPIC")
+    """the policy nodes receive checkpoints over ROS from a checkpoint publisher announcing on
+    TOPIC (e.g. /protocad/checkpoint, absolute so that every robot hears the one publisher),
+    written to --checkpoint and served from the next episode"""
+    wait_for_checkpoint: bool = False
+    """with --checkpoint-topic: each bridge starts only once its policy serves a received
+    checkpoint (no episode of the random agent it starts with)"""
+    publish_checkpoint: str | None = arg(None, metavar="FILE")
+    """also run the checkpoint publisher on the learner's FILE, announcing on --checkpoint-topic
+    (default /protocad/checkpoint)"""
+    exploration_noise: float = 0.0
+    """policy nodes' exploration noise"""
+    episodes: int = arg(0, type=cli_values.non_negative_int)
+    """episodes per robot, then the groups end (0: until Ctrl-C)"""
+    episode_length: int = arg(500, type=cli_values.positive_int)
+    """agent steps per episode"""
+    action_repeat: int = arg(2, type=cli_values.positive_int)
+    """the bridges' action repeat"""
+    min_subscribers: int = arg(2, type=cli_values.positive_int)
+    """readers each bridge waits for before stepping (its actor + a recorder)"""
+    seed: int = 0
+    """seeds robot I's actor (SEED + FIRST + I) and bridge (1000 SEED + FIRST + I)"""
+    domain_id: int | None = None
+    """ROS_DOMAIN_ID, the same on every machine (default $ROS_DOMAIN_ID)"""
+    run_dir: str | None = None
+    """the fleet's directory: its run key (keys/checkpoint.key, made on first use, reused on the
+    next run) and the node logs (default: the parent of --log-dir, else runs/fleet-STAMP)"""
+    log_dir: str | None = None
+    """node logs (default RUN_DIR/logs)"""
+    trusted_key: str | None = arg(None, metavar="PUB")
+    """public key file the policy nodes trust: only checkpoints it signed are served (default:
+    this run's keys/checkpoint.pub; on an actor machine, the learner machine's copy)"""
+    allow_unsigned: bool = False
+    """no signatures: the publisher does not sign and the policy nodes serve unsigned checkpoints
+    received over --checkpoint-topic (anyone on the domain can replace the model;
+    msgs_docs/security.md)"""
+    min_checkpoint_seq: int | None = arg(None, type=cli_values.non_negative_int, metavar="SEQ")
+    """with --trusted-key: the policy nodes take no signed version below SEQ (their rollback floor
+    from the first message, also on a brand-new robot). Default: with --publish-checkpoint, the
+    time this fleet starts its publisher in ms (seq is the signer's clock: every version it signs
+    is above, every one signed before is refused); else 0, none (on an actor machine give the
+    publisher's current seq: its /diagnostics or FILE.sig)"""
+    ready_timeout: float = 120.0
+    """seconds each node may take to start"""
+    open_control_plane: bool = False
+    """let other processes reset episodes and change the nodes' lifecycle states (closed by
+    default here: anyone on the fleet's network reaches the domain; reset_service:=false,
+    remote_lifecycle:=false)"""
 
 
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="protocad-fleet", description=__doc__.split("\n\n")[0],
-                                 epilog=__doc__.split("\n\n", 1)[1], formatter_class=argparse.RawDescriptionHelpFormatter)
-    discovery.add_args(ap)
-    ap.add_argument("--robots", type=cli_values.positive_int, default=1, help="robots (actor groups / recorded namespaces) on this machine")
-    ap.add_argument("--first-robot", type=cli_values.non_negative_int, default=0,
-                    help="number of the first robot: /protocad/robotFIRST ... (distinct per machine)")
-    ap.add_argument("--no-actors", action="store_true", help="start no actor group (e.g. only the recorder)")
-    ap.add_argument("--record", default=None, metavar="BAG", help="also record the robots' topics into this bag")
-    ap.add_argument("--task", default="pendulum_swingup")
-    ap.add_argument("--variant", default=None, choices=VARIANTS,
-                    help="the learner's variant (default: the policy node's, protocad): the policy's random "
-                         "agent until a checkpoint arrives, and checkpoints of another variant are refused")
-    ap.add_argument("--preset", default=None, choices=PRESETS,
-                    help=f"the learner's model preset (default: the policy node's, {DEFAULT_CLI_PRESET}): "
-                         "checkpoints of other layer sizes are refused while the random agent serves")
-    ap.add_argument("--checkpoint", default=None, help="the policy nodes' checkpoint (default: random actions); "
-                                                       "with --checkpoint-topic their own copy of what they receive")
-    ap.add_argument("--checkpoint-topic", default=None, metavar="TOPIC",
-                    help="the policy nodes receive checkpoints over ROS from a checkpoint publisher announcing "
-                         "on TOPIC (e.g. /protocad/checkpoint, absolute so that every robot hears the one "
-                         "publisher), written to --checkpoint and served from the next episode")
-    ap.add_argument("--wait-for-checkpoint", action="store_true",
-                    help="with --checkpoint-topic: each bridge starts only once its policy serves a received "
-                         "checkpoint (no episode of the random agent it starts with)")
-    ap.add_argument("--publish-checkpoint", default=None, metavar="FILE",
-                    help="also run the checkpoint publisher on the learner's FILE, announcing on "
-                         "--checkpoint-topic (default /protocad/checkpoint)")
-    ap.add_argument("--exploration-noise", type=float, default=0.0, help="policy nodes' exploration noise")
-    ap.add_argument("--episodes", type=cli_values.non_negative_int, default=0,
-                    help="episodes per robot, then the groups end (0: until Ctrl-C)")
-    ap.add_argument("--episode-length", type=cli_values.positive_int, default=500, help="agent steps per episode")
-    ap.add_argument("--action-repeat", type=cli_values.positive_int, default=2)
-    ap.add_argument("--min-subscribers", type=cli_values.positive_int, default=2,
-                    help="readers each bridge waits for before stepping (its actor + a recorder)")
-    ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID, the same on every machine "
-                                                                "(default $ROS_DOMAIN_ID)")
-    ap.add_argument("--run-dir", default=None, help="the fleet's directory: its run key (keys/checkpoint.key, "
-                    "made on first use, reused on the next run) and the node logs (default: the parent of "
-                    "--log-dir, else runs/fleet-STAMP)")
-    ap.add_argument("--log-dir", default=None, help="node logs (default RUN_DIR/logs)")
-    ap.add_argument("--trusted-key", default=None, metavar="PUB",
-                    help="public key file the policy nodes trust: only checkpoints it signed are served "
-                         "(default: this run's keys/checkpoint.pub; on an actor machine, the learner "
-                         "machine's copy)")
-    ap.add_argument("--allow-unsigned", action="store_true",
-                    help="no signatures: the publisher does not sign and the policy nodes serve unsigned "
-                         "checkpoints received over --checkpoint-topic (anyone on the domain can replace "
-                         "the model; msgs_docs/security.md)")
-    ap.add_argument("--min-checkpoint-seq", type=cli_values.non_negative_int, default=None, metavar="SEQ",
-                    help="with --trusted-key: the policy nodes take no signed version below SEQ (their rollback "
-                         "floor from the first message, also on a brand-new robot). Default: with "
-                         "--publish-checkpoint, the time this fleet starts its publisher in ms (seq is the "
-                         "signer's clock: every version it signs is above, every one signed before is "
-                         "refused); else 0, none (on an actor machine give the publisher's current seq: "
-                         "its /diagnostics or FILE.sig)")
-    ap.add_argument("--ready-timeout", type=float, default=120.0, help="seconds each node may take to start")
-    ap.add_argument("--open-control-plane", action="store_true",
-                    help="let other processes reset episodes and change the nodes' lifecycle states "
-                         "(closed by default here: anyone on the fleet's network reaches the domain; "
-                         "reset_service:=false, remote_lifecycle:=false)")
-    return ap
+    return settings_parser("protocad-fleet", __doc__.split("\n\n")[0], [(None, FleetSettings)],
+                           epilog=__doc__.split("\n\n", 1)[1])
 
 
-def run(a: argparse.Namespace) -> int:
+def run(a: FleetSettings) -> int:
     mismatch = checkpoint_mismatch({"bridge": {"task": a.task}, "policy": {"checkpoint": a.checkpoint}})
     if mismatch:   # before any node: its policies would refuse every bridge
         print(f"protocad-fleet: error: {mismatch.replace('bridge.task', '--task')}", file=sys.stderr)
@@ -186,7 +202,7 @@ def run(a: argparse.Namespace) -> int:
     return 1 if failed else 0
 
 
-def fleet_keys(a: argparse.Namespace, run_dir: Path) -> tuple[run_key.RunKey | None, Path | None]:
+def fleet_keys(a: FleetSettings, run_dir: Path) -> tuple[run_key.RunKey | None, Path | None]:
     """(the run key the publisher signs with, the public key the policy nodes trust): signed by
     default wherever checkpoints travel over ROS; (None, None) with --allow-unsigned. A policy
     node that receives checkpoints needs a key to trust: SigningError names the fix."""
@@ -208,7 +224,7 @@ def fleet_keys(a: argparse.Namespace, run_dir: Path) -> tuple[run_key.RunKey | N
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    a = build_parser().parse_args(argv)
+    a = build(FleetSettings, vars(build_parser().parse_args(argv)))
     if (a.checkpoint_topic or a.wait_for_checkpoint) and not a.checkpoint and not a.no_actors:
         print("protocad-fleet: error: --checkpoint-topic / --wait-for-checkpoint need --checkpoint (the policy "
               "nodes' own copy of what they receive)", file=sys.stderr)
@@ -222,7 +238,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             print("protocad-fleet: error: give --domain-id (the same on every machine of the fleet) "
                   "or set ROS_DOMAIN_ID", file=sys.stderr)
             return 2
-        a.domain_id = int(os.environ["ROS_DOMAIN_ID"])
+        a = dataclasses.replace(a, domain_id=int(os.environ["ROS_DOMAIN_ID"]))
     try:
         return run(a)
     except (NodeFailed, FileNotFoundError) as exc:   # e.g. the discovery server did not start

@@ -33,6 +33,7 @@ import os
 import sys
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
@@ -43,6 +44,7 @@ from sim_bridge.contract import topics as T
 from trainer import console, run_config
 from trainer.launch import discovery
 from trainer.launch.rosprocs import NodeFailed, RosStack, recorder_endpoints
+from trainer.settings import arg, build, settings_parser
 
 SECTIONS = ("bridge", "policy", "recorder")
 DIAG_ERROR = 2   # diagnostic_msgs/DiagnosticStatus.ERROR
@@ -227,22 +229,29 @@ def run(doc: dict[str, Any], *, log_dir: Path, domain_id: int | None, ready_time
     return 0 if codes and all(c == 0 for c in codes.values()) else 1
 
 
+@dataclass
+class StackSettings(discovery.DiscoverySettings):
+    """protocad-stack's options: the stack file, overrides, and how its nodes discover."""
+
+    file: str = arg(None, "file")
+    """the stack file (YAML)"""
+    set: list[str] = arg([], action="append", metavar="SECTION.KEY=VALUE")
+    """override one parameter, e.g. --set bridge.task=walker_walk (repeatable)"""
+    log_dir: str | None = None
+    """node logs (default: beside the bag, or runs/stack-STAMP/logs)"""
+    domain_id: int | None = None
+    """ROS_DOMAIN_ID (default: the environment's)"""
+    ready_timeout: float = 120.0
+    """seconds each node may take to start"""
+
+
 def build_parser() -> argparse.ArgumentParser:
-    ap = argparse.ArgumentParser(prog="protocad-stack", description=__doc__.split("\n\n")[0],
-                                 epilog=__doc__.split("\n\n", 1)[1],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("file", help="the stack file (YAML)")
-    ap.add_argument("--set", action="append", default=[], metavar="SECTION.KEY=VALUE",
-                    help="override one parameter, e.g. --set bridge.task=walker_walk (repeatable)")
-    ap.add_argument("--log-dir", default=None, help="node logs (default: beside the bag, or runs/stack-STAMP/logs)")
-    ap.add_argument("--domain-id", type=int, default=None, help="ROS_DOMAIN_ID (default: the environment's)")
-    ap.add_argument("--ready-timeout", type=float, default=120.0, help="seconds each node may take to start")
-    discovery.add_args(ap)
-    return ap
+    return settings_parser("protocad-stack", __doc__.split("\n\n")[0], [(None, StackSettings)],
+                           epilog=__doc__.split("\n\n", 1)[1])
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    a = build_parser().parse_args(argv)
+    a = build(StackSettings, vars(build_parser().parse_args(argv)))
     try:
         doc = load_stack(a.file, a.set)
     except ValueError as exc:
