@@ -13,7 +13,8 @@ Order of precedence, lowest first (every --help prints it):
 
 A field is declared with `arg(default, *flags, **argparse_options)`; without flags it gets
 `--field-name`, its type comes from the annotation (bool: a store_true flag) unless
-`type=` says otherwise, and its help is the docstring under it.
+`type=` says otherwise, and its help is the docstring under it; `arg(default, flag=False)`:
+a setting of library callers only, with no option.
 """
 from __future__ import annotations
 
@@ -93,6 +94,8 @@ def add_settings(parser: argparse.ArgumentParser, cls: type, title: str | None =
     groups = parser.__dict__.setdefault("_settings_groups", {})
     for f in dataclasses.fields(cls):
         options = dict(f.metadata.get("options", {}))
+        if not options.pop("flag", True):   # a library caller's setting: no option of its own
+            continue
         flags = f.metadata.get("flags") or (f"--{f.name.replace('_', '-')}",)
         group = options.pop("group", title)
         where = parser if group is None else groups.get(group) or groups.setdefault(

@@ -29,6 +29,7 @@ trainer/viz/context_plot.py (the PNG); this module writes the recording and is t
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import sys
 import time
@@ -38,6 +39,7 @@ from typing import Any, Iterable, Sequence
 
 from protocad_ros.live_view import check_display
 from sim_bridge.contract.contexts import context_label, get_task
+from trainer.settings import arg, build, settings_parser
 from trainer.viz.context_blueprint import context_blueprint, context_blueprint_parts
 from trainer.viz.context_episodes import (
     DEFAULT_SKIP_STEPS,
@@ -65,7 +67,7 @@ from trainer.viz.context_view import (
     project,
 )
 
-__all__ = ["Episode", "ContextView", "RecordingResult", "collect_context_episodes",
+__all__ = ["Episode", "ContextView", "RecordingResult", "ViewSettings", "VisualizeSettings", "collect_context_episodes",
            "load_log_episodes", "missing_contexts", "compute_context_view", "embed_episodes",
            "project", "log_context_view", "log_reconstructions", "log_open_loop",
            "context_blueprint", "context_blueprint_parts", "render_context_png",
@@ -82,6 +84,75 @@ class RecordingResult:
     reconstruction_episodes: list[int]
     open_loop_episodes: list[int]
     png: Path | None = None
+
+
+@dataclass
+class ViewSettings:
+    """What the context view shows and how it gets its episodes: write_context_recording's
+    settings (a ViewSettings, or its fields by name) and protocad-visualize's options."""
+
+    task: str | None = None
+    """task whose contexts to collect (default: the checkpoint's task)"""
+    log_steps: int | None = 100
+    """first steps of each logged episode to use (default 100)"""
+    steps_per_context: int = DEFAULT_STEPS_PER_CONTEXT
+    """observations per collected episode"""
+    random_policy: bool = False
+    """collect with uniform random actions instead of the agent's policy"""
+    projection: str = arg("pca", choices=("pca", "tsne"))
+    """how the features are projected to 2D and 3D"""
+    skip_steps: int = DEFAULT_SKIP_STEPS
+    """first steps of each episode left out of the embedding points"""
+    context_steps: int = 5
+    """observed frames before the open-loop prediction"""
+    horizon: int = 50
+    """open-loop prediction length (0: no open-loop view)"""
+    num_prediction_episodes: int = arg(4, "--episodes-shown")
+    """episodes in the reconstruction / open-loop views"""
+    seed: int = 0
+    """seeds the collected episodes and the projection"""
+    device: str = "cpu"
+    """the agent's device"""
+    cover_all_contexts: bool = arg(True, flag=False)
+    """with logs: also collect the contexts they lack (all, or max_contexts per split's
+    stratified subset); --logs-only turns it off"""
+    max_contexts: int = arg(0, flag=False)
+    """with logs and cover_all_contexts: at most this many contexts per split (0: all)"""
+    progress: bool | None = arg(None, flag=False)
+    """progress bars of the collection (None: where the terminal shows them); --no-progress"""
+
+
+@dataclass
+class VisualizeSettings(ViewSettings):
+    """protocad-visualize's options: the checkpoint, where the episodes come from, the view's
+    settings and where it goes."""
+
+    checkpoint_arg: str | None = arg(None, "checkpoint_arg", nargs="?", metavar="CHECKPOINT")
+    """checkpoint file or run directory, as protocad-evaluate takes it"""
+    checkpoint: str | None = None
+    """the same, as an option (either form)"""
+    logs: list[str] | None = arg(None, metavar="BAG")
+    """MCAP logs (bag directories or .mcap files) to take episodes from"""
+    logs_only: bool = False
+    """with --logs: show only the logged episodes (default: contexts the logs lack, e.g. the test
+    contexts of a training run, are collected in-process so every context of both splits shows)"""
+    collect: bool = False
+    """collect one short episode per context of both splits in-process (the default when no
+    --logs are given)"""
+    out: str | None = None
+    """output .rrd (default: RUN_DIR/contexts.rrd)"""
+    png: str | None = None
+    """also render a static scatter PNG of the 2D view"""
+    spawn: bool = False
+    """also open a rerun viewer"""
+    no_progress: bool = False
+    """no progress bar"""
+
+    def view(self, task: str | None) -> ViewSettings:
+        """The view's settings these options ask for, on `task`."""
+        view = build(ViewSettings, dataclasses.asdict(self))
+        return dataclasses.replace(view, task=task, cover_all_contexts=not self.logs_only,
+                                   progress=False if self.no_progress else None)
 
 
 def load_agent(source: Any, device: str = "cpu") -> Any:
@@ -108,26 +179,24 @@ def _check_destination(out_rrd: str | Path | None, recording: Any, spawn: bool) 
         check_display()
 
 
-def _episodes_to_show(agent: Any, task: str | None, logs: Sequence[str | Path] | None, *,
-                      episodes: Iterable[Any] | None, log_steps: int | None, cover_all_contexts: bool,
-                      max_contexts: int, steps_per_context: int, seed: int, random_policy: bool,
-                      progress: bool | None) -> list[Episode]:
+def _episodes_to_show(agent: Any, logs: Sequence[str | Path] | None, view: ViewSettings,
+                      episodes: Iterable[Any] | None) -> list[Episode]:
     """The episodes of the view: those given, else those of the logs (plus the contexts they
-    lack), else collected for every context of ``task``."""
+    lack), else collected for every context of ``view.task``."""
+    task, collect = view.task, dict(steps=view.steps_per_context, seed=view.seed,
+                                    random_policy=view.random_policy, progress=view.progress)
     if episodes is not None:
         eps = [Episode.from_any(e) for e in episodes]
     elif logs:
-        eps = load_log_episodes(logs, max_steps=log_steps)
-        missing = missing_contexts(task, eps, max_contexts=max_contexts) if (task and cover_all_contexts) else {}
+        eps = load_log_episodes(logs, max_steps=view.log_steps)
+        missing = missing_contexts(task, eps, max_contexts=view.max_contexts) \
+            if (task and view.cover_all_contexts) else {}
         if any(missing.values()):
             # Logs of a training run hold only training contexts: the rest is collected, so the
             # view shows every context of both splits.
-            eps += collect_context_episodes(task, agent, steps=steps_per_context, seed=seed,
-                                            contexts=missing, random_policy=random_policy,
-                                            progress=progress)
+            eps += collect_context_episodes(task, agent, contexts=missing, **collect)
     elif task:
-        eps = collect_context_episodes(task, agent, steps=steps_per_context, seed=seed,
-                                       random_policy=random_policy, progress=progress)
+        eps = collect_context_episodes(task, agent, **collect)
     else:
         raise ValueError("give episodes, logs or a task to collect episodes for")
     if not eps:
@@ -135,21 +204,20 @@ def _episodes_to_show(agent: Any, task: str | None, logs: Sequence[str | Path] |
     return eps
 
 
-def _open_loop_episodes(agent: Any, task: str | None, eps: list[Episode], *,
-                        given: Iterable[Any] | None, context_steps: int, horizon: int, seed: int,
-                        random_policy: bool, progress: bool | None) -> list[Episode]:
+def _open_loop_episodes(agent: Any, view: ViewSettings, eps: list[Episode],
+                        given: Iterable[Any] | None) -> list[Episode]:
     """Episodes long enough for the open-loop view: those given, else the view's own, else one
     collected in the first and last context of each split."""
-    length = context_steps + horizon
+    length = view.context_steps + view.horizon
     if given is not None:
         return [Episode.from_any(e) for e in given]
     if any(len(e) >= length for e in eps):
         return eps
-    if task and horizon > 0:
-        spec = get_task(task)
+    if view.task and view.horizon > 0:
+        spec = get_task(view.task)
         pick = {s: [spec.contexts(s)[0], spec.contexts(s)[-1]] for s in ("train", "test")}
-        return collect_context_episodes(task, agent, steps=length, seed=seed + 1, contexts=pick,
-                                        random_policy=random_policy, progress=progress)
+        return collect_context_episodes(view.task, agent, steps=length, seed=view.seed + 1, contexts=pick,
+                                        random_policy=view.random_policy, progress=view.progress)
     return []
 
 
@@ -173,57 +241,49 @@ def _new_stream(blueprint: Any, out_rrd: Path | None, spawn: bool) -> tuple[Any,
 
 
 def write_context_recording(source: Any, logs: Sequence[str | Path] | None = None,
-                            out_rrd: str | Path | None = None, projection: str = "pca", *,
-                            episodes: Iterable[Any] | None = None, task: str | None = None,
-                            steps_per_context: int = DEFAULT_STEPS_PER_CONTEXT,
-                            open_loop_episodes: Iterable[Any] | None = None,
-                            context_steps: int = 5, horizon: int = 50,
-                            num_prediction_episodes: int = 4, skip_steps: int = DEFAULT_SKIP_STEPS,
-                            random_policy: bool = False, seed: int = 0, device: str = "cpu",
-                            png: str | Path | None = None, recording: Any = None,
-                            spawn: bool = False, progress: bool | None = None,
-                            cover_all_contexts: bool = True, max_contexts: int = 0,
-                            log_steps: int | None = 100) -> RecordingResult:
+                            out_rrd: str | Path | None = None, view: ViewSettings | None = None, *,
+                            episodes: Iterable[Any] | None = None, open_loop_episodes: Iterable[Any] | None = None,
+                            png: str | Path | None = None, recording: Any = None, spawn: bool = False,
+                            **view_fields: Any) -> RecordingResult:
     """Write the context view of an agent to ``out_rrd`` (with its blueprint).
 
-    source: a checkpoint path or an Agent. Episodes from (first that applies) ``episodes``
-    (Episode objects or dicts: image, action, context, split, ...), ``logs`` (MCAP bag dirs /
-    files, read with trainer.data.dataset), or collected in-process for every context of both splits
-    of ``task`` (``steps_per_context`` steps each; ``task`` defaults to the agent's). With logs
-    and ``cover_all_contexts``, contexts of the task the logs lack (e.g. every test context in
-    a training run's bags) are collected in-process too: all of them, or with ``max_contexts``
-    those of each split's stratified subset of that many. ``open_loop_episodes``: longer episodes for
-    the open-loop view (default: those of the main episodes that are long enough, else, when
-    collecting, one context_steps + horizon episode per split's first and last context).
-    ``recording``: an existing rerun.RecordingStream to log into instead of a new file;
-    ``spawn``: also stream to a spawned viewer. ``png``: also write a static scatter image.
+    source: a checkpoint path or an Agent; ``view``: the ViewSettings (what it shows, how
+    episodes are collected), replaced by the ``view_fields`` given by name. Episodes from (first
+    that applies) ``episodes`` (Episode objects or dicts: image, action, context, split, ...),
+    ``logs`` (MCAP bag dirs / files, read with trainer.data.dataset), or collected in-process for
+    every context of both splits of ``view.task`` (``steps_per_context`` steps each; the task
+    defaults to the agent's). With logs and ``cover_all_contexts``, contexts of the task the logs
+    lack (e.g. every test context in a training run's bags) are collected in-process too: all of
+    them, or with ``max_contexts`` those of each split's stratified subset of that many.
+    ``open_loop_episodes``: longer episodes for the open-loop view (default: those of the main
+    episodes that are long enough, else, when collecting, one context_steps + horizon episode per
+    split's first and last context). ``recording``: an existing rerun.RecordingStream to log into
+    instead of a new file; ``spawn``: also stream to a spawned viewer. ``png``: also write a
+    static scatter image.
     """
-    if projection not in ("pca", "tsne"):
-        raise ValueError(f"unknown projection {projection!r}; valid: 'pca', 'tsne'")
+    view = dataclasses.replace(view or ViewSettings(), **view_fields)
+    if view.projection not in ("pca", "tsne"):
+        raise ValueError(f"unknown projection {view.projection!r}; valid: 'pca', 'tsne'")
     _check_destination(out_rrd, recording, spawn)
-    agent = load_agent(source, device)
+    agent = load_agent(source, view.device)
     if hasattr(agent, "eval"):
         agent.eval()
-    task = task or getattr(getattr(agent, "cfg", None), "task", None)
-    eps = _episodes_to_show(agent, task, logs, episodes=episodes, log_steps=log_steps,
-                            cover_all_contexts=cover_all_contexts, max_contexts=max_contexts,
-                            steps_per_context=steps_per_context, seed=seed,
-                            random_policy=random_policy, progress=progress)
-    view = compute_context_view(agent, eps, projection=projection, skip_steps=skip_steps, seed=seed)
-    ol_eps = _open_loop_episodes(agent, task, eps, given=open_loop_episodes, context_steps=context_steps,
-                                 horizon=horizon, seed=seed, random_policy=random_policy,
-                                 progress=progress)
+    view = dataclasses.replace(view, task=view.task or getattr(getattr(agent, "cfg", None), "task", None))
+    eps = _episodes_to_show(agent, logs, view, episodes)
+    context_view = compute_context_view(agent, eps, projection=view.projection, skip_steps=view.skip_steps,
+                                        seed=view.seed)
+    ol_eps = _open_loop_episodes(agent, view, eps, open_loop_episodes)
     out_rrd = Path(out_rrd) if out_rrd is not None else None
     if recording is not None:
         rec, tmp_rrd = recording, None
-        rec.send_blueprint(context_blueprint(view))
+        rec.send_blueprint(context_blueprint(context_view))
     else:
-        rec, tmp_rrd = _new_stream(context_blueprint(view), out_rrd, spawn)
+        rec, tmp_rrd = _new_stream(context_blueprint(context_view), out_rrd, spawn)
     try:
-        log_context_view(rec, view)
-        recon = log_reconstructions(rec, agent, eps, num_episodes=num_prediction_episodes)
-        ol = log_open_loop(rec, agent, ol_eps, context_steps=context_steps, horizon=horizon,
-                           num_episodes=num_prediction_episodes) if horizon > 0 else []
+        log_context_view(rec, context_view)
+        recon = log_reconstructions(rec, agent, eps, num_episodes=view.num_prediction_episodes)
+        ol = log_open_loop(rec, agent, ol_eps, context_steps=view.context_steps, horizon=view.horizon,
+                           num_episodes=view.num_prediction_episodes) if view.horizon > 0 else []
     finally:
         if recording is None:
             rec.flush()
@@ -232,55 +292,21 @@ def write_context_recording(source: Any, logs: Sequence[str | Path] | None = Non
                 tmp_rrd.unlink(missing_ok=True)
     if tmp_rrd is not None:
         os.replace(tmp_rrd, out_rrd)
-    png_path = render_context_png(view, png) if png else None
-    return RecordingResult(out_rrd, view, recon, ol, png_path)
+    png_path = render_context_png(context_view, png) if png else None
+    return RecordingResult(out_rrd, context_view, recon, ol, png_path)
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="protocad-visualize",
-        description="Write a rerun recording (.rrd) of what a ProtoCAD agent's context module "
-                    "learned: u/e/RSSM-state embeddings (PCA or t-SNE) of every context of both "
-                    "splits, prototypes, assignments, reconstructions and open-loop predictions. "
-                    "Open it with `rerun FILE.rrd`.",
+    return settings_parser(
+        "protocad-visualize",
+        "Write a rerun recording (.rrd) of what a ProtoCAD agent's context module "
+        "learned: u/e/RSSM-state embeddings (PCA or t-SNE) of every context of both "
+        "splits, prototypes, assignments, reconstructions and open-loop predictions. "
+        "Open it with `rerun FILE.rrd`.",
+        [(None, VisualizeSettings)],
         epilog="examples:\n  protocad-visualize --checkpoint runs/X/checkpoints/latest.pt "
                "--task cheetah_run\n  protocad-visualize --checkpoint CKPT --logs runs/X/bags/* "
-               "--projection tsne --out ctx.rrd\n\nView an MCAP log's images directly: rerun LOG.mcap",
-        formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("checkpoint_arg", nargs="?", metavar="CHECKPOINT",
-                   help="checkpoint file or run directory, as protocad-evaluate takes it")
-    p.add_argument("--checkpoint", default=None, help="the same, as an option (either form)")
-    p.add_argument("--logs", nargs="+", default=None, metavar="BAG",
-                   help="MCAP logs (bag directories or .mcap files) to take episodes from")
-    p.add_argument("--task", default=None, help="task whose contexts to collect (default: the "
-                   "checkpoint's task)")
-    p.add_argument("--logs-only", action="store_true", help="with --logs: show only the logged "
-                   "episodes (default: contexts the logs lack, e.g. the test contexts of a "
-                   "training run, are collected in-process so every context of both splits shows)")
-    p.add_argument("--log-steps", type=int, default=100,
-                   help="first steps of each logged episode to use (default 100)")
-    p.add_argument("--collect", action="store_true", help="collect one short episode per context "
-                   "of both splits in-process (the default when no --logs are given)")
-    p.add_argument("--steps-per-context", type=int, default=DEFAULT_STEPS_PER_CONTEXT,
-                   help=f"observations per collected episode (default {DEFAULT_STEPS_PER_CONTEXT})")
-    p.add_argument("--random-policy", action="store_true",
-                   help="collect with uniform random actions instead of the agent's policy")
-    p.add_argument("--projection", choices=("pca", "tsne"), default="pca")
-    p.add_argument("--skip-steps", type=int, default=DEFAULT_SKIP_STEPS,
-                   help="first steps of each episode left out of the embedding points")
-    p.add_argument("--context-steps", type=int, default=5, help="observed frames before the "
-                   "open-loop prediction")
-    p.add_argument("--horizon", type=int, default=50, help="open-loop prediction length "
-                   "(0: no open-loop view)")
-    p.add_argument("--episodes-shown", type=int, default=4,
-                   help="episodes in the reconstruction / open-loop views")
-    p.add_argument("--out", default=None, help="output .rrd (default: RUN_DIR/contexts.rrd)")
-    p.add_argument("--png", default=None, help="also render a static scatter PNG of the 2D view")
-    p.add_argument("--spawn", action="store_true", help="also open a rerun viewer")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--device", default="cpu")
-    p.add_argument("--no-progress", action="store_true", help="no progress bar")
-    return p
+               "--projection tsne --out ctx.rrd\n\nView an MCAP log's images directly: rerun LOG.mcap")
 
 
 def _resolve_checkpoint(path: str) -> Path:
@@ -298,7 +324,7 @@ def _default_out(ckpt: Path) -> Path:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    args = build(VisualizeSettings, vars(build_parser().parse_args(argv)))
     if bool(args.checkpoint) == bool(args.checkpoint_arg):
         raise SystemExit("protocad-visualize: give one checkpoint (file or run directory), "
                          "as CHECKPOINT or --checkpoint")
@@ -323,16 +349,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     out = Path(args.out) if args.out else _default_out(ckpt)
     if out.exists():
         print(f"[visualize] {out} exists: replacing it (--out PATH writes elsewhere)", flush=True)
-    progress = False if args.no_progress else None
     try:
-        res = write_context_recording(
-            agent, logs=args.logs, out_rrd=out, projection=args.projection,
-            task=task, steps_per_context=args.steps_per_context, log_steps=args.log_steps,
-            cover_all_contexts=not args.logs_only,
-            context_steps=args.context_steps, horizon=args.horizon,
-            num_prediction_episodes=args.episodes_shown, skip_steps=args.skip_steps,
-            random_policy=args.random_policy, seed=args.seed, png=args.png, spawn=args.spawn,
-            progress=progress)
+        res = write_context_recording(agent, logs=args.logs, out_rrd=out, view=args.view(task), png=args.png,
+                                      spawn=args.spawn)
     except (ValueError, FileNotFoundError, RuntimeError) as exc:
         raise SystemExit(f"protocad-visualize: {exc}")
     view = res.view
