@@ -1,150 +1,31 @@
-"""A loop run's settings and its run directory: LoopSettings (protocad-loop's protocol and run
-options; unset values resolved once from the demo, a resumed run's protocol and the config),
-opening a new run directory or the one --resume continues (config.yaml, run.json), the config
-and weights --init-policy starts from, and the ledger of the phases the bags on disk hold, which
-the counters, phases.json and a resume read."""
+"""A loop run's directory: opening a new one or the one --resume continues (config.yaml,
+run.json), the config and weights --init-policy starts from, and the ledger of the phases the
+bags on disk hold, which the counters, phases.json and a resume read. Its settings are
+trainer.launch.loop.LoopSettings, declared beside their command."""
 from __future__ import annotations
 
 import copy
-import dataclasses
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
 from protocad_ros.checkpoint import CheckpointError, architecture_differences, existing_checkpoint_file, read_checkpoint
 from protocad_ros.model.agent import make_agent
 from protocad_ros.model.config import Config, apply_overrides, plan_prototype_freeze
-from protocad_ros.policy import shipped_policy
 from sim_bridge.contract import topics as T
-from trainer import cli_values, run_config, runs, settings
+from trainer import run_config, runs, settings
 from trainer.data.dataset import MCAPDataset, TopicMap
-from trainer.launch import discovery
 from trainer.launch.rosprocs import robot_namespaces
 from trainer.learn.schedule import Schedule
 from trainer.runs import check_settings_section
-from trainer.settings import arg
 
-#: The demo's protocol. C=15: its 60 updates are most of its wall time, and on a CPU without bf16
-#: arithmetic (float32, about 4.7 s an update of 16 x 50 on one AVX2 core) 100 updates alone took
-#: 8 of the 10 minutes the demo may take there (issue 41); a demo shows the loop, not learning.
-DEMO = dict(task="pendulum_swingup", preset="small", cycles=3, episodes_per_cycle=1, prefill=2,
-            updates_per_episode=15, eval_episodes=1, eval_max_contexts=8)
-
-
-@dataclass
-class LoopSettings:
-    """protocad-loop's protocol (Algorithm 1 through the ROS nodes) and run options. Unset
-    values come from the config (train.*) or the demo, once, in `resolved`."""
-
-    demo: bool = False
-    """the README's main command: 3 cycles of 1 episode, C=15, then the test-context table and a
-    rerun recording: from the shipped policy of the first of walker_walk, cheetah_run the
-    package ships (--init-policy), else pendulum_swingup from scratch at the small preset (a few
-    minutes on 2 CPU cores)"""
-    cycles: int | None = arg(None, group="loop")
-    """collection cycles after the prefill (default 10; demo 3)"""
-    episodes_per_cycle: int | None = arg(None, group="loop")
-    """E episodes recorded per cycle (default 1)"""
-    prefill_episodes: int | None = arg(None, group="loop")
-    """N random episodes (default train.prefill_episodes = 2)"""
-    updates_per_episode: int | None = arg(None, group="loop")
-    """C updates per collected episode, also done once after the prefill (default
-    train.collect_interval = 100, the paper's; demo 15)"""
-    episode_length: int | None = arg(None, group="loop")
-    """agent steps per episode (default train.time_limit / action_repeat = 500)"""
-    exploration_noise: float | None = arg(None, group="loop")
-    """policy node exploration noise (default train.expl_noise)"""
-    eval_episodes: int | None = arg(None, group="loop")
-    """final evaluation: episodes per test context (0: none; default 5, demo 1)"""
-    eval_max_contexts: int = arg(0, group="loop")
-    """final evaluation: at most K test contexts, the fixed stratified subset (0: all; demo 8)"""
-    init_policy: str | None = arg(None, metavar="POLICY_PT", group="loop")
-    """start from this policy file's (or checkpoint's) weights: its config (task, variant,
-    sizes) is the run's, optimizers and the update count start afresh; first its return on unseen
-    contexts is printed beside the random policy's, both through the ROS nodes (the demo: the
-    shipped policy of its task, protocad_ros/policies/TASK.pt, when there is one)"""
-    start_eval_episodes: int = arg(4, group="loop")
-    """with --init-policy: episodes on unseen contexts (drawn by the bridge, the same for both
-    policies) before training; 0: none"""
-    no_visualize: bool = arg(False, group="loop")
-    """skip the rerun context recording at the end"""
-    robots: int | None = arg(None, type=cli_values.positive_int, group="loop")
-    """N robots collecting at once: a bridge and a policy node each in /protocad/robotI (own
-    /clock), one recorder recording all of them, training on every robot's episodes; each
-    records --episodes-per-cycle episodes per cycle (default 1)"""
-    run_dir: str | None = arg(None, group="run")
-    """output directory (default runs/loop-TASK-VARIANT-TIME)"""
-    resume: bool = arg(False, group="run")
-    """continue RUN_DIR (bags + checkpoint + counters)"""
-    domain_id: int | None = arg(None, group="run")
-    """ROS_DOMAIN_ID of the nodes (default: a fresh one)"""
-    discovery_server: str | None = arg(None, type=discovery.server_list_arg, metavar="HOST:PORT",
-                                       group="run", exclusive="discovery")
-    """discover through this running Fast DDS Discovery Server instead of multicast (sets
-    ROS_DISCOVERY_SERVER for every node; default: $ROS_DISCOVERY_SERVER if set)"""
-    start_discovery_server: tuple | None = arg(None, type=discovery.listen_arg, nargs="?",
-                                               const=discovery.DEFAULT_LISTEN, metavar="[HOST:]PORT",
-                                               group="run", exclusive="discovery")
-    """start a Discovery Server (fast-discovery-server, default 127.0.0.1:11811) before the
-    nodes, stop it after them, and discover through it; listen on this machine's fleet-facing
-    address to let actor groups on other machines join (0.0.0.0 works but exposes it everywhere)"""
-    checkpoint_every: int = arg(500, group="run")
-    """updates between checkpoints within a training phase"""
-    log_every: int = arg(10, group="run")
-    """updates per metrics line"""
-    cache_dir: str | None = arg(None, group="run")
-    """dataset cache (default RUN_DIR/cache)"""
-    rerun: str | None = arg(None, nargs="?", const="", metavar="RRD", group="run")
-    """log training scalars to a rerun recording (default RUN_DIR/metrics.rrd)"""
-    phase_timeout: float = arg(3600.0, group="run")
-    """seconds a collection phase may take"""
-    no_progress: bool = arg(False, group="run")
-    """no progress bar"""
-
-    def with_demo(self) -> "LoopSettings":
-        """The demo's values where none were given."""
-        if not self.demo:
-            return self
-        pick = {k: DEMO[d] for k, d in (("cycles", "cycles"), ("episodes_per_cycle", "episodes_per_cycle"),
-                                          ("prefill_episodes", "prefill"), ("updates_per_episode", "updates_per_episode"),
-                                          ("eval_episodes", "eval_episodes")) if getattr(self, k) is None}
-        if self.eval_max_contexts == 0:   # all 8 of Pendulum; 8 of the 64 of walker / cheetah
-            pick["eval_max_contexts"] = DEMO["eval_max_contexts"]
-        return dataclasses.replace(self, **pick)
-
-    def resolved(self, tr, saved_protocol: dict[str, Any] | None = None) -> "LoopSettings":
-        """Every unset protocol value: from the resumed run's protocol, else the config's train
-        section (tr), else the defaults."""
-        saved = {k: v for k, v in (saved_protocol or {}).items()
-                 if k in PROTOCOL_KEYS and getattr(self, k) is None and v is not None}
-        s = dataclasses.replace(self, **saved)
-        return dataclasses.replace(
-            s, cycles=10 if s.cycles is None else s.cycles, episodes_per_cycle=s.episodes_per_cycle or 1,
-            prefill_episodes=tr.prefill_episodes if s.prefill_episodes is None else s.prefill_episodes,
-            updates_per_episode=tr.collect_interval if s.updates_per_episode is None else s.updates_per_episode,
-            episode_length=s.episode_length or max(1, tr.time_limit // tr.action_repeat),
-            exploration_noise=tr.expl_noise if s.exploration_noise is None else s.exploration_noise,
-            eval_episodes=5 if s.eval_episodes is None else s.eval_episodes, robots=s.robots or 1)
-
-
-#: Tasks whose shipped policy the demo starts from, in this order, when the package has one.
-DEMO_POLICY_TASKS = ("walker_walk", "cheetah_run")
+#: trainer.launch.loop.LoopSettings, by name only: loop.py imports this module, so importing it
+#: back would be a cycle.
+LoopSettings = Any
 
 
 def planned_updates(a: LoopSettings) -> int:
     """The updates a loop makes in all: C once after the prefill and per collected episode."""
     return Schedule(N=a.prefill_episodes, C=a.updates_per_episode).target_updates(a.cycles * a.episodes_per_cycle)
-
-
-def with_shipped_policy(s: LoopSettings, model: settings.ModelChoice) -> LoopSettings:
-    """The demo: start from a shipped policy (of --task if given, else the first of
-    DEMO_POLICY_TASKS the package ships) unless --init-policy names one."""
-    if s.init_policy or s.resume:
-        return s
-    for task in [model.task] if model.task else DEMO_POLICY_TASKS:
-        if path := shipped_policy(task):
-            return dataclasses.replace(s, init_policy=str(path))
-    return s
 
 
 #: The loop's protocol, as run.json records it and a resume restores it.
@@ -227,7 +108,7 @@ class LoopRunDir:
             saved_protocol = run_json.get("protocol")
             if saved_protocol is not None and not isinstance(saved_protocol, dict):
                 raise ValueError(f"--resume: {run_dir / 'run.json'}: 'protocol' is not a mapping")
-            check_settings_section(run_dir / "run.json", "protocol", LoopSettings,
+            check_settings_section(run_dir / "run.json", "protocol", type(s),
                                    {k: v for k, v in (saved_protocol or {}).items() if k in PROTOCOL_KEYS})
         else:
             cfg = (policy_config(init_policy, s, model, config_args=config_args, prog=prog) if s.init_policy
