@@ -155,6 +155,7 @@ def settings_parser(prog: str, description: str, sections: Sequence[tuple[str | 
                                      formatter_class=cli_values.HelpFormatter)
     for title, cls in sections:
         add_settings(parser, cls, title, defaults)
+    parser.settings_classes = tuple(cls for _, cls in sections)   # what tests/docs/test_commands.py checks
     return parser
 
 
