@@ -131,8 +131,14 @@ def declare_all(node, params: Sequence[Param]) -> dict[str, Any]:
             given = overrides[p.name].value
             if isinstance(given, bool) and str(given).lower() in p.choices:
                 overrides[p.name] = Parameter(p.name, Parameter.Type.STRING, str(given).lower())
+        # An empty list says no type: rclpy would declare a byte array, which refuses a `-p`
+        # list of strings. Declared by its type instead, then given its empty value.
+        untyped = p.default == ()
         try:
-            value = node.declare_parameter(p.name, p.ros_default, p.descriptor()).value
+            value = node.declare_parameter(p.name, Parameter.Type.STRING_ARRAY if untyped else p.ros_default,
+                                           p.descriptor()).value
+            if untyped and value is None and not p.read_only:
+                node.set_parameters([Parameter(p.name, Parameter.Type.STRING_ARRAY, [])])
         except ParameterException as e:
             raise ConfigError(f"parameter {p.name}: {e}".replace("\n", " ")) from None
         if isinstance(p.default, tuple):

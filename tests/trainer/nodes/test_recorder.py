@@ -417,3 +417,29 @@ def test_installed_message_types_still_import():
     assert interface_class("std_srvs/srv/Trigger", kind="srv") is Trigger
     with pytest.raises(ValueError, match="unknown interface type"):
         interface_class("sensor_msgs/msg/Nope")     # an ament package, a type it lacks
+
+
+@pytest.mark.ros
+def test_the_parameters_are_its_table_and_list_ones_are_settable_as_string_arrays(tmp_path):
+    """The node declares recorder_params.PARAMS, the command line's values as defaults; an empty
+    list default is still a string array, so `-p topics:=[...]` works (a byte array refused it)."""
+    import rclpy
+
+    from trainer.nodes.recorder import RecorderNode
+    from trainer.nodes.recorder_params import PARAMS
+
+    ctx = rclpy.Context()
+    rclpy.init(args=["recorder", "--ros-args", "-p", "topics:=[/a, /b]", "-p", "flush_interval:=2"], context=ctx)
+    try:
+        node = RecorderNode({"output": str(tmp_path / "bag"), "chunk_size": 4096, "no_discovery": True}, context=ctx)
+        try:
+            assert set(node.params) == {p.name for p in PARAMS}
+            assert node.params["topics"] == ["/a", "/b"] and node.params["flush_interval"] == 2.0
+            assert node.params["chunk_size"] == 4096 and node.params["exclude_topics"] == []
+            kinds = {p.name: node.get_parameter(p.name).type_.name for p in PARAMS}
+            assert kinds["topics"] == kinds["rate_limits"] == "STRING_ARRAY" and kinds["chunk_size"] == "INTEGER"
+        finally:
+            node.close()
+            node.destroy_node()
+    finally:
+        rclpy.shutdown(context=ctx)
