@@ -65,9 +65,9 @@ DEMO = dict(task="pendulum_swingup", preset="small", cycles=3, episodes_per_cycl
 
 
 @dataclass
-class LoopSettings:
-    """protocad-loop's protocol (Algorithm 1 through the ROS nodes) and run options. Unset
-    values come from the config (train.*) or the demo, once, in `resolved`."""
+class LoopSettings(discovery.DiscoverySettings):
+    """protocad-loop's protocol (Algorithm 1 through the ROS nodes), run options and how its
+    nodes discover. Unset values come from the config (train.*) or the demo, once, in `resolved`."""
 
     demo: bool = False
     """the README's main command: 3 cycles of 1 episode, C=15, then the test-context table and a
@@ -111,16 +111,6 @@ class LoopSettings:
     """continue RUN_DIR (bags + checkpoint + counters)"""
     domain_id: int | None = arg(None, group="run")
     """ROS_DOMAIN_ID of the nodes (default: a fresh one)"""
-    discovery_server: str | None = arg(None, type=discovery.server_list_arg, metavar="HOST:PORT",
-                                       group="run", exclusive="discovery")
-    """discover through this running Fast DDS Discovery Server instead of multicast (sets
-    ROS_DISCOVERY_SERVER for every node; default: $ROS_DISCOVERY_SERVER if set)"""
-    start_discovery_server: tuple | None = arg(None, type=discovery.listen_arg, nargs="?",
-                                               const=discovery.DEFAULT_LISTEN, metavar="[HOST:]PORT",
-                                               group="run", exclusive="discovery")
-    """start a Discovery Server (fast-discovery-server, default 127.0.0.1:11811) before the
-    nodes, stop it after them, and discover through it; listen on this machine's fleet-facing
-    address to let actor groups on other machines join (0.0.0.0 works but exposes it everywhere)"""
     checkpoint_every: int = arg(500, group="run")
     """updates between checkpoints within a training phase"""
     log_every: int = arg(10, group="run")
