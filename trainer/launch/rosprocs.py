@@ -30,9 +30,12 @@ import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Iterable, Sequence
+from typing import Any, Iterable, Sequence
 
+from protocad_ros.node.policy_params import PARAMS as POLICY_PARAMS
+from sim_bridge.bridge.params import PARAMS as BRIDGE_PARAMS
 from sim_bridge.contract import topics as T
+from sim_bridge.nodekit.rosnode import Param
 from trainer.launch import discovery
 from trainer.launch.rosgraph import RosGraph
 
@@ -182,6 +185,26 @@ def robot_namespaces(base: str, robots: int, first: int | None = None) -> list[s
 DISCOVERY_SERVER = "discovery_server"   # its process name in a RosStack
 
 
+def node_params(node: str, table: Sequence[Param], given: dict[str, Any],
+                required: Sequence[str] = ()) -> dict[str, Any]:
+    """`given` as a launcher passes it to a node with `-p`: each name one of the node's Param
+    table (TypeError naming the valid ones otherwise), paths as text, float parameters as
+    floats; None or "" leaves the node's default."""
+    rows = {p.name: p for p in table}
+    unknown = sorted(set(given) - set(rows))
+    missing = [k for k in required if given.get(k) in (None, "")]
+    if unknown or missing:
+        raise TypeError(f"the {node} node: {'no parameter ' + ', '.join(unknown) if unknown else ''}"
+                        f"{'; ' if unknown and missing else ''}{'needs ' + ', '.join(missing) if missing else ''}"
+                        f" (its parameters: {', '.join(sorted(rows))})")
+    out = {}
+    for k, v in given.items():
+        if v is None or v == "":
+            continue
+        out[k] = float(v) if isinstance(rows[k].default, float) else str(v) if isinstance(v, Path) else v
+    return out
+
+
 class RosStack:
     """The node processes of one run, sharing a ROS domain: one robot in `namespace`, or
     several (`ns` of each start_* call; process names then carry '@NS')."""
@@ -321,41 +344,31 @@ class RosStack:
             out += ["-p", f"{k}:={v}"]
         return out
 
-    def start_bridge(self, *, task: str, split: str = "train", seed: int = 0, max_episodes: int = 0,
-                     episode_length: int = 500, action_repeat: int = 2, min_subscribers: int = 2,
-                     lockstep_timeout_s: float = 5.0, context_schedule: str = "sample",
-                     log_name: str | None = None, ns: str | None = None, closed_control: bool = False
-                     ) -> NodeProc:
-        """closed_control: no reset service, no lifecycle transitions from other processes
-        (what protocad-fleet gives nodes that anyone on the fleet's network can reach)."""
-        args = ["--ros-args", *self._params(task=task, split=split, seed=seed, mode="lockstep",
-                                            context_schedule=context_schedule,
-                                            max_episodes=max_episodes, episode_length=episode_length,
-                                            action_repeat=action_repeat, min_subscribers=min_subscribers,
-                                            lockstep_timeout_s=float(lockstep_timeout_s),
-                                            **({"reset_service": False, "remote_lifecycle": False}
-                                               if closed_control else {})),
-                *self._ns_args(ns)]
+    def start_bridge(self, *, log_name: str | None = None, ns: str | None = None, closed_control: bool = False,
+                     **params: Any) -> NodeProc:
+        """A lock-step sim bridge with these of its parameters (sim_bridge/bridge/params.py; task
+        is needed; min_subscribers is 2 unless given: its actor and a recorder). closed_control:
+        no reset service, no lifecycle transitions from other processes (what protocad-fleet
+        gives nodes that anyone on the fleet's network can reach)."""
+        values = node_params("bridge", BRIDGE_PARAMS, {"min_subscribers": 2, **params, "mode": "lockstep"},
+                             required=("task",))
+        if closed_control:
+            values.update(reset_service=False, remote_lifecycle=False)
+        args = ["--ros-args", *self._params(**values), *self._ns_args(ns)]
         return self._spawn(self.key("bridge", ns), "sim_bridge.bridge.node", args, log_name)
 
-    def start_policy(self, *, checkpoint: str | Path | None, task: str, wait_for_checkpoint: bool = False,
-                     reload_poll_s: float = 0.5, mode: str = "deterministic", exploration_noise: float = 0.0,
-                     seed: int = 0, device: str = "cpu", preset: str | None = None, variant: str | None = None,
-                     num_threads: int = 0, ready_timeout: float = 120.0, ns: str | None = None,
-                     checkpoint_topic: str | None = None, closed_control: bool = False,
-                     trusted_keys: str | Path | None = None, allow_unsigned: bool = False,
-                     min_checkpoint_seq: int = 0) -> NodeProc:
-        """trusted_keys: the public key(s) whose signature a checkpoint needs (the run key's);
-        allow_unsigned: with checkpoint_topic and no keys, start anyway (said loudly);
-        min_checkpoint_seq: no signed version below it is taken (the policy's floor from the start)."""
-        args = ["--ros-args", *self._params(
-            checkpoint=str(checkpoint) if checkpoint else None, wait_for_checkpoint=wait_for_checkpoint,
-            reload_poll_s=float(reload_poll_s), task=task, mode=mode, exploration_noise=float(exploration_noise),
-            seed=seed, device=device, preset=preset, variant=variant, num_threads=num_threads,
-            checkpoint_topic=checkpoint_topic, trusted_keys=str(trusted_keys) if trusted_keys else None,
-            allow_unsigned=allow_unsigned or None, min_checkpoint_seq=int(min_checkpoint_seq) or None,
-            **({"remote_lifecycle": False} if closed_control else {})),
-            *self._ns_args(ns)]
+    def start_policy(self, *, ready_timeout: float = 120.0, ns: str | None = None, closed_control: bool = False,
+                     **params: Any) -> NodeProc:
+        """A policy node with these of its parameters (protocad_ros/node/policy_params.py; task is
+        needed; reload_poll_s is 0.5 unless given), once it is active. trusted_keys: the public
+        key(s) whose signature a checkpoint needs (the run key's); allow_unsigned: with
+        checkpoint_topic and no keys, start anyway (said loudly); min_checkpoint_seq: no signed
+        version below it is taken (the policy's floor from the start). closed_control: no
+        lifecycle transitions from other processes."""
+        values = node_params("policy", POLICY_PARAMS, {"reload_poll_s": 0.5, **params}, required=("task",))
+        if closed_control:
+            values["remote_lifecycle"] = False
+        args = ["--ros-args", *self._params(**values), *self._ns_args(ns)]
         proc = self._spawn(self.key("policy", ns), "protocad_ros.node.policy_node", args)
         self.wait_active(proc, "policy", ready_timeout, ns=ns)
         return proc
