@@ -39,6 +39,33 @@ def test_flags_types_and_help_come_from_the_fields():
         settings.parse(parser(), ["--env-steps", "many"], config_help=False)
 
 
+def test_a_node_parameter_table_generates_its_options_and_a_library_setting_none():
+    """table_settings: one field per Param row (flag, type, default, choices, help from the row,
+    unless its form says otherwise; a None form: no option); arg(flag=False): no option."""
+    from sim_bridge.nodekit.rosnode import Param, with_defaults
+
+    table = (Param("chunk_size", 10, "bytes per chunk"), Param("topics", (), "what to record"),
+             Param("compression", "zstd", "how", choices=("zstd", "none")), Param("poll_s", 0.2, "in ms below"))
+    cls = settings.table_settings("T", table, {"topics": {"flags": ("topics",), "nargs": "*"},
+                                               "compression": {"default": None}, "poll_s": None})
+
+    @dataclass
+    class Own:
+        shown: int = 1
+        """an option"""
+        hidden: int = arg(2, flag=False)
+        """a library caller's"""
+
+    p = settings.settings_parser("node", "A node.", [(None, cls), (None, Own)])
+    a = vars(p.parse_args(["/a", "/b", "--chunk-size", "7"]))
+    assert a == {"chunk_size": 7, "topics": ["/a", "/b"], "compression": None, "shown": 1}
+    with pytest.raises(SystemExit):
+        p.parse_args(["--compression", "lz4"])
+    assert "bytes per chunk (default: 10)" in " ".join(p.format_help().split())
+    declared = {r.name: r.default for r in with_defaults(table, {"chunk_size": "7", "topics": ["/a"]})}
+    assert declared == {"chunk_size": 7, "topics": ("/a",), "compression": "zstd", "poll_s": 0.2}
+
+
 def test_a_resume_keeps_the_saved_settings_unless_given_again():
     p = settings.parse(parser(), ["--fast"], config_help=False)
     saved = {"env_steps": 7, "names": ["x"], "fast": False, "limit": 1.0}
