@@ -37,6 +37,7 @@ class PolicyDiagnostics:
             **{f"checkpoint/{k}": v for k, v in self.ckpt_counters.items()
                if k != "updates" and isinstance(v, (int, float)) and not isinstance(v, bool)},
             "task": self.task, "device": self.params["device"], "mode": self.params["mode"],
+            "camera": self.camera.describe(),
             "latency_ms_p50": self.latency.percentile(50) * 1e3,
             "latency_ms_p99": self.latency.percentile(99) * 1e3,
             "act_ms_p50": self.act_time.percentile(50) * 1e3,

@@ -1,5 +1,6 @@
-"""What reaches the policy node on its executor thread: image and step_info, each checked and
-paired with the other by header stamp (they may arrive in any order), and the sim bridge's
+"""What reaches the policy node on its executor thread: the camera's model image (decoded,
+cropped and resized by protocad_ros/robot/camera_input.py) and step_info (checked here), paired
+with each other by header stamp (they may arrive in any order), and the sim bridge's
 announcement (bridge_info), checked against what the node serves; an observation whose bridge
 has not announced itself yet waits for it. A paired observation from a bridge that fits goes to
 ActionPublishing (protocad_ros/node/action_publishing.py) unless it is a re-sent one (answered
@@ -25,28 +26,8 @@ class ObservationPairing:
         self._count("observations_while_inactive")
         return True
 
-    def _on_image(self, msg) -> None:
-        if self._inactive():
-            return
-        t = time.monotonic()
-        stamp = topics.stamp_to_ns(msg.header.stamp)
-        self._count("images_received")
-        reason = None
-        if msg.encoding != "rgb8":
-            reason = ("rejected_image_encoding",
-                      f"image encoding {msg.encoding!r}, expected 'rgb8'")
-        elif (int(msg.height), int(msg.width)) != self.image_hw:
-            reason = ("rejected_image_size", f"image is {msg.height}x{msg.width}, expected "
-                      f"{self.image_hw[0]}x{self.image_hw[1]}")
-        else:
-            try:
-                image = topics.read_image(msg, self.image_hw).copy()
-            except ValueError as e:
-                reason = ("rejected_image_data", str(e))
-        if reason is not None:
-            self._count("images_rejected")
-            self._count(reason[0], f"image rejected (stamp {topics.format_stamp(stamp)}): {reason[1]}")
-            return
+    def _on_model_image(self, stamp: int, image, t: float) -> None:
+        """A camera frame, already the model's image (protocad_ros/robot/camera_input.py)."""
         self._arrive(stamp, "image", image, t)
 
     def _on_info(self, msg) -> None:

@@ -23,7 +23,7 @@ from typing import Any, Callable
 
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray
-from sensor_msgs.msg import Image, JointState
+from sensor_msgs.msg import JointState
 
 from protocad_ros.atomic import file_signature, remove_stale_temporaries
 from protocad_ros.live_view import LiveView
@@ -36,6 +36,7 @@ from protocad_ros.node.observation_pairing import ObservationPairing
 from protocad_ros.node.policy_params import COUNTERS, PARAMS
 from protocad_ros.node.refusal_log import RefusalLog
 from protocad_ros.robot.robot_output import RobotOutput
+from protocad_ros.robot.camera_input import CameraInput
 from sim_bridge.contract import qos, topics
 from sim_bridge.contract.contexts import task_actuators
 from sim_bridge.nodekit.lifecycle import ManagedNode
@@ -117,11 +118,14 @@ class PolicyNode(ObservationPairing, BridgePairing, ActionPublishing, Checkpoint
         # bridge announcing itself, an impostor) is warned about once and counted.
         self.publisher_watch = PublisherWatch(self._on_new_publisher)
         watch = self.publisher_watch.callbacks
-        self.sub_image = self.create_subscription(Image, topics.IMAGE, self._on_image, image_qos,
-                                                  qos_overriding_options=qos.overridable(),
-                                                  event_callbacks=watch(self.resolve_topic_name(topics.IMAGE)))
-        self.sub_info = self.create_subscription(JointState, topics.STEP_INFO, self._on_info,
-                                                 obs_qos, event_callbacks=watch(self.resolve_topic_name(topics.STEP_INFO)))
+        # The camera (protocad_ros/robot/camera_input.py): raw or compressed, any size, paired with
+        # step_info or alone; a bad image_crop is a configuration error here.
+        self.camera = CameraInput(self, p, qos_profile=image_qos, event_callbacks=watch,
+                                  active=lambda: not self._inactive(), size=lambda: self.image_hw[0],
+                                  count=self._count, image=self._on_model_image, observation=self._answer_paired)
+        self.sub_info = None if p["observations"] == "image_only" else self.create_subscription(
+            JointState, topics.STEP_INFO, self._on_info, obs_qos,
+            event_callbacks=watch(self.resolve_topic_name(topics.STEP_INFO)))
         self.bridge: topics.BridgeInfo | None = None
         self._announcer_checked_at, self._announcer_present = -1e9, False
         self.sub_bridge_info = self.create_subscription(JointState, topics.BRIDGE_INFO, self._on_bridge_info_heard,
@@ -255,11 +259,16 @@ class PolicyNode(ObservationPairing, BridgePairing, ActionPublishing, Checkpoint
         self.get_logger().info(
             f"serving {self._describe_agent()} on {p['device']} ({p['mode']}, exploration "
             f"noise {p['exploration_noise']}); {self.action_dim}-d actions {self.action_names}; "
-            f"expects {self.image_hw[0]}x{self.image_hw[1]} rgb8 on "
-            f"{self.resolve_topic_name(topics.IMAGE)}")
+            f"sees {self.image_hw[0]}x{self.image_hw[1]} of {self.camera.describe()}")
+        self.camera.activated()
         # The config's precision is a request: resolved here, on this node's device.
         self.get_logger().info(self.policy.agent.precision.describe())
         self.robot.activate()
+
+    def restart_episode(self) -> None:
+        """With observations:=image_only, the next frame starts a new episode (a blank filter):
+        for a part that knows the robot's input was interrupted (watchdog, enable switch)."""
+        self.camera.restart_episode()
 
     def deactivate_node(self) -> None:
         # Halves of observations that arrived before: they will not be answered.

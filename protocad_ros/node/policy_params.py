@@ -80,6 +80,19 @@ PARAMS: tuple[Param, ...] = (
     remote_lifecycle_param(),
     strict_param(),
     executor_param(),
+    # The camera (protocad_ros/robot/camera_input.py, issue 53).
+    Param("image_transport", "raw", "raw: sensor_msgs/Image on image (rgb8, bgr8, rgba8, bgra8, "
+          "mono8, any size); compressed: sensor_msgs/CompressedImage (JPEG or PNG) on "
+          "<image>/compressed, image_transport's name for it.", choices=("raw", "compressed")),
+    Param("image_crop", "center", "The part of a frame the model sees, resized to its square with "
+          "area averaging: center (the largest centered square), full (the whole frame, squashed) "
+          "or x,y,w,h in pixels. Another value: configuration error. A frame already at the "
+          "model's size passes unchanged with center or full."),
+    Param("observations", "paired", "paired: image and step_info paired by stamp (the sim "
+          "bridge's contract); image_only: a camera alone, no step_info: each frame is an "
+          "observation (reward 0; a new episode at the first frame after activation and after "
+          "restart_episode(); episode and step counted by the node; stamps must grow).",
+          choices=("paired", "image_only")),
 )
 
 # A robot's command interface and the fail-safe (protocad_ros/robot/, msgs_docs/policy.md).
@@ -120,7 +133,7 @@ COUNTERS = ("observations_answered", "episodes", "images_received", "images_reje
             "observations_while_inactive", "checkpoint_transfers", "checkpoint_transfers_rejected",
             "checkpoint_signatures_rejected", "checkpoint_rollbacks_rejected",
             "checkpoint_limits_rejected", "checkpoint_mismatches", "checkpoint_chunks_dropped",
-            "remote_transitions_refused")
+            "remote_transitions_refused", "episode_restarts")
 # The robot's command interface and the fail-safe.
 COUNTERS += ("commands_sent", "safe_commands_sent", "commands_rate_limited", "watchdog_trips",
              "watchdog_clears", "enable_switches")

@@ -43,10 +43,11 @@ def test_malformed_images_and_stamp_matching(spawn, probe):
     f.wait_answers(2, "the answer to the second observation")
 
     # Malformed input (each with a valid partner, so only the bad half blocks the pair).
-    f.raw_image(3_000, 32, 32, "rgb8", bytes(32 * 32 * 3))
+    # (bgr8, mono8 and other sizes are taken: tests/protocad_ros/robot/test_camera_input.py)
+    f.raw_image(3_000, 5_000, 5_000, "rgb8", bytes(300))   # claims 25 M pixels
     f.info(3_000, 2)
-    f.raw_image(4_000, 64, 64, "bgr8", bytes(64 * 64 * 3))
-    f.raw_image(4_500, 64, 64, "mono8", bytes(64 * 64), step=64)
+    f.raw_image(4_000, 64, 64, "yuv422", bytes(64 * 64 * 2), step=128)
+    f.raw_image(4_500, 64, 64, "bayer_rggb8", bytes(64 * 64), step=64)
     f.info(4_000, 2)
     f.raw_image(5_000, 64, 64, "rgb8", bytes(100))    # truncated
     f.info(5_000, 2)
