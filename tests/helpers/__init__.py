@@ -1,8 +1,9 @@
 """What the tests share: the repository root, one polling helper, a child process with its
 output in a log file. Submodules: bags (steps with known content as MCAP bags, the CLIs),
 ros (a test-side rclpy probe), agents (tiny agents, batches and checkpoints), policy (feeding
-a policy node process); scripts run as child processes: graph_watch.py, ddp_grad_worker.py, and
-import_blocker/ (put first on a child's PYTHONPATH).
+a policy node process), camera_frames (a camera's frames and messages, from walker renders);
+scripts run as child processes: graph_watch.py, ddp_grad_worker.py, and import_blocker/ (put
+first on a child's PYTHONPATH).
 
 Test modules import from here, never from each other or from conftest.py (which only sets up
 the environment and holds the fixtures).

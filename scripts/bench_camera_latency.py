@@ -1,0 +1,144 @@
+#!/usr/bin/env python3
+"""Observation-to-action latency of the policy node for a camera's frames (issue 53).
+
+A real policy node process serves the shipped walker policy (deterministic); this process
+publishes frames to it one at a time over DDS (localhost, a domain of its own) and times each
+from the image's publish to the arrival of the action stamped like it. Three cases, one node
+process each, in turn, on the same frames (walker renders at 480x640, encoded before timing:
+the camera's own encoding is not counted):
+
+1. native   64x64 rgb8 (the frame as the sim bridge renders it: center crop, area resize) with
+            step_info, paired by stamp: the sim bridge's contract
+2. bgr8     480x640 bgr8 with step_info (the node crops, resizes and reorders the channels)
+3. jpeg     480x640 JPEG (quality 90) as sensor_msgs/CompressedImage on image/compressed
+            (image_transport:=compressed) with step_info (the node decodes it first)
+
+Each row: the round trip p50/p99 seen here, and the node's own latency (its callback for the
+completing message -> action published: decode, resize, model) and model time (Policy.act) from
+its /diagnostics, p50/p99.
+
+    python scripts/bench_camera_latency.py                 # 300 frames per case
+    python scripts/bench_camera_latency.py --frames 100 --num-threads 2
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+# Measure the working tree this script belongs to, not an installed copy; its tests' helpers too.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+
+from helpers import Proc, wait_until
+from helpers.camera_frames import CameraFeeder, compressed_msg, raw_msg, walker_frames
+from helpers.ros import Probe
+from sensor_msgs.msg import Image
+
+from protocad_ros.model.precision import cpu_capability
+from protocad_ros.policy import shipped_policy
+from sim_bridge.contract import camera, topics
+
+ROOT = Path(__file__).resolve().parents[1]
+CASES = ("native", "bgr8", "jpeg")
+
+
+def parse() -> argparse.Namespace:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter,
+                                 epilog="\n".join(__doc__.split("\n")[2:]))
+    ap.add_argument("--frames", type=int, default=300, help="timed frames per case (default 300)")
+    ap.add_argument("--warmup", type=int, default=20, help="frames sent first, not timed (default 20)")
+    ap.add_argument("--distinct", type=int, default=50, help="distinct walker frames rendered and "
+                    "cycled through (default 50)")
+    ap.add_argument("--num-threads", type=int, default=1, help="the node's torch threads (default 1)")
+    ap.add_argument("--cases", nargs="+", choices=CASES, default=list(CASES))
+    return ap.parse_args()
+
+
+def messages(case: str, frames: list[np.ndarray], stamps: list[int]) -> list:
+    out = []
+    for i, stamp in enumerate(stamps):
+        frame = frames[i % len(frames)]
+        if case == "native":
+            out.append(topics.fill_image(Image(), camera.resize(frame, 64), stamp))
+        elif case == "bgr8":
+            out.append(raw_msg(frame, "bgr8", stamp))
+        else:
+            out.append(compressed_msg(frame, "jpeg", stamp, quality=90))
+    return out
+
+
+def run_case(case: str, args, frames: list[np.ndarray], logs: Path) -> dict:
+    ns = f"/bench_{case}"
+    node = Proc([sys.executable, "-m", "protocad_ros.node.policy_node", "--ros-args",
+                 "-p", f"checkpoint:={shipped_policy('walker_walk')}", "-p", "mode:=deterministic",
+                 "-p", f"num_threads:={args.num_threads}", "-p", "diagnostics_period_s:=0.2",
+                 "-p", f"image_transport:={'compressed' if case == 'jpeg' else 'raw'}", "-r", f"__ns:={ns}"],
+                logs / f"{case}.log")
+    probe = Probe(f"bench_camera_{case}", namespace=ns)
+    try:
+        feeder = CameraFeeder(probe, ns, compressed=case == "jpeg")
+        wait_until(feeder.ready, 300, f"the {case} policy node to match")
+        n = args.warmup + args.frames
+        stamps = [1_000_000_000 + 20_000_000 * i for i in range(n)]
+        msgs = messages(case, frames, stamps)
+        sent: dict[int, float] = {}
+        for i, (stamp, msg) in enumerate(zip(stamps, msgs)):
+            sent[stamp] = feeder.send(msg, step=i)
+            wait_until(lambda s=stamp: s in feeder.arrived, 60, f"the answer to frame {i}", 0.0005)
+        timed = stamps[args.warmup:]
+        rtt = np.array([feeder.arrived[s] - sent[s] for s in timed]) * 1e3
+        name = f"{ns}/policy"
+        wait_until(lambda: probe.node_diag(name).get("observations_answered") == str(n), 30, "its diagnostics")
+        d = probe.node_diag(name)
+        if not node.alive() or d.get("images_rejected") != "0":
+            raise SystemExit(f"{case}: the node died or rejected images; see {node.log_path}")
+        size = sum(len(m.data) for m in msgs) / len(msgs)
+        return {"case": case, "bytes": size, "p50": float(np.percentile(rtt, 50)),
+                "p99": float(np.percentile(rtt, 99)),
+                "node": (float(d["latency_ms_p50"]), float(d["latency_ms_p99"])),
+                "act": (float(d["act_ms_p50"]), float(d["act_ms_p99"]))}
+    finally:
+        probe.close()
+        node.stop()
+
+
+def main() -> None:
+    args = parse()
+    if shipped_policy("walker_walk") is None:
+        raise SystemExit("the package ships no walker_walk policy")
+    # DDS on this machine only, in a domain of our own (before the probe's rclpy.init).
+    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+    os.environ.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
+    os.environ.setdefault("MUJOCO_GL", "egl")
+    os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
+    os.environ.setdefault("AMENT_PREFIX_PATH", sys.prefix)
+    os.environ["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
+    frames = walker_frames(args.distinct)
+    t0 = time.perf_counter()
+    for f in frames:
+        camera.encode_compressed(f, "jpeg", 90)
+    encode_ms = (time.perf_counter() - t0) / len(frames) * 1e3
+    cpu = next((line.split(":", 1)[1].strip() for line in Path("/proc/cpuinfo").read_text().splitlines()
+                if line.startswith("model name")), platform.machine())
+    print(f"machine: {cpu}, {os.cpu_count()} cores, CPU capability {cpu_capability()}; node torch "
+          f"threads {args.num_threads}; {args.frames} timed frames per case after {args.warmup}, lock-step")
+    print(f"(camera side, not in the figures: JPEG q90 encoding of a 480x640 frame {encode_ms:.1f} ms)")
+    print(f"{'case':8} {'bytes':>8} {'obs->action p50':>16} {'p99':>8} {'node p50':>9} {'p99':>8} "
+          f"{'model p50':>10} {'p99':>8}   (ms)")
+    with tempfile.TemporaryDirectory() as tmp:
+        for case in args.cases:
+            r = run_case(case, args, frames, Path(tmp))
+            print(f"{r['case']:8} {r['bytes']:8.0f} {r['p50']:16.2f} {r['p99']:8.2f} {r['node'][0]:9.2f} "
+                  f"{r['node'][1]:8.2f} {r['act'][0]:10.2f} {r['act'][1]:8.2f}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
