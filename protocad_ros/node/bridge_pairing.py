@@ -44,10 +44,10 @@ class BridgePairing:
         self._take_announcements()
 
     def _observation_writers(self) -> set[tuple]:
-        """The participants that write both image and step_info where this node reads them."""
-        found = [{tuple(e.endpoint_gid)[:PARTICIPANT_BYTES]
-                  for e in self.get_publishers_info_by_topic(self.resolve_topic_name(t))}
-                 for t in (topics.IMAGE, topics.STEP_INFO)]
+        """The participants that write both image and step_info where this node reads them (the
+        image where its camera reads it: `image/compressed` with compressed transport)."""
+        found = [{tuple(e.endpoint_gid)[:PARTICIPANT_BYTES] for e in self.get_publishers_info_by_topic(t)}
+                 for t in (self.camera.topic, self.resolve_topic_name(topics.STEP_INFO))]
         return found[0] & found[1]
 
     def _take_announcements(self) -> None:

@@ -16,10 +16,11 @@ from helpers.ros import Probe, publisher_node
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState
 from PIL import Image as PILImage
-from sensor_msgs.msg import Image
+from sensor_msgs.msg import Image, JointState
 
 from protocad_ros.robot.camera_input import CameraInput
 from sim_bridge.contract import camera, qos, topics
+from sim_bridge.contract.contexts import task_actuators
 from sim_bridge.nodekit.rosnode import ConfigError
 
 #: JPEG at quality 90 of a 480x640 walker render, center-cropped and area-resized to 64x64,
@@ -166,6 +167,13 @@ def _run_walkers(spawn, probe: Probe) -> None:
     feeders = {k: CameraFeeder(probe, ns, compressed=k == "jpeg") for k, (ns, *_) in nodes.items()}
     for k, f in feeders.items():
         wait_until(lambda f=f, k=k: f.ready(paired=k != "alone"), START, f"the {k} policy to match")
+    # As a sim bridge announces itself: believed only from the writer of the image (on the topic
+    # the camera reads: image/compressed for the JPEG node) and step_info, else never answered.
+    walker = topics.BridgeInfo("walker_walk", task_actuators("walker_walk"), 0.025, 64)
+    for k, (ns, *_) in nodes.items():
+        if k != "alone":
+            pub = probe.publisher(topics.BRIDGE_INFO, JointState, qos.announcement_qos(), ns=ns)
+            pub.publish(topics.fill_bridge_info(JointState(), walker))
     frames = walker_frames(8, seed=1)
     stamps = [1_000_000_000 + 20_000_000 * i for i in range(len(frames))]
     for i, (frame, stamp) in enumerate(zip(frames, stamps)):
@@ -190,6 +198,10 @@ def _run_walkers(spawn, probe: Probe) -> None:
     gap = np.abs(acts["jpeg"] - acts["native"])
     assert gap.max() < JPEG_ACTION_TOL, gap
 
+    for k in ("native", "big", "jpeg"):
+        wait_until(lambda k=k: probe.node_diag(f"cam_{k}/policy").get("bridge", "").startswith("walker_walk"),
+                   20, f"the {k} policy to name its bridge")
+        assert probe.counter(f"cam_{k}/policy", "bridge_info_ignored") == 0
     wait_until(lambda: probe.counter("cam_big/policy", "rejected_image_encoding") == 1, 20, "the yuv422 count")
     assert probe.counter("cam_big/policy", "images_rejected") == 1
     assert "image encoding 'yuv422' is not taken" in procs["big"].output()
