@@ -234,3 +234,29 @@ def test_a_bad_image_crop_stops_the_node_with_one_line(spawn):
     assert wait_exit(bad, START) == 2
     out = bad.output()
     assert "image_crop: crop 'middle': expected center, full or x,y,w,h" in out and "Traceback" not in out
+
+
+@pytest.mark.ros
+@pytest.mark.process
+def test_a_best_effort_camera_is_answered_with_the_qos_override_the_docs_name(spawn, frames):
+    """A real camera driver publishes best effort (sensor data QoS), which the node's reliable
+    reader never matches; msgs_docs/policy.md names the override that makes it match. (160x120
+    frames: a best-effort 480x640 raw frame mostly does not arrive whole over Fast DDS's default
+    transports here, see policy.md; that is measured, not tested.)"""
+    from rclpy.qos import qos_profile_sensor_data
+
+    probe = Probe("camera_qos_probe")
+    try:
+        ns = topics.DEFAULT_NAMESPACE
+        policy = spawn("policy", *policy_args("observations:=image_only",
+                                              f"qos_overrides.{ns}/image.subscription.reliability:=best_effort"))
+        feeder = CameraFeeder(probe, ns)
+        feeder.pub_image = probe.publisher(topics.IMAGE, Image, qos_profile_sensor_data)
+        wait_until(lambda: feeder.ready(paired=False), START, "the policy to match a best-effort camera")
+        for i, stamp in enumerate((1_000, 2_000)):
+            small = np.asarray(PILImage.fromarray(frames[i]).resize((160, 120)))
+            feeder.send(raw_msg(small, "bgr8", stamp))
+            wait_until(lambda s=stamp: s in feeder.arrived, 30, f"the answer to frame {i}")
+        assert policy.alive() and "unknown parameter" not in policy.output()
+    finally:
+        probe.close()
