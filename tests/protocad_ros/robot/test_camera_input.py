@@ -242,7 +242,7 @@ def test_a_best_effort_camera_is_answered_with_the_qos_override_the_docs_name(sp
     """A real camera driver publishes best effort (sensor data QoS), which the node's reliable
     reader never matches; msgs_docs/policy.md names the override that makes it match. (160x120
     frames: a best-effort 480x640 raw frame mostly does not arrive whole over Fast DDS's default
-    transports here, see policy.md; that is measured, not tested.)"""
+    transports here, measured by scripts/bench_camera_latency.py --best-effort, not tested.)"""
     from rclpy.qos import qos_profile_sensor_data
 
     probe = Probe("camera_qos_probe")
