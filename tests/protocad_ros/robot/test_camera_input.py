@@ -16,6 +16,7 @@ from helpers.ros import Probe, publisher_node
 from lifecycle_msgs.msg import Transition
 from lifecycle_msgs.srv import ChangeState
 from PIL import Image as PILImage
+from rclpy.qos import qos_profile_sensor_data
 from sensor_msgs.msg import Image, JointState
 
 from protocad_ros.robot.camera_input import CameraInput
@@ -243,8 +244,6 @@ def test_a_best_effort_camera_is_answered_with_the_qos_override_the_docs_name(sp
     reader never matches; msgs_docs/policy.md names the override that makes it match. (160x120
     frames: a best-effort 480x640 raw frame mostly does not arrive whole over Fast DDS's default
     transports here, measured by scripts/bench_camera_latency.py --best-effort, not tested.)"""
-    from rclpy.qos import qos_profile_sensor_data
-
     probe = Probe("camera_qos_probe")
     try:
         ns = topics.DEFAULT_NAMESPACE
