@@ -31,10 +31,11 @@ START = 180.0    # torch import, the model, three processes on a loaded 2-core m
 #: Returns through the camera and adapter against the native path's, same contexts and seeds.
 #: The camera path sees the same scene rasterised at 480 rows and area-averaged to 64 (mean
 #: absolute pixel difference 2.3 of 255, tests/sim_bridge/bridge), so the actions differ a little
-#: and each episode drifts apart: measured in process over 12 unseen contexts x 150 steps, native
-#: 51.7, camera 58.9, per-episode paired differences SD 22. 0.45 x native is about 3 standard
-#: errors of the mean difference over 8 episodes. A return this short is a coarse check (the
-#: policy fed swapped colour channels still scored 34.6): the pixel and action identities of
+#: and each episode drifts apart: measured in process over 32 unseen contexts x 150 steps, native
+#: 55.2, camera 47.9, paired difference -7.3 [95% t-interval -16.5, +1.9], per-episode SD 25
+#: (msgs_docs/robot.md). 0.45 x native is about 3 standard errors of the mean difference over 8
+#: episodes. A return this short is a coarse check (the policy fed swapped colour channels
+#: still scored 34.6): the pixel and action identities of
 #: tests/protocad_ros/robot/test_camera_input.py are what catch a preprocessing mistake.
 RETURN_TOLERANCE = 0.45
 
