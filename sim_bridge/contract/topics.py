@@ -460,7 +460,3 @@ def read_checkpoint_chunk_label(msg: Any) -> tuple[str, int, int]:
         raise ValueError(f"chunk label {msg.layout.dim[0].label!r} is not '<sha256>:<index>/<n>'")
     return sha, int(index), int(n)
 
-
-def read_checkpoint_chunk(msg: Any) -> tuple[str, int, int, bytes]:
-    """(sha256, index, n_chunks, bytes) of a chunk; ValueError if its label is not ours."""
-    return (*read_checkpoint_chunk_label(msg), bytes(msg.data))

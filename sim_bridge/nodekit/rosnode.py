@@ -301,10 +301,6 @@ def make_status(name: str, hardware_id: str, values: dict[str, Any], level: str 
     return st
 
 
-def diagnostics_dict(status) -> dict[str, str]:
-    return {kv.key: kv.value for kv in status.values}
-
-
 EXECUTORS = ("events", "single")
 
 

@@ -95,10 +95,6 @@ class RosGraph:
         self._diag.pop(node_fqn, None)
         self._diag_status.pop(node_fqn, None)
 
-    @property
-    def forged_total(self) -> int:
-        return sum(self.forged.values())
-
     # ------------------------------------------------------------------ lifecycle
     def lifecycle_state(self, node_fqn: str, timeout: float = GET_STATE_TIMEOUT_S) -> str | None:
         """The label of `node_fqn`'s current state from its get_state service; None when the

@@ -152,10 +152,6 @@ class ContextView:
     value_range: dict[str, tuple[float, float]] = field(default_factory=dict)
     skip_steps: int = 0
 
-    @property
-    def feature_names(self) -> list[str]:
-        return [f for f in FEATURES if f in self.features]
-
     def space(self, feature: str, dim: int) -> str:
         return f"/embeddings/{feature}/{self.method}{dim}d"
 
