@@ -66,7 +66,7 @@ INSTALL_REQUIRES = [
     "pyyaml>=6.0",
     "tqdm>=4.66",
     "scikit-learn>=1.4",
-    "scipy>=1.11",        # trim_mean (IQM) in trainer/research/results.py, imported directly
+    "scipy>=1.11",        # trim_mean (IQM) in trainer/research/statistics.py, imported directly
     "pillow>=10.1",
     "matplotlib>=3.8",    # protocad-compare's learning-curve PNG
     "jsonschema>=4.20",   # results.json is checked against its schema on save and load
@@ -80,7 +80,7 @@ setup(
     version="0.1.0",
     description="ProtoCAD (ICLR 2023) context-aware world models as a ROS 2 Jazzy stack",
     packages=find_packages(include=["protocad_ros*", "sim_bridge*", "trainer*"]),
-    # DreamerV2's published curves, the anchor's reference (trainer/research/results.py plots them)
+    # DreamerV2's published curves, the anchor's reference (trainer/research/report.py plots them)
     package_data={"trainer.research": ["dreamerv2_dmc_vision.json"],
                   "protocad_ros": ["policies/*.pt", "policies/*.json"]},   # shipped policies
     python_requires=">=3.11,<3.12",

@@ -3,7 +3,7 @@
 
     python scripts/bench_dataset.py --steps 20000 --bags 4     # ~1 GB of raw frames
 
-Writes BAGS bags (trainer.bag.mcap_io.BagWriter, zstd, the contract topics) with STEPS steps in
+Writes BAGS bags (trainer.bag.writer.BagWriter, zstd, the contract topics) with STEPS steps in
 total (episodes of 500 steps, noise images so compression cannot cheat), then reports:
 - first indexing (stream every bag once into the on-disk uint8 store): steps/s, MB/s of frames;
 - a second open (cache reuse): seconds;
@@ -28,7 +28,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from sim_bridge.contract import topics as T
-from trainer.bag import mcap_io
+from trainer.bag.rosmsg import new_message
+from trainer.bag.writer import BagWriter
 from trainer.data.dataset import MCAPDataset
 
 
@@ -45,10 +46,10 @@ def rss_mb(kind: str = "RssAnon") -> float:
 def write_bags(root: Path, steps: int, bags: int, ep_len: int = 500) -> list[Path]:
     rng = np.random.default_rng(0)
     out, per_bag, dt = [], steps // bags, 40_000_000
-    new = mcap_io.new_message
+    new = new_message
     for b in range(bags):
         d = root / f"bag{b}"
-        with mcap_io.BagWriter(d) as w:
+        with BagWriter(d) as w:
             names = {k: T.topic_name("/protocad", k) for k in (T.IMAGE, T.STEP_INFO, T.CONTEXT, T.ACTION)}
             for rel, t in names.items():
                 w.add_topic(t, T.TYPES[rel])

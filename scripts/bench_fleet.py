@@ -35,7 +35,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from protocad_ros.model.precision import cpu_capability
 from sim_bridge.contract import topics as T
-from trainer.bag import mcap_io
+from trainer.bag.reader import BagReader
 from trainer.launch import discovery
 from trainer.launch.rosprocs import RosStack, robot_namespaces
 
@@ -97,7 +97,7 @@ def one(args) -> dict:
             stack.stop_all()
             bag_bytes = sum(f.stat().st_size for f in bag.glob("*")) if args.record else None
             if args.record:   # did the recorder keep up: every step of every group in the bag?
-                counts = mcap_io.BagReader(bag).report.counts
+                counts = BagReader(bag).report.counts
                 recorded = sum(counts.get(T.topic_name(ns, T.STEP_INFO), 0) for ns in namespaces)
     if any(len(t) <= WARMUP + 1 for t in seen.values()):
         raise SystemExit(f"too few observations to time: {[len(t) for t in seen.values()]}")

@@ -40,7 +40,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
 from helpers import wait_until
 
 from sim_bridge.contract import topics as T
-from trainer.bag import mcap_io as M
+from trainer.bag.reader import BagReader
 
 ROOT = Path(__file__).resolve().parents[1]
 # DDS on this machine only, in a domain of our own (before rclpy is imported, in run).
@@ -152,7 +152,7 @@ def run(args, logdir: Path, stall: bool, index: int) -> dict:
         assert stop(bridge) == 0, "the bridge failed"
         rec_peak = rss_mb(rec.pid, "VmHWM")
         stop(rec)
-        reader = M.BagReader(bag)
+        reader = BagReader(bag)
         counts = reader.report.counts
         published = int(re.search(r"observations_published=(\d+)",
                                   (logdir / f"bridge{index}.log").read_text()).group(1))

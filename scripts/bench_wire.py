@@ -25,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from protocad_ros.model.precision import cpu_capability
 from sim_bridge.contract import topics as T
 from sim_bridge.sim.envs import ContextDMCEnv
-from trainer.bag import mcap_io
+from trainer.bag.rosmsg import encode, new_message
 from trainer.research.online_rundir import EpisodeBagWriter
 
 
@@ -44,14 +44,14 @@ def main(argv=None) -> int:
     obs += [env.step(rng.uniform(-1, 1, env.action_dim)) for _ in range(a.steps - 1)]
     names, dt = list(env.action_names), env.control_dt
     env.close()
-    new, o = mcap_io.new_message, obs[1]
+    new, o = new_message, obs[1]
     sizes = {
-        "image": mcap_io.encode(T.TYPES[T.IMAGE], T.fill_image(new(T.TYPES[T.IMAGE]), o.image, 0)),
-        "step_info": mcap_io.encode(T.TYPES[T.STEP_INFO], T.fill_step_info(
+        "image": encode(T.TYPES[T.IMAGE], T.fill_image(new(T.TYPES[T.IMAGE]), o.image, 0)),
+        "step_info": encode(T.TYPES[T.STEP_INFO], T.fill_step_info(
             new(T.TYPES[T.STEP_INFO]), T.StepInfo(0.0, 1.0, False, False, False, 0, 1), 0)),
-        "context": mcap_io.encode(T.TYPES[T.CONTEXT], T.fill_context(
+        "context": encode(T.TYPES[T.CONTEXT], T.fill_context(
             new(T.TYPES[T.CONTEXT]), o.context, o.split, 0)),
-        "action": mcap_io.encode(T.TYPES[T.ACTION], T.fill_action(
+        "action": encode(T.TYPES[T.ACTION], T.fill_action(
             new(T.TYPES[T.ACTION]), np.zeros(len(names)), names, 0)),
     }
     total = sum(len(v) for v in sizes.values())

@@ -5,7 +5,7 @@
 #                      meshes, no MuJoCo studio), mcap, mcap-ros2-support, tyro and dm_control's pure
 #                      dependencies, as CPython wheels for the GPU machine's Python (default 3.12)
 #   .gpu/prefix/share/<pkg>/msg/*.msg|*.json   the message definitions the MCAP writer reads
-#                      (the GPU path has no ROS install; see trainer/bag/mcap_io.py)
+#                      (the GPU path has no ROS install; see trainer/bag/__init__.py)
 # About 16 MB in all. On the GPU machine:
 #   python scripts/gpu_campaign.py --site-archive .gpu/site.tar.xz --ament-prefix .gpu/prefix
 #

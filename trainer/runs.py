@@ -26,7 +26,7 @@ import numpy as np
 
 from protocad_ros.atomic import atomic_write_text
 from protocad_ros.model.config import Config
-from trainer.run_input import check_logs, check_settings_section, load_json_object, load_yaml_mapping  # noqa: F401 - for the CLIs
+from trainer.run_input import load_json_object, load_yaml_mapping
 
 CHECKPOINT_NAME = "latest.pt"
 

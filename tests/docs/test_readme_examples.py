@@ -20,7 +20,7 @@ from sensor_msgs.msg import JointState
 
 from sim_bridge.contract import qos
 from sim_bridge.contract import topics as T
-from trainer.bag import mcap_io as M
+from trainer.bag.reader import BagReader
 
 pytestmark = [pytest.mark.ros, pytest.mark.process]
 
@@ -66,7 +66,7 @@ def ctrl_c(p: subprocess.Popen, timeout: float = 60) -> int:
 
 
 def assert_every_step_answered_from_stamp_0(bag: Path) -> int:
-    reader = M.BagReader(bag)
+    reader = BagReader(bag)
     steps, actions = [], set()
     for m in reader.messages(topics=[T.topic_name(NS, T.STEP_INFO), T.topic_name(NS, T.ACTION)]):
         stamp = T.stamp_to_ns(reader.decode(m).header.stamp)

@@ -1,5 +1,5 @@
 """Helpers of the trainer tests: step sequences with known content, written as rosbag2 MCAP bags
-by this project's writer (trainer.bag.mcap_io.BagWriter) or by another tool (the rosbags library).
+by this project's writer (trainer.bag.writer.BagWriter) or by another tool (the rosbags library).
 
 Every step carries its identity in its data, so tests can check what the dataset made of it:
 image[..., 0] = step id % 256, image[..., 1] = episode id, image[..., 2] = 7;
@@ -69,22 +69,23 @@ def write_bag(bag_dir: Path, steps: list[dict], *, namespace: str = "/protocad",
               extra_topics: dict[str, int] | None = None, duplicate_stamps: set[int] | None = None,
               compression: str = "zstd", image_type: str = T.TYPES[T.IMAGE], fill_image=T.fill_image,
               image_topic: str = T.IMAGE) -> Path:
-    """The ROS path's layout with trainer.bag.mcap_io.BagWriter. A step without 'action' (None) is
+    """The ROS path's layout with trainer.bag.writer.BagWriter. A step without 'action' (None) is
     left unanswered; stamps in duplicate_stamps are written twice (image + step_info);
     extra_topics {topic: count} adds std_msgs/String messages on foreign topics. A camera's
     frames: image_type COMPRESSED_IMAGE with fill_image=fill_jpeg, on image_topic
     (e.g. image/compressed)."""
-    from trainer.bag import mcap_io
+    from trainer.bag.rosmsg import new_message
+    from trainer.bag.writer import BagWriter
 
     names = {k: T.topic_name(namespace, k) for k in (T.IMAGE, T.STEP_INFO, T.CONTEXT, T.ACTION)}
     names[T.IMAGE] = T.topic_name(namespace, image_topic)
     types = {**T.TYPES, T.IMAGE: image_type}
-    with mcap_io.BagWriter(bag_dir, chunk_size=chunk_size, compression=compression) as w:
+    with BagWriter(bag_dir, chunk_size=chunk_size, compression=compression) as w:
         for rel, topic in names.items():
             w.add_topic(topic, types[rel])
         for t in extra_topics or {}:
             w.add_topic(t, "std_msgs/msg/String")
-        new = mcap_io.new_message
+        new = new_message
         for st in steps:
             s = st["stamp"]
             reps = 2 if duplicate_stamps and s in duplicate_stamps else 1
@@ -162,9 +163,9 @@ def loop_failure(r, run: Path) -> str:
 def check_robot_episodes(bag: Path, namespaces: list[str], episode_length: int) -> None:
     """One episode of each robot in `bag`, under the robot's namespace with its own clock, and
     nothing under the shared namespace."""
-    from trainer.bag import mcap_io
+    from trainer.bag.reader import BagReader
 
-    reader = mcap_io.BagReader(bag)
+    reader = BagReader(bag)
     topics = reader.report.counts
     for ns in namespaces:
         # one episode of L steps = L+1 observations; count distinct stamps, as a lock-step

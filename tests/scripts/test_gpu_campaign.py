@@ -12,7 +12,7 @@ import tarfile
 import pytest
 from helpers import HELPERS, ROOT
 
-from trainer.research import results as R
+from trainer.research.results_json import validate
 
 pytestmark = pytest.mark.process
 
@@ -44,7 +44,7 @@ def test_campaign_runs_every_step_without_ros_on_a_tiny_budget(tmp_path):
     assert {r["variant"] for r in rows} == {"protocad", "dreamer"} and all("sec" in r for r in rows)
     assert "walker_walk" in read("logs/bench_envs.txt")
     doc = json.loads(read("compare/results.json"))
-    R.validate(doc)    # jsonschema is importable here, in the test process
+    validate(doc)    # jsonschema is importable here, in the test process
     assert sorted(r["label"] for r in doc["runs"]) == ["dreamer", "protocad"]
     assert all(r["status"] == "finished" and r["final"] is not None for r in doc["runs"])
     assert all(r["final_train"] is not None and r["prototype_freeze"] in (None, 0) for r in doc["runs"])

@@ -66,7 +66,7 @@ def library_string() -> str:
             return _pkg_version(name)
         except PackageNotFoundError:
             return "unknown"
-    return f"protocad-ros {ver('protocad-ros')} trainer.bag.mcap_io; mcap-python {ver('mcap')}"
+    return f"protocad-ros {ver('protocad-ros')} trainer.bag; mcap-python {ver('mcap')}"
 
 
 @dataclass

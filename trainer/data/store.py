@@ -18,7 +18,7 @@ import numpy as np
 import yaml
 
 from sim_bridge.contract import topics as T
-from trainer.bag import mcap_io
+from trainer.bag.reader import BagReader
 from trainer.data.rebuild import BagColumns, assemble
 from trainer.data.records import (
     EXPECTED_TYPES,
@@ -220,7 +220,7 @@ def _ingest_into(source: Path, topics: TopicMap, tmp: Path, image: ImageSpec) ->
     t0 = time.monotonic()
     rep = SourceReport(path=str(source), files=[str(f) for f in source_files(source)])
     by_key = {k: v for k, v in topics.as_dict().items() if v}
-    reader = mcap_io.BagReader(str(source))
+    reader = BagReader(str(source))
     st = _stream_bag(reader, by_key, rep, tmp, image)
 
     _report_reading(rep, reader.report, source, by_key)

@@ -16,7 +16,7 @@ from trainer import run_config, runs, settings
 from trainer.data.dataset import MCAPDataset, TopicMap
 from trainer.launch.rosprocs import robot_namespaces
 from trainer.learn.schedule import Schedule
-from trainer.runs import check_settings_section
+from trainer.run_input import check_settings_section
 
 #: trainer.launch.loop.LoopSettings, by name only: loop.py imports this module, so importing it
 #: back would be a cycle.

@@ -28,7 +28,7 @@ from trainer.data.records import DEFAULT_CROP
 from trainer.data.store import find_sources, multiple_publishers
 from trainer.learn import distributed
 from trainer.learn.trainer import DEFAULT_LOG_EVERY, CheckpointWriteError, RanksDiverged, Trainer
-from trainer.runs import check_logs, check_settings_section
+from trainer.run_input import check_logs, check_settings_section
 from trainer.settings import arg
 from trainer.viz.rerun_log import metrics_callbacks
 

@@ -7,7 +7,7 @@ from the rmw message info, waits for
 topics that appear late (graph polling), stores the publishers' offered QoS and type hash in the
 channel metadata, and closes the bag cleanly (footer, summary, metadata.yaml) on SIGINT/SIGTERM.
 After a SIGKILL every chunk already written (chunk_size bytes, or flush_interval seconds) can be
-read back with trainer.bag.mcap_io.BagReader.
+read back with trainer.bag.reader.BagReader.
 
 Usage: python -m trainer.nodes.recorder -o BAG [--topics T ...] [--namespace /protocad] ...
        ros2 run trainer record --ros-args -p output:=BAG -p compression:=lz4
@@ -36,7 +36,7 @@ from sim_bridge.nodekit.fastdds_profile import announced_lease, participant_leas
 from sim_bridge.nodekit.publisher_watch import PublisherWatch
 from sim_bridge.nodekit.rosbase import ProtocadNode
 from sim_bridge.nodekit.rosnode import ConfigError, KeyThrottle, declare_all, run_node, with_defaults
-from trainer.bag import mcap_io
+from trainer.bag.writer import BagWriteError
 from trainer.nodes.record_budget import BudgetLimits, DiskFloor, RecordBudget, parse_topic_values
 from trainer.nodes.recorder_announcements import AnnouncementFilter
 
@@ -132,7 +132,7 @@ def start_recorder(args: argparse.Namespace) -> RecorderNode:
         with participant_lease(args.lease_duration) as lease_profile:
             node = RecorderNode(values, qos_overrides=qos_overrides, custom_data=parse_custom_data(args.custom_data),
                                 node_name=args.node_name)
-    except (mcap_io.BagWriteError, ValueError) as exc:
+    except (BagWriteError, ValueError) as exc:
         raise ConfigError(str(exc)) from None
     if lease_profile is not None:   # not with another rmw, nor with 0 (the profile's own)
         node.get_logger().info(f"DDS lease {args.lease_duration:g} s: a stall shorter than that loses nothing")

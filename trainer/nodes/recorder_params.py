@@ -6,7 +6,7 @@ from __future__ import annotations
 
 from sim_bridge.contract import topics as T
 from sim_bridge.nodekit.rosnode import Param
-from trainer.bag import mcap_io
+from trainer.bag.writer import DEFAULT_CHUNK_SIZE
 from trainer.nodes.record_budget import (
     DEFAULT_FLOOD_FACTOR,
     DEFAULT_MIN_FREE_DISK,
@@ -46,8 +46,8 @@ PARAMS: tuple[Param, ...] = (
     # This recorder's own.
     _row("namespace", T.DEFAULT_NAMESPACE, "namespace of the default contract topics (default /protocad)"),
     _row("compression", "zstd", "MCAP chunk compression (default zstd)", choices=("zstd", "lz4", "none")),
-    _row("chunk_size", mcap_io.DEFAULT_CHUNK_SIZE,
-         f"uncompressed chunk size in bytes (smaller: less lost on SIGKILL; default {mcap_io.DEFAULT_CHUNK_SIZE})"),
+    _row("chunk_size", DEFAULT_CHUNK_SIZE,
+         f"uncompressed chunk size in bytes (smaller: less lost on SIGKILL; default {DEFAULT_CHUNK_SIZE})"),
     _row("flush_interval", 1.0, "write the open chunk at least every this many seconds (0: only by "
                                 "size); bounds what a SIGKILL loses (default 1.0)"),
     _row("queue_depth", DEFAULT_QUEUE_DEPTH,

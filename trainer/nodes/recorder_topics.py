@@ -11,8 +11,8 @@ import re
 from typing import Any, Mapping, Sequence
 
 from sim_bridge.contract import topics as T
-from trainer.bag import mcap_io
 from trainer.bag.rosmsg import interface_module
+from trainer.bag.writer import qos_profile
 from trainer.data.records import MULTIPLE_PUBLISHERS_KEY
 from trainer.nodes.record_budget import contract_name
 
@@ -38,7 +38,7 @@ def qos_profile_to_dict(qos: Any) -> dict[str, Any]:
     def name(policy: Any) -> str:
         return policy.name.lower()   # keep_last, reliable, transient_local, automatic, unknown...
 
-    return mcap_io.qos_profile(
+    return qos_profile(
         history=name(qos.history), depth=int(qos.depth), reliability=name(qos.reliability),
         durability=name(qos.durability), deadline_ns=qos.deadline.nanoseconds,
         lifespan_ns=qos.lifespan.nanoseconds, liveliness=name(qos.liveliness),

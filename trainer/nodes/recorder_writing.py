@@ -9,7 +9,7 @@ import time
 from datetime import datetime
 from typing import Any, Mapping
 
-from trainer.bag import mcap_io
+from trainer.bag.writer import BagWriteError, BagWriter
 
 #: Longest drain at close (s): a KEEP_ALL backlog of 5000 samples on each of five topics takes a
 #: few seconds to write; the processes that stop the recorder give it 20 s.
@@ -35,7 +35,7 @@ class BagWriting:
     context are rclpy's."""
 
     def _open_bag(self, p: Mapping[str, Any], custom_data: Mapping[str, str] | None) -> None:
-        self.writer = mcap_io.BagWriter(
+        self.writer = BagWriter(
             p["output"], compression=p["compression"], chunk_size=p["chunk_size"],
             max_bagfile_size=p["max_bagfile_size"],
             max_bagfile_duration_s=p["max_bagfile_duration"],
@@ -84,7 +84,7 @@ class BagWriting:
         with self._lock:
             try:
                 self.writer.flush_if_due()
-            except mcap_io.BagWriteError as exc:
+            except BagWriteError as exc:
                 self._warn_once("flush", f"flushing the bag failed: {exc}")
                 self._check_failure()
 

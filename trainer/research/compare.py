@@ -54,15 +54,15 @@ from protocad_ros.model.hyperparameters import VARIANTS
 from sim_bridge.contract.contexts import TASKS
 from trainer import cli_values, console, runs
 from trainer.provenance import stale_install
-from trainer.research import results as R
-from trainer.research.results import ANCHOR_LABEL, latest_progress, standard_context
+from trainer.research import report, results_json
+from trainer.research.statistics import standard_context
 from trainer.settings import arg, build, settings_parser
 
 
 @dataclass
 class RunSpec:
     task: str
-    label: str           # variant, or ANCHOR_LABEL for the unrandomized dreamer
+    label: str           # variant, or results_json.ANCHOR_LABEL for the unrandomized dreamer
     variant: str
     seed: int
     run_dir: Path
@@ -107,7 +107,7 @@ def carry_finished_runs(specs: Sequence[RunSpec], a: GridSettings) -> int:
     n = 0
     for path in a.from_results:
         try:   # unreadable, too large, not JSON, not a results.json: one line naming the option
-            doc = R.load_results(path)
+            doc = results_json.load_results(path)
         except ValueError as exc:
             raise ValueError(f"--from-results {exc}") from None
         b = doc["budgets"]
@@ -136,10 +136,10 @@ def plan(a: GridSettings) -> list[RunSpec]:
     # Seed-major: the variants of a seed run side by side, so a grid cut short (or still
     # running) has compared seeds, not all of one variant and none of the other.
     grid = [(t, v, v, s) for t in a.tasks for s in a.seeds for v in a.variants]
-    grid += [(t, ANCHOR_LABEL, "dreamer", s) for t in a.tasks for s in a.anchor_seeds]
+    grid += [(t, results_json.ANCHOR_LABEL, "dreamer", s) for t in a.tasks for s in a.anchor_seeds]
     for i, (task, label, variant, seed) in enumerate(grid):
         extra = []
-        if label == ANCHOR_LABEL:
+        if label == results_json.ANCHOR_LABEL:
             ctx = standard_context(task)
             # DreamerV2's own dmc_vision settings, so its published curve is the reference
             extra = ["--train-context", ctx, "--eval-split", "train", "--eval-contexts", ctx,
@@ -154,7 +154,7 @@ def run_protocols(specs: Sequence[RunSpec]) -> dict[str, dict]:
     random baseline; the anchor's runs are scored on the standard context, not on the grid's."""
     found: dict[str, dict] = {}
     for s in specs:
-        if s.task in found or s.label == ANCHOR_LABEL:
+        if s.task in found or s.label == results_json.ANCHOR_LABEL:
             continue
         try:
             found[s.task] = json.loads((s.run_dir / "run.json").read_text())["protocol"]
@@ -270,7 +270,7 @@ def run_grid(specs: Sequence[RunSpec], a: GridSettings,
                     running[p.pid] = (s, p, log)
                 time.sleep(1.0)
                 for pid, (s, p, log) in list(running.items()):
-                    steps, updates[id(s)] = latest_progress(s.run_dir)
+                    steps, updates[id(s)] = results_json.latest_progress(s.run_dir)
                     bar.update(max(0, steps - done_steps[id(s)]))
                     done_steps[id(s)] = max(done_steps[id(s)], steps)
                     if p.poll() is None:
@@ -421,8 +421,8 @@ def _reported_docs(a: GridSettings) -> tuple[list[dict], list[str], dict]:
     """--report: the files' documents, their paths, and all of them combined."""
     if a.ship and len(a.report) > 1:
         raise ValueError("--ship takes the best run of one results.json: give --report one file")
-    docs, sources = [R.load_results(p) for p in a.report], list(a.report)
-    return docs, sources, R.combined(docs, sources)   # a run in two files: refused before anything is written
+    docs, sources = [results_json.load_results(p) for p in a.report], list(a.report)
+    return docs, sources, report.combined(docs, sources)   # a run in two files: refused before anything is written
 
 
 def _run_and_gather(a: GridSettings, argv: Sequence[str] | None) -> tuple[list[dict], list[str], dict, int]:
@@ -442,14 +442,14 @@ def _run_and_gather(a: GridSettings, argv: Sequence[str] | None) -> tuple[list[d
     command = ["protocad-compare", *(sys.argv[1:] if argv is None else argv)]
 
     def save(random: dict, running: dict | None = None) -> dict:
-        doc = R.gather(specs, command=command, env_steps=a.env_steps, wall_budget=a.wall_budget,
+        doc = results_json.gather(specs, command=command, env_steps=a.env_steps, wall_budget=a.wall_budget,
                        jobs=a.jobs, threads=a.threads, wall_time=earlier + time.monotonic() - t0,
                        random=random, running=running)
-        R.save_results(doc, out_dir / "results.json")
+        results_json.save_results(doc, out_dir / "results.json")
         return doc
 
     def random_rows(evaluate: bool = True) -> dict:
-        return R.random_baselines(a.tasks, a.out, episodes=a.random_episodes, evaluate=evaluate,
+        return results_json.random_baselines(a.tasks, a.out, episodes=a.random_episodes, evaluate=evaluate,
                                   protocols=run_protocols(specs))
 
     # Rewritten as runs finish, at each status line and when cut short: what finished can
@@ -462,7 +462,7 @@ def _run_and_gather(a: GridSettings, argv: Sequence[str] | None) -> tuple[list[d
         return [], [], {}, failed
     docs = [save(random_rows() if a.random_baseline else {})]
     sources = [str(out_dir / "results.json")]
-    everything = R.combined(docs, sources)
+    everything = report.combined(docs, sources)
     print(f"[compare] {len(specs)} runs, {failed} failed; results: {sources[0]}", flush=True)
     return docs, sources, everything, failed
 
@@ -474,7 +474,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     failed = 0
     try:
         if a.power or a.power_json:
-            return R.print_power_table(a.power_json)
+            return report.print_power_table(a.power_json)
         if a.report:
             docs, sources, everything = _reported_docs(a)
         else:
@@ -483,7 +483,7 @@ def main(argv: Sequence[str] | None = None) -> int:
             if failed < 0:
                 return 130
 
-        R.write_reports(docs, sources, everything, grid_dir=None if a.report else Path(a.out), image=a.image,
+        report.write_reports(docs, sources, everything, grid_dir=None if a.report else Path(a.out), image=a.image,
                         rrd=a.rrd, markdown=a.markdown, readme=a.update_readme)
         if a.ship:
             from trainer.research.ship import ship_best, shipped_line

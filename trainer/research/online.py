@@ -13,7 +13,7 @@ env steps (paper: 2M; env steps = agent steps x action repeat). Collection sampl
 actor (DreamerPro/DreamerV2: sampled actions, expl_noise 0).
 
 Logs: every env writes each episode to its own bag RUN_DIR/bags/epNNNNNN_envI/ through
-trainer.bag.mcap_io.BagWriter with the contract topics, types and stamps of the ROS path (image,
+trainer.bag.writer.BagWriter with the contract topics, types and stamps of the ROS path (image,
 step_info, context, /clock at the observation's sim-time stamp; action and context_features
 stamped like the observation they answer, the answer to is_last included), so
 trainer.data.dataset reads both paths identically and `protocad-train --logs RUN_DIR/bags` retrains
@@ -50,7 +50,7 @@ from protocad_ros.policy import Policy
 from sim_bridge.sim.rollout import RandomPolicy, continuing_rollout
 from sim_bridge.sim.vector import VectorEnv
 from trainer import cli_values, console, runs, settings, torch_setup
-from trainer.bag.mcap_io import BagWriteError
+from trainer.bag.writer import BagWriteError
 from trainer.data.dataset import MCAPDataset, TopicMap
 from trainer.data.records import CacheWriteError
 from trainer.learn import distributed

@@ -23,13 +23,14 @@ from protocad_ros.model.config import plan_prototype_freeze
 from sim_bridge.contract import topics as T
 from sim_bridge.contract.contexts import get_task
 from trainer import cli_values, runs, settings
-from trainer.bag import mcap_io
+from trainer.bag.rosmsg import encode, new_message
+from trainer.bag.writer import BagWriter, qos_profile
 from trainer.data.dataset import MCAPDataset
 from trainer.learn import distributed
 from trainer.learn.evaluate import parse_context
 from trainer.learn.schedule import RunCounters, Schedule
 from trainer.provenance import code_version, stale_install
-from trainer.runs import check_settings_section
+from trainer.run_input import check_settings_section
 from trainer.settings import arg
 
 
@@ -217,24 +218,23 @@ class EpisodeBagWriter:
 
     def __init__(self, bag_dir: Path, action_names: Sequence[str], namespace: str = T.DEFAULT_NAMESPACE,
                  compression: str = "zstd"):
-        self._io = mcap_io
         self.bag_dir = Path(bag_dir)
         self.names = list(action_names)
-        self.w = mcap_io.BagWriter(self.bag_dir, compression=compression)
+        self.w = BagWriter(self.bag_dir, compression=compression)
         self.t = {k: T.topic_name(namespace, k) for k in (T.IMAGE, T.STEP_INFO, T.CONTEXT, T.ACTION,
                                                            T.CONTEXT_FEATURES)}
         self.t[T.CLOCK] = T.CLOCK
         for rel, name in self.t.items():
             depth = 10 if rel == T.CLOCK else 100
-            self.w.add_topic(name, T.TYPES[rel], [mcap_io.qos_profile(**{**BAG_QOS, "depth": depth})])
+            self.w.add_topic(name, T.TYPES[rel], [qos_profile(**{**BAG_QOS, "depth": depth})])
         self.steps = 0
 
     def _put(self, rel: str, msg: Any, stamp: int) -> None:
         now = time.time_ns()
-        self.w.write(self.t[rel], self._io.encode(T.TYPES[rel], msg), now, now)
+        self.w.write(self.t[rel], encode(T.TYPES[rel], msg), now, now)
 
     def write_observation(self, obs: Any, stamp: int) -> None:
-        new = self._io.new_message
+        new = new_message
         clock = new(T.TYPES[T.CLOCK])
         T.set_stamp(clock.clock, stamp)
         self._put(T.CLOCK, clock, stamp)
@@ -246,7 +246,7 @@ class EpisodeBagWriter:
         self.steps += 1
 
     def write_action(self, action: np.ndarray, stamp: int, features: Any = None) -> None:
-        new = self._io.new_message
+        new = new_message
         self._put(T.ACTION, T.fill_action(new(T.TYPES[T.ACTION]), np.asarray(action, np.float64),
                                           self.names, stamp), stamp)
         if features is not None and getattr(features, "u", None) is not None and np.size(features.u):

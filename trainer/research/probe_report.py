@@ -30,7 +30,7 @@ from protocad_ros.atomic import atomic_write_text
 from sim_bridge.contract.contexts import context_label
 from trainer.research.probe_fit import SETTINGS, Windows
 from trainer.research.results_json import check_schema
-from trainer.runs import load_json_object
+from trainer.run_input import load_json_object
 from trainer.viz.context_view import colormap, project
 
 SCHEMA_ID = "protocad-probe/1"

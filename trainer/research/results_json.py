@@ -1,6 +1,35 @@
-"""results.json itself: its schema (described in trainer/research/results.py), the paper's
-figures it is read against, gathering a grid's run directories (finished or still going) and
-the random policy's baselines into it, and reading and writing it checked against the schema."""
+"""results.json of `protocad-compare` itself: its schema, the paper's figures it is read
+against, gathering a grid's run directories (finished or still going) and the random policy's
+baselines into it, and reading and writing it checked against the schema. What is made from it
+(the text report, the learning-curve PNG, the rerun recording, the generated markdown section) is
+report.py's; its statistics (rliable's) statistics.py's.
+
+Schema (RESULTS_SCHEMA, checked on every save and load):
+
+    {"schema": "protocad-compare/1",
+     "command": [argv...], "code_version": "git commit[+dirty]", "created": "ISO 8601 UTC",
+     "machine": {"cpu", "cores", "cpu_capability", "torch", "gpu"},
+     "budgets": {"env_steps", "wall_budget_s", "jobs", "threads_per_run"},
+     "wall_time_s": seconds the grid ran (summed over invocations),
+     "runs": [{"task", "label", "variant", "seed", "run_dir", "status", "env_steps", "updates",
+               (status: finished | wall_budget | running | interrupted | failed | missing;
+               'running' only in a results.json written while its grid runs)
+               "wall_time_s", "precision", "preset", "eval_split",
+               "final": {"mean_return", "episodes", "per_context": {"m=0.2": return, ...}} | null,
+               "curve": [{"env_steps", "mean_return", "tag"}],
+               "render_quality": "fast" | "default"  (optional: how its envs rendered, from
+               its config.yaml; absent in files written before 2026-12-04, whose runs all
+               rendered "fast"),
+               "reference", "collect_interval" (C), "prototype_freeze" (the effective count of
+               updates the prototypes were frozen for; null for variants without them)
+               (optional: absent in files written before the freeze was scaled to the run),
+               "final_train": the final evaluation on the training contexts (optional:
+               protocad-online --final-train-contexts),
+               "superseded": why a row no longer counts (optional),
+               "carried_from": {"results", "code_version", "machine", "created"}  (optional: a
+               run finished elsewhere, taken over by `--from-results`)}],
+     "random": {task: {"mean_return", "episodes", "per_context"}}}
+"""
 from __future__ import annotations
 
 import json
@@ -15,7 +44,7 @@ import yaml
 
 from protocad_ros.atomic import atomic_write_text
 from protocad_ros.model.precision import cpu_capability
-from trainer import runs
+from trainer import run_input, runs
 from trainer.learn.evaluate import DEFAULT_EPISODES, context_label, evaluate_checkpoint, select_contexts
 from trainer.provenance import code_version
 
@@ -121,13 +150,13 @@ def _eval_entry(d: Mapping[str, Any]) -> dict[str, Any]:
 def gather_run(task: str, label: str, variant: str, seed: int, run_dir: Path) -> dict[str, Any]:
     """One run directory of protocad-online as a results.json row.
 
-    The run's files are read as input: run.json bounded (trainer.runs.load_json_object); an
+    The run's files are read as input: run.json bounded (trainer.run_input.load_json_object); an
     evaluation line or final.json that is torn or out of shape counts as not written; a run.json
     whose result or protocol is out of shape (a status outside the schema, a count that is no
     number) gathers the run as failed, with one line on stderr naming the file."""
     run_dir = Path(run_dir)
     try:   # written by a run, read as input: bounded in size and depth, an object or nothing
-        info = runs.load_json_object(run_dir / "run.json")
+        info = run_input.load_json_object(run_dir / "run.json")
     except ValueError:
         info = {}
     try:
@@ -210,7 +239,7 @@ def _read_eval(path: Path) -> dict[str, Any] | None:
     """An evaluation's JSON (eval/final.json, ...) as a results.json entry; None where it is
     missing, torn or out of shape."""
     try:
-        return _eval_entry(runs.load_json_object(path))
+        return _eval_entry(run_input.load_json_object(path))
     except (ValueError, TypeError, KeyError, AttributeError, OverflowError):
         return None
 
@@ -360,7 +389,7 @@ def save_results(doc: Mapping[str, Any], path: Path) -> Path:
 def load_results(path: str | Path) -> dict[str, Any]:
     """A results.json, bounded in size and depth and checked against RESULTS_SCHEMA (one
     ValueError line naming the file)."""
-    doc = runs.load_json_object(path)
+    doc = run_input.load_json_object(path)
     try:
         validate(doc)
     except ValueError as exc:

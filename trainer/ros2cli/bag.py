@@ -10,7 +10,7 @@ from typing import Any
 
 import yaml
 
-from trainer.bag.mcap_io import BagReader, read_bag_metadata
+from trainer.bag.reader import BagReader, read_bag_metadata
 
 INDENT = 19  # rosbag2: the longest label ("Topic information: ") plus nothing
 

@@ -11,7 +11,7 @@ from helpers.training import ckpt_counters
 
 from sim_bridge.contract import camera
 from sim_bridge.contract import topics as T
-from trainer.bag import mcap_io
+from trainer.bag.rosmsg import new_message
 from trainer.data.dataset import MCAPDataset, TopicMap
 from trainer.data.records import ImageSpec
 from trainer.data.store import cache_key, ingest_source
@@ -36,7 +36,7 @@ def camera_steps() -> tuple[list[dict], list[dict]]:
     big, small = make_steps(2, 16), make_steps(2, 16)
     for b, s in zip(big, small):
         b["image"] = camera_frame(b["step"], b["episode"])
-        msg = fill_jpeg(mcap_io.new_message(COMPRESSED_IMAGE), b["image"], b["stamp"])
+        msg = fill_jpeg(new_message(COMPRESSED_IMAGE), b["image"], b["stamp"])
         s["image"] = camera.model_image(msg, 64)
     return big, small
 
@@ -90,7 +90,7 @@ def test_another_size_or_crop_is_its_own_cache_entry_and_an_outdated_entry_is_re
     assert not ds.report.sources[0].cached and ds.stores[0].image_shape == (64, 64, 3)
     full = MCAPDataset([jpeg], topics=topics, seq_len=4, cache_dir=cache, crop="full")
     assert not full.report.sources[0].cached
-    msg = fill_jpeg(mcap_io.new_message(COMPRESSED_IMAGE), big[3]["image"], big[3]["stamp"])
+    msg = fill_jpeg(new_message(COMPRESSED_IMAGE), big[3]["image"], big[3]["stamp"])
     assert np.array_equal(np.asarray(full.stores[0].images[3]), camera.model_image(msg, 64, camera.Crop.parse("full")))
     assert not np.array_equal(np.asarray(full.stores[0].images[3]), np.asarray(ds.stores[0].images[3]))
     with pytest.raises(ValueError, match="crop"):

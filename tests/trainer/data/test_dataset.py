@@ -106,7 +106,7 @@ def test_store_is_on_disk_uint8_reused_and_appendable(tmp_path):
 
 
 def test_truncated_log_yields_every_complete_message_and_a_clear_report(tmp_path):
-    from trainer.bag import mcap_io
+    from trainer.bag.reader import BagReader
 
     steps = make_steps(3, 40)
     bag = write_bag(tmp_path / "bag", steps, chunk_size=64 * 1024, compression="none")
@@ -117,7 +117,7 @@ def test_truncated_log_yields_every_complete_message_and_a_clear_report(tmp_path
     (cut / f.name).write_bytes(data[: int(len(data) * 0.6)])   # writer killed: no footer, no metadata
     # reference: what a reader recovers from the cut file (every complete chunk)
     recovered = {}
-    for m in mcap_io.BagReader(cut).messages():
+    for m in BagReader(cut).messages():
         recovered.setdefault(m.topic, set()).add(m.log_time_ns)
     both = {t - 3 for t in recovered["/protocad/image"]} & {t - 2 for t in recovered["/protocad/step_info"]}
     assert 0 < len(both) < len(steps)

@@ -35,11 +35,12 @@ def test_two_collect_train_reload_cycles_through_ros(tmp_path):
     assert log.count("$ ") == 1 and f"serving checkpoint {run}/checkpoints/latest.pt (updates={C})" in log
     assert f"now serving checkpoint {run}/checkpoints/latest.pt (updates={2 * C})" in log
     # the recorded /diagnostics of the second cycle's bag say the same (the node's own report)
-    from trainer.bag import mcap_io
+    from trainer.bag.reader import BagReader
+    from trainer.bag.rosmsg import decode
 
     served = set()
-    for m in mcap_io.BagReader(run / "bags" / "02_collect").messages(["/diagnostics"]):
-        for status in mcap_io.decode(m.msgtype, m.data).status:
+    for m in BagReader(run / "bags" / "02_collect").messages(["/diagnostics"]):
+        for status in decode(m.msgtype, m.data).status:
             kv = {v.key: v.value for v in status.values}
             if "checkpoint_updates" in kv and int(kv.get("observations_answered", 0)) > 0:
                 served.add(int(kv["checkpoint_updates"]))

@@ -8,7 +8,7 @@ import pytest
 from helpers import wait_until
 
 from sim_bridge.contract import topics as T
-from trainer.bag import mcap_io as M
+from trainer.bag.reader import BagReader
 
 pytestmark = pytest.mark.process
 
@@ -27,7 +27,7 @@ def test_one_ctrl_c_three_clean_exits_and_every_step_has_its_action_from_stamp_0
     assert "[stack] exit codes: bridge 0, policy 0, recorder 0" in out, out[-3000:]
     assert "[bridge]" in out and "[policy]" in out and "[recorder]" in out   # one combined log
 
-    reader = M.BagReader(bag)
+    reader = BagReader(bag)
     info_stamps, action_stamps = [], set()
     for m in reader.messages(topics=[T.topic_name(T.DEFAULT_NAMESPACE, T.STEP_INFO),
                                      T.topic_name(T.DEFAULT_NAMESPACE, T.ACTION)]):

@@ -22,7 +22,7 @@ from helpers.ros import Probe, Responder
 from sim_bridge.bridge.params import LOSSLESS_FLUSH_TIMEOUT_S
 from sim_bridge.contract import topics as T
 from sim_bridge.nodekit.rosnode import SHUTDOWN_BUDGET_S, flush_publishers
-from trainer.bag import mcap_io as M
+from trainer.bag.reader import BagReader
 
 pytestmark = [pytest.mark.ros, pytest.mark.process]
 
@@ -31,7 +31,7 @@ START = 90.0
 
 
 def bag_stamps(bag, rel: str) -> list[int]:
-    reader = M.BagReader(bag)
+    reader = BagReader(bag)
     return [T.stamp_to_ns(reader.decode(m).header.stamp) for m in reader.messages([T.topic_name(NS, rel)])]
 
 
@@ -48,7 +48,7 @@ def start(spawn, tmp_path, mode: list[str]):
 
 
 def clock_stamps(bag) -> list[int]:
-    reader = M.BagReader(bag)
+    reader = BagReader(bag)
     return [T.stamp_to_ns(reader.decode(m).clock) for m in reader.messages([T.CLOCK])]
 
 

@@ -13,7 +13,8 @@ import pytest
 from helpers import interrupt, wait_until
 
 from sim_bridge.contract import topics as T
-from trainer.bag import mcap_io as M
+from trainer.bag.reader import BagReader, read_bag_metadata
+from trainer.bag.rosmsg import TypeSupportError, type_hash
 
 NS = T.DEFAULT_NAMESPACE
 STEPS = 150
@@ -82,7 +83,7 @@ def wait_acked(pubs) -> None:
         assert p.wait_for_all_acked(Duration(seconds=15)), f"{topic}: not acknowledged"
 
 
-def check_recorded(reader: M.BagReader, steps: int) -> None:
+def check_recorded(reader: BagReader, steps: int) -> None:
     assert reader.report.ok, reader.report.summary()
     assert reader.report.counts == {t: steps for t in TOPICS}
     stamps: dict[str, list[int]] = {t: [] for t in TOPICS}
@@ -113,7 +114,7 @@ def test_recorder_records_every_message_and_closes_cleanly(tmp_path, spawn, ros,
     out = rec.log_path.read_text()
     assert f"recorded {STEPS * len(TOPICS)} messages" in out, out
 
-    info = M.read_bag_metadata(bag)
+    info = read_bag_metadata(bag)
     assert info["relative_file_paths"] == ["run_0.mcap"]
     assert info["message_count"] == STEPS * len(TOPICS)
     tm = {x["topic_metadata"]["name"]: x["topic_metadata"]
@@ -121,8 +122,8 @@ def test_recorder_records_every_message_and_closes_cleanly(tmp_path, spawn, ros,
     qos = tm[TOPICS[0]]["offered_qos_profiles"][0]
     assert (qos["reliability"], qos["durability"], qos["history"]) == \
         ("reliable", "volatile", "unknown")
-    assert tm[TOPICS[0]]["type_description_hash"] == M.type_hash("sensor_msgs/msg/Image")
-    r = M.BagReader(bag)
+    assert tm[TOPICS[0]]["type_description_hash"] == type_hash("sensor_msgs/msg/Image")
+    r = BagReader(bag)
     assert not r.report.truncated
     check_recorded(r, STEPS)
     from helpers.bags import rerun_check
@@ -145,11 +146,11 @@ def test_recorder_killed_with_sigkill_keeps_flushed_chunks(tmp_path, spawn, ros)
     publish_steps(pubs, steps)
     wait_acked(pubs)
     # the flush timer writes the open chunk within 0.2 s: wait until a reader sees it all
-    wait_until(lambda: M.BagReader(bag).report.message_count == steps * len(TOPICS), 20,
+    wait_until(lambda: BagReader(bag).report.message_count == steps * len(TOPICS), 20,
              "the recorder to write every message in complete chunks")
     rec.stop(signal.SIGKILL)
     assert not (bag / "metadata.yaml").exists()
-    r = M.BagReader(bag)
+    r = BagReader(bag)
     assert str(bag / "killed_0.mcap") in r.report.truncated, r.report.summary()
     check_recorded(r, steps)
 
@@ -220,7 +221,7 @@ def test_recording_into_a_full_disk_stops_cleanly_with_a_readable_bag(ros, small
     info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
     assert info["custom_data"]["protocad_write_error"].startswith("OSError")
     assert info["message_count"] == n_mcap
-    assert n_rosbags == n_mcap == sum(1 for _ in M.BagReader(bag).messages()) > 0
+    assert n_rosbags == n_mcap == sum(1 for _ in BagReader(bag).messages()) > 0
 
 
 # `ros2 bag record` options of Jazzy (rosbag2's ros2bag/verb/record.py and the MCAP storage
@@ -278,7 +279,7 @@ def test_include_and_exclude_regex_select_topics_as_ros2_bag_record(ros, tmp_pat
         if rec.poll() is None:
             rec.kill()
     assert rec.returncode == 0, out
-    assert M.BagReader(bag).report.counts == {"/a/keep": 20}
+    assert BagReader(bag).report.counts == {"/a/keep": 20}
 
 
 @contextlib.contextmanager
@@ -328,7 +329,7 @@ def test_loss_while_frozen_is_counted_exactly_and_shown_by_the_dataset(ros, tmp_
         time.sleep(2.0)
         out = interrupt(rec)
     assert rec.returncode == 0, out
-    recorded = M.BagReader(bag).report.counts[T.topic_name(NS, T.STEP_INFO)]
+    recorded = BagReader(bag).report.counts[T.topic_name(NS, T.STEP_INFO)]
     info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
     lost = json.loads(info["custom_data"]["protocad_lost_messages"])[T.topic_name(NS, T.STEP_INFO)]
     assert lost > 0 and recorded + lost == n, (recorded, lost, out)
@@ -398,7 +399,7 @@ def test_graph_type_names_are_checked_before_anything_is_imported(type_name):
     from trainer.ros2cli.msgyaml import interface_class
 
     with ImportSpy() as spy:
-        with pytest.raises(M.TypeSupportError):
+        with pytest.raises(TypeSupportError):
             _import_message(type_name)
         with pytest.raises(ValueError):
             interface_class(type_name)

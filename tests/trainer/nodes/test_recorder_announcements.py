@@ -18,7 +18,7 @@ from helpers.ros import Probe, publisher_node
 
 from sim_bridge.contract import qos
 from sim_bridge.contract import topics as T
-from trainer.bag import mcap_io as M
+from trainer.bag.reader import BagReader
 from trainer.nodes.recorder_announcements import IGNORED_KEY
 
 pytestmark = [pytest.mark.ros, pytest.mark.process]
@@ -54,7 +54,7 @@ def test_a_strangers_bridge_info_is_left_out_of_the_bag(tmp_path):
         stranger.close()
         next(bridge_gen, None)
     assert rec.returncode == 0, out
-    announced = [M.BagReader(bag).decode(m) for m in M.BagReader(bag).messages([T.topic_name(T.DEFAULT_NAMESPACE,
+    announced = [BagReader(bag).decode(m) for m in BagReader(bag).messages([T.topic_name(T.DEFAULT_NAMESPACE,
                                                                                                 T.BRIDGE_INFO)])]
     assert [m.header.frame_id for m in announced] == ["pendulum_swingup"], out
     info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]

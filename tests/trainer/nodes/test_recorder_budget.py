@@ -18,7 +18,7 @@ import yaml
 from helpers import interrupt, wait_until
 
 from sim_bridge.contract import topics as T
-from trainer.bag import mcap_io as M
+from trainer.bag.reader import BagReader
 from trainer.nodes.record_budget import (
     BUDGET_KEY,
     DIAGNOSTICS_BYTE_BUDGET,
@@ -162,7 +162,7 @@ def flood_images(ros, rec: subprocess.Popen, limit: int = 3000) -> int:
 def check_valid(bag) -> dict:
     """The bag reads whole (strict) and its metadata.yaml counts what is in it."""
     info = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
-    r = M.BagReader(bag, strict=True)
+    r = BagReader(bag, strict=True)
     n = sum(1 for _ in r.messages())
     assert n == info["message_count"] > 0 and not r.report.truncated
     return info
@@ -332,7 +332,7 @@ def test_the_default_recorder_bounds_large_diagnostics_and_image_floods_flags_bo
     assert dropped[T.DIAGNOSTICS]["message_bytes"] >= 40 and dropped[image_t]["message_bytes"] >= 40, dropped
     assert out.count("FLOOD") >= 2, out
     counts, late = {}, {}
-    for rec_msg in M.BagReader(bag, strict=True).messages():
+    for rec_msg in BagReader(bag, strict=True).messages():
         counts[rec_msg.topic] = counts.get(rec_msg.topic, 0) + 1
         if rec_msg.log_time_ns > after:
             late[rec_msg.topic] = late.get(rec_msg.topic, 0) + 1

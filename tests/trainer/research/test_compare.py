@@ -15,7 +15,31 @@ import numpy as np
 import pytest
 from helpers import ROOT, wait_until
 
-from trainer.research import results as R
+from trainer.research.report import (
+    BEGIN,
+    aggregate_rows,
+    combined,
+    curves,
+    format_report,
+    labels_of,
+    log_curves_rerun,
+    markdown_section,
+    paired_lines,
+    plot_curves,
+    readme_section,
+    table_rows,
+)
+from trainer.research.results_json import ANCHOR_LABEL, gather, gather_run, load_results, validate
+from trainer.research.statistics import (
+    aggregate_iqm,
+    aggregate_mean,
+    aggregate_median,
+    bootstrap_ci,
+    iqm,
+    paired_difference,
+    summarize,
+    unseen_train_ratio,
+)
 
 # Runs of 100-agent-step episodes; 2 test contexts, 1 episode each, so a run takes seconds.
 TINY = ["--preset", "small", "--time-limit", "200", "--prefill-episodes", "1", "--updates-per-episode", "2",
@@ -52,7 +76,7 @@ def test_grid_runs_in_parallel_resumes_after_ctrl_c_and_reports(tmp_path, spawn)
 
     def rows_now() -> list[dict]:
         try:
-            return R.load_results(out / "results.json")["runs"]
+            return load_results(out / "results.json")["runs"]
         except (OSError, ValueError):
             return []
     # results.json is rewritten at each status line while the grid runs: every run shows as going
@@ -67,16 +91,16 @@ def test_grid_runs_in_parallel_resumes_after_ctrl_c_and_reports(tmp_path, spawn)
         assert json.loads((d / "run.json").read_text())["result"]["status"] == "interrupted"
         assert not (d / "eval" / "final.json").exists()
     # cut short, the grid still says where each run stands
-    cut = R.load_results(out / "results.json")
+    cut = load_results(out / "results.json")
     assert [(r["status"], r["final"]) for r in cut["runs"]] == [("interrupted", None)] * 2
     # ... and the report says how far each got: env steps of the budget, updates, as in its checkpoint
-    report = R.format_report(cut)
+    report = format_report(cut)
     assert f"not finished (2 of 2 runs; as of {cut['created']}):" in report, report
     for r in cut["runs"]:
         c = saved[Path(r["run_dir"])]
         assert re.search(rf"{r['label']}\s+{r['seed']}\s+interrupted\s+{c['env_steps']:,} of 800\s+"
                          rf"{c['updates']:,}\s", report), report
-    assert "Not finished yet (2 of 2 runs; as of " in R.markdown_section([cut])
+    assert "Not finished yet (2 of 2 runs; as of " in markdown_section([cut])
 
     second = spawn("compare2", *grid_args(out))
     wait_until(lambda: not second.alive(), 400, "the resumed grid to finish")
@@ -98,7 +122,7 @@ def test_grid_runs_in_parallel_resumes_after_ctrl_c_and_reports(tmp_path, spawn)
         res = json.loads((d / "run.json").read_text())["result"]
         assert res["status"] == "finished" and res["env_steps"] == 800 and res["resumes"] == 1
 
-    doc = R.load_results(out / "results.json")         # validates against RESULTS_SCHEMA
+    doc = load_results(out / "results.json")         # validates against RESULTS_SCHEMA
     assert len(doc["runs"]) == 2 and {r["status"] for r in doc["runs"]} == {"finished"}
     for r in doc["runs"]:   # the code each run trained with, both invocations', in its row and the grid's
         assert r["code_versions"] == json.loads((Path(r["run_dir"]) / "run.json").read_text())["code_versions"]
@@ -172,24 +196,24 @@ def test_the_grid_names_the_code_each_run_trained_with_and_not_started_runs_none
     done = {"code_versions": ["aaa1111", "bbb2222"], "preset": "small",
             "result": {"status": "finished", "env_steps": 100, "updates": 10}}
     args = dict(command=["protocad-compare"], env_steps=100, wall_budget=None, jobs=1, threads=1, wall_time=1.0)
-    doc = R.gather([spec(0, done), spec(1, {**done, "code_versions": ["bbb2222", "ccc3333"]}), spec(2)], **args)
-    R.validate(doc)
+    doc = gather([spec(0, done), spec(1, {**done, "code_versions": ["bbb2222", "ccc3333"]}), spec(2)], **args)
+    validate(doc)
     assert [r.get("code_versions") for r in doc["runs"]] == [["aaa1111", "bbb2222"], ["bbb2222", "ccc3333"], None]
     assert doc["runs"][2]["status"] == "missing"
     assert doc["code_version"] == "aaa1111, bbb2222, ccc3333"
     older = {k: v for k, v in done.items() if k != "code_versions"}
-    assert "the gathering tree" in R.gather([spec(3, older)], **args)["code_version"]
+    assert "the gathering tree" in gather([spec(3, older)], **args)["code_version"]
     crafted = {**done, "code_versions": ["ddd4444", {"a": 1}, "x" * 10_000, *[f"c{i}" for i in range(1000)]]}
-    kept = R.gather([spec(4, crafted)], **args)["runs"][0]["code_versions"]   # bounded, strings only
+    kept = gather([spec(4, crafted)], **args)["runs"][0]["code_versions"]   # bounded, strings only
     assert kept[:2] == ["ddd4444", "c0"] and len(kept) == 64
 
 
 def test_results_schema_rejects_a_broken_document(tmp_path):
     doc = json.loads((ROOT / "msgs_docs" / "results" / "pendulum_cpu.json").read_text())
-    R.validate(doc)
+    validate(doc)
     del doc["runs"][0]["curve"]
     with pytest.raises(ValueError, match="runs/0"):
-        R.validate(doc)
+        validate(doc)
 
 
 def test_results_and_run_files_read_as_input_are_bounded(tmp_path):
@@ -209,19 +233,19 @@ def test_results_and_run_files_read_as_input_are_bounded(tmp_path):
         elif path.name == "deep.json":
             path.write_text("[" * 100_000 + "]" * 100_000)
         with pytest.raises(ValueError, match=says) as err:
-            R.load_results(path)
+            load_results(path)
         assert path.name in str(err.value)
     # not an object: as if absent; an object whose result is no mapping: started, ended unknown
     for crafted, status in (("[1, 2]", "missing"), (json.dumps({"result": "finished", "code_versions": ["a"]}), "failed")):
         run_dir = tmp_path / f"run{len(crafted)}"
         run_dir.mkdir()
         (run_dir / "run.json").write_text(crafted)
-        row = R.gather_run("walker_walk", "dreamer", "dreamer", 0, run_dir)
+        row = gather_run("walker_walk", "dreamer", "dreamer", 0, run_dir)
         assert row["status"] == status and row["final"] is None
     huge_run = tmp_path / "huge_run"
     huge_run.mkdir()
     huge.rename(huge_run / "run.json")
-    assert R.gather_run("walker_walk", "dreamer", "dreamer", 0, huge_run)["status"] == "missing"
+    assert gather_run("walker_walk", "dreamer", "dreamer", 0, huge_run)["status"] == "missing"
 
 
 def test_a_run_whose_files_are_out_of_shape_gathers_as_failed_and_keeps_what_is_sound(tmp_path, capsys):
@@ -248,7 +272,7 @@ def test_a_run_whose_files_are_out_of_shape_gathers_as_failed_and_keeps_what_is_
             json.dumps({"env_steps": 500, "mean_return": [1]}),
             json.dumps({"env_steps": 500, "mean_return": 40.25, "tag": ""}), "{torn"]) + "\n")
         (run_dir / "eval" / "final.json").write_text(json.dumps({"mean_return": "high", "per_context": []}))
-        row = R.gather_run("walker_walk", "dreamer", "dreamer", 0, run_dir)
+        row = gather_run("walker_walk", "dreamer", "dreamer", 0, run_dir)
         assert row["status"] == "failed", (name, row)
         assert f"{run_dir / 'run.json'}" in capsys.readouterr().err
         assert row["curve"] == [{"env_steps": 500, "mean_return": 40.25, "tag": ""}]
@@ -257,13 +281,13 @@ def test_a_run_whose_files_are_out_of_shape_gathers_as_failed_and_keeps_what_is_
     sound = tmp_path / "sound"
     sound.mkdir()
     (sound / "run.json").write_text(json.dumps(good))
-    row = R.gather_run("walker_walk", "dreamer", "dreamer", 1, sound)
+    row = gather_run("walker_walk", "dreamer", "dreamer", 1, sound)
     assert (row["status"], row["env_steps"], row["updates"], row["collect_interval"], row["preset"]) == \
         ("finished", 1000, 50, 5, "small")
-    doc = R.gather([], command=["protocad-compare"], env_steps=1000, wall_budget=None, jobs=1, threads=1,
+    doc = gather([], command=["protocad-compare"], env_steps=1000, wall_budget=None, jobs=1, threads=1,
                    wall_time=1.0)
     doc["runs"] = [*rows, row]
-    R.validate(doc)
+    validate(doc)
 
 
 def test_bootstrap_interval_matches_the_exact_bootstrap_distribution():
@@ -274,11 +298,11 @@ def test_bootstrap_interval_matches_the_exact_bootstrap_distribution():
     scores = np.array([1.0, 2.0, 6.0, 10.0])
     exact = np.sort([np.mean(c) for c in itertools.product(scores, repeat=4)])
     q = lambda p: exact[int(np.ceil(p * exact.size)) - 1]   # noqa: E731  inverse CDF
-    lo, hi = R.bootstrap_ci([scores], R.aggregate_mean, reps=40_000, seed=1)
+    lo, hi = bootstrap_ci([scores], aggregate_mean, reps=40_000, seed=1)
     assert q(0.02) <= lo <= q(0.03) and q(0.97) <= hi <= q(0.98), (lo, hi, q(0.025), q(0.975))
     assert q(0.025) == pytest.approx(1.5) and q(0.975) == pytest.approx(8.0)   # by hand: 1,1,2,2 / 10,10,6,6
-    assert R.bootstrap_ci([scores], R.aggregate_mean, reps=500, seed=3) == \
-        R.bootstrap_ci([scores], R.aggregate_mean, reps=500, seed=3)
+    assert bootstrap_ci([scores], aggregate_mean, reps=500, seed=3) == \
+        bootstrap_ci([scores], aggregate_mean, reps=500, seed=3)
 
 
 def _paired_doc(a: list[float], b: list[float]) -> dict:
@@ -289,85 +313,85 @@ def _paired_doc(a: list[float], b: list[float]) -> dict:
                     "final": {"mean_return": v, "episodes": 320, "per_context": {}},
                     "final_train": {"mean_return": 2 * v, "episodes": 125, "per_context": {}}}
                    for label, values in (("protocad", a), ("dreamer", b)) for seed, v in enumerate(values)]
-    R.validate(doc)
+    validate(doc)
     return doc
 
 
 def test_the_paired_difference_is_the_mean_of_per_seed_differences_with_a_t_interval():
     doc = _paired_doc([10, 20, 30, 40, 50], [5, 25, 20, 30, 45])
-    d = R.paired_difference(doc, "walker_walk")
+    d = paired_difference(doc, "walker_walk")
     # differences 5, -5, 10, 10, 5: mean 5, sd sqrt(150 / 4), t(0.975, 4) = 2.7764
     half = 2.7764451 * np.sqrt(150 / 4) / np.sqrt(5)
     assert d["diffs"] == [5, -5, 10, 10, 5] and d["mean"] == pytest.approx(5)
     assert d["ci"] == pytest.approx((5 - half, 5 + half), abs=1e-4)
-    assert R.unseen_train_ratio(doc, "walker_walk", "protocad")["mean"] == pytest.approx(0.5)
-    assert "no difference shown" in R.paired_lines(doc)[0]
+    assert unseen_train_ratio(doc, "walker_walk", "protocad")["mean"] == pytest.approx(0.5)
+    assert "no difference shown" in paired_lines(doc)[0]
     # a superseded row and a seed only one label finished are not pairs
     doc["runs"][0]["superseded"] = "its prototypes never trained"
     doc["runs"] = [r for r in doc["runs"] if not (r["label"] == "dreamer" and r["seed"] == 4)]
-    assert R.paired_difference(doc, "walker_walk")["seeds"] == [1, 2, 3]
+    assert paired_difference(doc, "walker_walk")["seeds"] == [1, 2, 3]
     # below 5 seeds a table shows the range, and calls it one
-    head, rows = R.table_rows(doc, R.summarize(doc, reps=100))
+    head, rows = table_rows(doc, summarize(doc, reps=100))
     assert "(range 20.0-50.0)" in rows[1][5] and "range below 5 seeds" in head[5]
 
 
 def test_over_tasks_a_variant_with_too_few_seeds_on_a_task_shows_no_interval():
     doc = _paired_doc([10, 20, 30, 40, 50], [5, 25, 20, 30, 45])
     doc["runs"] += [{**r, "task": "cheetah_run"} for r in doc["runs"] if r["seed"] < 2 or r["label"] == "dreamer"]
-    head, rows = R.aggregate_rows(R.summarize(doc, reps=100))
+    head, rows = aggregate_rows(summarize(doc, reps=100))
     by_label = {r[0]: r for r in rows}
     assert head[2] == "fewest seeds per task" and by_label["protocad"][2] == "2" and by_label["dreamer"][2] == "5"
     assert by_label["protocad"][3].endswith("(no interval below 5 seeds)") and "[" not in by_label["protocad"][3]
     assert "[" in by_label["dreamer"][3]
     # one task: the over-tasks table would repeat the per-task row, so neither report shows it
-    assert "over tasks" not in R.format_report(_paired_doc([10, 20], [5, 25])).lower()
+    assert "over tasks" not in format_report(_paired_doc([10, 20], [5, 25])).lower()
 
 
 def test_iqm_and_aggregates_match_hand_computed_values():
     # 8 scores: IQM drops the 2 lowest and the 2 highest and averages the middle 4.
-    assert R.iqm(np.array([0, 1, 2, 3, 4, 5, 6, 100.0])) == pytest.approx((2 + 3 + 4 + 5) / 4)
+    assert iqm(np.array([0, 1, 2, 3, 4, 5, 6, 100.0])) == pytest.approx((2 + 3 + 4 + 5) / 4)
     per_task = [np.array([10.0, 20.0]), np.array([0.0, 100.0]), np.array([5.0, 5.0])]
-    assert R.aggregate_mean(per_task) == pytest.approx(140 / 6)
-    assert R.aggregate_median(per_task) == pytest.approx(15.0)   # task means 15, 50, 5
+    assert aggregate_mean(per_task) == pytest.approx(140 / 6)
+    assert aggregate_median(per_task) == pytest.approx(15.0)   # task means 15, 50, 5
     # all 6 scores sorted 0 5 5 10 20 100: trim 25% (1.5 each side) -> scipy trims 1 each side
-    assert R.aggregate_iqm(per_task) == pytest.approx(np.mean([5, 5, 10, 20]))
+    assert aggregate_iqm(per_task) == pytest.approx(np.mean([5, 5, 10, 20]))
     # Stratified: a task whose seeds agree contributes no spread.
-    lo, hi = R.bootstrap_ci([np.array([5.0, 5.0])], R.aggregate_mean, reps=200)
+    lo, hi = bootstrap_ci([np.array([5.0, 5.0])], aggregate_mean, reps=200)
     assert lo == hi == 5.0
 
 
 def test_a_superseded_grid_reports_beside_the_grid_that_replaced_it():
     """The first walker comparison's rows are superseded by the paired grid, which reran their
     seeds: both files report together, the superseded rows plotting nothing and counting nowhere."""
-    old = R.load_results(ROOT / "msgs_docs" / "results" / "walker_compare_small.json")
-    new = R.load_results(ROOT / "msgs_docs" / "results" / "walker_paired_small.json")
+    old = load_results(ROOT / "msgs_docs" / "results" / "walker_compare_small.json")
+    new = load_results(ROOT / "msgs_docs" / "results" / "walker_paired_small.json")
     assert all(r.get("superseded") for r in old["runs"])
-    both = R.combined([old, new], ["old.json", "new.json"])
+    both = combined([old, new], ["old.json", "new.json"])
     assert len(both["runs"]) == len(new["runs"])
-    assert R.labels_of(both, "walker_walk") == ["dreamer", "protocad"]
+    assert labels_of(both, "walker_walk") == ["dreamer", "protocad"]
     other_look = copy.deepcopy(old)   # a superseded row's setup does not relabel the rows that count
     for r in other_look["runs"]:
         r["render_quality"] = "default"
-    assert R.labels_of(R.combined([other_look, new]), "walker_walk") == ["dreamer", "protocad"]
-    _, mean, _, _ = R.curves(both, "walker_walk", "protocad")
-    _, mean_new, _, _ = R.curves(new, "walker_walk", "protocad")
+    assert labels_of(combined([other_look, new]), "walker_walk") == ["dreamer", "protocad"]
+    _, mean, _, _ = curves(both, "walker_walk", "protocad")
+    _, mean_new, _, _ = curves(new, "walker_walk", "protocad")
     assert np.array_equal(mean, mean_new)
     unsuperseded = copy.deepcopy(old)
     for r in unsuperseded["runs"]:
         del r["superseded"]
     with pytest.raises(ValueError, match="walker_walk/protocad/seed0 is in both old.json and new.json"):
-        R.combined([unsuperseded, new], ["old.json", "new.json"])
+        combined([unsuperseded, new], ["old.json", "new.json"])
 
 
 def test_the_generated_results_section_regenerates_byte_identically_from_the_committed_json():
     # the files and plot it names in its own first line, regenerated: the page says what they hold
     target = "msgs_docs/results.md"
-    section = R.readme_section(ROOT / target)
+    section = readme_section(ROOT / target)
     named = re.search(rf"by `protocad-compare --report (.+?) --image (\S+) --update-readme {target}`", section)
     sources, image = named.group(1).split(), named.group(2)
     assert "msgs_docs/results/walker_anchor_cpu.json" in sources
-    docs = [R.load_results(ROOT / s) for s in sources]
-    assert section == R.markdown_section(docs, image=image, sources=sources, target=target)
+    docs = [load_results(ROOT / s) for s in sources]
+    assert section == markdown_section(docs, image=image, sources=sources, target=target)
     assert "![test-context return vs env steps](results/walker_cpu.png)" in section   # relative to the page
     assert (ROOT / image).exists()
     # the anchor's verdicts, from the committed curves and DreamerV2's committed points
@@ -420,26 +444,26 @@ def test_an_anchor_at_two_presets_reports_as_two_curves(tmp_path):
     preset in two files is still refused (its curve would count twice)."""
     from trainer.viz.rerun_log import read_recording
 
-    small = R.load_results(ROOT / "msgs_docs" / "results" / "walker_anchor_cpu.json")
+    small = load_results(ROOT / "msgs_docs" / "results" / "walker_anchor_cpu.json")
     paper = copy.deepcopy(small)
     for r in paper["runs"]:
         r["preset"] = "paper"
         for c in r["curve"]:
             c["mean_return"] += 50.0
-    both = R.combined([small, paper], ["small.json", "paper.json"])
+    both = combined([small, paper], ["small.json", "paper.json"])
     names = ["dreamer_standard (paper preset)", "dreamer_standard (small preset)"]
-    assert R.labels_of(both, "walker_walk") == names
-    assert {r["base_label"] for r in both["runs"]} == {R.ANCHOR_LABEL}
-    _, m_small, _, _ = R.curves(small, "walker_walk", R.ANCHOR_LABEL)
-    _, m_paper, _, _ = R.curves(both, "walker_walk", names[0])
+    assert labels_of(both, "walker_walk") == names
+    assert {r["base_label"] for r in both["runs"]} == {ANCHOR_LABEL}
+    _, m_small, _, _ = curves(small, "walker_walk", ANCHOR_LABEL)
+    _, m_paper, _, _ = curves(both, "walker_walk", names[0])
     assert np.allclose(m_paper, m_small + 50.0)
-    assert R.plot_curves(both, tmp_path / "both.png").stat().st_size > 0
-    held = read_recording(R.log_curves_rerun(both, tmp_path / "both.rrd"))
+    assert plot_curves(both, tmp_path / "both.png").stat().st_size > 0
+    held = read_recording(log_curves_rerun(both, tmp_path / "both.rrd"))
     for name in names:
         part = name.replace(" ", "\\ ").replace("(", "\\(").replace(")", "\\)")
         assert f"/curves/walker_walk/{part}/mean" in held, sorted(held)
     with pytest.raises(ValueError, match="walker_walk/dreamer_standard/seed0 is in both small.json and again.json"):
-        R.combined([small, copy.deepcopy(small)], ["small.json", "again.json"])
+        combined([small, copy.deepcopy(small)], ["small.json", "again.json"])
 
 
 def test_an_anchor_rendered_two_ways_reports_as_two_curves(tmp_path):
@@ -448,19 +472,19 @@ def test_an_anchor_rendered_two_ways_reports_as_two_curves(tmp_path):
     gathered from run directories records the look its config.yaml names."""
     from protocad_ros.model.config import make_config
 
-    fast = R.load_results(ROOT / "msgs_docs" / "results" / "walker_anchor_cpu.json")
+    fast = load_results(ROOT / "msgs_docs" / "results" / "walker_anchor_cpu.json")
     assert all("render_quality" not in r for r in fast["runs"])
     looks = copy.deepcopy(fast)
     looks["runs"] = [{**r, "render_quality": "default"} for r in looks["runs"][:1]]
-    R.validate(looks)
-    both = R.combined([fast, looks], ["fast.json", "default.json"])
+    validate(looks)
+    both = combined([fast, looks], ["fast.json", "default.json"])
     names = ["dreamer_standard (default render)", "dreamer_standard (fast render)"]
-    assert R.labels_of(both, "walker_walk") == names
+    assert labels_of(both, "walker_walk") == names
     assert [r["seed"] for r in both["runs"] if r["label"] == names[0]] == [0]
-    assert R.plot_curves(both, tmp_path / "looks.png").stat().st_size > 0
+    assert plot_curves(both, tmp_path / "looks.png").stat().st_size > 0
     paper = copy.deepcopy(looks)
     paper["runs"][0]["preset"] = "paper"
-    assert R.labels_of(R.combined([fast, paper]), "walker_walk") == [
+    assert labels_of(combined([fast, paper]), "walker_walk") == [
         "dreamer_standard (paper preset, default render)", "dreamer_standard (small preset, fast render)"]
 
     run_dir = tmp_path / "walker_walk" / "dreamer_standard" / "seed0"
@@ -468,9 +492,9 @@ def test_an_anchor_rendered_two_ways_reports_as_two_curves(tmp_path):
     cfg = make_config("walker_walk", preset="small", variant="dreamer")
     cfg.train.render_quality = "default"
     cfg.save(run_dir / "config.yaml")
-    row = R.gather_run("walker_walk", R.ANCHOR_LABEL, "dreamer", 0, run_dir)
+    row = gather_run("walker_walk", ANCHOR_LABEL, "dreamer", 0, run_dir)
     assert row["render_quality"] == "default"
-    assert "render_quality" not in R.gather_run("walker_walk", R.ANCHOR_LABEL, "dreamer", 1, tmp_path / "none")
+    assert "render_quality" not in gather_run("walker_walk", ANCHOR_LABEL, "dreamer", 1, tmp_path / "none")
 
 
 @pytest.mark.process
@@ -485,10 +509,10 @@ def test_a_report_of_two_grids_shows_each_and_plots_both(tmp_path):
     r = subprocess.run([sys.executable, "-m", "trainer.research.compare", "--report", anchor, other,
                         "--markdown", "--image", str(png)], capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert r.returncode == 0, r.stderr
-    section = r.stdout[r.stdout.index(R.BEGIN):]
+    section = r.stdout[r.stdout.index(BEGIN):]
     assert f"*Generated from `{anchor}` and `{other}` by `protocad-compare --report {anchor} {other} " \
            f"--image {png} --update-readme README.md`" in section
-    docs = [R.load_results(ROOT / anchor), R.load_results(ROOT / other)]
+    docs = [load_results(ROOT / anchor), load_results(ROOT / other)]
     for doc, name in zip(docs, (anchor, other)):
         part = section[section.index(f"**`{name}`**"):]
         assert " ".join(doc["command"]) in part and f"Budget {doc['budgets']['env_steps']:,} env steps" in part
@@ -559,8 +583,8 @@ def continue_the_grid_on_another_machine(out: Path, args: list[str], tmp_path: P
     log = grid.output()
     assert grid.p.returncode == 0, log[-3000:]
     assert "2 finished run(s) carried" in log and log.count("(fresh)") == 1 and "seed2 (fresh)" in log
-    before = {r["seed"]: r for r in R.load_results(committed)["runs"]}
-    doc = R.load_results(elsewhere / "results.json")
+    before = {r["seed"]: r for r in load_results(committed)["runs"]}
+    doc = load_results(elsewhere / "results.json")
     assert [r["seed"] for r in doc["runs"]] == [0, 1, 2]
     for r in doc["runs"][:2]:
         assert {k: v for k, v in r.items() if k != "carried_from"} == before[r["seed"]]
@@ -569,7 +593,7 @@ def continue_the_grid_on_another_machine(out: Path, args: list[str], tmp_path: P
     assert doc["runs"][2]["code_versions"] and "gathering tree" not in doc["code_version"]
     assert not (elsewhere / "pendulum_swingup" / "dreamer" / "seed0").exists()
     assert f"dreamer/seed0, dreamer/seed1 finished elsewhere and came from {committed}" in \
-        R.markdown_section([doc])
+        markdown_section([doc])
 
     other = [*more[:more.index("--")], "--from-results", str(committed), *more[more.index("--"):],
              "--updates-per-episode", "3"]
@@ -598,7 +622,7 @@ def ship_the_best_policy(out: Path, tmp_path: Path) -> None:
     r = subprocess.run([sys.executable, "-m", "trainer.research.compare", "--report", str(out / "results.json"),
                         "--ship", str(policy)], capture_output=True, text=True, cwd=ROOT, timeout=300)
     assert r.returncode == 0, r.stderr
-    doc = R.load_results(out / "results.json")
+    doc = load_results(out / "results.json")
     best = max(doc["runs"], key=lambda row: row["final"]["mean_return"])
     prov = read_provenance(policy)
     assert prov["results_entry"]["seed"] == best["seed"] and prov["results_entry"]["final"] == best["final"]

@@ -24,7 +24,7 @@ def test_online_runs_end_to_end_and_resumes(tmp_path):
     # the freeze is a tenth of the planned updates (6, below), recorded where results read it
     info = json.loads((run / "run.json").read_text())
     assert info["result"]["prototype_freeze"] == 1 and "prototypes frozen for the first 1 updates" in r.stdout
-    from trainer.research.results import gather_run
+    from trainer.research.results_json import gather_run
 
     row = gather_run("pendulum_swingup", "protocad", "protocad", 0, run)
     assert (row["prototype_freeze"], row["collect_interval"]) == (1, 2)

@@ -238,7 +238,8 @@ def test_lifecycle_nodes_get_list_set(bridge):
 def test_bag_info_prints_the_rosbag2_table(tmp_path):
     from sensor_msgs.msg import JointState
 
-    from trainer.bag.mcap_io import BagWriter, encode
+    from trainer.bag.rosmsg import encode
+    from trainer.bag.writer import BagWriter
 
     bag = tmp_path / "session"
     t0 = 1_700_000_000_123_456_789

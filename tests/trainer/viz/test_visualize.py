@@ -140,10 +140,11 @@ def test_cheetah_md_grid_every_context_colour_per_parameter(tmp_path):
 def _write_bag(bag_dir, episodes):
     """A rosbag2/MCAP bag with the topic contract's messages (as the recorder writes them)."""
     from sim_bridge.contract import topics as T
-    from trainer.bag import mcap_io as M
+    from trainer.bag.rosmsg import new_message
+    from trainer.bag.writer import BagWriter
 
     ns = T.DEFAULT_NAMESPACE
-    with M.BagWriter(bag_dir) as w:
+    with BagWriter(bag_dir) as w:
         for rel in (T.IMAGE, T.STEP_INFO, T.ACTION, T.CONTEXT):
             w.add_topic(T.topic_name(ns, rel), T.TYPES[rel])
         t = 0
@@ -157,7 +158,7 @@ def _write_bag(bag_dir, episodes):
                         (T.CONTEXT, T.fill_context, (ep.context, ep.split)),
                         (T.ACTION, T.fill_action, (ep.action[i + 1] if i + 1 < len(ep)
                                                    else np.zeros(1), ["a0"]))):
-                    msg = M.new_message(T.TYPES[rel])
+                    msg = new_message(T.TYPES[rel])
                     fill(msg, *args, t)
                     w.write_message(T.topic_name(ns, rel), msg, t)
     return sorted(bag_dir.glob("*.mcap"))
