@@ -99,7 +99,7 @@ setup(
             "ros2 = trainer.ros2cli:main",
             "protocad-record = trainer.nodes.recorder:main",
             "protocad-train = trainer.learn.train:main",
-            "protocad-evaluate = trainer.learn.evaluate:main",
+            "protocad-evaluate = trainer.launch.ros_evaluate:main",
             "protocad-loop = trainer.launch.loop:main",
             "protocad-online = trainer.research.online:main",
             "protocad-visualize = trainer.viz.visualize:main",

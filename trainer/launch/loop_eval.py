@@ -9,7 +9,8 @@ from pathlib import Path
 
 from trainer import console, runs
 from trainer.launch.loop_rundir import LoopRunDir
-from trainer.learn.evaluate import evaluate_checkpoint, evaluate_through_ros, format_table
+from trainer.launch.ros_evaluate import evaluate_through_ros
+from trainer.learn.evaluate import evaluate_checkpoint, format_table
 
 
 def policy_vs_random(rundir: LoopRunDir, domain_id: int, device: str, stop: console.StopFlag) -> None:

@@ -18,7 +18,7 @@ K (every value of m and of d equally often: TaskSpec.stratified); `--context m=0
 
 In-process (default): ContextDMCEnv copies with the context fixed per episode, stepped in this
 process (`--workers 0`) or in worker processes (`--workers N`), the policy batched over them.
-Through ROS (`--through-ros`): a sim-bridge node (lock-step, the split's contexts drawn at each
+Through ROS (`--through-ros`, trainer/launch/ros_evaluate.py): a sim-bridge node (lock-step, the split's contexts drawn at each
 reset: the bridge has no parameter to fix a context), the policy node serving the checkpoint,
 and a recorder; the returns are read back from the recorded bag and grouped by the recorded
 true context, so the per-context episode counts follow the bridge's draws.
@@ -31,17 +31,16 @@ import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
 
 from protocad_ros.atomic import file_sha256
-from protocad_ros.model.config import Config
+from protocad_ros.checkpoint.files import CheckpointError, existing_checkpoint_file
 from sim_bridge.contract.contexts import context_label, get_task, task_actuators
 from sim_bridge.sim.rollout import RandomPolicy, rollout
 from sim_bridge.sim.vector import VectorEnv
 from trainer import console, runs, settings, torch_setup
-from trainer.launch import rosprocs
 from trainer.settings import arg, settings_parser
 
 DEFAULT_EPISODES = 5
@@ -265,64 +264,6 @@ def evaluate_checkpoint(checkpoint: str | Path | None, *, task: str | None = Non
                       seconds=time.monotonic() - t0)
 
 
-# ----------------------------------------------------------------------------- through ROS
-def evaluate_through_ros(checkpoint: str | None, *, task: str | None, split: str = "test", episodes: int = 1,
-                         total_episodes: int = 0, seed: int = 0, out_dir: Path, domain_id: int | None = None,
-                         episode_length: int | None = None, device: str = "cpu",
-                         timeout_s: float = 3600.0) -> EvalResult:
-    """Run the episodes through real ROS processes (bridge + policy node or random actor +
-    recorder), then read the returns from the recorded bag (grouped by the true context).
-    Without `total_episodes` the bridge cycles through the split's contexts, so each gets
-    exactly `episodes` episodes; with it, contexts are drawn uniformly."""
-    from trainer.data.dataset import MCAPDataset
-
-    t0 = time.monotonic()
-    cfg = None
-    updates = env_steps = None
-    if checkpoint:
-        from protocad_ros.checkpoint import read_checkpoint
-
-        payload = read_checkpoint(checkpoint)
-        cfg = Config.from_dict(payload["config"])
-        task = task or cfg.task
-        updates = int(payload["modules"]["updates"]) if "updates" in payload["modules"] else None
-        env_steps = payload.get("counters", {}).get("env_steps")
-    if not task:
-        raise ValueError("give a checkpoint or --task")
-    out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    bag = out_dir / f"eval_{split}_{time.strftime('%Y%m%d-%H%M%S')}"
-    stack = rosprocs.RosStack(out_dir / "logs", domain_id=domain_id)
-    ep_len = episode_length or ((cfg.train.time_limit // cfg.train.action_repeat) if cfg else 500)
-    total = total_episodes or episodes * len(get_task(task).contexts(split))
-    try:
-        if checkpoint:
-            stack.start_policy(checkpoint=checkpoint, task=task, seed=seed, device=device, mode="deterministic",
-                               reload_poll_s=0.0)
-        else:  # the random baseline: uniform random actions
-            stack.start_random_actor(task=task, seed=seed)
-        stack.start_recorder(bag, wait_topics=[f"{stack.namespace}/action"])
-        bridge = stack.start_bridge(task=task, split=split, seed=seed, max_episodes=total,
-                                    context_schedule="sample" if total_episodes else "cycle",
-                                    episode_length=ep_len, action_repeat=cfg.train.action_repeat if cfg else 2)
-        stack.wait_exit(bridge, timeout_s)
-    finally:
-        stack.stop_all()
-    ds = MCAPDataset([bag], seq_len=1, cache_dir=out_dir / "cache")
-    per: dict[str, ContextResult] = {}
-    for e in ds.episodes():
-        if not (e["has_first"] and e["has_last"]) or e["context"] is None:
-            continue
-        key = context_label(e["context"])
-        print(f"[evaluate] episode {e['episode']} ({e['split'] or split} context {key}): "
-              f"return {e['return']:.1f} over {e['length'] - 1} steps", flush=True)
-        per.setdefault(key, ContextResult(e["context"], e["split"] or split)).returns.append(e["return"])
-    ordered = sorted(per.values(), key=lambda c: tuple(c.context.values()))
-    return EvalResult(task=task, split=split, policy=str(checkpoint) if checkpoint else "random",
-                      per_context=ordered, variant=cfg.variant if cfg else None, updates=updates,
-                      env_steps=env_steps, seconds=time.monotonic() - t0, mode="through ROS")
-
-
 # ----------------------------------------------------------------------------- CLI
 @dataclass
 class EvaluateSettings:
@@ -384,19 +325,21 @@ def build_parser():
         [(None, EvaluateSettings)])
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    from protocad_ros.checkpoint import CheckpointError
-
+def main(argv: Sequence[str] | None = None, ros_evaluator: Callable[..., EvalResult] | None = None) -> int:
+    """protocad-evaluate; ros_evaluator: the evaluator --through-ros runs (the ROS side's
+    trainer.launch.ros_evaluate, whose main passes it: this package does not start nodes)."""
     s = settings.parse(build_parser(), argv, config_help=False).get(EvaluateSettings)
     try:
-        return run(s)
+        return run(s, ros_evaluator)
     except (ValueError, CheckpointError) as exc:
         print(f"protocad-evaluate: error: {exc}", file=sys.stderr)
         return 2
 
 
-def run(a: EvaluateSettings) -> int:
+def run(a: EvaluateSettings, ros_evaluator: Callable[..., EvalResult] | None = None) -> int:
     """Evaluate as the settings say, print the tables (and write --json)."""
+    if a.through_ros and ros_evaluator is None:
+        raise ValueError("--through-ros starts ROS nodes: run it as protocad-evaluate (trainer.launch.ros_evaluate)")
     torch_setup.setup_torch(a.threads)
     device = torch_setup.resolve_device(a.device)
     if not a.checkpoints and not a.random:
@@ -417,7 +360,7 @@ def run(a: EvaluateSettings) -> int:
         for ck in ckpts:
             sha = file_sha256(ck)   # the file as evaluation began (a live run may replace latest.pt)
             if a.through_ros:
-                r = evaluate_through_ros(str(ck), task=None, split=a.split, episodes=a.episodes,
+                r = ros_evaluator(str(ck), task=None, split=a.split, episodes=a.episodes,
                                          total_episodes=a.ros_episodes, seed=a.seed,
                                          out_dir=Path(a.ros_dir or ck.parent.parent / "eval_ros"),
                                          domain_id=a.domain_id, device=device,
@@ -436,7 +379,7 @@ def run(a: EvaluateSettings) -> int:
                 raise ValueError("--random needs --task TASK (or checkpoints to take tasks from)")
             for t in random_tasks:
                 if a.through_ros:
-                    r = evaluate_through_ros(None, task=t, split=a.split, episodes=a.episodes,
+                    r = ros_evaluator(None, task=t, split=a.split, episodes=a.episodes,
                                              total_episodes=a.ros_episodes, seed=a.seed,
                                              out_dir=Path(a.ros_dir or "runs/eval_ros"), domain_id=a.domain_id,
                                              episode_length=a.episode_length)

@@ -73,7 +73,7 @@ def test_random_baseline_in_worker_processes_matches_in_process(tmp_path):
 def test_through_ros_nodes(tmp_path):
     ck = tiny_checkpoint(tmp_path / "ck.pt")
     out = tmp_path / "ros.json"
-    r = run_cli("trainer.learn.evaluate", ck, "--through-ros", "--ros-episodes", "2", "--episode-length", "10",
+    r = run_cli("trainer.launch.ros_evaluate", ck, "--through-ros", "--ros-episodes", "2", "--episode-length", "10",
                 "--ros-dir", tmp_path / "ros", "--json", out, timeout=240)
     assert r.returncode == 0, r.stdout + r.stderr
     assert "through ROS" in r.stdout
@@ -85,7 +85,7 @@ def test_through_ros_nodes(tmp_path):
 
     # Without a total the bridge cycles through the split: every test context exactly once.
     out = tmp_path / "cycle.json"
-    r = run_cli("trainer.learn.evaluate", ck, "--through-ros", "--episodes", "1", "--episode-length", "5",
+    r = run_cli("trainer.launch.ros_evaluate", ck, "--through-ros", "--episodes", "1", "--episode-length", "5",
                 "--ros-dir", tmp_path / "ros_cycle", "--json", out, timeout=240)
     assert r.returncode == 0, r.stdout + r.stderr
     d = json.loads(out.read_text())["results"][0]
