@@ -119,7 +119,7 @@ def save_checkpoint(path: str | os.PathLike, agent: AgentBase, counters: Mapping
     if rng_state:
         payload["torch_rng"] = torch.get_rng_state()
     _write(path, payload)
-    agent.precision.save_config(agent.cfg, path.parent / CONFIG_NAME)
+    agent.cfg.save(path.parent / CONFIG_NAME, ran=agent.precision.ran_here())
     return path
 
 

@@ -4,9 +4,6 @@ from __future__ import annotations
 
 import argparse
 import re
-from typing import Callable, Mapping
-
-MetricsCallback = Callable[[int, Mapping[str, float]], None]
 
 
 class HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):

@@ -7,9 +7,7 @@ import signal
 import sys
 import time
 from dataclasses import dataclass, field
-from typing import Callable, Mapping
-
-MetricsCallback = Callable[[int, Mapping[str, float]], None]
+from typing import Callable
 
 
 def progress(total: int | None, initial: int = 0, desc: str = "", disable: bool | None = None, unit: str = "it"):

@@ -6,14 +6,12 @@ import copy
 import dataclasses
 import typing
 from pathlib import Path
-from typing import Any, Callable, Iterable, Mapping, Sequence
+from typing import Any, Iterable, Mapping, Sequence
 
 import yaml
 
 from protocad_ros.model.config import apply_overrides, make_config
 from protocad_ros.model.hyperparameters import DEFAULT_CLI_PRESET
-
-MetricsCallback = Callable[[int, Mapping[str, float]], None]
 
 
 def parse_set(items: Iterable[str] | None) -> dict[str, Any]:

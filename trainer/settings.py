@@ -32,6 +32,7 @@ from typing import Any, Sequence, TypeVar
 
 from protocad_ros.model.config import check_train_memory
 from protocad_ros.model.hyperparameters import PRESETS, VARIANTS
+from protocad_ros.model.precision import PRECISIONS
 from sim_bridge.contract.contexts import TASKS
 from trainer import cli_values, run_config, torch_setup
 from trainer.run_input import check_settings_section, load_json_object
@@ -289,7 +290,7 @@ class ModelChoice:
     """cpu, cuda, cuda:N or auto (cuda when available)"""
     threads: int = arg(0, help=torch_setup.THREADS_HELP)
     """torch threads"""
-    precision: str | None = arg(None, choices=("auto", "float32", "bfloat16"))
+    precision: str | None = arg(None, choices=PRECISIONS)
     """train.precision; auto = bfloat16 where the device has bf16 arithmetic (AVX512-BF16/AMX
     CPUs, Ampere+ GPUs), else float32; bfloat16 given here is kept even where the device emulates
     it (with a warning); unset: the config's train.precision, a request each process resolves

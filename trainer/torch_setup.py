@@ -4,11 +4,8 @@ from __future__ import annotations
 import ctypes
 import os
 import random
-from typing import Callable, Mapping
 
 import numpy as np
-
-MetricsCallback = Callable[[int, Mapping[str, float]], None]
 
 
 def seed_everything(seed: int) -> None:

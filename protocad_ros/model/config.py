@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import math
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Mapping
@@ -45,6 +46,7 @@ from protocad_ros.model.hyperparameters import (
     VariantSpec,
     WorldModelConfig,
 )
+from protocad_ros.model.precision import PRECISIONS
 from sim_bridge.contract.contexts import TASKS  # pure data (no ROS): the contract's task table
 
 
@@ -114,10 +116,15 @@ class Config:
         cfg.validate()
         return cfg
 
-    def save(self, path: str | os.PathLike) -> Path:
-        """Write YAML atomically (tmp file in the same directory + fsync + os.replace)."""
+    def save(self, path: str | os.PathLike, ran: str | None = None) -> Path:
+        """Write YAML atomically (tmp file in the same directory + fsync + os.replace): every
+        config.yaml is written here. ran: what ran (PrecisionChoice.ran_here()), a comment on
+        the train.precision line ('# ran in float32 here (cpu, CPU capability AVX2)')."""
         path = Path(path)
-        atomic_write_text(path, yaml.safe_dump(self.to_dict(), sort_keys=False))
+        text = yaml.safe_dump(self.to_dict(), sort_keys=False)
+        if ran:
+            text = re.sub(r"^(  precision: .*)$", lambda m: f"{m.group(1)}  # {ran}", text, count=1, flags=re.MULTILINE)
+        atomic_write_text(path, text)
         return path
 
     @classmethod
@@ -176,7 +183,7 @@ class Config:
         check(bh.actor_grad in ("dynamics", "reinforce", "both"),
               f"behavior.actor_grad must be 'dynamics'|'reinforce'|'both', got {bh.actor_grad!r}")
         check(bh.horizon >= 1, "behavior.horizon must be >= 1")
-        check(tr.precision in ("auto", "float32", "bfloat16"),
+        check(tr.precision in PRECISIONS,
               f"train.precision must be 'auto'|'float32'|'bfloat16', got {tr.precision!r}")
         check(tr.image_size == 64, "only 64x64 images are supported (train.image_size=64)")
         check(tr.render_quality in ("fast", "default"),

@@ -19,14 +19,9 @@ machine would choose, shown on any machine.
 from __future__ import annotations
 
 import os
-import re
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
-
-import yaml
-
-from protocad_ros.atomic import atomic_write_text
 
 PRECISIONS = ("auto", "float32", "bfloat16")
 BF16_FLAGS = frozenset({"avx512_bf16", "amx_bf16"})
@@ -91,14 +86,10 @@ class PrecisionChoice:
                else "as --precision asked" if self.explicit else "as the config asks")
         return f"precision {self.precision} ({how}; {where})"
 
-    def save_config(self, cfg: Any, path: str | os.PathLike) -> None:
-        """cfg (a Config) as YAML at `path`, atomically, its train.precision line commented with
-        what ran here ('# ran in float32 here (cpu, CPU capability AVX2)'): the value stays the
-        request, resolved again wherever the file is used."""
-        note = f"  # ran in {self.precision} here ({self.device}, CPU capability {self.capability})"
-        text = re.sub(r"^(  precision: .*)$", lambda m: m.group(1) + note,
-                      yaml.safe_dump(cfg.to_dict(), sort_keys=False), count=1, flags=re.MULTILINE)
-        atomic_write_text(Path(path), text)
+    def ran_here(self) -> str:
+        """What ran here, for config.yaml's train.precision line (Config.save(ran=...)): the
+        value stays the request, resolved again wherever the file is used."""
+        return f"ran in {self.precision} here ({self.device}, CPU capability {self.capability})"
 
     def to_dict(self) -> dict[str, Any]:
         """For run.json: what ran, what was asked, and the machine's capability."""

@@ -40,10 +40,6 @@ def find_sources(paths: Iterable[str | Path]) -> list[Path]:
 MAX_SEARCH_DEPTH = 8
 
 
-#: Deepest folder below a log path searched for bags (runs/*/bags/NAME is 3).
-MAX_SEARCH_DEPTH = 8
-
-
 def _bag_dirs(d: Path, depth: int = 0) -> list[Path]:
     """The bag directories under d: a folder the user cannot list (/proc's) or one deeper than
     MAX_SEARCH_DEPTH (a symlink loop) is one DatasetError line, not a traceback or a long walk."""

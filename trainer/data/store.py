@@ -31,7 +31,6 @@ from trainer.data.records import (
     SourceReport,
     TopicMap,
 )
-from trainer.data.sources import MAX_SEARCH_DEPTH, find_sources  # noqa: F401 - also imported from here
 
 
 def source_files(source: Path) -> list[Path]:

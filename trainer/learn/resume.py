@@ -1,4 +1,4 @@
-"""A run's trainer, opened the one way protocad-loop and protocad-online open it: resumed from
+"""A run's trainer, opened the one way protocad-train, protocad-loop and protocad-online open it: resumed from
 the run's checkpoint when there is one, else fresh; then the prototype freeze planned for the
 whole run, the precision resolved on this machine, and config.yaml saved saying what it ran in.
 No ROS."""
@@ -39,8 +39,9 @@ def open_trainer(cfg, run_dir: Path, dataset: MCAPDataset, *, resume: bool, devi
     end_updates: the agent's update count at the end of the run's plan (the freeze is a share of
     it; once resolved, the checkpoint keeps it). precision: the command line's --precision
     (None: the config's request). initial_agent: builds a fresh trainer's agent (--init-policy's
-    weights) instead of new weights. restart_metrics: a fresh trainer on a resume drops the
-    metrics lines an earlier attempt logged, as its updates start from 0 again."""
+    weights) instead of new weights. restart_metrics: a trainer that starts fresh (a new run, or
+    a resume of one stopped before its first checkpoint) drops the metrics lines an earlier
+    attempt logged, as its updates start from 0 again."""
     ctx = dist_ctx or distributed.DistContext()
     ckpt = runs.checkpoint_path(run_dir)
     resumed = resume and ckpt.exists()
@@ -48,7 +49,7 @@ def open_trainer(cfg, run_dir: Path, dataset: MCAPDataset, *, resume: bool, devi
         trainer = Trainer.from_checkpoint(ckpt, run_dir, dataset, device=device, callbacks=callbacks,
                                           log_every=log_every, dist_ctx=dist_ctx)
     else:
-        if resume and restart_metrics and ctx.is_main:
+        if restart_metrics and ctx.is_main:
             metrics_log.truncate_metrics(Path(run_dir) / "metrics.jsonl", 0)
         trainer = Trainer(cfg, run_dir, dataset, device=device, callbacks=callbacks, log_every=log_every,
                           action_dim=len(task_actuators(cfg.task)),
@@ -57,5 +58,5 @@ def open_trainer(cfg, run_dir: Path, dataset: MCAPDataset, *, resume: bool, devi
     # Resolved here, on this rank's device: a config from another machine asks, never forces.
     chosen = trainer.agent.use_precision(precision)
     if ctx.is_main:
-        chosen.save_config(cfg, Path(run_dir) / "config.yaml")
+        cfg.save(Path(run_dir) / "config.yaml", ran=chosen.ran_here())
     return OpenedTrainer(trainer, resumed, freeze, chosen)

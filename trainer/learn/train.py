@@ -25,8 +25,10 @@ from sim_bridge.contract.contexts import task_actuators
 from trainer import cli_values, console, runs, settings
 from trainer.data.dataset import DatasetError, MCAPDataset, TopicMap, default_cache_dir
 from trainer.data.records import DEFAULT_CROP
-from trainer.data.store import find_sources, multiple_publishers
+from trainer.data.sources import find_sources
+from trainer.data.store import multiple_publishers
 from trainer.learn import distributed
+from trainer.learn.resume import open_trainer
 from trainer.learn.trainer import DEFAULT_LOG_EVERY, CheckpointWriteError, RanksDiverged, Trainer
 from trainer.run_input import check_logs, check_settings_section
 from trainer.settings import arg
@@ -220,29 +222,22 @@ def _train(s: TrainSettings, model: settings.ModelChoice, config_args: list[str]
     ds = open_logs(s, cfg, ctx, say)
     callbacks = metrics_callbacks(s.rerun, run_dir, "protocad-train")
     rrd = (s.rerun or str(run_dir / "metrics.rrd")) if s.rerun is not None else None
-    if s.resume:
-        try:
-            trainer = Trainer.from_checkpoint(runs.checkpoint_path(run_dir), run_dir, ds, device=device,
-                                              callbacks=callbacks, log_every=s.log_every, dist_ctx=ctx)
-        except CheckpointError as exc:
-            raise ValueError(str(exc)) from None
-        target = s.updates or 1000
-        say(f"[train] resuming {run_dir} at update {trainer.updates} (target {target})", flush=True)
-    else:
+    target = s.updates or 1000
+    if not s.resume:
         cfg.train.device = device
-        if ctx.is_main:
-            (run_dir / "metrics.jsonl").unlink(missing_ok=True)   # a fresh run (no checkpoint yet)
-        trainer = Trainer(cfg, run_dir, ds, device=device, callbacks=callbacks, log_every=s.log_every,
-                          dist_ctx=ctx)
-        target = s.updates or 1000
-    precision = trainer.agent.use_precision(model.precision)   # every rank, on its own device
+    try:   # the one way every trainer CLI opens its run's trainer (resume.py)
+        opened = open_trainer(cfg, run_dir, ds, resume=s.resume, device=device, end_updates=target,
+                              precision=model.precision, log_every=s.log_every, callbacks=callbacks,
+                              dist_ctx=ctx, restart_metrics=True)
+    except CheckpointError as exc:
+        raise ValueError(str(exc)) from None
+    trainer, precision, freeze = opened.trainer, opened.precision, opened.prototype_freeze
+    if opened.resumed:
+        say(f"[train] resuming {run_dir} at update {trainer.updates} (target {target})", flush=True)
     say(f"[train] {precision.describe()}", flush=True)
-    if ctx.is_main:
-        precision.save_config(trainer.agent.cfg, run_dir / "config.yaml")
     if trainer.dataset.action_dim != trainer.agent.action_dim:
         raise ValueError(f"the logs have {trainer.dataset.action_dim}-d actions but the agent "
                          f"{trainer.agent.action_dim}-d")
-    freeze = trainer.plan_prototype_freeze(target)
     namespaces = [n for n in (s.namespace or []) if n] or None
     run_json.update(kind="train", argv=sys.argv, logs=[str(Path(p).resolve()) for p in s.logs],
                     topics_args=list(s.topic), namespace=namespaces, crop=s.crop,
