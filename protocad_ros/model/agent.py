@@ -270,10 +270,10 @@ class Agent(AgentBase):
             out["truth"] = b["image"][:, window].cpu().numpy()
         return out
 
-    def set_prototype_freeze(self, updates: int) -> bool:
+    def set_prototype_freeze(self, prototype_freeze: int) -> bool:
         mods = [m for m in (self.wm.context, self.wm.dreamerpro) if m is not None]
         for m in mods:
-            m.freeze_prototypes_steps = max(0, int(updates))
+            m.prototype_freeze = max(0, int(prototype_freeze))
         return bool(mods)
 
     def prototypes(self) -> torch.Tensor | None:

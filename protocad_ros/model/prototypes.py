@@ -223,7 +223,7 @@ class ContextModule(nn.Module):
         sinkhorn_iters / sinkhorn_eps: Sinkhorn-Knopp iterations / epsilon (3 / 0.05; the paper's
             eps, DreamerPro uses 0.0125 on DMC).
         ema: eta, fraction the target projector moves towards the online one per update (0.05).
-        freeze_prototypes_steps: prototypes get zero gradient for the first this many updates, so
+        prototype_freeze: prototypes get zero gradient for the first this many updates, so
             the early, meaningless projections do not drag them around (DreamerPro: 10k of its
             ~100k). A trainer sets it from the run's plan (Agent.set_prototype_freeze); the
             config's -1 (auto, not yet resolved) builds with 0.
@@ -250,7 +250,7 @@ class ContextModule(nn.Module):
 
     def __init__(self, state_dim: int, *, proj_dim: int = 32, num_prototypes: int = 100,
                  temperature: float = 0.1, sinkhorn_iters: int = 3, sinkhorn_eps: float = 0.05,
-                 ema: float = 0.05, freeze_prototypes_steps: int = 0,
+                 ema: float = 0.05, prototype_freeze: int = 0,
                  temporal_consistency: bool = True, drop_first_steps: int = 1,
                  sinkhorn_over: str = "steps", cross_view_scale: float = 0.0,
                  both_views_train: bool = False):
@@ -267,7 +267,7 @@ class ContextModule(nn.Module):
         self.temperature = temperature
         self.sinkhorn_iters, self.sinkhorn_eps = sinkhorn_iters, sinkhorn_eps
         self.ema = ema
-        self.freeze_prototypes_steps = max(0, int(freeze_prototypes_steps))
+        self.prototype_freeze = max(0, int(prototype_freeze))
         self.temporal_consistency = temporal_consistency
         self.drop_first_steps = drop_first_steps
         self.sinkhorn_over = sinkhorn_over
@@ -295,7 +295,7 @@ class ContextModule(nn.Module):
                    else num_prototypes,
                    temperature=ctx_cfg.temperature, sinkhorn_iters=ctx_cfg.sinkhorn_iters,
                    sinkhorn_eps=ctx_cfg.sinkhorn_eps, ema=ctx_cfg.ema,
-                   freeze_prototypes_steps=ctx_cfg.freeze_prototypes_updates,
+                   prototype_freeze=ctx_cfg.freeze_prototypes_updates,
                    temporal_consistency=temporal_consistency,
                    drop_first_steps=ctx_cfg.drop_first_steps,
                    sinkhorn_over=ctx_cfg.sinkhorn_over,
@@ -305,7 +305,7 @@ class ContextModule(nn.Module):
     def extra_repr(self) -> str:
         return (f"K={self.num_prototypes}, D={self.proj_dim}, T={self.temperature}, "
                 f"sinkhorn=({self.sinkhorn_iters}, {self.sinkhorn_eps}), ema={self.ema}, "
-                f"freeze={self.freeze_prototypes_steps}, tc={self.temporal_consistency}, "
+                f"freeze={self.prototype_freeze}, tc={self.temporal_consistency}, "
                 f"drop_first={self.drop_first_steps}, sinkhorn_over={self.sinkhorn_over}, "
                 f"cross_view={self.cross_view_scale}, both_views={self.both_views_train}")
 
@@ -326,7 +326,7 @@ class ContextModule(nn.Module):
 
     def prototypes_frozen(self, step: int) -> bool:
         """True while `step` (updates done before this one) is inside the freeze window."""
-        return step < self.freeze_prototypes_steps
+        return step < self.prototype_freeze
 
     def mask_frozen_prototype_grad(self, step: int) -> bool:
         """Inside the freeze window drop every gradient on c_k (call after backward).

@@ -62,7 +62,7 @@ class DreamerProPrototypes(nn.Module):
         self.ema_encoder = copy.deepcopy(encoder).requires_grad_(False)
         self.ema_obs_proj = copy.deepcopy(self.obs_proj).requires_grad_(False)
         self.register_buffer("ema_updates", torch.zeros((), dtype=torch.long))
-        self.freeze_prototypes_steps = max(0, c.freeze_prototypes_updates)   # -1 (auto) unresolved: 0
+        self.prototype_freeze = max(0, c.freeze_prototypes_updates)   # -1 (auto) unresolved: 0
 
     @torch.no_grad()
     def normalize_prototypes(self) -> None:
@@ -72,7 +72,7 @@ class DreamerProPrototypes(nn.Module):
         return F.normalize(self.prototypes.detach(), dim=-1)
 
     def mask_frozen_prototype_grad(self, step: int) -> bool:
-        if step < self.freeze_prototypes_steps:
+        if step < self.prototype_freeze:
             self.prototypes.grad = None
             return True
         return False
@@ -101,7 +101,7 @@ class DreamerProPrototypes(nn.Module):
              step: int) -> tuple[torch.Tensor, dict[str, torch.Tensor]]:
         """embed (2B, T, E), feat (2B, T, S), images (2B, T, 3, 64, 64) of the two views."""
         cfg = self.cfg
-        c = self.prototypes.detach() if step < self.freeze_prototypes_steps else self.prototypes
+        c = self.prototypes.detach() if step < self.prototype_freeze else self.prototypes
         keep = slice(min(cfg.drop_first_steps, embed.shape[1] - 1), embed.shape[1])
         obs = self.obs_proj(embed).float()
         feat_p = self.feat_proj(feat).float()

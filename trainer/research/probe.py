@@ -179,7 +179,7 @@ def prototype_drift(agent: Any, freeze: int | None = None) -> dict[str, Any] | N
     with torch.no_grad():
         cos = F.cosine_similarity(c.float().cpu(), initial[name].float(), dim=-1)
     return {"parameter": name, "cos_to_initial_mean": float(cos.mean()), "cos_to_initial_min": float(cos.min()),
-            "count": int(cos.numel()), "frozen_updates": None if freeze is None else int(freeze)}
+            "count": int(cos.numel()), "prototype_freeze": None if freeze is None else int(freeze)}
 
 
 def _params(task: str) -> tuple[str, ...]:

@@ -84,10 +84,10 @@ PROBE_SCHEMA: dict[str, Any] = {
         "collapsed": {"type": ["string", "null"]},
         "prototypes": {"oneOf": [{"type": "null"}, {
             "type": "object", "required": ["parameter", "cos_to_initial_mean", "cos_to_initial_min", "count",
-                                           "frozen_updates"],
+                                           "prototype_freeze"],
             "properties": {"parameter": {"type": "string"}, "cos_to_initial_mean": _NUM,
                            "cos_to_initial_min": _NUM, "count": _INT,
-                           "frozen_updates": {"type": ["integer", "null"]}}}]},
+                           "prototype_freeze": {"type": ["integer", "null"]}}}]},
         "seconds": _NUM,
     },
 }
@@ -96,6 +96,15 @@ PROBE_SCHEMA: dict[str, Any] = {
 def validate(doc: Mapping[str, Any]) -> None:
     """The probe's JSON against PROBE_SCHEMA (ValueError naming where it fails)."""
     check_schema(doc, PROBE_SCHEMA, "probe JSON", SCHEMA_ID)
+
+
+def migrate(doc: dict[str, Any]) -> dict[str, Any]:
+    """A probe JSON written before the freeze had one name: its prototypes' `frozen_updates`
+    read as `prototype_freeze` (the run.json and results.json name)."""
+    protos = doc.get("prototypes")
+    if isinstance(protos, dict) and "frozen_updates" in protos and "prototype_freeze" not in protos:
+        doc["prototypes"] = {("prototype_freeze" if k == "frozen_updates" else k): v for k, v in protos.items()}
+    return doc
 
 
 def write_json(doc: Mapping[str, Any], path: Path) -> None:
@@ -107,7 +116,7 @@ def read_json(path: str | Path) -> dict[str, Any]:
     """A probe JSON, bounded in size and depth and checked against PROBE_SCHEMA (ValueError
     naming the file)."""
     try:
-        doc = load_json_object(path)
+        doc = migrate(load_json_object(path))
     except ValueError as exc:
         raise ValueError(f"not a probe JSON: {exc}") from None
     try:
@@ -243,8 +252,8 @@ def health_line(h: Mapping[str, float], collapsed: str | None = None) -> str:
 
 def prototypes_line(c: Mapping[str, Any], updates: int) -> str:
     """Whether training moved the prototypes, in one line."""
-    frozen = ("" if c["frozen_updates"] is None
-              else f"; frozen for the first {c['frozen_updates']:,} of its {updates:,} updates")
+    frozen = ("" if c["prototype_freeze"] is None
+              else f"; frozen for the first {c['prototype_freeze']:,} of its {updates:,} updates")
     return (f"prototypes c_k: cosine to their seeded initial values {c['cos_to_initial_mean']:.3f} on average, "
             f"{c['cos_to_initial_min']:.3f} at the least (1.000: never trained){frozen}")
 

@@ -210,7 +210,7 @@ def test_losses_reach_projector_and_prototypes_only_as_the_paper_says(real_batch
     agent = Agent(tiny(variant), action_dim=1)
     ctx = agent.wm.context
     batch = agent.to_batch(real_batch)
-    step = ctx.freeze_prototypes_steps  # past the freeze window
+    step = ctx.prototype_freeze  # past the freeze window
     _, terms, _, _ = agent.wm.loss(batch, step)
     proj, protos = ctx.projector.weight, ctx.prototypes
     # Reward head reads s only (eq. 7); KL involves only the RSSM.

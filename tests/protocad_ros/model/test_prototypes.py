@@ -216,7 +216,7 @@ def test_tc_swav_pairs_are_exactly_m_over_2_apart():
 
 def test_tc_swav_loss_at_m_50_uses_the_m_over_2_pairs():
     g = _gen(11)
-    ctx = _module(freeze_prototypes_steps=0)
+    ctx = _module(prototype_freeze=0)
     s1, s2 = torch.randn(2, 50, 10, generator=g), torch.randn(2, 50, 10, generator=g)
     loss, _ = ctx.loss(s1, s2, step=0)
     c = ctx.prototypes.detach()
@@ -237,14 +237,14 @@ def test_from_config_maps_config_names():
     ctx = ContextModule.from_config(cfg, state_dim=11, temporal_consistency=False)
     assert ctx.prototypes.shape == (9, 6) and ctx.projector.in_features == 11
     assert (ctx.temperature, ctx.sinkhorn_iters, ctx.sinkhorn_eps, ctx.ema) == (0.2, 4, 0.0125, 0.1)
-    assert ctx.freeze_prototypes_steps == 7 and ctx.drop_first_steps == 0
+    assert ctx.prototype_freeze == 7 and ctx.drop_first_steps == 0
     assert not ctx.temporal_consistency
     assert (ctx.sinkhorn_over, ctx.cross_view_scale, ctx.both_views_train) == ("half_means", 0.5, True)
 
 
 def test_loss_uses_target_projector_sinkhorn_and_crossover():
     g = _gen(5)
-    ctx = _module(freeze_prototypes_steps=0)
+    ctx = _module(prototype_freeze=0)
     with torch.no_grad():  # make target and online projector differ
         ctx.target_projector.weight.add_(torch.randn(4, 10, generator=g))
     s1 = torch.randn(3, 9, 10, generator=g)
@@ -260,7 +260,7 @@ def test_loss_uses_target_projector_sinkhorn_and_crossover():
     assert float(metrics["swav_loss"]) == pytest.approx(loss.item())
     assert 1.0 <= float(metrics["swav_target_perplexity"]) <= 5.0 + 1e-4
 
-    ablation = _module(freeze_prototypes_steps=0, temporal_consistency=False)
+    ablation = _module(prototype_freeze=0, temporal_consistency=False)
     ablation.load_state_dict(ctx.state_dict())
     loss_ab, _ = ablation.loss(s1, s2, step=0)
     assert loss_ab.item() == pytest.approx(_inplace_reference(log_w.detach(), wbar), rel=1e-5)
@@ -282,7 +282,7 @@ def _grads(module):
 
 def test_gradients_follow_the_paper():
     g = _gen(6)
-    ctx = _module(freeze_prototypes_steps=10)
+    ctx = _module(prototype_freeze=10)
     s1 = torch.randn(2, 7, 10, generator=g, requires_grad=True)
     s2 = torch.randn(2, 7, 10, generator=g, requires_grad=True)
 
@@ -407,7 +407,7 @@ def test_reconstruction_trains_the_context_module_only_when_asked():
     """Algorithm 1 (default): a loss on x = (s, u, e) reaches projector and prototypes; the
     Fig. 1 reading (recon_trains_context = false): it reaches s only."""
     for train_module, reaches_module in ((True, True), (False, False)):
-        ctx = _module(freeze_prototypes_steps=0)
+        ctx = _module(prototype_freeze=0)
         s = torch.randn(4, 10, generator=_gen(3), requires_grad=True)
         u, w, e = ctx.features(s, train_module=train_module)
         (u.sum() + e.pow(2).sum() + w[:, 0].sum()).backward()

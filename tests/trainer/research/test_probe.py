@@ -126,7 +126,7 @@ def test_the_json_matches_its_schema_with_finite_scores(probed):
     assert a["prototypes"] == 8 and 1 / 8 <= a["top_mean"] <= 1 and 0 <= a["entropy_mean"] <= a["uniform_entropy"]
     assert a["steps"] == 12 * 25
     c = doc["prototypes"]                                       # untrained: where they started
-    assert c["parameter"] == "wm.context.prototypes" and c["count"] == 8 and c["frozen_updates"] is None
+    assert c["parameter"] == "wm.context.prototypes" and c["count"] == 8 and c["prototype_freeze"] is None
     assert c["cos_to_initial_mean"] == pytest.approx(1.0, abs=1e-5)
     h = doc["health"]                                           # the module's health on the unseen contexts
     assert h["proto_init_cosine"] == pytest.approx(1.0, abs=1e-5)
@@ -276,3 +276,17 @@ def test_variants_without_context_features_get_h_and_the_floor(variant):
     image, reward = open_loop_errors(agent, batch, plan)
     assert reward.shape == (B * 2, 5)                     # two 10-step segments per episode
     assert (image is None) == (variant == "dreamerpro")   # DreamerPro has no decoder
+
+
+def test_a_probe_json_written_before_the_freeze_had_one_name_reads_as_prototype_freeze():
+    """The committed probes (msgs_docs/results/walker_paired_probes) say `frozen_updates`; read
+    back they say `prototype_freeze`, as run.json and results.json do, and still validate."""
+    from helpers import ROOT
+
+    from trainer.research import probe_report
+
+    old = ROOT / "msgs_docs" / "results" / "walker_paired_probes" / "protocad_seed0.json"
+    assert "frozen_updates" in json.loads(old.read_text())["prototypes"]
+    doc = probe_report.read_json(old)
+    assert doc["prototypes"]["prototype_freeze"] == 290 and "frozen_updates" not in doc["prototypes"]
+    assert "frozen for the first 290" in probe_report.report_text(doc)
