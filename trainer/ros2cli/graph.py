@@ -17,6 +17,9 @@ import time
 from contextlib import contextmanager
 from typing import Callable, Iterator, NamedTuple
 
+import rclpy
+from rclpy.parameter import Parameter
+
 HIDDEN_PREFIX = "_"
 NODE_NAME_PREFIX = "_ros2cli"
 DEFAULT_SPIN_TIME = 0.5
@@ -67,8 +70,6 @@ def node_names(node, include_hidden: bool = False) -> list[NodeName]:
 
 def wait_for(predicate: Callable[[], bool], node, timeout: float = SETTLE_MAX_S) -> bool:
     """Spin `node` until `predicate()` holds or `timeout` passes."""
-    import rclpy
-
     deadline = time.monotonic() + timeout
     while True:
         if predicate():
@@ -93,8 +94,6 @@ def _graph_signature(node) -> tuple:
 def _settle(node, spin_time: float) -> None:
     """Spin `spin_time`, then until the graph was quiet for SETTLE_QUIET_S (the quiet only counts
     once another node is known: a participant's first announcement can take over a second)."""
-    import rclpy
-
     start = time.monotonic()
     while time.monotonic() - start < spin_time:
         rclpy.spin_once(node, timeout_sec=0.05)
@@ -116,9 +115,6 @@ def _settle(node, spin_time: float) -> None:
 def direct_node(args: argparse.Namespace | None = None, *, name: str | None = None,
                 discover: bool = True) -> Iterator:
     """rclpy initialised, a hidden node in the default context, shut down on exit."""
-    import rclpy
-    from rclpy.parameter import Parameter
-
     rclpy.init(args=[])
     spin_time = getattr(args, "spin_time", DEFAULT_SPIN_TIME)
     node = rclpy.create_node(
@@ -135,8 +131,6 @@ def direct_node(args: argparse.Namespace | None = None, *, name: str | None = No
 
 
 def spin_until_future(node, future, timeout: float | None = None):
-    import rclpy
-
     rclpy.spin_until_future_complete(node, future, timeout_sec=timeout)
     if not future.done():
         return None

@@ -4,6 +4,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+from lifecycle_msgs.srv import ChangeState, GetAvailableTransitions, GetState
+
 from trainer.ros2cli import graph
 
 TIMEOUT_S = 5.0
@@ -30,21 +32,15 @@ def _call(node, srv_type, service: str, request):
 
 
 def get_state(node, full_name: str):
-    from lifecycle_msgs.srv import GetState
-
     return _call(node, GetState, f"{full_name}/get_state", GetState.Request()).current_state
 
 
 def transitions(node, full_name: str, *, all_: bool = False):
-    from lifecycle_msgs.srv import GetAvailableTransitions
-
     service = f"{full_name}/get_transition_graph" if all_ else f"{full_name}/get_available_transitions"
     return _call(node, GetAvailableTransitions, service, GetAvailableTransitions.Request()).available_transitions
 
 
 def change_state(node, full_name: str, transition) -> bool:
-    from lifecycle_msgs.srv import ChangeState
-
     return _call(node, ChangeState, f"{full_name}/change_state", ChangeState.Request(transition=transition)).success
 
 

@@ -16,6 +16,7 @@ from typing import Any
 
 import numpy as np
 import yaml
+from rosidl_parser import definition as D
 
 from trainer.bag.rosmsg import TypeSupportError, interface_module
 
@@ -31,8 +32,6 @@ _Dumper.add_representer(OrderedDict, lambda d, data: d.represent_mapping(
 
 
 def _type_name(t: Any) -> str:
-    from rosidl_parser import definition as D
-
     if isinstance(t, D.BasicType):
         return t.typename
     if isinstance(t, D.AbstractString):
@@ -47,8 +46,6 @@ def _type_name(t: Any) -> str:
 
 
 def _array_placeholder(value: Any, field_type: Any) -> str:
-    from rosidl_parser import definition as D
-
     inner = _type_name(field_type.value_type)
     if isinstance(field_type, D.Array):
         return f"<array type: {inner}[{field_type.size}]>"

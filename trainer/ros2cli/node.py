@@ -4,6 +4,8 @@ from __future__ import annotations
 import argparse
 import sys
 
+import rclpy.action
+
 from trainer.ros2cli import graph
 
 
@@ -27,8 +29,6 @@ def _section(title: str, names_and_types, include_hidden: bool) -> None:
 
 
 def cmd_info(args) -> int | str | None:
-    import rclpy.action
-
     target = graph.absolute(args.node_name)
     with graph.direct_node(args) as node:
         graph.wait_for_node(node, target, include_hidden=True)

@@ -8,6 +8,10 @@ import sys
 from contextlib import contextmanager
 from typing import Any, Iterator
 
+from rcl_interfaces.msg import Parameter
+from rclpy.parameter import get_parameter_value, parameter_value_to_python
+from rclpy.parameter_client import AsyncParameterClient
+
 from trainer.ros2cli import graph
 from trainer.ros2cli.msgyaml import dump
 
@@ -18,8 +22,6 @@ TYPE_NAMES = {1: "boolean", 2: "integer", 3: "double", 4: "string", 5: "byte arr
 
 
 def _client(node, full_name: str):
-    from rclpy.parameter_client import AsyncParameterClient
-
     client = AsyncParameterClient(node, full_name)
     if not client.wait_for_services(timeout_sec=SERVICE_TIMEOUT_S):
         return None
@@ -115,9 +117,6 @@ def cmd_get(args) -> int | str | None:
 
 
 def cmd_set(args) -> int | str | None:
-    from rcl_interfaces.msg import Parameter
-    from rclpy.parameter import get_parameter_value
-
     with _parameter_client(args) as (node, target, client):
         param = Parameter(name=args.parameter_name, value=get_parameter_value(string_value=args.value))
         result = _call(node, client.set_parameters([param])).results[0]
@@ -137,8 +136,6 @@ def _insert(d: dict, dotted: str, value) -> None:
 
 
 def cmd_dump(args) -> int | str | None:
-    from rclpy.parameter import parameter_value_to_python
-
     with _parameter_client(args) as (node, target, client):
         names = sorted(_call(node, client.list_parameters()).result.names)
         values = _call(node, client.get_parameters(names)).values

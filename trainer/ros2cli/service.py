@@ -5,6 +5,7 @@ import argparse
 import sys
 import time
 
+import rclpy
 import yaml
 
 from trainer.ros2cli import graph
@@ -37,8 +38,6 @@ def cmd_type(args) -> int | str | None:
 
 
 def cmd_call(args) -> int | str | None:
-    import rclpy
-
     try:
         srv = interface_class(args.service_type, kind="srv")
         srv.Request, srv.Response  # noqa: B018  (a message type has neither)

@@ -6,6 +6,18 @@ import math
 import threading
 from typing import Any
 
+import rclpy
+from rclpy.clock import Clock, ClockType
+from rclpy.event_handler import SubscriptionEventCallbacks
+from rclpy.qos import (
+    QoSDurabilityPolicy,
+    QoSHistoryPolicy,
+    QoSPresetProfiles,
+    QoSReliabilityPolicy,
+    qos_profile_sensor_data,
+)
+from rclpy.task import Future
+
 from trainer.cli_values import non_negative_int, positive_float, positive_int
 from trainer.ros2cli import graph
 from trainer.ros2cli.msgyaml import interface_class, message_to_csv, message_to_yaml
@@ -115,8 +127,6 @@ def add_qos_arguments(parser: argparse.ArgumentParser, default_profile: str) -> 
 
 def choose_qos(node, args) -> Any:
     """ros2cli's rule: the preset, adapted to what every publisher offers, unless set explicitly."""
-    from rclpy.qos import QoSDurabilityPolicy, QoSHistoryPolicy, QoSPresetProfiles, QoSReliabilityPolicy
-
     profile = QoSPresetProfiles.get_from_short_key(args.qos_profile)
     explicit = any(v is not None for v in (args.qos_depth, args.qos_history, args.qos_reliability,
                                            args.qos_durability))
@@ -166,10 +176,6 @@ def _message_class(node, args) -> Any:
 
 
 def cmd_echo(args) -> int | str | None:
-    import rclpy
-    from rclpy.event_handler import SubscriptionEventCallbacks
-    from rclpy.task import Future
-
     field = None
     if args.field is not None:
         field = [f for f in args.field.split(".") if f]
@@ -276,10 +282,6 @@ def format_hz(rate_per_ns: float, min_ns: float, max_ns: float, std_ns: float, w
 
 
 def cmd_hz(args) -> int | str | None:
-    import rclpy
-    from rclpy.clock import Clock, ClockType
-    from rclpy.qos import qos_profile_sensor_data
-
     keep = message_filter(args.filter_expr)
     failure: list[str] = []
     with graph.direct_node(args, discover=False) as node:
