@@ -67,13 +67,13 @@ from trainer.data.records import (
     SourceReport,
     TopicMap,
 )
+from trainer.data.sources import find_sources
 from trainer.data.store import (
     SourceStore,
     cache_key,
     default_cache_budget_gb,
     default_cache_dir,
     entry_size,
-    find_sources,
     ingest_source,
     prune_cache,
 )

@@ -121,7 +121,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (ValueError, CheckpointError) as exc:   # CheckpointError: the run's checkpoint is unusable
         print(f"protocad-online: error: {exc}", file=sys.stderr)
         return 2
-    except (CheckpointWriteError, RanksDiverged, mcap_io_errors(), cache_errors(), OSError) as exc:
+    except (CheckpointWriteError, RanksDiverged, bag_write_errors(), cache_errors(), OSError) as exc:
         # a full disk (cache, bags, checkpoints, metrics) is one line with the path; the run
         # resumes once space is freed (protocad-online --resume)
         where = (f" ({exc.filename})" if isinstance(exc, OSError) and exc.filename
@@ -133,7 +133,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return 1
 
 
-def mcap_io_errors() -> type:
+def bag_write_errors() -> type:
     return BagWriteError
 
 
