@@ -1,6 +1,6 @@
 """A policy node handed a deflate-bombed checkpoint file refuses it from the zip directory
 (configure fails, exit 2, the log naming the entry); the checkpoint publisher's reader refuses it before announcing it. Both go through the
-one reader every load path uses (protocad_ros.checkpoint._read)."""
+one reader every load path uses (protocad_ros.checkpoint.agent_file._read)."""
 from __future__ import annotations
 
 import pytest
