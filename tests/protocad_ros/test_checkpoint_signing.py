@@ -1,4 +1,4 @@
-"""Checkpoint signatures without ROS (protocad_ros/checkpoint_signing.py, msgs_docs/security.md):
+"""Checkpoint signatures without ROS (protocad_ros/checkpoint/signing.py, msgs_docs/security.md):
 key pairs from the command line, manifests signed and verified, detached FILE.sig files."""
 from __future__ import annotations
 
