@@ -2,7 +2,7 @@
 
 Node processes are started from the working tree (`python -m MODULE`), so tests exercise the
 code under test; tests/docs/test_install.py checks the installed ament layout (`ros2 run`).
-Tests mirror the source layout (tests/trainer/bag/test_mcap_io.py tests trainer/bag/); what they
+Tests mirror the source layout (tests/trainer/bag/test_bag_io.py tests trainer/bag/); what they
 share is the `helpers` package next to this file.
 """
 from __future__ import annotations
