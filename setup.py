@@ -72,7 +72,7 @@ INSTALL_REQUIRES = [
     "jsonschema>=4.20",   # results.json is checked against its schema on save and load
     "tyro==1.0.17",       # the config options of the CLIs, generated from the config tree (flag names pinned)
     "tensorboard==2.21.0",   # event files beside metrics.jsonl (torch.utils.tensorboard writes them)
-    "cryptography==50.0.2",   # Ed25519 signatures of checkpoints (protocad_ros/checkpoint_signing.py)
+    "cryptography==50.0.2",   # Ed25519 signatures of checkpoints (protocad_ros/checkpoint/signing.py)
 ]
 
 setup(
@@ -108,8 +108,8 @@ setup(
             "protocad-study = trainer.study.cli:main",
             "protocad-stack = trainer.launch.stack:main",
             "protocad-checkpoint-publisher = trainer.nodes.checkpoint_publisher:main",
-            "protocad-keygen = protocad_ros.checkpoint_signing:keygen_main",
-            "protocad-sign-checkpoint = protocad_ros.checkpoint_signing:sign_main",
+            "protocad-keygen = protocad_ros.checkpoint.signing:keygen_main",
+            "protocad-sign-checkpoint = protocad_ros.checkpoint.signing:sign_main",
             "protocad-fleet = trainer.launch.fleet:main",
             "protocad-discovery-server = trainer.launch.discovery:main",
         ]

@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from protocad_ros.checkpoint import load_checkpoint
+from protocad_ros.checkpoint.agent_file import load_checkpoint
 from protocad_ros.model.agent_base import AgentBase
 
 __all__ = ["Policy", "ContextFeatures", "SHIPPED_POLICIES", "shipped_policy"]

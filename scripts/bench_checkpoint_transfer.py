@@ -33,7 +33,7 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from protocad_ros.atomic import atomic_open
-from protocad_ros.checkpoint import load_checkpoint, save_checkpoint
+from protocad_ros.checkpoint.agent_file import load_checkpoint, save_checkpoint
 from protocad_ros.model.agent import Agent
 from protocad_ros.model.config import make_config
 from protocad_ros.model.precision import cpu_capability

@@ -28,7 +28,7 @@ import torch
 # Measure the working tree this script belongs to, not an installed copy of the packages.
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from protocad_ros.checkpoint import load_checkpoint
+from protocad_ros.checkpoint.agent_file import load_checkpoint
 from protocad_ros.model.precision import cpu_capability
 from trainer.viz.context_episodes import collect_context_episodes, stack_batches
 

@@ -32,7 +32,8 @@ from typing import Any, Callable
 from std_msgs.msg import String, UInt8MultiArray
 
 from protocad_ros.atomic import atomic_open, fsync_dir
-from protocad_ros.checkpoint_signing import (
+from protocad_ros.checkpoint.files import CheckpointMismatch
+from protocad_ros.checkpoint.signing import (
     Manifest,
     SignatureRejected,
     TrustedKeys,
@@ -87,7 +88,7 @@ class Transfer:
 
 
 def manifest_of(a: topics.CheckpointAnnouncement) -> Manifest:
-    """What the learner signed for this announcement (checkpoint_signing.Manifest)."""
+    """What the learner signed for this announcement (protocad_ros.checkpoint.signing.Manifest)."""
     return Manifest(a.sha256, a.size, a.task, a.variant, a.preset, a.updates, a.seq, a.key_id,
                     a.chunk_size, tuple(a.chunk_sha256))
 
@@ -102,8 +103,6 @@ def install(data: bytes, path: str | os.PathLike, load: Callable[[str, bytes], A
     them atomically to a staging file beside `path`, call `before_replace()` (e.g. write its
     signature beside `path`) and move it over `path`. Returns what `load` returned; a load that
     fails is TransferRejected('not a usable checkpoint'), and nothing is written."""
-    from protocad_ros.checkpoint import CheckpointMismatch
-
     path = Path(path)
     try:
         loaded = load(RECEIVED, data)

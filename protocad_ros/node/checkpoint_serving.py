@@ -9,7 +9,7 @@ The node configures with one checkpoint (or a random agent); afterwards one back
 so no step waits for a load and no episode is served by two models.
 
 With `trusted_keys` nothing is served that a trusted key did not sign: the file needs its
-detached signature FILE.sig (protocad_ros.checkpoint_signing), received versions a signed
+detached signature FILE.sig (protocad_ros.checkpoint.signing), received versions a signed
 announcement (the receiver checks it), and each new version a sequence number above the newest
 one held, which the node also keeps apart from the served file (rollback_floor.py), so that
 losing FILE.sig does not lower it. A file is read once: those bytes are verified and loaded,
@@ -30,7 +30,8 @@ import time
 from typing import Any
 
 from protocad_ros.atomic import file_signature
-from protocad_ros.checkpoint_signing import (
+from protocad_ros.checkpoint.files import CheckpointMismatch, architecture_differences, read_checkpoint_file
+from protocad_ros.checkpoint.signing import (
     SignatureRejected,
     SigningError,
     load_trusted_keys,
@@ -64,7 +65,7 @@ class CheckpointServing:
 
     def _load(self, path: str, fits=None, data: bytes | None = None):
         """The policy from `data`, the bytes of `path` as read (and verified) once."""
-        from protocad_ros.checkpoint import load_checkpoint
+        from protocad_ros.checkpoint.agent_file import load_checkpoint
         from protocad_ros.policy import Policy
 
         # Never the file's RNG state: a served checkpoint must not reseed this process.
@@ -120,8 +121,6 @@ class CheckpointServing:
         return self._load(path, fits=self._fits_served, data=data)
 
     def _fits_served(self, cfg, action_dim: int) -> None:
-        from protocad_ros.checkpoint import CheckpointMismatch, architecture_differences
-
         why = []
         if cfg.task != self.task:
             why.append(f"it is for {cfg.task}, this node serves {self.task}")
@@ -217,8 +216,6 @@ class CheckpointServing:
     def _read_once(self, path: str) -> tuple[bytes, str]:
         """The file's bytes and their sha256: the one read that is verified and loaded (a file
         over max_checkpoint_bytes is refused before it is read: CheckpointError)."""
-        from protocad_ros.checkpoint import read_checkpoint_file
-
         data = read_checkpoint_file(path, self.params["max_checkpoint_bytes"])
         return data, hashlib.sha256(data).hexdigest()
 
@@ -264,8 +261,6 @@ class CheckpointServing:
             if self._watch_key(path) != key:
                 return   # replaced while we read it: take the newer one next poll
         except Exception as e:  # noqa: BLE001 (unsigned, corrupt, foreign, incompatible)
-            from protocad_ros.checkpoint import CheckpointMismatch
-
             counter = (CheckpointReceiver.ROLLBACK if isinstance(e, RollbackRejected) else
                        CheckpointReceiver.SIGNATURE if isinstance(e, SignatureRejected) else
                        CheckpointReceiver.MISMATCH if isinstance(e, CheckpointMismatch) else None)

@@ -26,6 +26,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from sensor_msgs.msg import JointState
 
 from protocad_ros.atomic import file_signature, remove_stale_temporaries
+from protocad_ros.checkpoint.files import CheckpointError, checkpoint_file
 from protocad_ros.live_view import LiveView
 from protocad_ros.node.action_publishing import ActEvent, ActionPublishing
 from protocad_ros.node.bridge_pairing import BridgePairing
@@ -35,8 +36,8 @@ from protocad_ros.node.diagnostics import PolicyDiagnostics
 from protocad_ros.node.observation_pairing import ObservationPairing
 from protocad_ros.node.policy_params import COUNTERS, PARAMS
 from protocad_ros.node.refusal_log import RefusalLog
-from protocad_ros.robot.robot_output import RobotOutput
 from protocad_ros.robot.camera_input import CameraInput
+from protocad_ros.robot.robot_output import RobotOutput
 from sim_bridge.contract import qos, topics
 from sim_bridge.contract.contexts import task_actuators
 from sim_bridge.nodekit.lifecycle import ManagedNode
@@ -186,7 +187,6 @@ class PolicyNode(ObservationPairing, BridgePairing, ActionPublishing, Checkpoint
         or unloadable checkpoint is a ConfigError."""
         p = self.params
         if p["checkpoint"]:   # a file or a run directory, as everywhere else
-            from protocad_ros.checkpoint import checkpoint_file
             p["checkpoint"] = str(checkpoint_file(p["checkpoint"]))
         path, topic = p["checkpoint"], p["checkpoint_topic"]
         if topic and not path:
@@ -195,8 +195,6 @@ class PolicyNode(ObservationPairing, BridgePairing, ActionPublishing, Checkpoint
         self._load_trust()
         sig = file_signature(path) if path else None
         if sig is not None:
-            from protocad_ros.checkpoint import CheckpointError
-
             try:
                 data, self.ckpt_sha = self._read_once(path)   # verified and loaded, read once
             except (OSError, CheckpointError) as e:   # CheckpointError: over max_checkpoint_bytes

@@ -342,7 +342,7 @@ class CheckpointAnnouncement:
     its content: `sha256` of the file's bytes is its identity (logs show `short_id`).
     chunk_sha256: the sha256 of each chunk (empty from senders that do not send them), so a
     receiver checks every chunk on arrival; key_id + signature: the learner's Ed25519 signature
-    (protocad_ros.checkpoint_signing.Manifest; empty: unsigned)."""
+    (protocad_ros.checkpoint.signing.Manifest; empty: unsigned)."""
 
     sha256: str
     size: int

@@ -29,7 +29,7 @@ HAND_BUILT_FILES = {
     "trainer/settings.py",              # the generator itself
     "sim_bridge/nodekit/rosnode.py",    # a node's --help, printed from its Param table
     "trainer/nodes/recorder_cli.py",    # `ros2 bag record`'s options the recorder refuses, with the reason
-    "protocad_ros/checkpoint_signing.py",   # protocad-keygen, protocad-sign-checkpoint (above)
+    "protocad_ros/checkpoint/signing.py",   # protocad-keygen, protocad-sign-checkpoint (above)
     "trainer/data/dataset.py",          # `python -m trainer.data.dataset`: trainer.data may not import trainer.settings
 }
 HAND_BUILT_FOLDERS = ("trainer/ros2cli/",)   # ros2 (above)

@@ -38,7 +38,7 @@ def render_batch(task: str = "pendulum_swingup", batch: int = 4, length: int = 1
 
 def tiny_checkpoint(path, task="pendulum_swingup", action_dim=1):
     """A checkpoint of an untrained TINY_OVERRIDES agent (env_steps 1234); its path."""
-    from protocad_ros.checkpoint import save_checkpoint
+    from protocad_ros.checkpoint.agent_file import save_checkpoint
     from protocad_ros.model.agent import Agent
     from protocad_ros.model.config import make_config
 
@@ -49,7 +49,7 @@ def tiny_checkpoint(path, task="pendulum_swingup", action_dim=1):
 def save_agent(path, updates: int, seed: int = 0, task: str = "pendulum_swingup"):
     """A small-preset agent saved at `path` with `updates` updates (env_steps 100 per update),
     so a node's reload shows in the update count it reports; the agent."""
-    from protocad_ros.checkpoint import save_checkpoint
+    from protocad_ros.checkpoint.agent_file import save_checkpoint
     from protocad_ros.model.agent import Agent
     from protocad_ros.model.config import make_config
 

@@ -194,7 +194,7 @@ def check_robots_recorded_and_trained(run: Path, namespaces: list[str], *, episo
     for ns in namespaces:
         ds = MCAPDataset([run / "bags"], topics=TopicMap.for_namespace(ns), seq_len=4, cache_dir=cache_dir)
         assert len(ds.report.sources) == len(phases) and ds.num_windows > 0, ns    # this robot's episodes train
-    from protocad_ros.checkpoint import read_checkpoint
+    from protocad_ros.checkpoint.agent_file import read_checkpoint
 
     ck = read_checkpoint(run / "checkpoints" / "latest.pt")
     assert ck["counters"]["episodes"] == episodes and int(ck["modules"]["updates"]) == updates

@@ -7,7 +7,7 @@ import dataclasses
 from std_msgs.msg import String, UInt8MultiArray
 
 from helpers.ros import Probe
-from protocad_ros.checkpoint_signing import next_seq, sign_manifest
+from protocad_ros.checkpoint.signing import next_seq, sign_manifest
 from protocad_ros.node.checkpoint_receiver import manifest_of
 from sim_bridge.contract import qos, topics
 

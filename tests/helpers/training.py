@@ -16,7 +16,7 @@ def metrics(run_dir: Path) -> list[dict]:
 
 
 def ckpt_counters(path: Path) -> dict:
-    from protocad_ros.checkpoint import read_checkpoint
+    from protocad_ros.checkpoint.agent_file import read_checkpoint
 
     p = read_checkpoint(path)
     return {**p["counters"], "agent_updates": int(p["modules"]["updates"])}

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Sequence
 
-from protocad_ros.checkpoint_signing import SigningError, next_seq
+from protocad_ros.checkpoint.signing import SigningError, next_seq
 from protocad_ros.model.hyperparameters import DEFAULT_CLI_PRESET, PRESETS, VARIANTS
 from sim_bridge.contract import topics as T
 from trainer import cli_values, console

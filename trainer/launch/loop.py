@@ -44,7 +44,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
 
-from protocad_ros.checkpoint_signing import load_private_key, sign_file
+from protocad_ros.checkpoint.signing import load_private_key, sign_file
 from protocad_ros.policy import shipped_policy
 from trainer import cli_values, console, runs, settings, torch_setup
 from trainer.launch import discovery, run_key

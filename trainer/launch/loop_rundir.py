@@ -8,7 +8,8 @@ import copy
 from pathlib import Path
 from typing import Any, Sequence
 
-from protocad_ros.checkpoint import CheckpointError, architecture_differences, existing_checkpoint_file, read_checkpoint
+from protocad_ros.checkpoint.agent_file import read_checkpoint
+from protocad_ros.checkpoint.files import CheckpointError, architecture_differences, existing_checkpoint_file
 from protocad_ros.model.agent import make_agent
 from protocad_ros.model.config import Config, apply_overrides, plan_prototype_freeze
 from sim_bridge.contract import topics as T

@@ -16,7 +16,7 @@ from pathlib import Path
 
 from cryptography.hazmat.primitives import serialization
 
-from protocad_ros.checkpoint_signing import SigningError, generate_keypair, key_id, load_private_key
+from protocad_ros.checkpoint.signing import SigningError, generate_keypair, key_id, load_private_key
 
 KEY_DIR = "keys"
 KEY_NAME = "checkpoint"

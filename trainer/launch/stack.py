@@ -39,6 +39,7 @@ from typing import Any, Sequence
 
 import yaml
 
+from protocad_ros.checkpoint.files import CheckpointError, checkpoint_file
 from sim_bridge.bridge.params import PARAMS as BRIDGE_PARAMS
 from sim_bridge.contract import topics as T
 from trainer import console, run_config
@@ -84,7 +85,7 @@ def checkpoint_mismatch(doc: dict[str, Any]) -> str | None:
     size differ), or None. Read before any node starts: a mismatched stack would otherwise run
     with a policy that refuses every observation."""
     # torch comes with the checkpoint module: the stack's --help and its nodes do without it here.
-    from protocad_ros.checkpoint import CheckpointError, checkpoint_file, read_checkpoint
+    from protocad_ros.checkpoint.agent_file import read_checkpoint
 
     path = (doc.get("policy") or {}).get("checkpoint")
     if not path or not Path(path).exists():

@@ -230,7 +230,7 @@ def evaluate_checkpoint(checkpoint: str | Path | None, *, task: str | None = Non
     t0 = time.monotonic()
     cfg = None
     if agent is None and checkpoint is not None:
-        from protocad_ros.checkpoint import load_checkpoint
+        from protocad_ros.checkpoint.agent_file import load_checkpoint
 
         agent, counters = load_checkpoint(checkpoint, device=device, optimizer_states=False)
     if agent is not None:
@@ -347,8 +347,6 @@ def run(a: EvaluateSettings, ros_evaluator: Callable[..., EvalResult] | None = N
     if a.episodes < 1:
         raise ValueError("--episodes must be >= 1")
     workers = a.workers if a.workers >= 0 else (0 if (os.cpu_count() or 1) <= 2 else (os.cpu_count() or 2) - 1)
-    from protocad_ros.checkpoint import existing_checkpoint_file
-
     ckpts = [existing_checkpoint_file(c) for c in a.checkpoints]
     contexts = [parse_context(c) for c in a.context]
     progress = False if a.no_progress else None

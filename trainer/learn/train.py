@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-from protocad_ros.checkpoint import CheckpointError
+from protocad_ros.checkpoint.files import CheckpointError
 from protocad_ros.model.config import plan_prototype_freeze
 from sim_bridge.contract.contexts import task_actuators
 from trainer import cli_values, console, runs, settings

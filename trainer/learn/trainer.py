@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from protocad_ros.atomic import remove_stale_temporaries
-from protocad_ros.checkpoint import load_checkpoint, save_checkpoint
+from protocad_ros.checkpoint.agent_file import load_checkpoint, save_checkpoint
 from protocad_ros.model.agent import make_agent
 from protocad_ros.model.config import plan_prototype_freeze
 from trainer import console, metrics_log, runs, torch_setup

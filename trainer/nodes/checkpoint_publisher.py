@@ -23,7 +23,8 @@ from diagnostic_msgs.msg import DiagnosticArray
 from std_msgs.msg import String, UInt8MultiArray
 
 from protocad_ros.atomic import file_signature
-from protocad_ros.checkpoint_signing import (
+from protocad_ros.checkpoint.files import read_checkpoint_file
+from protocad_ros.checkpoint.signing import (
     SigningError,
     key_id,
     load_private_key,
@@ -123,7 +124,7 @@ class CheckpointPublisherNode(ProtocadNode):
     def _read(self, path: str) -> tuple[bytes, dict[str, Any]] | None:
         """The file's bytes and what the announcement says about them, or None if it was
         replaced while we read it (the next poll takes the newer one)."""
-        from protocad_ros.checkpoint import read_checkpoint, read_checkpoint_file
+        from protocad_ros.checkpoint.agent_file import read_checkpoint
 
         sig = file_signature(path)
         data = read_checkpoint_file(path)   # a file over the limit is refused unread

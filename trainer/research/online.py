@@ -45,7 +45,7 @@ import time
 from pathlib import Path
 from typing import Sequence
 
-from protocad_ros.checkpoint import CheckpointError
+from protocad_ros.checkpoint.files import CheckpointError
 from protocad_ros.policy import Policy
 from sim_bridge.sim.rollout import RandomPolicy, continuing_rollout
 from sim_bridge.sim.vector import VectorEnv

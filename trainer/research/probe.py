@@ -31,6 +31,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
+from protocad_ros.checkpoint.files import CheckpointError, existing_checkpoint_file
 from sim_bridge.contract.contexts import get_task
 from trainer import settings, torch_setup
 from trainer.learn.context_health import collapse_reason
@@ -103,8 +104,6 @@ def build_parser():
 
 def main(argv: Sequence[str] | None = None) -> int:
     # torch comes with the checkpoint module: --help answers without it.
-    from protocad_ros.checkpoint import CheckpointError
-
     parsed = settings.parse(build_parser(), argv, config_help=False)
     try:
         return run(parsed.get(ProbeSettings), command=["protocad-probe", *parsed.argv])
@@ -116,7 +115,7 @@ def main(argv: Sequence[str] | None = None) -> int:
 def load(checkpoint: str, device: str) -> tuple[Any, dict[str, Any], Path]:
     """The agent, its counters and the checkpoint file; ValueError for a variant without a
     world model (nothing to probe)."""
-    from protocad_ros.checkpoint import existing_checkpoint_file, load_checkpoint, read_provenance
+    from protocad_ros.checkpoint.agent_file import load_checkpoint, read_provenance
 
     if not checkpoint:
         raise ValueError("give a CHECKPOINT (file or run directory)")

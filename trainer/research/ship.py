@@ -14,7 +14,8 @@ from pathlib import Path
 from typing import Any, Mapping
 
 from protocad_ros.atomic import file_sha256
-from protocad_ros.checkpoint import CheckpointError, existing_checkpoint_file, load_checkpoint, save_policy
+from protocad_ros.checkpoint.agent_file import load_checkpoint, save_policy
+from protocad_ros.checkpoint.files import CheckpointError, existing_checkpoint_file
 from trainer import runs
 from trainer.learn.evaluate import context_label
 

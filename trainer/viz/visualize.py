@@ -37,6 +37,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
+from protocad_ros.checkpoint.files import existing_checkpoint_file
 from protocad_ros.live_view import check_display
 from sim_bridge.contract.contexts import context_label, get_task
 from trainer.settings import arg, build, settings_parser
@@ -158,7 +159,7 @@ class VisualizeSettings(ViewSettings):
 def load_agent(source: Any, device: str = "cpu") -> Any:
     """An Agent from a checkpoint path, or ``source`` itself when it is already one."""
     if isinstance(source, (str, Path)):
-        from protocad_ros.checkpoint import load_checkpoint
+        from protocad_ros.checkpoint.agent_file import load_checkpoint
 
         agent, _ = load_checkpoint(str(source), device=device, optimizer_states=False)
         if not hasattr(agent, "embed_sequences"):
@@ -310,8 +311,6 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def _resolve_checkpoint(path: str) -> Path:
-    from protocad_ros.checkpoint import existing_checkpoint_file
-
     try:
         return existing_checkpoint_file(path)
     except ValueError as exc:

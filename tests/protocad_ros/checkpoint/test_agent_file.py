@@ -12,15 +12,9 @@ import pytest
 import torch
 from helpers import ROOT
 
-from protocad_ros import checkpoint as ckpt_mod
-from protocad_ros.checkpoint import (
-    CONFIG_NAME,
-    CheckpointError,
-    load_checkpoint,
-    read_checkpoint,
-    restore_checkpoint,
-    save_checkpoint,
-)
+from protocad_ros.checkpoint import agent_file
+from protocad_ros.checkpoint.agent_file import load_checkpoint, read_checkpoint, restore_checkpoint, save_checkpoint
+from protocad_ros.checkpoint.files import CONFIG_NAME, FORMAT, VERSION, CheckpointError
 from protocad_ros.model.agent import Agent
 from protocad_ros.model.config import Config, make_config
 from protocad_ros.policy import Policy
@@ -135,7 +129,7 @@ def test_serving_a_policy_imports_no_compiler():
 def test_file_is_weights_only_loadable(tmp_path, trained):
     path = save_checkpoint(tmp_path / "a.pt", trained, rng_state=True)
     payload = torch.load(path, weights_only=True)
-    assert payload["format"] == ckpt_mod.FORMAT and payload["version"] == ckpt_mod.VERSION
+    assert payload["format"] == FORMAT and payload["version"] == VERSION
     assert payload["action_dim"] == 6 and payload["config"]["variant"] == "protocad"
     assert set(payload["optimizers"]) == {"world_model", "actor", "critic"}
     assert "torch_rng" in payload
@@ -149,7 +143,7 @@ def test_failed_write_leaves_old_file_intact(tmp_path, trained, monkeypatch, fra
         f.write(b"PK\x03\x04 half a checkpoint")
         raise OSError("disk full")
 
-    monkeypatch.setattr(ckpt_mod.torch, "save", broken_save)
+    monkeypatch.setattr(agent_file.torch, "save", broken_save)
     with pytest.raises(OSError, match="disk full"):
         save_checkpoint(path, trained, counters={"v": 2})
     monkeypatch.undo()
@@ -199,7 +193,7 @@ def test_foreign_files(tmp_path):
             return (os.system, ("true",))
 
     evil = tmp_path / "evil.pt"
-    torch.save({"format": ckpt_mod.FORMAT, "x": Evil()}, evil)
+    torch.save({"format": FORMAT, "x": Evil()}, evil)
     with pytest.raises(CheckpointError, match="weights_only"):
         load_checkpoint(evil)
 
@@ -209,7 +203,7 @@ def test_incompatible_checkpoints(tmp_path, trained):
     with pytest.raises(CheckpointError, match="action_dim=6.*action_dim=1"):
         load_checkpoint(path, action_dim=1)
     payload = read_checkpoint(path)
-    future = dict(payload, version=ckpt_mod.VERSION + 1)
+    future = dict(payload, version=VERSION + 1)
     torch.save(future, tmp_path / "future.pt")
     with pytest.raises(CheckpointError, match="version"):
         load_checkpoint(tmp_path / "future.pt")
@@ -241,7 +235,7 @@ def test_a_file_whose_config_claims_huge_networks_is_refused_before_they_are_bui
     and an action size of a billion cost nothing; a caller's `fits` refuses before that."""
     import resource
 
-    from protocad_ros.checkpoint import CheckpointMismatch
+    from protocad_ros.checkpoint.files import CheckpointMismatch
 
     payload = read_checkpoint(save_checkpoint(tmp_path / "agent.pt", trained))
     wm = payload["config"]["world_model"]
@@ -314,7 +308,7 @@ def test_interrupted_write_leftovers_are_removed_at_the_next_start(tmp_path):
 def test_full_disk_checkpoint_write_is_a_clear_error_and_the_last_good_one_stays(tmp_path):
     import subprocess
 
-    from protocad_ros.checkpoint import load_checkpoint
+    from protocad_ros.checkpoint.agent_file import load_checkpoint
     from protocad_ros.model.config import make_config
     from trainer.learn.trainer import CheckpointWriteError, Trainer
 
@@ -338,3 +332,15 @@ def test_full_disk_checkpoint_write_is_a_clear_error_and_the_last_good_one_stays
         tr.close()
     finally:
         subprocess.run(["umount", "-l", str(mnt)])
+
+
+def test_the_torch_free_checkpoint_modules_import_without_torch():
+    """Node-side and CLI code imports these at its top: a node's --help, its parameter and
+    signature checks and a checkpoint's receipt must not pay for torch (agent_file.py does)."""
+    import subprocess
+    import sys
+
+    code = ("import sys; import protocad_ros.checkpoint.files, protocad_ros.checkpoint.limits, "
+            "protocad_ros.checkpoint.signing; print(sorted(m for m in sys.modules if m.split('.')[0] == 'torch'))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True)
+    assert out.stdout.strip() == "[]"

@@ -19,7 +19,7 @@ import pytest
 from helpers import ROOT
 from helpers.hostile_checkpoints import tiny_agent
 
-from protocad_ros.checkpoint import save_checkpoint
+from protocad_ros.checkpoint.agent_file import save_checkpoint
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -59,9 +59,10 @@ def fstat(fd):
 
 os.open, io.open, os.fstat = os_open, io_open, fstat
 
-from protocad_ros.checkpoint import load_checkpoint, read_checkpoint, read_checkpoint_file
+from protocad_ros.checkpoint.files import read_checkpoint_file
+from protocad_ros.checkpoint.agent_file import load_checkpoint, read_checkpoint
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
-from protocad_ros.checkpoint_signing import sign_file
+from protocad_ros.checkpoint.signing import sign_file
 
 def policy_node(path):   # the policy node's one read (checkpoint_serving)
     from protocad_ros.node.checkpoint_serving import CheckpointServing
@@ -123,7 +124,7 @@ def test_a_file_that_becomes_4_gib_when_opened_is_refused_from_its_descriptor(tm
 
 
 def test_a_fifo_in_place_of_the_file_is_refused_without_hanging(tmp_path):
-    from protocad_ros.checkpoint import CheckpointError, read_checkpoint_file
+    from protocad_ros.checkpoint.files import CheckpointError, read_checkpoint_file
 
     fifo = tmp_path / "agent.pt"
     os.mkfifo(fifo)

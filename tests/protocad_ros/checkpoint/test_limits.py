@@ -16,14 +16,9 @@ import torch
 from helpers import ROOT
 from helpers.hostile_checkpoints import BOMB_NUMEL, tiny_agent, write_deflate_bomb
 
-from protocad_ros.checkpoint import (
-    CheckpointError,
-    load_checkpoint,
-    read_checkpoint,
-    restore_checkpoint,
-    save_checkpoint,
-)
-from protocad_ros.checkpoint_limits import TOP_LEVEL_KEYS
+from protocad_ros.checkpoint.agent_file import load_checkpoint, read_checkpoint, restore_checkpoint, save_checkpoint
+from protocad_ros.checkpoint.files import CheckpointError
+from protocad_ros.checkpoint.limits import TOP_LEVEL_KEYS
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
@@ -86,7 +81,8 @@ def test_format_keys_are_the_ones_save_writes(files):
 
 PEAK_RSS = """
 import resource, sys
-from protocad_ros.checkpoint import CheckpointError, load_checkpoint
+from protocad_ros.checkpoint.files import CheckpointError
+from protocad_ros.checkpoint.agent_file import load_checkpoint
 load_checkpoint(sys.argv[1])
 base = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
 try:

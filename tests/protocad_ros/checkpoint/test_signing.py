@@ -10,7 +10,7 @@ import sys
 
 import pytest
 
-from protocad_ros.checkpoint_signing import (
+from protocad_ros.checkpoint.signing import (
     Manifest,
     SignatureRejected,
     SigningError,
@@ -47,7 +47,7 @@ def test_keygen_writes_a_private_key_only_its_owner_reads_and_never_overwrites(t
     os.chmod(key, 0o644)
     assert keygen_main([str(tmp_path / "k"), "--force"]) == 0
     assert key.read_bytes() != before and stat.S_IMODE(key.stat().st_mode) == 0o600
-    out = subprocess.run([sys.executable, "-c", "from protocad_ros.checkpoint_signing import keygen_main; "
+    out = subprocess.run([sys.executable, "-c", "from protocad_ros.checkpoint.signing import keygen_main; "
                           "keygen_main()", "--help"], capture_output=True, text=True)
     assert out.returncode == 0 and "--force" in out.stdout and "0600" in out.stdout
 
@@ -93,7 +93,7 @@ def test_keys_that_are_not_ed25519_or_not_keys_are_refused(tmp_path):
 
 
 def test_a_signed_file_verifies_and_its_signature_does_not_carry_to_other_bytes(tmp_path, pair, capsys):
-    from protocad_ros.checkpoint import save_checkpoint
+    from protocad_ros.checkpoint.agent_file import save_checkpoint
     from protocad_ros.model.agent import make_agent
     from protocad_ros.model.config import make_config
 

@@ -12,7 +12,7 @@ import pytest
 import torch
 from helpers.agents import render_batch
 
-from protocad_ros.checkpoint import load_checkpoint, save_checkpoint
+from protocad_ros.checkpoint.agent_file import load_checkpoint, save_checkpoint
 from protocad_ros.model.agent import make_agent
 from protocad_ros.model.augment import crop_images, random_crop
 from protocad_ros.model.config import ConfigError, make_config

@@ -140,7 +140,7 @@ def test_reference_paper_gives_the_papers_context_settings_whatever_the_defaults
 
 
 def test_a_config_saved_before_the_context_settings_reads_as_the_papers():
-    from protocad_ros.checkpoint import read_checkpoint
+    from protocad_ros.checkpoint.agent_file import read_checkpoint
     from protocad_ros.model.config import Config
     from protocad_ros.policy import shipped_policy
 

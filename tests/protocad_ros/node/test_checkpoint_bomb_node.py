@@ -8,7 +8,8 @@ from helpers import wait_exit
 from helpers.hostile_checkpoints import tiny_agent, write_deflate_bomb
 from helpers.policy import START, policy_args
 
-from protocad_ros.checkpoint import CheckpointError, save_checkpoint
+from protocad_ros.checkpoint.agent_file import save_checkpoint
+from protocad_ros.checkpoint.files import CheckpointError
 
 
 @pytest.fixture(scope="module")
@@ -35,7 +36,7 @@ def test_the_publishers_reader_refuses_it_before_announcing(bomb):
 
 
 def test_a_file_over_the_limit_is_refused_before_it_is_read(bomb, monkeypatch):
-    from protocad_ros.checkpoint import read_checkpoint_file
+    from protocad_ros.checkpoint.files import read_checkpoint_file
     from trainer.nodes.checkpoint_publisher import CheckpointPublisherNode
 
     with pytest.raises(CheckpointError, match="more than the limit of 4096"):

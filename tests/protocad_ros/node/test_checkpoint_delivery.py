@@ -31,7 +31,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from std_msgs.msg import String, UInt8MultiArray
 
-from protocad_ros.checkpoint_signing import generate_keypair, load_private_key, next_seq, sign_file, signature_path
+from protocad_ros.checkpoint.signing import generate_keypair, load_private_key, next_seq, sign_file, signature_path
 from protocad_ros.node.checkpoint_receiver import CheckpointReceiver
 from sim_bridge.contract import qos, topics
 
@@ -203,7 +203,7 @@ WALKER = "walker_walk"   # 6-d actions, as cheetah_run: another task of the same
 
 def _save_task(path, task: str, updates: int, seed: int = 0) -> bytes:
     """A small-preset checkpoint of `task`, written as the trainer writes it; its bytes."""
-    from protocad_ros.checkpoint import save_checkpoint
+    from protocad_ros.checkpoint.agent_file import save_checkpoint
     from protocad_ros.model.agent import make_agent
     from protocad_ros.model.config import make_config
     from sim_bridge.contract.contexts import task_actuators
@@ -635,7 +635,7 @@ def test_receiver_buffers_only_announced_versions_and_drops_bad_chunks_alone(bar
 @pytest.mark.ros
 def test_receiver_with_trusted_keys_refuses_before_buffering(bare_receiver, keys):
     learner, stranger = keys["learner"][2], keys["stranger"][2]
-    from protocad_ros.checkpoint_signing import load_trusted_keys
+    from protocad_ros.checkpoint.signing import load_trusted_keys
 
     trusted = load_trusted_keys([keys["learner"][1]])
     held = {"seq": 100}

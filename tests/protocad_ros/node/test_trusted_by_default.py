@@ -19,7 +19,7 @@ from helpers.checkpoints import FakeCheckpointPublisher, chunks, sign
 from helpers.policy import START, TASK, policy_args
 from helpers.ros import Probe
 
-from protocad_ros.checkpoint_signing import (
+from protocad_ros.checkpoint.signing import (
     generate_keypair,
     load_private_key,
     load_trusted_keys,
@@ -337,7 +337,7 @@ def test_a_file_swapped_between_verification_and_load_is_never_served(keyed_node
 def test_the_random_agent_refuses_another_variant_or_architecture(keyed_node, tmp_path):
     """While a node still serves its random agent (no file yet), a signed checkpoint of another
     variant, or of its variant with other layer sizes, is refused before it is installed."""
-    from protocad_ros.checkpoint import CheckpointMismatch
+    from protocad_ros.checkpoint.files import CheckpointMismatch
 
     make, learner, _ = keyed_node
     node = make(tmp_path / "robot" / "agent.pt", checkpoint_topic="checkpoint")
@@ -373,7 +373,7 @@ def _with_config(data: bytes, section: str, key: str | None, value) -> bytes:
 def test_unknown_fields_in_a_sig_are_refused(tmp_path):
     import json
 
-    from protocad_ros.checkpoint_signing import SignatureRejected, verify_file
+    from protocad_ros.checkpoint.signing import SignatureRejected, verify_file
 
     key = tmp_path / "k"
     generate_keypair(key.with_suffix(".key"), key.with_suffix(".pub"))

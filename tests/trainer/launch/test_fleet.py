@@ -90,7 +90,7 @@ def test_actor_groups_placed_like_on_other_machines(tmp_path, spawn):
     one actor group each, whose policy receives that checkpoint over ROS into its own file
     (no access to the learner's directory) and serves it before its bridge steps; the bag holds
     both robots' episodes and protocad-train learns from both."""
-    from protocad_ros.checkpoint import save_checkpoint
+    from protocad_ros.checkpoint.agent_file import save_checkpoint
     from protocad_ros.model.agent import make_agent
     from protocad_ros.model.config import make_config
 

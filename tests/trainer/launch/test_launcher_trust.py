@@ -15,7 +15,7 @@ from helpers import wait_until
 from helpers.checkpoints import FakeCheckpointPublisher, chunks, sign
 from helpers.ros import Probe
 
-from protocad_ros.checkpoint_signing import generate_keypair, load_private_key
+from protocad_ros.checkpoint.signing import generate_keypair, load_private_key
 from sim_bridge.contract import qos, topics
 
 pytestmark = [pytest.mark.ros, pytest.mark.process]
@@ -81,7 +81,7 @@ def test_a_default_fleet_serves_only_signed_checkpoints_and_forged_status_comple
     learner's checkpoint appears: it is the one B serves."""
     from helpers.agents import save_agent
 
-    from protocad_ros.checkpoint import save_checkpoint
+    from protocad_ros.checkpoint.agent_file import save_checkpoint
     from protocad_ros.model.agent import make_agent
     from protocad_ros.model.config import make_config
 

@@ -46,7 +46,7 @@ def test_two_collect_train_reload_cycles_through_ros(tmp_path):
                 served.add(int(kv["checkpoint_updates"]))
     assert 2 * C in served, served
     # final checkpoint: C after the prefill + C per collected episode
-    from protocad_ros.checkpoint import read_checkpoint
+    from protocad_ros.checkpoint.agent_file import read_checkpoint
 
     ck = read_checkpoint(run / "checkpoints" / "latest.pt")
     assert int(ck["modules"]["updates"]) == 3 * C
@@ -69,7 +69,7 @@ def continue_from_a_policy_file(trained, tmp_path):
     the table of that policy against the random one through the ROS nodes."""
     import torch
 
-    from protocad_ros.checkpoint import load_checkpoint, read_checkpoint, save_policy
+    from protocad_ros.checkpoint.agent_file import load_checkpoint, read_checkpoint, save_policy
 
     agent, _ = load_checkpoint(trained / "checkpoints" / "latest.pt", restore_rng=False)
     policy = save_policy(tmp_path / "policies" / "pendulum_swingup.pt", agent, {"what": "a test policy"})
@@ -138,7 +138,7 @@ def signed_by_default(run, stdout: str, policy_log: str) -> None:
     import hashlib
     import stat
 
-    from protocad_ros.checkpoint_signing import load_trusted_keys, verify_file
+    from protocad_ros.checkpoint.signing import load_trusted_keys, verify_file
 
     key, pub = run / "keys" / "checkpoint.key", run / "keys" / "checkpoint.pub"
     assert stat.S_IMODE(key.stat().st_mode) == 0o600 and "checkpoints signed with the run key" in stdout

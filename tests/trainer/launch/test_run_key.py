@@ -9,7 +9,7 @@ import stat
 import pytest
 from helpers import ROOT
 
-from protocad_ros.checkpoint_signing import SigningError, load_trusted_keys
+from protocad_ros.checkpoint.signing import SigningError, load_trusted_keys
 from trainer.launch.run_key import key_paths, run_key
 
 

@@ -51,7 +51,7 @@ def test_stack_file_mistakes_are_refused_with_the_reason(tmp_path):
 def test_a_checkpoint_of_another_task_is_refused_before_any_node_starts(tmp_path):
     import subprocess
 
-    from protocad_ros.checkpoint import save_checkpoint
+    from protocad_ros.checkpoint.agent_file import save_checkpoint
     from protocad_ros.model.agent import Agent
     from protocad_ros.model.config import make_config
 

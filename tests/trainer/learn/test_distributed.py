@@ -16,7 +16,7 @@ from helpers import HELPERS, ROOT, wait_until
 from helpers.agents import render_batch
 from helpers.bags import TINY, make_steps, write_bag
 
-from protocad_ros.checkpoint import load_checkpoint, read_checkpoint
+from protocad_ros.checkpoint.agent_file import load_checkpoint, read_checkpoint
 from protocad_ros.model.agent import make_agent
 from protocad_ros.model.config import make_config
 from trainer.learn import distributed

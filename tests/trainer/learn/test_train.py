@@ -282,7 +282,7 @@ def test_updates_that_end_on_a_checkpoint_multiple_are_saved_when_the_caller_sav
     """protocad-online trains C updates per episode with save=False (it saves at evaluations):
     a checkpoint_every that divides C must still checkpoint each episode's updates, else a kill
     between evaluations loses them all (what C = 100 with --checkpoint-every 100 did)."""
-    from protocad_ros.checkpoint import read_checkpoint
+    from protocad_ros.checkpoint.agent_file import read_checkpoint
     from protocad_ros.model.config import make_config
     from trainer.data.dataset import MCAPDataset
     from trainer.learn.trainer import Trainer

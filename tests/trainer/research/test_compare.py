@@ -55,7 +55,7 @@ def grid_args(out: Path) -> list[str]:
 
 
 def read_counters(run_dir: Path) -> dict:
-    from protocad_ros.checkpoint import read_checkpoint
+    from protocad_ros.checkpoint.agent_file import read_checkpoint
 
     return read_checkpoint(run_dir / "checkpoints" / "latest.pt")["counters"]
 
@@ -616,7 +616,7 @@ def ship_the_best_policy(out: Path, tmp_path: Path) -> None:
 
     import torch
 
-    from protocad_ros.checkpoint import load_checkpoint, read_checkpoint, read_provenance
+    from protocad_ros.checkpoint.agent_file import load_checkpoint, read_checkpoint, read_provenance
 
     policy = tmp_path / "policies" / "pendulum.pt"
     r = subprocess.run([sys.executable, "-m", "trainer.research.compare", "--report", str(out / "results.json"),

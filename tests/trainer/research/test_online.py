@@ -52,7 +52,7 @@ def test_online_runs_end_to_end_and_resumes(tmp_path):
     assert all(e["has_first"] and e["has_last"] and e["length"] == 21 and e["split"] == "train"
                for e in ds.episodes())
     # checkpoint + evaluation JSON (periodic, final, random baseline)
-    from protocad_ros.checkpoint import read_checkpoint
+    from protocad_ros.checkpoint.agent_file import read_checkpoint
 
     c = read_checkpoint(run / "checkpoints" / "latest.pt")["counters"]
     assert c["env_steps"] == 160 and c["episodes"] == 4
@@ -143,7 +143,7 @@ def test_sigkill_at_any_point_then_resume_completes_with_counters_from_the_data(
 
     from helpers import wait_until
 
-    from protocad_ros.checkpoint import read_checkpoint
+    from protocad_ros.checkpoint.agent_file import read_checkpoint
     from trainer.data.dataset import MCAPDataset
     from trainer.research.online_rundir import data_counts
 
@@ -206,7 +206,7 @@ def test_ctrl_c_while_training_costs_the_run_neither_updates_nor_an_evaluation(t
 
     from helpers import wait_until
 
-    from protocad_ros.checkpoint import read_checkpoint
+    from protocad_ros.checkpoint.agent_file import read_checkpoint
 
     run = tmp_path / "run"
     # 40 env steps per episode, prefill 2, C = 100: 100 updates after episode 2, 200 after

@@ -142,7 +142,7 @@ def test_the_probe_tells_prototypes_that_trained_from_frozen_ones(tmp_path):
     redrawn from the checkpoint's config); a variant without prototypes has none."""
     from helpers.agents import TINY_OVERRIDES, render_batch
 
-    from protocad_ros.checkpoint import load_checkpoint, save_checkpoint
+    from protocad_ros.checkpoint.agent_file import load_checkpoint, save_checkpoint
     from protocad_ros.model.agent import Agent
     from protocad_ros.model.config import make_config
     from trainer.research.probe import prototype_drift
@@ -166,7 +166,7 @@ def test_the_probe_tells_prototypes_that_trained_from_frozen_ones(tmp_path):
     dreamer = Agent(make_config("pendulum_swingup", "small", "dreamer", **TINY_OVERRIDES), 1)
     assert prototype_drift(dreamer) is None
     # a shipped policy file has no counters of its own: the run's come from its provenance
-    from protocad_ros.checkpoint import save_policy
+    from protocad_ros.checkpoint.agent_file import save_policy
     from trainer.research.probe import load
 
     save_policy(tmp_path / "policy.pt", agent, {"counters": {"prototype_freeze": 1, "env_steps": 40}})

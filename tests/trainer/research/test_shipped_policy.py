@@ -9,7 +9,7 @@ import json
 from helpers import ROOT
 
 from protocad_ros.atomic import file_sha256
-from protocad_ros.checkpoint import load_checkpoint
+from protocad_ros.checkpoint.agent_file import load_checkpoint
 from trainer.research.probe import prototype_drift
 
 POLICY = ROOT / "protocad_ros" / "policies" / "walker_walk.pt"

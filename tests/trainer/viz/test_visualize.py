@@ -232,7 +232,7 @@ def test_bad_input_is_a_clear_error(tmp_path, pendulum_agent):
 
 @pytest.mark.process
 def test_cli_writes_the_run_dirs_recording(tmp_path, pendulum_agent):
-    from protocad_ros.checkpoint import save_checkpoint
+    from protocad_ros.checkpoint.agent_file import save_checkpoint
 
     ckpt = save_checkpoint(tmp_path / "run" / "checkpoints" / "latest.pt", pendulum_agent,
                            {"updates": 0})

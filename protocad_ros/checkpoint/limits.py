@@ -12,7 +12,7 @@ is unpickled, when:
 After loading, the top-level keys must be the format's (`check_top_level_keys`), and the tensor
 bytes must fit what the file's own architecture implies (`check_implied_size`).
 
-No ROS import: the model side (protocad_ros.checkpoint) calls it.
+No ROS import, no torch: every reader of a checkpoint (files.py, agent_file.py) calls it.
 """
 from __future__ import annotations
 
@@ -38,7 +38,7 @@ IMPLIED_SLACK_BYTES = 16 << 20
 #: Tensor bytes allowed per byte of float32 weights: weights + Adam's two moments + slack.
 IMPLIED_FACTOR = 4
 
-#: The top-level keys of the format (protocad_ros.checkpoint); anything else is refused.
+#: The top-level keys of the format (agent_file.py); anything else is refused.
 TOP_LEVEL_KEYS = frozenset({"format", "version", "created_unix", "config", "action_dim", "modules",
                             "optimizers", "agent_counters", "counters", "torch_rng", "provenance"})
 

@@ -1,4 +1,5 @@
-"""Agent checkpoints: one file, versioned, written atomically, loaded without pickle code.
+"""Agent checkpoints, the part that needs torch: one file, versioned, written atomically, loaded
+without pickle code.
 
     save_checkpoint("runs/x/agent.pt", agent, counters={"env_steps": 12000})
     agent, counters = load_checkpoint("runs/x/agent.pt", device="cpu")
@@ -32,7 +33,6 @@ from __future__ import annotations
 import io
 import json
 import os
-import stat
 import time
 import zipfile
 from pathlib import Path
@@ -41,7 +41,15 @@ from typing import Any, Callable, Mapping
 import torch
 
 from protocad_ros.atomic import atomic_open, atomic_write_text
-from protocad_ros.checkpoint_limits import (
+from protocad_ros.checkpoint.files import (
+    CONFIG_NAME,
+    FORMAT,
+    VERSION,
+    CheckpointError,
+    architecture_differences,
+    read_bounded,
+)
+from protocad_ros.checkpoint.limits import (
     CheckpointLimitError,
     check_archive,
     check_implied_size,
@@ -52,48 +60,8 @@ from protocad_ros.model.agent import make_agent
 from protocad_ros.model.agent_base import AgentBase
 from protocad_ros.model.config import Config, ConfigError
 
-__all__ = ["save_checkpoint", "save_policy", "read_provenance", "load_checkpoint", "restore_checkpoint", "read_checkpoint",
-           "read_checkpoint_file",
-           "architecture_differences", "CheckpointError", "CheckpointMismatch", "FORMAT", "VERSION",
-           "CONFIG_NAME"]
-
-FORMAT = "protocad-ros/agent-checkpoint"
-VERSION = 1
-CONFIG_NAME = "config.yaml"
-
-
-class CheckpointError(RuntimeError):
-    """A checkpoint that cannot be used: corrupt/truncated, foreign, or incompatible."""
-
-
-class CheckpointMismatch(CheckpointError):
-    """A sound checkpoint that is not what the caller serves (another task, variant or
-    architecture): refused before anything is built."""
-
-
-def checkpoint_file(path: str | os.PathLike) -> Path:
-    """A checkpoint named as a file or as a run directory: the file. A directory means its
-    checkpoints/latest.pt (or a latest.pt in it, a bare checkpoints/ directory); a path that
-    does not exist yet is returned as it is (a node waiting for its first checkpoint). The one
-    way every node and CLI reads the name."""
-    p = Path(path)
-    if not p.is_dir():
-        return p
-    for cand in (p / "checkpoints" / "latest.pt", p / "latest.pt"):
-        if cand.is_file():
-            return cand
-    return p / "checkpoints" / "latest.pt"
-
-
-def existing_checkpoint_file(path: str | os.PathLike) -> Path:
-    """`checkpoint_file` for a reader: the file, which must exist (ValueError saying which is
-    missing otherwise)."""
-    c = checkpoint_file(path)
-    if not c.is_file():
-        raise ValueError(f"{path} is a directory without checkpoints/latest.pt" if Path(path).is_dir()
-                         else f"checkpoint {path} does not exist")
-    return c
-
+__all__ = ["save_checkpoint", "save_policy", "read_provenance", "load_checkpoint", "restore_checkpoint",
+           "read_checkpoint"]
 
 def save_checkpoint(path: str | os.PathLike, agent: AgentBase, counters: Mapping[str, Any] | None = None,
                     rng_state: bool = False) -> Path:
@@ -160,7 +128,7 @@ def _write(path: Path, payload: Mapping[str, Any]) -> None:
 def read_checkpoint(path: str | os.PathLike, data: bytes | None = None,
                     max_bytes: int | None = None) -> dict[str, Any]:
     """The raw checkpoint dict (tensors on CPU), after the archive's limits
-    (protocad_ros.checkpoint_limits: checked on its zip directory, before anything is expanded)
+    (limits.py: checked on its zip directory, before anything is expanded)
     and the format and version checks. `data`: the file's bytes as the caller read (and
     verified) them; then the file is not read again."""
     return _read(Path(path), max_bytes, data)[0]
@@ -168,13 +136,13 @@ def read_checkpoint(path: str | os.PathLike, data: bytes | None = None,
 
 def _read(path: Path, max_bytes: int | None, data: bytes | None = None) -> tuple[dict[str, Any], int]:
     """(payload, bytes of its tensor entries): every load path's one reader. max_bytes: None
-    = $PROTOCAD_MAX_CHECKPOINT_BYTES or 512 MiB (checkpoint_limits.max_checkpoint_bytes)."""
+    = $PROTOCAD_MAX_CHECKPOINT_BYTES or 512 MiB (limits.max_checkpoint_bytes)."""
     try:
         max_bytes = max_checkpoint_bytes(max_bytes)
     except CheckpointLimitError as err:
         raise CheckpointError(str(err)) from None
     if data is None:
-        data = _read_file(path, max_bytes)
+        data = read_bounded(path, max_bytes)
     elif len(data) > max_bytes:
         raise CheckpointError(f"{path}: {len(data)} bytes, more than the limit of {max_bytes} (max_checkpoint_bytes)")
     if not data:
@@ -207,59 +175,6 @@ def _read(path: Path, max_bytes: int | None, data: bytes | None = None) -> tuple
     except CheckpointLimitError as err:
         raise CheckpointError(str(err)) from None
     return payload, tensor_bytes
-
-
-def read_checkpoint_file(path: str | os.PathLike, max_bytes: int | None = None) -> bytes:
-    """A checkpoint file's bytes, for a caller that verifies them before loading them
-    (read_checkpoint(path, data=...)): refused (CheckpointError) when the file is larger than
-    max_bytes (None: $PROTOCAD_MAX_CHECKPOINT_BYTES or 512 MiB), before it is read."""
-    try:
-        return _read_file(Path(path), max_checkpoint_bytes(max_bytes))
-    except CheckpointLimitError as err:
-        raise CheckpointError(str(err)) from None
-
-
-def _read_file(path: Path, max_bytes: int) -> bytes:
-    """One bounded read: the file is opened once, its size checked on that descriptor (fstat),
-    and at most that size plus one byte (never more than max_bytes + 1) read from it; the path
-    is never opened again. A file that grows after its size check (a writer still at it, or a
-    stranger's file that becomes a sparse 4 GiB one) is refused, naming what was read."""
-    try:   # O_NONBLOCK: a FIFO put in its place must not hang the opener (refused just below)
-        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
-    except FileNotFoundError:
-        raise CheckpointError(f"{path}: no such checkpoint file") from None
-    except OSError as err:
-        raise CheckpointError(f"{path}: cannot open: {err.strerror or err}") from None
-    with open(fd, "rb", buffering=0) as f:
-        st = os.fstat(fd)
-        if not stat.S_ISREG(st.st_mode):
-            raise CheckpointError(f"{path}: not a regular file (no such checkpoint file)")
-        size = st.st_size
-        if size > max_bytes:   # before reading it: a huge file costs nothing
-            raise CheckpointError(f"{path}: {size} bytes, more than the limit of {max_bytes} (max_checkpoint_bytes)")
-        data = _read_at_most(f, size)
-        extra = len(f.read(1) or b"")   # one byte more: the file is longer than it was checked
-    if extra:
-        raise CheckpointError(f"{path}: grew after its size check ({size} bytes): {len(data) + extra} bytes "
-                              f"read, more than was checked; refused (the limit is {max_bytes} bytes, "
-                              "max_checkpoint_bytes)")
-    return data
-
-
-def _read_at_most(f: io.RawIOBase, size: int) -> bytes:
-    """Up to `size` bytes from a raw file: one read (one allocation) unless it comes back short."""
-    first = f.read(size) or b""
-    if len(first) >= size or not first:
-        return first
-    parts = [first]
-    got = len(first)
-    while got < size:
-        more = f.read(size - got)
-        if not more:
-            break
-        parts.append(more)
-        got += len(more)
-    return b"".join(parts)
 
 
 def _config(path: Path, payload: Mapping[str, Any]) -> Config:
@@ -351,7 +266,7 @@ def load_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu",
     optimizers are then never built. data: the file's bytes,
     already read (and verified) by the caller: loaded from, the file is not read again.
     max_bytes: the largest file (and declared archive contents) accepted
-    (protocad_ros.checkpoint_limits).
+    (limits.py).
     """
     path = Path(path)
     payload, tensor_bytes = _read(path, max_bytes, data)
@@ -366,16 +281,6 @@ def load_checkpoint(path: str | os.PathLike, device: str | torch.device = "cpu",
     agent = make_agent(cfg, ckpt_dim, device=device)
     counters = _load_into(path, agent, payload, restore_rng, optimizer_states)
     return agent, counters
-
-
-def architecture_differences(mine: Config, theirs: Config) -> list[str]:
-    """What makes `theirs` another network than `mine` (variant, shape-giving fields), as
-    'section.key: mine != theirs'; training-only fields (learning rates, ...) may differ."""
-    a, b = mine.to_dict(), theirs.to_dict()
-    diffs = [f"variant: {a['variant']!r} != {b['variant']!r}"] if a["variant"] != b["variant"] else []
-    return diffs + [f"{sec}.{k}: {a[sec][k]!r} != {b[sec][k]!r}"
-                    for sec in ("world_model", "context", "behavior", "drq") for k in sorted(_ARCH_KEYS[sec])
-                    if a[sec].get(k) != b[sec].get(k)]
 
 
 def restore_checkpoint(path: str | os.PathLike, agent: AgentBase,
@@ -398,13 +303,3 @@ def restore_checkpoint(path: str | os.PathLike, agent: AgentBase,
     return _load_into(path, agent, payload)
 
 
-# Config fields that change the networks' shapes (the rest may differ on restore).
-_ARCH_KEYS = {
-    "world_model": {"deter", "hidden", "stoch", "discrete", "cnn", "cnn_depth", "mlp_layers",
-                    "mlp_units", "act", "norm", "gru_norm", "discount_head"},
-    "context": {"num_prototypes", "proto_dim", "dreamerpro_num_prototypes"},
-    "behavior": {"actor_layers", "actor_units", "critic_layers", "critic_units", "act", "norm",
-                 "actor_dist"},
-    "drq": {"frame_stack", "num_filters", "num_conv_layers", "feature_dim", "hidden_dim",
-            "hidden_depth"},
-}

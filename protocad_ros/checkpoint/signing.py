@@ -33,6 +33,7 @@ from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey, Ed25519PublicKey
 
 from protocad_ros.atomic import atomic_open
+from protocad_ros.checkpoint.files import read_checkpoint_file
 
 __all__ = ["Manifest", "SignatureRejected", "SigningError", "TrustedKeys", "generate_keypair",
            "key_id", "load_private_key", "load_trusted_keys", "next_seq", "sign_manifest",
@@ -271,8 +272,6 @@ def verify_file(checkpoint: str | os.PathLike, sha256: str, size: int,
 
 def sign_file(checkpoint: str | os.PathLike, key: Ed25519PrivateKey, seq: int | None = None) -> Manifest:
     """Write FILE.sig for a checkpoint file (its task, variant, preset, updates from the file)."""
-    from protocad_ros.checkpoint import read_checkpoint_file
-
     checkpoint = Path(checkpoint)   # the one bounded read every checkpoint reader makes
     return sign_bytes(checkpoint, read_checkpoint_file(checkpoint), key, seq)
 
@@ -280,7 +279,7 @@ def sign_file(checkpoint: str | os.PathLike, key: Ed25519PrivateKey, seq: int | 
 def sign_bytes(checkpoint: str | os.PathLike, data: bytes, key: Ed25519PrivateKey,
                seq: int | None = None) -> Manifest:
     """Write FILE.sig for `data`, the bytes of the checkpoint FILE (read once by the caller)."""
-    from protocad_ros.checkpoint import read_checkpoint
+    from protocad_ros.checkpoint.agent_file import read_checkpoint
 
     # never vouch for something that is not a checkpoint: the same bytes are checked
     payload = read_checkpoint(checkpoint, data=data)
