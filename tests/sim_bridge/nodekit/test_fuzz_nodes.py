@@ -120,7 +120,7 @@ def bridge_node(ros_context):
 def recorder_node(ros_context, tmp_path_factory):
     from trainer.nodes.recorder import RecorderNode
 
-    node = RecorderNode(output=str(tmp_path_factory.mktemp("fuzzbag") / "bag"), namespace=NS,
+    node = RecorderNode({"output": str(tmp_path_factory.mktemp("fuzzbag") / "bag"), "namespace": NS},
                         context=ros_context)
     node.writer.add_topic(f"{NS}/image", "sensor_msgs/msg/Image", [])
     yield from in_process(node)
@@ -154,7 +154,7 @@ def test_step_info_with_inf_nan_is_rejected_not_fatal(policy_node):
 @given(msg=images())
 def test_policy_image_callback_is_total(policy_node, msg):
     before = policy_node.counters["images_received"]
-    policy_node._on_image(msg)
+    policy_node.camera._on_frame(msg)   # the image subscription's callback
     assert policy_node.counters["images_received"] == before + 1
 
 
