@@ -20,14 +20,10 @@ import time
 from sensor_msgs.msg import JointState
 
 from sim_bridge.contract import qos, topics
-from sim_bridge.nodekit.sender_gid import SenderSubscription
+from sim_bridge.nodekit.sender_gid import PARTICIPANT_BYTES, TAKE_PERIOD_S, SenderSubscription
 
 #: Seconds an announcement may wait for its writer's observation topics to show in the graph.
 BRIDGE_INFO_GRACE_S = 5.0
-#: How often announcements are taken with their writer (also right when one arrives).
-TAKE_PERIOD_S = 0.2
-#: Bytes of a GID that name the writer's participant (the DDS GUID prefix).
-PARTICIPANT_BYTES = 12
 
 
 class BridgePairing:

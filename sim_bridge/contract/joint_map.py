@@ -71,7 +71,7 @@ def identity_map(action_names: Sequence[str]) -> JointMap:
     return JointMap(tuple(action_names), np.arange(n), np.ones(n), np.zeros(n), np.full(n, np.inf))
 
 
-def _number(entry: dict, key: str, default: float, where: str) -> float:
+def _finite(entry: dict, key: str, default: float, where: str) -> float:
     value = entry.get(key, default)
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(value):
         raise JointMapError(f"{where}: {key} must be a finite number, not {value!r}")
@@ -103,16 +103,16 @@ def parse_joint_map(doc: Any, action_names: Sequence[str], source: str = "joint 
                                 f"{list(action_names)}")
         if action_names.index(action) in index:
             raise JointMapError(f"{where}: action {action!r} drives two joints")
-        s = _number(entry, "scale", 1.0, where)
+        s = _finite(entry, "scale", 1.0, where)
         if s == 0.0:
             raise JointMapError(f"{where}: scale is 0 (the joint would never move)")
-        r = _number(entry, "max_rate", math.inf, where) if "max_rate" in entry else math.inf
+        r = _finite(entry, "max_rate", math.inf, where) if "max_rate" in entry else math.inf
         if r <= 0.0:
             raise JointMapError(f"{where}: max_rate must be above 0, not {r}")
         names.append(name)
         index.append(action_names.index(action))
         scale.append(s)
-        offset.append(_number(entry, "offset", 0.0, where))
+        offset.append(_finite(entry, "offset", 0.0, where))
         rate.append(r)
     if len(names) != len(action_names):
         unused = [a for i, a in enumerate(action_names) if i not in index]

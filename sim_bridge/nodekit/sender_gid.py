@@ -21,6 +21,11 @@ from typing import Any, Iterator
 
 RCL_RET_OK = 0
 GID_SIZE = 16
+#: Bytes of a GID that name the writer's participant (the DDS GUID prefix).
+PARTICIPANT_BYTES = 12
+#: How often a node takes the announcements it holds with their writer (the policy's and the
+#: recorder's bridge_info; also right when one arrives).
+TAKE_PERIOD_S = 0.2
 
 
 class _Allocator(ctypes.Structure):

@@ -17,14 +17,10 @@ import time
 from typing import Any
 
 from sim_bridge.contract import topics as T
-from sim_bridge.nodekit.sender_gid import SenderSubscription
+from sim_bridge.nodekit.sender_gid import PARTICIPANT_BYTES, TAKE_PERIOD_S, SenderSubscription
 
 #: Seconds a message may wait for its writer's observation topics to show in the graph.
 ANNOUNCEMENT_GRACE_S = 5.0
-#: How often announcements are taken with their writer (also as soon as one is heard).
-TAKE_PERIOD_S = 0.2
-#: Bytes of a GID that name the writer's participant (the DDS GUID prefix).
-PARTICIPANT_BYTES = 12
 #: custom_data key: {topic: messages left out}.
 IGNORED_KEY = "protocad_ignored_bridge_info"
 
