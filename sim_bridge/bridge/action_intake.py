@@ -90,9 +90,7 @@ class ActionIntake:
                                         f"stamp {topics.format_stamp(stamp)} was already answered")
             clipped = self._accept(a, stamp, now)
             if self.lockstep:
-                self._answer = clipped
-                self._pending_stamp = None
-                self._cond.notify_all()
+                self._hand_to_stepping(clipped)
             else:
                 if stamp != self._newest_stamp:
                     self.counters["late_actions"] += 1
@@ -144,11 +142,15 @@ class ActionIntake:
                 return
             clipped = self._accept(a, stamp, now)
             if self.lockstep:
-                self._answer = clipped
-                self._pending_stamp = None
-                self._cond.notify_all()
+                self._hand_to_stepping(clipped)
             else:
                 self._held, self._held_stamp = clipped, stamp
+
+    def _hand_to_stepping(self, action) -> None:
+        """Lock-step: the action answers the pending observation; the stepping thread goes on."""
+        self._answer = action
+        self._pending_stamp = None
+        self._cond.notify_all()
 
     def _on_reset(self, request, response):
         with self._cond:

@@ -18,6 +18,8 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
+from sim_bridge.contract import topics
+
 #: Raw encodings taken (sensor_msgs/image_encodings names): channels, and the order that gives RGB.
 ENCODINGS: dict[str, tuple[int, tuple[int, ...]]] = {
     "rgb8": (3, (0, 1, 2)),
@@ -84,15 +86,10 @@ class Crop:
 
 def _payload(data: Any) -> np.ndarray:
     """A flat uint8 view of a message's data field (array.array, bytes, ndarray, list)."""
-    if isinstance(data, np.ndarray):
-        return data.reshape(-1).view(np.uint8)
     try:
-        return np.frombuffer(data, np.uint8)
-    except TypeError:
-        try:
-            return np.asarray(data, np.uint8).reshape(-1)
-        except (OverflowError, TypeError, ValueError) as exc:
-            raise FrameError("rejected_image_data", f"image data is not bytes: {exc}") from None
+        return topics.uint8_view(data)
+    except ValueError as exc:
+        raise FrameError("rejected_image_data", str(exc)) from None
 
 
 def decode_raw(encoding: str, height: int, width: int, step: int, data: Any) -> np.ndarray:

@@ -141,7 +141,7 @@ def read_image(msg: Any, expected_hw: tuple[int, int] | None = None) -> np.ndarr
         raise ValueError(f"image data has {size} bytes, expected {h}x{step} (width {w}, rgb8)")
     if expected_hw is not None and (h, w) != tuple(expected_hw):
         raise ValueError(f"image is {h}x{w}, expected {expected_hw[0]}x{expected_hw[1]}")
-    return _uint8_view(msg.data).reshape(h, step)[:, : w * 3].reshape(h, w, 3)
+    return uint8_view(msg.data).reshape(h, step)[:, : w * 3].reshape(h, w, 3)
 
 
 def _payload_size(data: Any) -> int:
@@ -149,7 +149,7 @@ def _payload_size(data: Any) -> int:
     return int(data.nbytes) if isinstance(data, np.ndarray) else len(data)
 
 
-def _uint8_view(data: Any) -> np.ndarray:
+def uint8_view(data: Any) -> np.ndarray:
     """A flat uint8 array over the payload: no copy where it exposes a buffer (rclpy's
     array.array, bytes, ndarrays); a list (some decoders) is converted."""
     if isinstance(data, np.ndarray):
