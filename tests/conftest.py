@@ -7,6 +7,7 @@ share is the `helpers` package next to this file.
 """
 from __future__ import annotations
 
+import fcntl
 import os
 import resource
 import subprocess
@@ -31,15 +32,31 @@ TEST_DOMAINS = range(215, 233)
 
 
 def ros_domain_id() -> int:
-    """A domain of its own for this run, and under pytest-xdist for each of its workers (the
-    workers of one run share PYTEST_XDIST_TESTRUNUID; their numbers gw0, gw1... tell them apart)."""
+    """A domain of its own for this process: the first of TEST_DOMAINS, from a start that depends
+    on the run and the pytest-xdist worker, whose lock file it can take. The lock is held until the
+    process ends, so two test runs on one machine (two sessions, a run beside a helper's) never
+    share a domain: with a shared one, one run's nodes answer the other's. All 18 taken: the
+    start itself, as before the locks."""
     first, size = TEST_DOMAINS.start, len(TEST_DOMAINS)
     worker = os.environ.get("PYTEST_XDIST_WORKER")
-    if not worker:
-        return first + os.getpid() % size
-    n = int(os.environ.get("PYTEST_XDIST_WORKER_COUNT", "1"))
-    run = zlib.crc32(os.environ.get("PYTEST_XDIST_TESTRUNUID", "").encode())
-    return first + ((run % max(1, size // n)) * n + int(worker.removeprefix("gw"))) % size
+    start = os.getpid() % size
+    if worker:
+        start = zlib.crc32(os.environ.get("PYTEST_XDIST_TESTRUNUID", "").encode()) + int(worker.removeprefix("gw"))
+    for i in range(size):
+        domain = first + (start + i) % size
+        fd = os.open(f"/tmp/protocad-test-domain-{domain}.lock", os.O_CREAT | os.O_RDWR, 0o666)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            os.close(fd)
+            continue
+        _DOMAIN_LOCKS.append(fd)   # held (open) for the life of this process
+        return domain
+    return first + start % size
+
+
+#: The lock files' descriptors this process holds (ros_domain_id).
+_DOMAIN_LOCKS: list[int] = []
 
 
 # Set before anything imports rclpy. LOCALHOST keeps discovery off external interfaces;
