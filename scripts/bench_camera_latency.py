@@ -51,8 +51,8 @@ from sensor_msgs.msg import Image
 from protocad_ros.model.precision import cpu_capability
 from protocad_ros.policy import shipped_policy
 from sim_bridge.contract import camera, topics
+from trainer.launch.rosprocs import ros_env
 
-ROOT = Path(__file__).resolve().parents[1]
 CASES = ("native", "bgr8", "jpeg")
 
 
@@ -139,13 +139,9 @@ def main() -> None:
     args = parse()
     if shipped_policy("walker_walk") is None:
         raise SystemExit("the package ships no walker_walk policy")
-    # DDS on this machine only, in a domain of our own (before the probe's rclpy.init).
-    os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-    os.environ.setdefault("ROS_DOMAIN_ID", str(100 + os.getpid() % 100))
-    os.environ.setdefault("MUJOCO_GL", "egl")
-    os.environ.setdefault("PYOPENGL_PLATFORM", os.environ["MUJOCO_GL"])
-    os.environ.setdefault("AMENT_PREFIX_PATH", sys.prefix)
-    os.environ["PYTHONPATH"] = os.pathsep.join(filter(None, [str(ROOT), os.environ.get("PYTHONPATH")]))
+    # DDS on this machine only, in a free domain of our own (before the probe's rclpy.init): the
+    # launchers' node environment, which the node process inherits.
+    os.environ.update(ros_env(int(os.environ["ROS_DOMAIN_ID"]) if "ROS_DOMAIN_ID" in os.environ else None))
     frames = walker_frames(args.distinct)
     t0 = time.perf_counter()
     for f in frames:
