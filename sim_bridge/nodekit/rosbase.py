@@ -26,6 +26,10 @@ from sim_bridge.nodekit.rosnode import KeyThrottle
 
 class ProtocadNode(Node):
     def __init__(self, node_name: str, **kw: Any):
+        #: The node's counters on /diagnostics (each node fills its own keys in).
+        self.counters: dict[str, int] = {}
+        #: `-p` names no parameter table declares (rosnode.declare_all fills it in).
+        self.unknown_parameters: list[str] = []
         self.callback_errors = 0
         self.callback_error_counts: collections.Counter[str] = collections.Counter()
         super().__init__(node_name, **kw)
