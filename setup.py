@@ -108,8 +108,8 @@ setup(
             "protocad-study = trainer.study.cli:main",
             "protocad-stack = trainer.launch.stack:main",
             "protocad-checkpoint-publisher = trainer.nodes.checkpoint_publisher:main",
-            "protocad-keygen = protocad_ros.checkpoint.signing:keygen_main",
-            "protocad-sign-checkpoint = protocad_ros.checkpoint.signing:sign_main",
+            "protocad-keygen = trainer.launch.run_key:keygen_main",
+            "protocad-sign-checkpoint = trainer.launch.run_key:sign_main",
             "protocad-fleet = trainer.launch.fleet:main",
             "protocad-discovery-server = trainer.launch.discovery:main",
         ]

@@ -3,8 +3,8 @@
   files.py       no torch: the format's names, CheckpointError, where a checkpoint is, its one
                  bounded read, what makes two configs different networks
   limits.py      no torch: what a file from a stranger must keep before torch expands it
-  signing.py     no torch: Ed25519 signatures of checkpoints, protocad-keygen and
-                 protocad-sign-checkpoint
+  signing.py     no torch: Ed25519 signatures of checkpoints (the commands that make keys
+                 and sign files by hand: trainer/launch/run_key.py)
   agent_file.py  torch: save, read, load and restore agents and policy files
 
 Node-side and command-line code imports the torch-free modules at its top (a node's --help, its

@@ -12,21 +12,19 @@ and the id of the signing key. The signature covers the manifest's canonical JSO
 
 Free of ROS: the publisher (trainer/nodes/checkpoint_publisher.py), the receiver
 (protocad_ros/node/checkpoint_receiver.py), the file watcher (protocad_ros/node/checkpoint_serving.py)
-and these command-line tools share it.
+and the two commands above (trainer/launch/run_key.py) share it.
 """
 from __future__ import annotations
 
-import argparse
 import base64
 import binascii
 import hashlib
 import json
 import os
-import sys
 import time
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Iterable, Mapping, Sequence
+from typing import Any, Iterable, Mapping
 
 from cryptography.exceptions import InvalidSignature
 from cryptography.hazmat.primitives import serialization
@@ -38,7 +36,7 @@ from protocad_ros.checkpoint.files import read_checkpoint_file
 __all__ = ["Manifest", "SignatureRejected", "SigningError", "TrustedKeys", "generate_keypair",
            "key_id", "load_private_key", "load_trusted_keys", "next_seq", "sign_manifest",
            "verify_manifest", "signature_path", "write_signature_file", "read_signature_file",
-           "verify_file", "sign_file", "sign_bytes", "keygen_main", "sign_main"]
+           "verify_file", "sign_file", "sign_bytes"]
 
 MANIFEST_FORMAT = "protocad-ros/checkpoint-manifest/1"
 SIGNATURE_FILE_FORMAT = "protocad-ros/checkpoint-signature"
@@ -291,56 +289,3 @@ def sign_bytes(checkpoint: str | os.PathLike, data: bytes, key: Ed25519PrivateKe
     manifest, signature = sign_manifest(manifest, key)
     write_signature_file(checkpoint, manifest, signature)
     return manifest
-
-
-# ---------------------------------------------------------------------- command lines
-def keygen_main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(
-        prog="protocad-keygen",
-        description="Make an Ed25519 key pair for signing checkpoints: NAME.key (private, mode "
-                    "0600: give it to the checkpoint publisher, -p signing_key:=NAME.key) and "
-                    "NAME.pub (public: give it to policy nodes, -p trusted_keys:=NAME.pub). "
-                    "See msgs_docs/security.md.")
-    ap.add_argument("name", nargs="?", default="protocad-checkpoint",
-                    help="path prefix of the two files (default: protocad-checkpoint)")
-    ap.add_argument("--private", metavar="FILE", help="private key file (default NAME.key)")
-    ap.add_argument("--public", metavar="FILE", help="public key file (default NAME.pub)")
-    ap.add_argument("--force", action="store_true", help="replace existing key files")
-    a = ap.parse_args(argv)
-    private, public = a.private or f"{a.name}.key", a.public or f"{a.name}.pub"
-    try:
-        kid = generate_keypair(private, public, force=a.force)
-    except (SigningError, OSError) as e:
-        print(f"protocad-keygen: {e}", file=sys.stderr)
-        return 1
-    print(f"key {kid}: private key {private} (keep it secret, mode 0600), public key {public}\n"
-          f"  learner: protocad-checkpoint-publisher --ros-args -p checkpoint:=FILE -p signing_key:={private}\n"
-          f"  robot:   ros2 run protocad_ros policy --ros-args -p checkpoint_topic:=checkpoint "
-          f"-p checkpoint:=FILE -p trusted_keys:={public}")
-    return 0
-
-
-def sign_main(argv: Sequence[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(
-        prog="protocad-sign-checkpoint",
-        description="Write FILE.sig, the detached Ed25519 signature of a checkpoint file, which "
-                    "a policy node with trusted_keys requires to load (or reload) FILE. "
-                    "See msgs_docs/security.md.")
-    ap.add_argument("checkpoint", nargs="+", help="checkpoint file(s) to sign")
-    ap.add_argument("--key", required=True, metavar="FILE", help="private key (protocad-keygen)")
-    ap.add_argument("--seq", type=int, default=None,
-                    help="sequence number (default: the time in ms); a node refuses a file whose "
-                         "number is not above the one it serves")
-    a = ap.parse_args(argv)
-    try:
-        key = load_private_key(a.key)
-        seq = a.seq
-        for path in a.checkpoint:
-            m = sign_file(path, key, seq)
-            seq = None if a.seq is None else m.seq + 1
-            print(f"signed {path} (sha256 {m.sha256[:12]}..., updates={m.updates}, seq={m.seq}, "
-                  f"key {m.key_id}): {signature_path(path)}")
-    except Exception as e:  # noqa: BLE001 (a key, a file that is not a checkpoint): one line
-        print(f"protocad-sign-checkpoint: {e}", file=sys.stderr)
-        return 1
-    return 0

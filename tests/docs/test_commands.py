@@ -21,15 +21,12 @@ PACKAGES = ("protocad_ros", "sim_bridge", "trainer")
 HAND_BUILT_SCRIPTS = {
     # ros2's own verbs, subcommands and flags, spelled as the real ros2cli declares them.
     "ros2",
-    # protocad_ros may not import trainer (its `May import:` line), where settings_parser lives.
-    "protocad-keygen", "protocad-sign-checkpoint",
 }
 #: Package files that may build argparse by hand, and why.
 HAND_BUILT_FILES = {
     "trainer/settings.py",              # the generator itself
     "sim_bridge/nodekit/rosnode.py",    # a node's --help, printed from its Param table
     "trainer/nodes/recorder_cli.py",    # `ros2 bag record`'s options the recorder refuses, with the reason
-    "protocad_ros/checkpoint/signing.py",   # protocad-keygen, protocad-sign-checkpoint (above)
     "trainer/data/dataset.py",          # `python -m trainer.data.dataset`: trainer.data may not import trainer.settings
 }
 HAND_BUILT_FOLDERS = ("trainer/ros2cli/",)   # ros2 (above)
@@ -81,24 +78,26 @@ def test_every_console_script_is_generated_from_settings_or_a_param_table(script
         # an entry point that hands the command line of another module a part of its own
         # (protocad-evaluate: trainer.launch.ros_evaluate gives trainer.learn.evaluate its ROS evaluator)
         module = getattr(module, delegate[0])
-    if not hasattr(module, "build_parser"):
+    # A module of one command has build_parser; one of several, NAME_parser beside NAME_main.
+    builder = func.removesuffix("_main") + "_parser" if func.endswith("_main") else "build_parser"
+    if not hasattr(module, builder):
         runs = [c for c in ast.walk(main) if isinstance(c, ast.Call) and getattr(c.func, "id", None) == "run_node"]
         assert runs and any(k.arg == "params" for k in runs[0].keywords), \
-            f"{script}: neither a settings_parser command (build_parser) nor a node run on its Param table"
+            f"{script}: neither a settings_parser command ({builder}) nor a node run on its Param table"
         from sim_bridge.nodekit.rosnode import Param
         assert module.PARAMS and all(isinstance(p, Param) for p in module.PARAMS)
         return
-    parser = module.build_parser()
+    parser = getattr(module, builder)()
     classes = getattr(parser, "settings_classes", None)
-    assert classes, f"{script}: build_parser does not come from trainer.settings.settings_parser"
+    assert classes, f"{script}: {builder} does not come from trainer.settings.settings_parser"
     fields = {f.name for cls in classes for f in dataclasses.fields(cls)}
     from trainer.nodes.recorder_cli import UNSUPPORTED_OPTIONS
     own = [a for a in parser._actions if not isinstance(a, argparse._HelpAction)
            and not set(a.option_strings) <= set(UNSUPPORTED_OPTIONS) | {None}]
     assert own and not [a.option_strings or a.dest for a in own if a.dest not in fields], \
         f"{script}: options that are no settings field"
-    assert called(ast.parse(Path(module.__file__).read_text()), {"build_parser"}), \
-        f"{script}: {func} does not parse with build_parser()"
+    assert called(ast.parse(Path(module.__file__).read_text()), {builder}), \
+        f"{script}: {func} does not parse with {builder}()"
 
 
 def test_no_package_code_builds_argparse_by_hand():

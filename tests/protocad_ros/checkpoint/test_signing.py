@@ -1,5 +1,5 @@
 """Checkpoint signatures without ROS (protocad_ros/checkpoint/signing.py, msgs_docs/security.md):
-key pairs from the command line, manifests signed and verified, detached FILE.sig files."""
+key pairs from the command line (trainer/launch/run_key.py), manifests signed and verified, detached FILE.sig files."""
 from __future__ import annotations
 
 import dataclasses
@@ -15,16 +15,15 @@ from protocad_ros.checkpoint.signing import (
     SignatureRejected,
     SigningError,
     generate_keypair,
-    keygen_main,
     load_private_key,
     load_trusted_keys,
     next_seq,
-    sign_main,
     sign_manifest,
     signature_path,
     verify_file,
     verify_manifest,
 )
+from trainer.launch.run_key import keygen_main, sign_main
 
 
 @pytest.fixture
@@ -47,7 +46,7 @@ def test_keygen_writes_a_private_key_only_its_owner_reads_and_never_overwrites(t
     os.chmod(key, 0o644)
     assert keygen_main([str(tmp_path / "k"), "--force"]) == 0
     assert key.read_bytes() != before and stat.S_IMODE(key.stat().st_mode) == 0o600
-    out = subprocess.run([sys.executable, "-c", "from protocad_ros.checkpoint.signing import keygen_main; "
+    out = subprocess.run([sys.executable, "-c", "from trainer.launch.run_key import keygen_main; "
                           "keygen_main()", "--help"], capture_output=True, text=True)
     assert out.returncode == 0 and "--force" in out.stdout and "0600" in out.stdout
 
