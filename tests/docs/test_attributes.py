@@ -16,6 +16,7 @@ from pathlib import Path
 
 import pytest
 from helpers import ROOT
+from helpers.source import defined_names
 
 PACKAGES = ("protocad_ros", "sim_bridge", "trainer")
 
@@ -97,17 +98,7 @@ def sets_by_name(call: ast.Call, me: str) -> bool:
 
 
 def class_body_names(cls: ast.ClassDef) -> set[str]:
-    names = set()
-    for node in cls.body:
-        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
-            names.add(node.name)
-        elif isinstance(node, ast.Assign):
-            names |= {n.id for t in node.targets for n in ast.walk(t) if isinstance(n, ast.Name)}
-        elif isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
-            # A field of a dataclass or NamedTuple; a bare annotation elsewhere declares nothing.
-            if node.value is not None or is_record(cls):
-                names.add(node.target.id)
-    return names
+    return defined_names(cls.body, bare_annotations=is_record(cls))
 
 
 def is_record(cls: ast.ClassDef) -> bool:

@@ -8,6 +8,7 @@ import ast
 from collections import defaultdict
 
 from helpers import ROOT
+from helpers.source import defined_names
 
 PACKAGES = ("protocad_ros", "sim_bridge", "trainer")
 
@@ -52,23 +53,11 @@ REPEATED_ON_PURPOSE = {
 }
 
 
-def top_level_names(tree: ast.Module) -> set[str]:
-    names = set()
-    for node in tree.body:
-        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
-            names.add(node.name)
-        elif isinstance(node, ast.Assign):
-            names |= {t.id for t in node.targets if isinstance(t, ast.Name)}
-        elif isinstance(node, ast.AnnAssign) and isinstance(node.target, ast.Name):
-            names.add(node.target.id)
-    return names
-
-
 def definitions() -> dict[str, set[str]]:
     where: dict[str, set[str]] = defaultdict(set)
     for pkg in PACKAGES:
         for path in sorted((ROOT / pkg).rglob("*.py")):
-            for name in top_level_names(ast.parse(path.read_text())):
+            for name in defined_names(ast.parse(path.read_text()).body):
                 where[name].add(path.relative_to(ROOT).as_posix())
     return where
 
