@@ -124,7 +124,7 @@ def add_settings(parser: argparse.ArgumentParser, cls: type, title: str | None =
 
 def table_settings(name: str, params: Sequence[Any], forms: dict[str, dict[str, Any] | None]) -> type:
     """A settings class whose fields are the rows of a node's parameter table (rows with name,
-    default, description and choices: sim_bridge.nodekit.rosnode.Param), so that the node's own
+    default, description and choices: sim_bridge.nodekit.param_table.Param), so that the node's own
     command line is generated from the parameters it declares: the flag `--name-with-dashes`,
     the row's type, default, choices and description as its help, unless `forms[name]` says
     otherwise (`flags`, a `default` of the command line's own, and what else `arg` takes);

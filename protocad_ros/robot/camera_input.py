@@ -27,7 +27,7 @@ from sensor_msgs.msg import CompressedImage, Image
 from sim_bridge.contract import camera, topics
 from sim_bridge.contract.camera import Crop, FrameError
 from sim_bridge.contract.qos import overridable
-from sim_bridge.nodekit.rosnode import ConfigError
+from sim_bridge.nodekit.param_table import ConfigError
 
 TRANSPORTS = ("raw", "compressed")
 OBSERVATIONS = ("paired", "image_only")

@@ -17,7 +17,7 @@ from trajectory_msgs.msg import JointTrajectory, JointTrajectoryPoint
 
 from sim_bridge.contract import topics
 from sim_bridge.contract.joint_map import JointMap, JointMapError, identity_map, load_joint_map
-from sim_bridge.nodekit.rosnode import ConfigError
+from sim_bridge.nodekit.param_table import ConfigError
 
 KINDS = ("", "float64_multi_array", "joint_trajectory")
 #: History depth of command_topic (rclcpp's default, what the controllers subscribe with).

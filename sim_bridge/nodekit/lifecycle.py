@@ -32,8 +32,8 @@ from typing import Any, Callable
 
 from rclpy.lifecycle import LifecycleNodeMixin, TransitionCallbackReturn
 
+from sim_bridge.nodekit.param_table import ConfigError
 from sim_bridge.nodekit.rosbase import ProtocadNode
-from sim_bridge.nodekit.rosnode import ConfigError
 
 SUCCESS, FAILURE, ERROR = (TransitionCallbackReturn.SUCCESS, TransitionCallbackReturn.FAILURE,
                            TransitionCallbackReturn.ERROR)

@@ -1,122 +1,90 @@
-"""rclpy plumbing shared by the protocad nodes (sim bridge, policy).
+"""rclpy plumbing shared by the protocad nodes (sim bridge, policy, recorder, ...): imports ROS
+at its top; the parameter tables themselves (`Param`, `ConfigError`, the shared rows) are in
+sim_bridge.nodekit.param_table, which imports without ROS.
 
-- `Param`: one row of a node's parameter table. The same table declares the ROS parameters
-  (ParameterDescriptor with description, range, read_only), prints `--help` (or generates a
-  node's own command line: trainer.settings.table_settings), and is what msgs_docs documents.
-  `with_defaults`: the table with a command line's values as the declared defaults.
 - `declare_all`: declares a table with clear errors (`ConfigError`) for wrong types, values out
   of range, values outside a choice list; integers given for float parameters are accepted
   (`-p control_rate_hz:=10`), and so are true/false for a string parameter whose choices are
   those words; unknown `-p` overrides are reported with a warning.
+- `install_parameter_guards`: run-time `set_parameters` handling of a declared table.
 - `run_node`: the `main()` of a node: argparse (`--help` lists the ROS parameters; everything
   after `--ros-args` goes to ROS), spin, clean shutdown on Ctrl-C / SIGTERM (exit 0, no
   traceback), exit 2 on a configuration error.
-- `Percentiles`, `make_status`: diagnostics helpers.
+- `Percentiles`, `make_status`, `KeyThrottle`: diagnostics and logging helpers.
 """
 from __future__ import annotations
 
 import argparse
 import collections
-import dataclasses
 import os
 import signal
 import sys
 import threading
 import time
 import traceback
-from dataclasses import dataclass
 from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
+import rclpy
+import rclpy.logging
+from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    ParameterType,
+    SetParametersResult,
+)
+from rclpy.duration import Duration
+from rclpy.exceptions import ParameterException
+from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
+from rclpy.experimental import EventsExecutor
+from rclpy.parameter import Parameter
+from rclpy.signals import SignalHandlerOptions
+from rclpy.utilities import remove_ros_args
 
-#: Parameters every rclpy node has (never reported as unknown).
-_BUILTIN_PARAMS = ("use_sim_time", "start_type_description_service")
-_BUILTIN_PREFIXES = ("qos_overrides.",)
+# ConfigError, Param, with_defaults and the shared rows are imported from here by the nodes (and,
+# from before the table had a module of its own, by their parameter modules).
+from sim_bridge.nodekit.param_table import (
+    EXECUTORS,
+    ConfigError,
+    Param,
+    autostart_param,
+    executor_param,
+    help_epilog,
+    is_builtin_param,
+    remote_lifecycle_param,
+    strict_param,
+    with_defaults,
+)
 
-
-class ConfigError(Exception):
-    """A node cannot start with the given parameters (message says why and what is valid)."""
-
-
-@dataclass(frozen=True)
-class Param:
-    name: str
-    default: bool | int | float | str | tuple[str, ...]   # a tuple: a string array
-    description: str
-    read_only: bool = True
-    range: tuple[float, float] | None = None   # inclusive, for int and float parameters
-    choices: tuple[str, ...] | None = None     # for string parameters
-    units: str = ""
-
-    @property
-    def type_name(self) -> str:
-        return {bool: "bool", int: "int", float: "double", str: "string", tuple: "string[]"}[type(self.default)]
-
-    @property
-    def ros_default(self) -> Any:
-        """The default as declare_parameter takes it (a list for a string array)."""
-        return list(self.default) if isinstance(self.default, tuple) else self.default
-
-    def descriptor(self):
-        from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
-
-        types = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
-                 float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING,
-                 tuple: ParameterType.PARAMETER_STRING_ARRAY}   # the type an empty list cannot say
-        d = ParameterDescriptor(name=self.name, type=types[type(self.default)],
-                                description=self.description, read_only=self.read_only)
-        if self.choices:
-            d.additional_constraints = "one of: " + ", ".join(self.choices)
-        if self.range is not None:
-            lo, hi = self.range
-            if isinstance(self.default, float):
-                d.floating_point_range = [
-                    FloatingPointRange(from_value=float(lo), to_value=float(hi), step=0.0)]
-            else:
-                d.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=1)]
-        return d
-
-    def check(self, value: Any) -> str | None:
-        """Reason why `value` is invalid (choices; ranges are also enforced by rclpy), or None."""
-        if self.choices and value not in self.choices:
-            return f"{self.name}={value!r} is not one of {', '.join(self.choices)}"
-        if self.range is not None and not (self.range[0] <= value <= self.range[1]):
-            return f"{self.name}={value!r} is out of range [{self.range[0]}, {self.range[1]}]"
-        return None
-
-    def help_line(self) -> str:
-        extra = []
-        if self.choices:
-            extra.append("{" + "|".join(self.choices) + "}")
-        if self.range is not None:
-            lo, hi = self.range
-            if isinstance(self.default, float):
-                def fmt(v):
-                    return f"{v:g}"
-            else:
-                def fmt(v):
-                    return str(int(v))
-            extra.append(f"range [{fmt(lo)}, {fmt(hi)}]")
-        if self.units:
-            extra.append(self.units)
-        extra.append("read-only" if self.read_only else "settable at run time")
-        default = repr(self.default) if isinstance(self.default, str) else self.ros_default
-        return (f"  {self.name} ({self.type_name}, default {default}; {', '.join(extra)})\n"
-                f"      {self.description}")
+__all__ = ["EXECUTORS", "SHUTDOWN_BUDGET_S", "ConfigError", "KeyThrottle", "Param", "Percentiles", "arm_shutdown_watchdog",
+           "autostart_param", "declare_all", "descriptor", "executor_param", "flush_publishers",
+           "install_parameter_guards", "make_executor", "make_status", "remote_lifecycle_param", "run_node",
+           "strict_param", "with_defaults"]
 
 
-def help_epilog(params: Sequence[Param], example: str) -> str:
-    return ("ROS parameters (set with --ros-args -p NAME:=VALUE):\n"
-            + "\n".join(p.help_line() for p in params)
-            + "\n\nROS arguments: everything after --ros-args, e.g. -r __ns:=/robot1 (namespace,"
-            " default /protocad),\n  --log-level debug.\n\nExample:\n  " + example)
+def descriptor(p: Param) -> ParameterDescriptor:
+    """The row as rclpy declares it (description, range, read_only, choices as a constraint)."""
+    types = {bool: ParameterType.PARAMETER_BOOL, int: ParameterType.PARAMETER_INTEGER,
+             float: ParameterType.PARAMETER_DOUBLE, str: ParameterType.PARAMETER_STRING,
+             tuple: ParameterType.PARAMETER_STRING_ARRAY}   # the type an empty list cannot say
+    d = ParameterDescriptor(name=p.name, type=types[type(p.default)],
+                            description=p.description, read_only=p.read_only)
+    if p.choices:
+        d.additional_constraints = "one of: " + ", ".join(p.choices)
+    if p.range is not None:
+        lo, hi = p.range
+        if isinstance(p.default, float):
+            d.floating_point_range = [
+                FloatingPointRange(from_value=float(lo), to_value=float(hi), step=0.0)]
+        else:
+            d.integer_range = [IntegerRange(from_value=int(lo), to_value=int(hi), step=1)]
+    return d
 
 
 def declare_all(node, params: Sequence[Param]) -> dict[str, Any]:
     """Declare every parameter of the table; returns {name: value}. Raises ConfigError."""
-    from rclpy.exceptions import ParameterException
-    from rclpy.parameter import Parameter
-
     overrides = getattr(node, "_parameter_overrides", None)  # rclpy keeps -p values here
     node.unknown_parameters = []
     values: dict[str, Any] = {}
@@ -136,7 +104,7 @@ def declare_all(node, params: Sequence[Param]) -> dict[str, Any]:
         untyped = p.default == ()
         try:
             value = node.declare_parameter(p.name, Parameter.Type.STRING_ARRAY if untyped else p.ros_default,
-                                           p.descriptor()).value
+                                           descriptor(p)).value
             if untyped and value is None and not p.read_only:
                 node.set_parameters([Parameter(p.name, Parameter.Type.STRING_ARRAY, [])])
         except ParameterException as e:
@@ -149,8 +117,7 @@ def declare_all(node, params: Sequence[Param]) -> dict[str, Any]:
         values[p.name] = value
     if isinstance(overrides, dict):
         known = {p.name for p in params}
-        unknown = sorted(n for n in overrides if n not in known and n not in _BUILTIN_PARAMS
-                         and not n.startswith(_BUILTIN_PREFIXES))
+        unknown = sorted(n for n in overrides if n not in known and not is_builtin_param(n))
         node.unknown_parameters = unknown
         if unknown and values.get("strict"):
             raise ConfigError(f"unknown parameter(s) {unknown} (strict:=true); valid: "
@@ -159,28 +126,6 @@ def declare_all(node, params: Sequence[Param]) -> dict[str, Any]:
             node.get_logger().warning(
                 f"unknown parameter {name!r} ignored (valid: {', '.join(sorted(known))})")
     return values
-
-
-def with_defaults(params: Sequence[Param], values: dict[str, Any]) -> tuple[Param, ...]:
-    """The table with `values` (a node's own command line's) as the declared defaults, each
-    of its row's type: a `-p` override still wins over them."""
-    def typed(p: Param, v: Any) -> Any:
-        return tuple(str(x) for x in v) if isinstance(p.default, tuple) else type(p.default)(v)
-
-    return tuple(dataclasses.replace(p, default=typed(p, values[p.name])) if p.name in values else p
-                 for p in params)
-
-
-def _type_ok(p: Param, value: Any) -> bool:
-    if isinstance(p.default, tuple):
-        return isinstance(value, (list, tuple)) and all(isinstance(x, str) for x in value)
-    if isinstance(p.default, bool):
-        return isinstance(value, bool)
-    if isinstance(p.default, int):
-        return isinstance(value, int) and not isinstance(value, bool)
-    if isinstance(p.default, float):
-        return isinstance(value, float)
-    return isinstance(value, str)
 
 
 def install_parameter_guards(node, params: Sequence[Param], apply: Callable[[str, Any], None],
@@ -193,8 +138,6 @@ def install_parameter_guards(node, params: Sequence[Param], apply: Callable[[str
     violations, the on-set callback below refuses choice violations. Accepted values are
     handed to `apply(name, value)`.
     """
-    from rcl_interfaces.msg import SetParametersResult
-
     table = {p.name: p for p in params}
 
     def _pre(changes):
@@ -208,11 +151,11 @@ def install_parameter_guards(node, params: Sequence[Param], apply: Callable[[str
         for c in changes:
             p = table.get(c.name)
             if p is None:
-                if c.name not in _BUILTIN_PARAMS and not c.name.startswith(_BUILTIN_PREFIXES):
+                if not is_builtin_param(c.name):
                     on_reject(f"unknown parameter {c.name!r}")
             elif p.read_only:
                 on_reject(f"parameter {c.name} is read-only")
-            elif not _type_ok(p, c.value):
+            elif not p.is_of_type(c.value):
                 on_reject(f"{c.name}={c.value!r} is not a {p.type_name}")
             else:
                 reason = p.check(c.value)
@@ -284,8 +227,6 @@ class Percentiles:
 def make_status(name: str, hardware_id: str, values: dict[str, Any], level: str = "OK",
                 message: str = ""):
     """DiagnosticStatus with KeyValue strings (floats with 6 significant digits)."""
-    from diagnostic_msgs.msg import DiagnosticStatus, KeyValue
-
     def fmt(v: Any) -> str:
         if isinstance(v, bool):
             return str(v).lower()
@@ -301,16 +242,11 @@ def make_status(name: str, hardware_id: str, values: dict[str, Any], level: str 
     return st
 
 
-EXECUTORS = ("events", "single")
-
-
 def flush_publishers(publishers: Iterable[Any], timeout_s: float) -> list[str]:
     """Give reliable readers up to `timeout_s` (in all) to acknowledge, or have repaired, every
     sample of `publishers` before the node exits: readers acknowledge lazily (at the writer's
     next heartbeat) and a reader that was stalled (a frozen recorder) still has a backlog that
     exiting would lose. Returns the topics with samples left unacknowledged."""
-    from rclpy.duration import Duration
-
     deadline = time.monotonic() + float(timeout_s)
     left_over = []
     for pub in publishers:
@@ -320,39 +256,9 @@ def flush_publishers(publishers: Iterable[Any], timeout_s: float) -> list[str]:
     return left_over
 
 
-def strict_param() -> Param:
-    return Param("strict", False, "Refuse to start (exit 2) on an unknown -p parameter, e.g. a "
-                 "typo like tsk:=walker_walk; without it the node starts, warns and reports "
-                 "WARN on /diagnostics (unknown_parameters).", read_only=True)
-
-
-def autostart_param() -> Param:
-    return Param("autostart", True, "Configure and activate at start (one command runs the "
-                 "node); false: the node starts unconfigured and waits for lifecycle "
-                 "transitions (ros2 lifecycle set NODE configure, then activate).")
-
-
-def remote_lifecycle_param() -> Param:
-    return Param("remote_lifecycle", True, "Accept lifecycle transitions from other processes "
-                 "(the change_state service, what `ros2 lifecycle set` calls). false: every "
-                 "request is refused and counted (remote_transitions_refused); the node still "
-                 "runs its own autostart and shutdown. Off in protocad-fleet: anyone on the "
-                 "domain could otherwise stop a fleet's nodes.", read_only=True)
-
-
-def executor_param(default: str = "events") -> Param:
-    return Param("executor", default, "rclpy executor spinning the node's callbacks: events = "
-                 "rclpy.experimental.EventsExecutor (lower latency per callback), single = "
-                 "SingleThreadedExecutor (the classic wait-set executor).", choices=EXECUTORS)
-
-
 def make_executor(kind: str):
     if kind == "events":
-        from rclpy.experimental import EventsExecutor
-
         return EventsExecutor()
-    from rclpy.executors import SingleThreadedExecutor
-
     return SingleThreadedExecutor()
 
 
@@ -382,8 +288,6 @@ def _node_args(argv: Sequence[str], *, prog: str, description: str, params: Iter
                parser: argparse.ArgumentParser | None) -> argparse.Namespace:
     """The node's own command line (ROS arguments removed); argparse exits here on --help or a
     bad plain argument."""
-    from rclpy.utilities import remove_ros_args
-
     if parser is None:
         parser = argparse.ArgumentParser(
             prog=prog, description=description, epilog=help_epilog(list(params), example),
@@ -412,8 +316,6 @@ def _stop_on_signals(prog: str) -> threading.Event:
 
 def _spin_until_done(node: Any, stop: threading.Event) -> int:
     """Spins ``node`` until it is done, a signal stops it or ROS shuts down; its exit code."""
-    import rclpy
-
     executor = make_executor(getattr(node, "executor_kind", "single"))
     executor.add_node(node)
     done = getattr(node, "done", None) or threading.Event()
@@ -448,11 +350,6 @@ def run_node(make_node: Callable[..., Any], *, prog: str, description: str = "",
     """
     argv = list(sys.argv if argv is None else argv)
     try:
-        import rclpy
-        import rclpy.logging
-        from rclpy.executors import ExternalShutdownException
-        from rclpy.signals import SignalHandlerOptions
-
         own_args = parser is not None
         args = _node_args(argv, prog=prog, description=description, params=params, example=example,
                           parser=parser)

@@ -84,7 +84,7 @@ def test_every_console_script_is_generated_from_settings_or_a_param_table(script
         runs = [c for c in ast.walk(main) if isinstance(c, ast.Call) and getattr(c.func, "id", None) == "run_node"]
         assert runs and any(k.arg == "params" for k in runs[0].keywords), \
             f"{script}: neither a settings_parser command ({builder}) nor a node run on its Param table"
-        from sim_bridge.nodekit.rosnode import Param
+        from sim_bridge.nodekit.param_table import Param
         assert module.PARAMS and all(isinstance(p, Param) for p in module.PARAMS)
         return
     parser = getattr(module, builder)()
@@ -120,7 +120,7 @@ def test_every_node_declares_its_parameters_from_a_param_table():
             if {getattr(b, "id", None) for b in cls.bases} & NODE_BASES and not rel.startswith("sim_bridge/nodekit/"):
                 nodes[cls.name] = (rel, cls)
     assert set(nodes) == NODES
-    from sim_bridge.nodekit.rosnode import Param
+    from sim_bridge.nodekit.param_table import Param
     for name, (rel, cls) in nodes.items():
         calls = [c for c in ast.walk(cls) if isinstance(c, ast.Call) and getattr(c.func, "id", None) == "declare_all"]
         assert calls, f"{rel}: {name} declares no Param table"

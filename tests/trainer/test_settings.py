@@ -42,7 +42,7 @@ def test_flags_types_and_help_come_from_the_fields():
 def test_a_node_parameter_table_generates_its_options_and_a_library_setting_none():
     """table_settings: one field per Param row (flag, type, default, choices, help from the row,
     unless its form says otherwise; a None form: no option); arg(flag=False): no option."""
-    from sim_bridge.nodekit.rosnode import Param, with_defaults
+    from sim_bridge.nodekit.param_table import Param, with_defaults
 
     table = (Param("chunk_size", 10, "bytes per chunk"), Param("topics", (), "what to record"),
              Param("compression", "zstd", "how", choices=("zstd", "none")), Param("poll_s", 0.2, "in ms below"))

@@ -35,7 +35,7 @@ from typing import Any, Iterable, Sequence
 from protocad_ros.node.policy_params import PARAMS as POLICY_PARAMS
 from sim_bridge.bridge.params import PARAMS as BRIDGE_PARAMS
 from sim_bridge.contract import topics as T
-from sim_bridge.nodekit.rosnode import Param
+from sim_bridge.nodekit.param_table import Param
 from trainer.launch import discovery
 from trainer.launch.rosgraph import RosGraph
 

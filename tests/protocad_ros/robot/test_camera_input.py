@@ -22,7 +22,7 @@ from sensor_msgs.msg import Image, JointState
 from protocad_ros.robot.camera_input import CameraInput
 from sim_bridge.contract import camera, qos, topics
 from sim_bridge.contract.contexts import task_actuators
-from sim_bridge.nodekit.rosnode import ConfigError
+from sim_bridge.nodekit.param_table import ConfigError
 
 #: JPEG at quality 90 of a 480x640 walker render, center-cropped and area-resized to 64x64,
 #: against the same of the raw frame, in levels of 255: measured mean 0.45, p99 2, max 8 over 16

@@ -15,7 +15,7 @@ from rclpy.lifecycle import LifecycleNode
 from protocad_ros.robot.command_output import CommandOutput
 from protocad_ros.robot.fail_safe import Watchdog
 from protocad_ros.robot.robot_output import RobotOutput, enabled_at_start
-from sim_bridge.nodekit.rosnode import ConfigError
+from sim_bridge.nodekit.param_table import ConfigError
 
 ACTIONS = ["a", "b"]
 
