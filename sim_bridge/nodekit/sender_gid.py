@@ -19,6 +19,10 @@ import sys
 from pathlib import Path
 from typing import Any, Iterator
 
+from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
+from rclpy.serialization import deserialize_message
+from rclpy.type_support import check_for_type_support
+
 RCL_RET_OK = 0
 GID_SIZE = 16
 #: Bytes of a GID that name the writer's participant (the DDS GUID prefix).
@@ -78,9 +82,6 @@ class SenderSubscription:
     """An rcl subscription on `node` whose messages come with their writer's GID."""
 
     def __init__(self, node, msg_type, topic: str, qos_profile):
-        from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
-        from rclpy.type_support import check_for_type_support
-
         check_for_type_support(msg_type)
         self.msg_type = msg_type
         self._rcl, self._rcutils = _load()
@@ -93,8 +94,6 @@ class SenderSubscription:
 
     def take(self, limit: int = 1000) -> Iterator[tuple[Any, tuple[int, ...]]]:
         """(message, writer GID) of each message waiting, oldest first, at most `limit`."""
-        from rclpy.serialization import deserialize_message
-
         for data, gid, _ in self.take_raw(limit):
             yield deserialize_message(data, self.msg_type), gid
 

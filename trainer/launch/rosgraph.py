@@ -29,6 +29,14 @@ import os
 import sys
 from typing import Callable, Iterable
 
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from lifecycle_msgs.srv import GetState
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
+
+from sim_bridge.contract import qos
 from sim_bridge.contract import topics as T
 from sim_bridge.nodekit.sender_gid import SenderSubscription, gid_pid
 from trainer.console import wait_until
@@ -48,14 +56,6 @@ class RosGraph:
         os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
         discovery.apply_env(os.environ, discovery_server or os.environ.get(discovery.SERVER_ENV),
                             super_client=True)
-        import rclpy
-        from diagnostic_msgs.msg import DiagnosticArray
-        from rclpy.executors import SingleThreadedExecutor
-        from rclpy.node import Node
-        from rclpy.signals import SignalHandlerOptions
-
-        from sim_bridge.contract import qos
-
         self.ctx = rclpy.Context()
         # NO signal handlers: Ctrl-C belongs to the launcher (console.StopFlag).
         rclpy.init(context=self.ctx, domain_id=domain_id,
@@ -73,8 +73,6 @@ class RosGraph:
                                             qos.diagnostics_qos())
 
     def close(self) -> None:
-        import rclpy
-
         try:
             self.executor.shutdown(timeout_sec=1.0)
             self._diag_sub.destroy()
@@ -99,8 +97,6 @@ class RosGraph:
     def lifecycle_state(self, node_fqn: str, timeout: float = GET_STATE_TIMEOUT_S) -> str | None:
         """The label of `node_fqn`'s current state from its get_state service; None when the
         service is not there (yet) or did not answer in time."""
-        from lifecycle_msgs.srv import GetState
-
         client = self._clients.get(node_fqn)
         if client is None:
             client = self._clients[node_fqn] = self.node.create_client(GetState, f"{node_fqn}/get_state")

@@ -37,7 +37,6 @@ from sim_bridge.bridge.params import PARAMS as BRIDGE_PARAMS
 from sim_bridge.contract import topics as T
 from sim_bridge.nodekit.param_table import Param
 from trainer.launch import discovery
-from trainer.launch.rosgraph import RosGraph
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -255,6 +254,10 @@ class RosStack:
     def graph(self):
         """The launcher's RosGraph on this stack's domain (made at first use)."""
         if self._graph is None:
+            # rclpy only where a launcher talks to its nodes: evaluate and compare import this
+            # module at startup, on the GPU machine without ROS too.
+            from trainer.launch.rosgraph import RosGraph
+
             self._graph = RosGraph(self.domain_id, discovery_server=self.discovery_server)
         return self._graph
 
