@@ -95,25 +95,8 @@ def _unsupported(argv: list[str]):
 
 
 # ------------------------------------------------------------------ run / pkg (the ament index)
-def _packages() -> dict[str, str]:
-    from ament_index_python.packages import get_packages_with_prefixes
-
-    return get_packages_with_prefixes()
-
-
-def _executables(pkg: str) -> list[str]:
-    from ament_index_python.packages import PackageNotFoundError, get_package_prefix
-
-    try:
-        libdir = Path(get_package_prefix(pkg), "lib", pkg)
-    except PackageNotFoundError:
-        _die(f"Package '{pkg}' not found (AMENT_PREFIX_PATH={os.environ.get('AMENT_PREFIX_PATH', '')!r})")
-    if not libdir.is_dir():
-        return []
-    return sorted(p.name for p in libdir.iterdir() if p.is_file() and os.access(p, os.X_OK))
-
-
-def _run(args: list[str]) -> None:
+def _run(args: list[str]) -> tuple[list[str], str, str, list[str]]:
+    """`ros2 run`'s words: (prefix command, package, executable, its arguments)."""
     prefix: list[str] = []
     if args[:1] == ["--prefix"]:
         if len(args) < 2:
@@ -121,35 +104,29 @@ def _run(args: list[str]) -> None:
         prefix, args = shlex.split(args[1]), args[2:]
     if len(args) < 2:
         _die("usage: ros2 run [--prefix CMD] PKG EXECUTABLE [ARGS...]", 2)
-    pkg, exe, rest = args[0], args[1], args[2:]
-    if exe not in _executables(pkg):
-        _die(f"No executable found: '{exe}' in package '{pkg}' (has: {', '.join(_executables(pkg)) or 'none'})")
-    from ament_index_python.packages import get_package_prefix
-
-    path = Path(get_package_prefix(pkg), "lib", pkg, exe)
-    # Python launchers run on this interpreter, so an unactivated venv still works.
-    head = path.read_bytes()[:128]
-    cmd = [sys.executable, str(path)] if head.startswith(b"#!") and b"python" in head.split(b"\n")[0] else [str(path)]
-    cmd = prefix + cmd + rest
-    os.execvp(cmd[0], cmd)
+    return prefix, args[0], args[1], args[2:]
 
 
-def _pkg(rest: list[str], argv: list[str]) -> None:
-    if rest[:1] == ["list"]:
-        print("\n".join(sorted(_packages())))
-    elif rest[:1] == ["executables"]:
-        for p in rest[1:2] or sorted(_packages()):
-            for e in _executables(p):
-                print(p, e)
-    elif rest[:1] == ["prefix"] and len(rest) == 2:
-        from ament_index_python.packages import PackageNotFoundError, get_package_prefix
-
-        try:
-            print(get_package_prefix(rest[1]))
-        except PackageNotFoundError:
-            _die(f"Package not found: {rest[1]}")
-    else:
+def _pkg(command: str, rest: list[str], argv: list[str]) -> None:
+    """`ros2 run` and `ros2 pkg`: the ament index only, no rclpy."""
+    if command == "pkg" and not (rest[:1] in (["list"], ["executables"]) or (rest[:1] == ["prefix"] and len(rest) == 2)):
         _unsupported(argv)
+    words = _run(rest) if command == "run" else None
+    # The ament index only for these two commands (the other verbs' modules are imported as
+    # they run, too).
+    from trainer.ros2cli import pkg
+
+    try:
+        if words is not None:
+            pkg.run(*words)
+        elif rest[0] == "list":
+            pkg.list_packages()
+        elif rest[0] == "executables":
+            pkg.list_executables(rest[1:2])
+        else:
+            pkg.prefix(rest[1])
+    except RuntimeError as exc:  # ros2cli's convention: the message on stderr, exit 1
+        _die(str(exc))
 
 
 # ------------------------------------------------------------------ graph and bag verbs
@@ -198,9 +175,9 @@ def main(argv: list[str] | None = None) -> None:
         if rest[:1] in (["-h"], ["--help"]):
             print("usage: ros2 run [--prefix CMD] PKG EXECUTABLE [ARGS...]")
             return
-        _run(rest)
+        _pkg(command, rest, argv)
     elif command == "pkg":
-        _pkg(rest, argv)
+        _pkg(command, rest, argv)
     elif command == "bag" and rest[:1] == ["record"]:
         from trainer.nodes.recorder import main as record
 
