@@ -55,7 +55,7 @@ from trainer.launch.rosprocs import NodeFailed, RosStack
 from trainer.learn.resume import open_trainer
 from trainer.learn.trainer import Trainer
 from trainer.settings import arg
-from trainer.viz.rerun_log import metrics_callbacks
+from trainer.viz.metrics_rerun import metrics_callbacks
 
 #: The demo's protocol. C=15: its 60 updates are most of its wall time, and on a CPU without bf16
 #: arithmetic (float32, about 4.7 s an update of 16 x 50 on one AVX2 core) 100 updates alone took

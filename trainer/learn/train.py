@@ -32,7 +32,7 @@ from trainer.learn.resume import open_trainer
 from trainer.learn.trainer import DEFAULT_LOG_EVERY, CheckpointWriteError, RanksDiverged, Trainer
 from trainer.run_input import check_logs, check_settings_section
 from trainer.settings import arg
-from trainer.viz.rerun_log import metrics_callbacks
+from trainer.viz.metrics_rerun import metrics_callbacks
 
 
 # ---------------------------------------------------------------------- settings and CLI

@@ -68,7 +68,7 @@ from trainer.research.online_rundir import (
     open_run_dir,
     write_run_json,
 )
-from trainer.viz.rerun_log import metrics_callbacks
+from trainer.viz.metrics_rerun import metrics_callbacks
 
 
 def close_quietly(steps) -> list[tuple[str, Exception]]:

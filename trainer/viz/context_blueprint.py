@@ -7,14 +7,14 @@ from __future__ import annotations
 
 from typing import Any, Sequence
 
+import rerun.blueprint as rrb
+
 from trainer.viz.context_view import ContextView
 
 
 def context_blueprint_parts(view: ContextView | None, method: str = "pca") -> list:
     """Tabs: 'Contexts' (u_e and RSSM state 3D + 2D), 'Features u / e', 'Assignments',
     'Predictions'."""
-    import rerun.blueprint as rrb
-
     method = view.method if view is not None else method
     params = view.params if view is not None else ()
     color = f"by_{params[0]}" if params else "by_split"
@@ -60,8 +60,6 @@ def context_blueprint_parts(view: ContextView | None, method: str = "pca") -> li
 
 
 def context_blueprint(view: ContextView | None = None, extra_tabs: Sequence[Any] = ()):
-    import rerun.blueprint as rrb
-
     # Side panels start collapsed so the views get the room (the collapsed time panel keeps
     # its play bar for the 'step' timeline); every panel opens again from the top bar.
     return rrb.Blueprint(rrb.Tabs(*context_blueprint_parts(view), *extra_tabs),

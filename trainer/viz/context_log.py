@@ -45,6 +45,7 @@ from __future__ import annotations
 from typing import Any, Sequence
 
 import numpy as np
+import rerun as rr
 
 from sim_bridge.contract.contexts import context_label
 from trainer.viz.context_episodes import SPLIT_CLASS, Episode, pick_episodes, stack_batches
@@ -60,8 +61,6 @@ from trainer.viz.context_view import (
 
 
 def annotation_context():
-    import rerun as rr
-
     return rr.AnnotationContext([rr.AnnotationInfo(id=i, label=CLASS_NAMES[i], color=CLASS_COLORS[i])
                                  for i in sorted(CLASS_NAMES)])
 
@@ -71,8 +70,6 @@ def log_context_view(rec: Any, view: ContextView, *, update: int | None = None) 
 
     update=None: static data (one snapshot); an int: on the 'update' timeline.
     """
-    import rerun as rr
-
     static = update is None
     if update is not None:
         rec.set_time("update", sequence=int(update))
@@ -180,8 +177,6 @@ def _border(frame: np.ndarray, color: Sequence[int], width: int = 2) -> np.ndarr
 def log_reconstructions(rec: Any, agent: Any, episodes: Sequence[Episode], *, num_episodes: int = 4,
                         update: int | None = None) -> list[int]:
     """Observations beside reconstructions of a few episodes (side by side), on 'step'."""
-    import rerun as rr
-
     picks = pick_episodes(episodes, num_episodes, min_length=2)
     if not picks or not getattr(agent, "has_decoder", True):
         return []  # e.g. DreamerPro: reconstruction-free, nothing to show
@@ -209,8 +204,6 @@ def log_open_loop(rec: Any, agent: Any, episodes: Sequence[Episode], *, context_
                   horizon: int = 50, num_episodes: int = 4, update: int | None = None) -> list[int]:
     """Open-loop predictions (``context_steps`` observed frames, then ``horizon`` imagined ones)
     against the truth, for a few episodes at least context_steps + horizon long."""
-    import rerun as rr
-
     L = context_steps + horizon
     if not getattr(agent, "has_decoder", True):
         return []

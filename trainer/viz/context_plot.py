@@ -6,6 +6,7 @@ from pathlib import Path
 from typing import Sequence
 
 import numpy as np
+from PIL import Image, ImageDraw, ImageFont
 
 from trainer.viz.context_episodes import SPLIT_CLASS
 from trainer.viz.context_view import CLASS_COLORS, CLASS_NAMES, PROTOTYPE_CLASS, ContextView, colormap
@@ -101,8 +102,6 @@ def render_context_png(view: ContextView, path: str | Path, *, dim: int = 2, pan
     """A static scatter image of the 2D projection (no viewer needed), from the same numbers as
     the recording: rows = features (learned u,e and the RSSM state), columns = coloured by each
     context parameter, then by split; prototypes as red crosses, context means as big dots."""
-    from PIL import Image, ImageDraw, ImageFont
-
     feats = [f for f in features if (f, dim) in view.points]
     if not feats:
         raise ValueError(f"no {dim}D projection of {list(features)} in this view")

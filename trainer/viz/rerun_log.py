@@ -8,7 +8,7 @@
     rec.close()
 
 ``metrics_callback(rrd_path)`` is what protocad-train/-online/-loop hand their MetricsLogger
-(`--rerun`): the callable it returns takes (update, metrics) like every MetricsLogger callback.
+(`--rerun`, through trainer/viz/metrics_rerun.py, which imports this module only then): the callable it returns takes (update, metrics) like every MetricsLogger callback.
 
 Entity paths (timeline ``update``; '.' in a metric name becomes '/'):
 
@@ -30,6 +30,10 @@ from pathlib import Path
 from typing import Any, Iterable, Mapping, Sequence
 
 import numpy as np
+import pyarrow as pa
+import rerun as rr
+import rerun.blueprint as rrb
+import rerun.chunk as rc
 import yaml
 
 from protocad_ros.live_view import path_part
@@ -111,8 +115,6 @@ def _mean(value: Any) -> float:
 
 def training_blueprint(metric_names: Iterable[str] = (), eval_splits: Iterable[str] = ()):
     """One time-series view per training metric (grid) and the evaluation views."""
-    import rerun.blueprint as rrb
-
     views = [rrb.TimeSeriesView(origin=metric_path(m), name=m) for m in metric_names]
     train = rrb.Grid(*views, name="Training") if views else rrb.TimeSeriesView(
         origin="/train", name="Training")
@@ -141,9 +143,6 @@ class TrainingRecorder:
 
     def __init__(self, target: str | Path | Any, *, application_id: str = "protocad_train",
                  recording_id: str | None = None, config: Any = None):
-        import rerun as rr
-
-        self._rr = rr
         if isinstance(target, (str, Path)):
             path = Path(target)
             if path.suffix != ".rrd":
@@ -172,7 +171,7 @@ class TrainingRecorder:
     def log_metrics(self, update: int, metrics: Mapping[str, Any]) -> None:
         """One point per numeric entry at ``update`` (non-numeric entries and the bookkeeping
         keys 'update' and 'time' are skipped; NaN/inf are logged and show as gaps)."""
-        rr, rec = self._rr, self.recording
+        rec = self.recording
         rec.set_time("update", sequence=int(update))
         new = False
         for name, value in metrics.items():
@@ -192,7 +191,7 @@ class TrainingRecorder:
     def log_eval(self, update: int, per_context_returns: Any) -> list[tuple[str, str, float]]:
         """Evaluation returns per context (see ``normalize_eval`` for accepted shapes), plus
         mean and median per split. Returns the normalized rows."""
-        rr, rec = self._rr, self.recording
+        rec = self.recording
         rows = normalize_eval(per_context_returns)
         rec.set_time("update", sequence=int(update))
         by_split: dict[str, list[float]] = {}
@@ -212,7 +211,7 @@ class TrainingRecorder:
         """The run's config as a static text document (/train/config)."""
         d = config.to_dict() if hasattr(config, "to_dict") else config
         text = d if isinstance(d, str) else yaml.safe_dump(d, sort_keys=False)
-        self.recording.log("/train/config", self._rr.TextDocument(text), static=True)
+        self.recording.log("/train/config", rr.TextDocument(text), static=True)
 
     # ---------------------------------------------------------------------------- context view
     def log_context_view(self, update: int, agent: Any, episodes: Sequence[Any], *,
@@ -234,8 +233,6 @@ class TrainingRecorder:
 
     # ---------------------------------------------------------------------------- plumbing
     def _send_blueprint(self) -> None:
-        import rerun.blueprint as rrb
-
         tabs = training_blueprint(self._metrics, self._eval_splits) + list(self._context_tabs)
         try:
             self.recording.send_blueprint(rrb.Blueprint(rrb.Tabs(*tabs)))
@@ -261,12 +258,6 @@ class TrainingRecorder:
         self.close()
 
 
-def metrics_callbacks(rerun: str | None, run_dir: Path, application: str) -> list[TrainingRecorder]:
-    """What a training command's `--rerun [RRD]` asks for: nothing (None), or the callback
-    writing RRD (default RUN_DIR/metrics.rrd)."""
-    return [] if rerun is None else [metrics_callback(rerun or Path(run_dir) / "metrics.rrd", application)]
-
-
 def metrics_callback(rrd_path: str | Path | None, application: str = "protocad-train",
                      recording_id: str | None = None) -> TrainingRecorder | None:
     """The training scalars' callback of protocad-train/-online/-loop: a TrainingRecorder writing
@@ -281,9 +272,6 @@ def read_recording(path: str | Path) -> dict[str, dict[str, Any]]:
     """What an .rrd file holds, per entity path (rerun's own reader, rerun.chunk.RrdReader):
     {'rows': n, 'timelines': {...}, 'static': bool, 'columns': {component or timeline: [row
     values...]}}; the key '__blueprints' counts the blueprint stores. For tests and scripts."""
-    import pyarrow as pa
-    import rerun.chunk as rc
-
     reader = rc.RrdReader(str(path))
     out: dict[str, dict[str, Any]] = {}
     for ch in reader.stream().to_chunks():

@@ -37,6 +37,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterable, Sequence
 
+import rerun as rr
+
 from protocad_ros.checkpoint.files import existing_checkpoint_file
 from protocad_ros.live_view import check_display
 from sim_bridge.contract.contexts import context_label, get_task
@@ -226,8 +228,6 @@ def _new_stream(blueprint: Any, out_rrd: Path | None, spawn: bool) -> tuple[Any,
     """A RecordingStream to a temporary file beside ``out_rrd`` (and a spawned viewer), and
     that file's path: the caller renames it at the end, so an earlier recording is never
     replaced by a partial one."""
-    import rerun as rr
-
     rec = rr.RecordingStream("protocad_contexts")
     sinks, tmp_rrd = [], None
     if out_rrd is not None:
