@@ -16,12 +16,14 @@ interleaves its samples with the real ones, so the nodes say so:
   to continue the first one's is taken for it: this is detection, not authentication (ROS 2
   security, SROS2, is what authenticates writers).
 
-Neither imports rclpy at module level: the lock is plain arithmetic, testable without ROS.
+The lock is plain arithmetic (its tests make no node); the watch is handed to a subscription.
 """
 from __future__ import annotations
 
 import threading
 from typing import Any, Callable
+
+from rclpy.event_handler import SubscriptionEventCallbacks
 
 
 class PublisherWatch:
@@ -39,8 +41,6 @@ class PublisherWatch:
 
     def callbacks(self, topic: str, also: Callable[[Any], None] | None = None):
         """SubscriptionEventCallbacks for a subscription to `topic` (`also` gets the event too)."""
-        from rclpy.event_handler import SubscriptionEventCallbacks
-
         def matched(info: Any) -> None:
             try:
                 self.update(topic, int(info.current_count))
