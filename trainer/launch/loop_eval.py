@@ -4,13 +4,14 @@ policy on the test contexts (in-process, deterministic) and the rerun recording 
 view."""
 from __future__ import annotations
 
+import dataclasses
 import os
 from pathlib import Path
 
 from trainer import console, runs
 from trainer.launch.loop_rundir import LoopRunDir
 from trainer.launch.ros_evaluate import evaluate_through_ros
-from trainer.learn.evaluate import evaluate_checkpoint, format_table
+from trainer.learn.evaluate import EvalPlan, evaluate_checkpoint, format_table
 
 
 def policy_vs_random(rundir: LoopRunDir, domain_id: int, device: str, stop: console.StopFlag) -> None:
@@ -36,30 +37,23 @@ def final_evaluation(rundir: LoopRunDir, updates: int, device: str, stop: consol
     ckpt = runs.checkpoint_path(rundir.path)
     print(f"[loop] evaluating {ckpt} on the test contexts ({a.eval_episodes} episode(s) each, "
           "in-process, deterministic)", flush=True)
-    res = evaluate_checkpoint(ckpt, episodes=a.eval_episodes, max_contexts=a.eval_max_contexts,
-                              seed=rundir.cfg.train.seed + 7, device=device,
-                              time_limit=a.episode_length * rundir.cfg.train.action_repeat,
-                              progress=False if a.no_progress else None, stop=stop)
+    plan = EvalPlan(episodes=a.eval_episodes, max_contexts=a.eval_max_contexts, seed=rundir.cfg.train.seed + 7,
+                    device=device, time_limit=a.episode_length * rundir.cfg.train.action_repeat,
+                    progress=False if a.no_progress else None)
+    res = evaluate_checkpoint(ckpt, plan, stop=stop)
     if stop.stop:
         return None
     # The uniform random policy on the same contexts, episodes and seeds: the reference
     # point a score needs (the demo's few hundred updates stay close to it).
-    rnd = evaluate_checkpoint(None, task=rundir.cfg.task, episodes=a.eval_episodes,
-                              contexts=[r.context for r in res.per_context],
-                              seed=rundir.cfg.train.seed + 7,
-                              time_limit=a.episode_length * rundir.cfg.train.action_repeat,
-                              progress=False if a.no_progress else None, stop=stop)
+    same = dataclasses.replace(plan, contexts=[r.context for r in res.per_context], max_contexts=0)
+    rnd = evaluate_checkpoint(None, dataclasses.replace(same, device="cpu"), task=rundir.cfg.task, stop=stop)
     if stop.stop:
         return None
     # The policy the run started from (--init-policy, the demo's shipped one) on the same
     # contexts, episodes and seeds: whether training helped, side by side.
     start = None
     if rundir.init_policy:
-        start = evaluate_checkpoint(rundir.init_policy, episodes=a.eval_episodes,
-                                    contexts=[r.context for r in res.per_context],
-                                    seed=rundir.cfg.train.seed + 7, device=device,
-                                    time_limit=a.episode_length * rundir.cfg.train.action_repeat,
-                                    progress=False if a.no_progress else None, stop=stop)
+        start = evaluate_checkpoint(rundir.init_policy, same, stop=stop)
         if stop.stop:
             return None
     print(format_table(res, start, rnd), flush=True)

@@ -25,6 +25,7 @@ true context, so the per-context episode counts follow the bridge's draws.
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import os
 import sys
@@ -188,25 +189,43 @@ def select_contexts(task: str, split: str = "test", contexts: Sequence[Mapping[s
     return spec.stratified(split, max_contexts)
 
 
-def run_episodes(task: str, policy: Any, contexts: Sequence[Mapping[str, float]], episodes: int = 1, *,
-                 split: str = "test", seed: int = 0, workers: int = 0, batch: int = 0,
-                 action_repeat: int = 2, time_limit: int = 1000, render_quality: str = "fast",
-                 progress: bool | None = None, stop: console.StopFlag | None = None,
-                 desc: str = "eval") -> list[ContextResult]:
-    """`episodes` episodes of every context with `policy` (protocad_ros.policy.Policy or
-    RandomPolicy; batched over up to `batch` envs). workers > 0: envs in worker processes."""
-    jobs = [(ci, e) for ci in range(len(contexts)) for e in range(episodes)]
-    results = [ContextResult(dict(c), split) for c in contexts]
+@dataclass(frozen=True)
+class EpisodePlan:
+    """How `run_episodes` plays its episodes: how many per context, the split they are recorded
+    under, the seeds, the envs (in worker processes or here; side by side), and each episode's
+    length, action repeat and rendering, as the policy was trained with."""
+
+    episodes: int = 1
+    split: str = "test"
+    seed: int = 0
+    workers: int = 0
+    batch: int = 0
+    action_repeat: int = 2
+    time_limit: int = 1000
+    render_quality: str = "fast"
+    progress: bool | None = None
+    desc: str = "eval"
+
+
+def run_episodes(task: str, policy: Any, contexts: Sequence[Mapping[str, float]], plan: EpisodePlan = EpisodePlan(),
+                 stop: console.StopFlag | None = None) -> list[ContextResult]:
+    """`plan.episodes` episodes of every context with `policy` (protocad_ros.policy.Policy or
+    RandomPolicy; batched over up to `plan.batch` envs). plan.workers > 0: envs in worker
+    processes."""
+    p = plan
+    jobs = [(ci, e) for ci in range(len(contexts)) for e in range(p.episodes)]
+    results = [ContextResult(dict(c), p.split) for c in contexts]
     if not jobs:
         return results
-    n = min(len(jobs), batch or (workers if workers > 0 else 8))   # one env per worker process
-    steps_per_ep = math.ceil(time_limit / action_repeat)
-    bar = console.progress(len(jobs) * steps_per_ep, desc=desc, disable=True if progress is False else None, unit="step")
+    n = min(len(jobs), p.batch or (p.workers if p.workers > 0 else 8))   # one env per worker process
+    steps_per_ep = math.ceil(p.time_limit / p.action_repeat)
+    bar = console.progress(len(jobs) * steps_per_ep, desc=p.desc, disable=True if p.progress is False else None,
+                           unit="step")
     # Seeds as evaluation always drew them (an int from each child of SeedSequence(seed)), so
     # earlier results reproduce.
-    env_seeds = [int(s.generate_state(1)[0]) for s in np.random.SeedSequence(seed).spawn(n)]
-    with VectorEnv(task, n, split, seed, in_process=workers <= 0, env_seeds=env_seeds,
-                   action_repeat=action_repeat, time_limit=time_limit, render_quality=render_quality) as pool:
+    env_seeds = [int(s.generate_state(1)[0]) for s in np.random.SeedSequence(p.seed).spawn(n)]
+    with VectorEnv(task, n, p.split, p.seed, in_process=p.workers <= 0, env_seeds=env_seeds,
+                   action_repeat=p.action_repeat, time_limit=p.time_limit, render_quality=p.render_quality) as pool:
         for w0 in range(0, len(jobs), n):
             if stop is not None and stop.stop:
                 break
@@ -218,13 +237,30 @@ def run_episodes(task: str, policy: Any, contexts: Sequence[Mapping[str, float]]
     return results
 
 
-def evaluate_checkpoint(checkpoint: str | Path | None, *, task: str | None = None, split: str = "test",
-                        episodes: int = DEFAULT_EPISODES, contexts: Sequence[Mapping[str, float]] | None = None,
-                        max_contexts: int = 0, seed: int = 0, device: str = "cpu", workers: int = 0,
-                        batch: int = 0, time_limit: int | None = None, agent: Any = None,
-                        counters: Mapping[str, Any] | None = None, progress: bool | None = None,
+@dataclass(frozen=True)
+class EvalPlan:
+    """What `evaluate_checkpoint` plays: the split's contexts (given ones, or the stratified
+    subset of `max_contexts`, 0 = all), episodes per context, the seed of the episodes and of
+    the policy's samples, where the model runs, the envs (worker processes, side by side) and
+    the episode length (None: the checkpoint's train.time_limit, else 1000)."""
+
+    split: str = "test"
+    episodes: int = DEFAULT_EPISODES
+    contexts: Sequence[Mapping[str, float]] | None = None
+    max_contexts: int = 0
+    seed: int = 0
+    device: str = "cpu"
+    workers: int = 0
+    batch: int = 0
+    time_limit: int | None = None
+    progress: bool | None = None
+
+
+def evaluate_checkpoint(checkpoint: str | Path | None, plan: EvalPlan = EvalPlan(), *, task: str | None = None,
+                        agent: Any = None, counters: Mapping[str, Any] | None = None,
                         stop: console.StopFlag | None = None) -> EvalResult:
-    """Evaluate a checkpoint (or an in-memory `agent`, or the random policy when both are None)."""
+    """Evaluate a checkpoint (or an in-memory `agent`, or the random policy when both are None)
+    as `plan` says."""
     from protocad_ros.policy import Policy
 
     t0 = time.monotonic()
@@ -232,32 +268,33 @@ def evaluate_checkpoint(checkpoint: str | Path | None, *, task: str | None = Non
     if agent is None and checkpoint is not None:
         from protocad_ros.checkpoint.agent_file import load_checkpoint
 
-        agent, counters = load_checkpoint(checkpoint, device=device, optimizer_states=False)
+        agent, counters = load_checkpoint(checkpoint, device=plan.device, optimizer_states=False)
     if agent is not None:
         cfg = agent.cfg
         task = task or cfg.task
         if task != cfg.task:
             raise ValueError(f"checkpoint is for {cfg.task}, not {task}")
-        policy = Policy(agent, device=device, mode="deterministic", seed=seed)
+        policy = Policy(agent, device=plan.device, mode="deterministic", seed=plan.seed)
         repeat, quality = cfg.train.action_repeat, cfg.train.render_quality
-        limit = time_limit or cfg.train.time_limit
+        limit = plan.time_limit or cfg.train.time_limit
     else:
         if not task:
             raise ValueError("--random needs --task")
 
         get_task(task)
         policy = None
-        repeat, limit, quality = 2, time_limit or 1000, "fast"
-    ctxs = select_contexts(task, split, contexts, max_contexts)
+        repeat, limit, quality = 2, plan.time_limit or 1000, "fast"
+    ctxs = select_contexts(task, plan.split, plan.contexts, plan.max_contexts)
     if policy is None:
-        policy = RandomPolicy(len(task_actuators(task)), seed)
-    per = run_episodes(task, policy, ctxs, episodes, split=split, seed=seed, workers=workers, batch=batch,
-                       action_repeat=repeat, time_limit=limit, render_quality=quality,
-                       progress=progress, stop=stop, desc=f"eval {task}")
+        policy = RandomPolicy(len(task_actuators(task)), plan.seed)
+    episodes = EpisodePlan(episodes=plan.episodes, split=plan.split, seed=plan.seed, workers=plan.workers,
+                           batch=plan.batch, action_repeat=repeat, time_limit=limit, render_quality=quality,
+                           progress=plan.progress, desc=f"eval {task}")
+    per = run_episodes(task, policy, ctxs, episodes, stop)
     counters = dict(counters or {})
     updates = int(agent.counters()["updates"]) if agent is not None else None
     env_steps = counters.get("env_steps")
-    return EvalResult(task=task, split=split, policy=str(checkpoint) if checkpoint else
+    return EvalResult(task=task, split=plan.split, policy=str(checkpoint) if checkpoint else
                       ("agent" if agent is not None else "random"), per_context=per,
                       variant=cfg.variant if cfg else None, updates=updates,
                       env_steps=int(env_steps) if env_steps is not None else None,
@@ -349,7 +386,9 @@ def run(a: EvaluateSettings, ros_evaluator: Callable[..., EvalResult] | None = N
     workers = a.workers if a.workers >= 0 else (0 if (os.cpu_count() or 1) <= 2 else (os.cpu_count() or 2) - 1)
     ckpts = [existing_checkpoint_file(c) for c in a.checkpoints]
     contexts = [parse_context(c) for c in a.context]
-    progress = False if a.no_progress else None
+    plan = EvalPlan(split=a.split, episodes=a.episodes, contexts=contexts, max_contexts=a.max_contexts,
+                    seed=a.seed, device=device, workers=workers, batch=a.batch, time_limit=a.time_limit,
+                    progress=False if a.no_progress else None)
     results: list[EvalResult] = []
     baselines: dict[str, EvalResult] = {}
     out: dict[str, Any] = {"split": a.split, "episodes_per_context": a.episodes, "seed": a.seed, "results": []}
@@ -364,10 +403,7 @@ def run(a: EvaluateSettings, ros_evaluator: Callable[..., EvalResult] | None = N
                                          domain_id=a.domain_id, device=device,
                                          episode_length=a.episode_length)
             else:
-                r = evaluate_checkpoint(ck, split=a.split, episodes=a.episodes, contexts=contexts,
-                                        max_contexts=a.max_contexts, seed=a.seed, device=device,
-                                        workers=workers, batch=a.batch, time_limit=a.time_limit,
-                                        progress=progress, stop=stop)
+                r = evaluate_checkpoint(ck, plan, stop=stop)
             r.sha256 = sha
             results.append(r)
             if a.random and r.task not in random_tasks:
@@ -382,9 +418,7 @@ def run(a: EvaluateSettings, ros_evaluator: Callable[..., EvalResult] | None = N
                                              out_dir=Path(a.ros_dir or "runs/eval_ros"), domain_id=a.domain_id,
                                              episode_length=a.episode_length)
                 else:
-                    r = evaluate_checkpoint(None, task=t, split=a.split, episodes=a.episodes, contexts=contexts,
-                                            max_contexts=a.max_contexts, seed=a.seed, workers=workers,
-                                            batch=a.batch, time_limit=a.time_limit, progress=progress, stop=stop)
+                    r = evaluate_checkpoint(None, dataclasses.replace(plan, device="cpu"), task=t, stop=stop)
                 baselines[t] = r
         interrupted = stop.stop
     for r in results:

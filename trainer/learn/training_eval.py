@@ -10,7 +10,7 @@ from typing import Any
 
 from trainer import console, runs
 from trainer.learn import distributed
-from trainer.learn.evaluate import evaluate_checkpoint, format_table, select_contexts
+from trainer.learn.evaluate import EvalPlan, evaluate_checkpoint, format_table, select_contexts
 from trainer.learn.schedule import RunCounters
 from trainer.learn.trainer import Trainer
 
@@ -30,9 +30,9 @@ class Evaluator:
         if not self.ctx.is_main:   # rank 0 evaluates; the others wait for it
             distributed.barrier_if(self.ctx)
             return None
-        res = evaluate_checkpoint(None, agent=self.trainer.agent, task=self.task, episodes=episodes,
-                                  contexts=contexts, split=self.split, seed=self.seed, device=self.device,
-                                  workers=self.workers, counters=self.c.as_dict(), progress=self.progress,
+        plan = EvalPlan(episodes=episodes, contexts=contexts, split=self.split, seed=self.seed, device=self.device,
+                        workers=self.workers, progress=self.progress)
+        res = evaluate_checkpoint(None, plan, agent=self.trainer.agent, task=self.task, counters=self.c.as_dict(),
                                   stop=stop)
         res.policy = f"{self.variant}@{self.c.env_steps}"
         distributed.barrier_if(self.ctx)
@@ -46,9 +46,9 @@ class Evaluator:
         """The uniform random policy once per run (eval/random.json)."""
         if not self.ctx.is_main or (self.eval_dir / "random.json").exists():
             return
-        rnd = evaluate_checkpoint(None, task=self.task, episodes=episodes, contexts=contexts, split=self.split,
-                                  seed=self.seed, workers=self.workers, time_limit=time_limit,
-                                  progress=self.progress, stop=stop)
+        plan = EvalPlan(episodes=episodes, contexts=contexts, split=self.split, seed=self.seed,
+                        workers=self.workers, time_limit=time_limit, progress=self.progress)
+        rnd = evaluate_checkpoint(None, plan, task=self.task, stop=stop)
         if not stop.stop:
             runs.atomic_write_json(self.eval_dir / "random.json", rnd.to_dict())
             print(format_table(rnd), flush=True)
@@ -59,10 +59,10 @@ class Evaluator:
         if not self.ctx.is_main:
             distributed.barrier_if(self.ctx)
             return None
-        res = evaluate_checkpoint(None, agent=self.trainer.agent, task=self.task, episodes=episodes,
-                                  contexts=select_contexts(self.task, "train", None, 0), split="train",
-                                  seed=self.seed, device=self.device, workers=self.workers,
-                                  counters=self.c.as_dict(), progress=self.progress, stop=stop)
+        plan = EvalPlan(episodes=episodes, contexts=select_contexts(self.task, "train", None, 0), split="train",
+                        seed=self.seed, device=self.device, workers=self.workers, progress=self.progress)
+        res = evaluate_checkpoint(None, plan, agent=self.trainer.agent, task=self.task, counters=self.c.as_dict(),
+                                  stop=stop)
         res.policy = f"{self.variant}@{self.c.env_steps}"
         distributed.barrier_if(self.ctx)
         if not stop.stop:

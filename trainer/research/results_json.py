@@ -45,7 +45,7 @@ import yaml
 from protocad_ros.atomic import atomic_write_text
 from protocad_ros.model.precision import cpu_capability
 from trainer import run_input, runs
-from trainer.learn.evaluate import DEFAULT_EPISODES, context_label, evaluate_checkpoint, select_contexts
+from trainer.learn.evaluate import DEFAULT_EPISODES, EvalPlan, context_label, evaluate_checkpoint, select_contexts
 from trainer.provenance import code_version
 
 SCHEMA_ID = "protocad-compare/1"
@@ -351,9 +351,10 @@ def random_baselines(tasks: Sequence[str], out: str | Path, *, episodes: int | N
             p = dict((protocols or {}).get(task) or {})
             split = p.get("eval_split", "test")
             contexts = select_contexts(task, split, p.get("eval_contexts"), p.get("final_max_contexts", 0))
-            res = evaluate_checkpoint(None, task=task, split=split, contexts=contexts, seed=7, progress=False,
-                                      episodes=episodes or p.get("final_episodes") or DEFAULT_EPISODES,
-                                      time_limit=p.get("time_limit"))
+            plan = EvalPlan(split=split, contexts=contexts, seed=7, progress=False,
+                            episodes=episodes or p.get("final_episodes") or DEFAULT_EPISODES,
+                            time_limit=p.get("time_limit"))
+            res = evaluate_checkpoint(None, plan, task=task)
             runs.atomic_write_json(path, res.to_dict())
         found[task] = json.loads(path.read_text())
     return found

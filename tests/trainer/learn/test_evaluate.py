@@ -2,6 +2,7 @@
 subsets, and one run through the ROS nodes."""
 from __future__ import annotations
 
+import dataclasses
 import json
 
 import numpy as np
@@ -59,11 +60,11 @@ def test_checkpoints_of_two_tasks_with_random_baseline(tmp_path):
 
 @pytest.mark.process
 def test_random_baseline_in_worker_processes_matches_in_process(tmp_path):
-    from trainer.learn.evaluate import evaluate_checkpoint
+    from trainer.learn.evaluate import EvalPlan, evaluate_checkpoint
 
-    kw = dict(task="pendulum_swingup", episodes=1, contexts=[{"m": 0.5}, {"m": 1.5}], seed=3, time_limit=30)
-    a = evaluate_checkpoint(None, workers=0, **kw)
-    b = evaluate_checkpoint(None, workers=2, **kw)
+    plan = EvalPlan(episodes=1, contexts=[{"m": 0.5}, {"m": 1.5}], seed=3, time_limit=30)
+    a = evaluate_checkpoint(None, dataclasses.replace(plan, workers=0), task="pendulum_swingup")
+    b = evaluate_checkpoint(None, dataclasses.replace(plan, workers=2), task="pendulum_swingup")
     assert [c.returns for c in a.per_context] == [c.returns for c in b.per_context]
 
 
