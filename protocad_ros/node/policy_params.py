@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from protocad_ros.model.hyperparameters import DEFAULT_CLI_PRESET, PRESETS, VARIANTS
 from sim_bridge.contract.contexts import TASKS
-from sim_bridge.nodekit.rosnode import Param, autostart_param, executor_param, remote_lifecycle_param, strict_param
+from sim_bridge.nodekit.param_table import Param, autostart_param, executor_param, remote_lifecycle_param, strict_param
 
 PARAMS: tuple[Param, ...] = (
     Param("checkpoint", "", "Checkpoint file (protocad_ros.checkpoint). Empty: a randomly "

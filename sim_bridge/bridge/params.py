@@ -4,7 +4,7 @@ without importing rclpy."""
 from __future__ import annotations
 
 from sim_bridge.contract.contexts import TASKS
-from sim_bridge.nodekit.rosnode import (
+from sim_bridge.nodekit.param_table import (
     ConfigError,
     Param,
     autostart_param,

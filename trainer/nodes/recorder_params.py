@@ -5,7 +5,7 @@ against it (tests/docs/test_commands.py). No ROS here."""
 from __future__ import annotations
 
 from sim_bridge.contract import topics as T
-from sim_bridge.nodekit.rosnode import Param
+from sim_bridge.nodekit.param_table import Param
 from trainer.bag.writer import DEFAULT_CHUNK_SIZE
 from trainer.nodes.record_budget import (
     DEFAULT_FLOOD_FACTOR,
