@@ -6,6 +6,9 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Mapping
+
+from trainer.bag.bag_info import FileInfo, TopicInfo
 
 RESERVE_BYTES = 64 * 1024   # kept free beside the bag, to close it validly on a full disk
 _DATA_END = b"\x0f" + (4).to_bytes(8, "little") + (0).to_bytes(4, "little")
@@ -89,41 +92,48 @@ def end_file_at(stream: CheckedFile, cut: int, name: str) -> str:
 
 
 class FailureRecovery:
-    """BagWriter's bookkeeping for a failed write: the counts of what is on disk (taken after
-    every committed chunk), and the salvage that cuts the file back to them. A part of BagWriter,
-    working on its counts, files and stream."""
+    """A BagWriter's bookkeeping for a failed write, owned by it: the reserve of free space beside
+    the bag, what is on disk (the counts taken after every committed chunk, and the end of the
+    file they describe), and the salvage that cuts the failed file back to them. Handed, when
+    built, the writer's bag directory, its topic and file records (the same dict and list the
+    writer fills: the counts are theirs) and its salvage_notes (where the reserve and the
+    salvage say what they did)."""
 
-    def _commit(self) -> None:
-        """Remember the counts of what is on disk: a failure loses only the open chunk. A bag
-        file deleted while recording takes writes without an error (its inode lives on), so
-        that is checked here too and treated as a write failure."""
-        if self._files and os.fstat(self._stream.fileno()).st_nlink == 0:
-            raise OSError(2, f"{self.files[-1]} was removed while recording")
-        self._snapshot()
+    def __init__(self, *, bag_dir: Path, topics: Mapping[str, TopicInfo], files: list[FileInfo],
+                 notes: list[str]):
+        self._bag_dir, self._topics, self._files, self._notes = bag_dir, topics, files, notes
+        self.reserve = bag_dir / ".protocad-reserve"
+        #: (messages, {topic: messages}, messages in the current file, end of that file).
+        self._committed: tuple[int, dict[str, int], int, int] = (0, {}, 0, 0)
+        make_reserve(self.reserve, notes)
 
-    def _snapshot(self) -> None:
+    def drop_reserve(self) -> None:
+        drop_reserve(self.reserve)
+
+    def commit(self, stream: CheckedFile, count: int) -> None:
+        """Remember the counts of what is on disk (`count` messages in all): a failure loses
+        only the open chunk. A bag file deleted while recording takes writes without an error
+        (its inode lives on), so that is checked here too and treated as a write failure."""
+        if self._files and os.fstat(stream.fileno()).st_nlink == 0:
+            raise OSError(2, f"{self._bag_dir / self._files[-1].path} was removed while recording")
+        self.snapshot(stream, count)
+
+    def snapshot(self, stream: CheckedFile, count: int) -> None:
         """The counts, and the end of the file they describe. A failure cuts the file back to
         that end, not to its last complete write: a chunk can be on disk with its message index
         refused (a disk that fills between the two), and the counts never included it."""
-        self._committed = (self._count, {n: t.message_count for n, t in self._topics.items()},
-                           self._files[-1].message_count, self._stream.good)
+        self._committed = (count, {n: t.message_count for n, t in self._topics.items()},
+                           self._files[-1].message_count, stream.good)
 
-    def _uncommit(self) -> None:
-        """After a failure: the counts go back to what the file holds; the rest is lost."""
-        total, per_topic, in_file, _ = self._committed
-        self.lost_after_failure += self._count - total
-        self._count = total
+    def salvage(self, stream: CheckedFile | None) -> int:
+        """After a failure: the reserve is freed, the topic and file counts go back to what the
+        file holds (the rest is lost), and the open file is cut back to them and ended.
+        Returns the number of messages the bag holds."""
+        drop_reserve(self.reserve)
+        total, per_topic, in_file, cut = self._committed
         for n, t in self._topics.items():
             t.message_count = per_topic.get(n, 0)
         self._files[-1].message_count = in_file
-
-    def _fail(self, exc: OSError) -> None:
-        if self.failure is None:
-            self.failure = f"{type(exc).__name__}: {exc}"
-
-    def _salvage(self) -> None:
-        drop_reserve(self._reserve)
-        self._uncommit()
-        stream = self._stream
         if stream is not None and not stream.closed:
-            self.salvage_notes.append(end_file_at(stream, self._committed[3], self.files[-1].name))
+            self._notes.append(end_file_at(stream, cut, self._files[-1].path))
+        return total

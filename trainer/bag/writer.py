@@ -30,7 +30,7 @@ from trainer.bag.bag_info import (
     topic_info,
 )
 from trainer.bag.disk_safety import CheckedFile as _CheckedFile
-from trainer.bag.disk_safety import FailureRecovery, drop_reserve, make_reserve
+from trainer.bag.disk_safety import FailureRecovery
 from trainer.bag.rosmsg import encode
 from trainer.bag.yamlcpp import yaml_cpp_dump
 
@@ -66,7 +66,7 @@ def check_options(compression: str | None, chunk_size: int, max_bagfile_size: in
             raise ValueError(f"custom_data must map str to str, got {k!r}: {v!r}")
 
 
-class BagWriter(FailureRecovery):
+class BagWriter:
     """Write a rosbag2 (Jazzy, MCAP storage) bag directory.
 
     BagWriter(bag_dir, compression='zstd'|'lz4'|'none', chunk_size=768 KiB, max_bagfile_size=0
@@ -78,7 +78,8 @@ class BagWriter(FailureRecovery):
     publish_time_ns). A chunk is written (and handed to the OS) whenever chunk_size bytes are
     buffered, on flush() and every flush_interval_s: after a SIGKILL, all of those survive.
     close() (idempotent; also on exiting a `with` block) writes the summary, footer and
-    metadata.yaml. Writing after close raises BagWriteError.
+    metadata.yaml. Writing after close raises BagWriteError. What a failed write needs (the
+    space reserve, the counts on disk, the salvage) is its FailureRecovery (disk_safety.py).
     """
 
     def __init__(self, bag_dir: str | os.PathLike, *, compression: str | None = "zstd",
@@ -120,12 +121,12 @@ class BagWriter(FailureRecovery):
         self.lost_after_failure = 0  # write() calls refused after the failure
         self.salvage_notes: list[str] = []
         remove_stale_temporaries(self.bag_dir / "metadata.yaml")
-        self._reserve = self.bag_dir / ".protocad-reserve"
-        make_reserve(self._reserve, self.salvage_notes)
+        self._recovery = FailureRecovery(bag_dir=self.bag_dir, topics=self._topics, files=self._files,
+                                         notes=self.salvage_notes)
         try:
             self._open_file()
         except OSError as exc:
-            drop_reserve(self._reserve)
+            self._recovery.drop_reserve()
             raise BagWriteError(f"cannot start a bag in {self.bag_dir}: {exc}") from exc
 
     # -- public API ----------------------------------------------------------------------------
@@ -216,7 +217,7 @@ class BagWriter(FailureRecovery):
         self._count += 1
         info.message_count += 1
         if committed:
-            self._commit()
+            self._recovery.commit(self._stream, self._count)
         if self.flush_interval_s and time.monotonic() - self._last_flush >= self.flush_interval_s:
             self.flush()
 
@@ -235,7 +236,7 @@ class BagWriter(FailureRecovery):
             return
         try:
             self._mcap.flush()
-            self._commit()
+            self._recovery.commit(self._stream, self._count)
         except OSError as exc:
             self._fail(exc)
             raise BagWriteError(f"flushing {self.bag_dir} failed: {exc}") from exc
@@ -268,14 +269,16 @@ class BagWriter(FailureRecovery):
             except OSError as exc:
                 self._fail(exc)
         if self.failure is not None:
-            self._salvage()
+            total = self._recovery.salvage(self._stream)
+            self.lost_after_failure += self._count - total
+            self._count = total
         try:
             self._write_metadata_yaml()
         except OSError as exc:
             self.salvage_notes.append(f"metadata.yaml not written: {exc}")
             for tmp in self.bag_dir.glob(".metadata.yaml.*.tmp"):
                 tmp.unlink(missing_ok=True)
-        drop_reserve(self._reserve)
+        self._recovery.drop_reserve()
 
     def __enter__(self) -> "BagWriter":
         return self
@@ -316,7 +319,7 @@ class BagWriter(FailureRecovery):
             self._write_metadata_record()
             for info in self._topics.values():  # rosbag2 re-registers every topic after a split
                 self._register(info)
-            self._commit()
+            self._recovery.commit(self._stream, self._count)
         except OSError:
             # A file that could not even be started holds nothing: it goes, the bag ends with
             # the files before it (salvage sees no open stream).
@@ -346,11 +349,15 @@ class BagWriter(FailureRecovery):
         self._mcap.finish()
         os.fsync(self._stream.fileno())
         self._stream.close()
-        self._snapshot()   # the file's last chunk is on disk now
+        self._recovery.snapshot(self._stream, self._count)   # the file's last chunk is on disk now
 
     def _split(self) -> None:
         self._close_file()
         self._open_file()
+
+    def _fail(self, exc: OSError) -> None:
+        if self.failure is None:
+            self.failure = f"{type(exc).__name__}: {exc}"
 
     def _write_metadata_yaml(self) -> None:
         info = self.metadata()
