@@ -12,12 +12,15 @@ read back with trainer.bag.reader.BagReader.
 Usage: python -m trainer.nodes.recorder -o BAG [--topics T ...] [--namespace /protocad] ...
        ros2 run trainer record --ros-args -p output:=BAG -p compression:=lz4
 
-Its parts: recorder_topics.py (which topics; discovery; subscriptions and their QoS),
-recorder_loss.py (sequence gaps, stalls past the DDS lease), recorder_announcements.py
-(bridge_info only from its bridge), recorder_writing.py (writing,
-draining, closing), recorder_guard.py over record_budget.py (the disk budget), recorder_params.py
-(the node's parameters), recorder_cli.py (the command line, generated from them). Here: the
-node's wiring and the entry point.
+Its parts, each a class named like its module and held in the node's attribute of that name:
+recorder_topics.py (RecorderTopics: which topics; discovery; subscriptions and their QoS),
+recorder_loss.py (RecorderLoss: sequence gaps, stalls past the DDS lease),
+recorder_announcements.py (RecorderAnnouncements: bridge_info only from its bridge),
+recorder_writing.py (RecorderWriting: writing, draining, closing), recorder_guard.py
+(RecorderGuard, over record_budget.py: the disk budget). recorder_params.py holds the node's
+parameters, recorder_cli.py the command line, generated from them. Here: the node, which holds
+what its parts share (the parameters, the bag writer, the lock, the end of the recording and its
+exit code, the /diagnostics publisher), builds the parts and closes them; and the entry point.
 """
 from __future__ import annotations
 
@@ -33,12 +36,11 @@ from diagnostic_msgs.msg import DiagnosticArray
 from sim_bridge.contract import topics as T
 from sim_bridge.contract.qos import diagnostics_qos
 from sim_bridge.nodekit.fastdds_profile import announced_lease, participant_lease
-from sim_bridge.nodekit.publisher_watch import PublisherWatch
 from sim_bridge.nodekit.rosbase import ProtocadNode
 from sim_bridge.nodekit.rosnode import ConfigError, KeyThrottle, declare_all, run_node, with_defaults
 from trainer.bag.writer import BagWriteError
-from trainer.nodes.record_budget import BudgetLimits, DiskFloor, RecordBudget, parse_topic_values
-from trainer.nodes.recorder_announcements import AnnouncementFilter
+from trainer.nodes.record_budget import RecordBudget
+from trainer.nodes.recorder_announcements import RecorderAnnouncements
 
 # UNSUPPORTED_OPTIONS and the exit codes are imported from here (tests, msgs_docs/recorder.md).
 from trainer.nodes.recorder_cli import (  # noqa: F401
@@ -48,14 +50,26 @@ from trainer.nodes.recorder_cli import (  # noqa: F401
     load_qos_overrides,
     parse_custom_data,
 )
-from trainer.nodes.recorder_guard import EXIT_BUDGET, RecorderGuard  # noqa: F401
-from trainer.nodes.recorder_loss import LossAccounting
+from trainer.nodes.recorder_guard import EXIT_BUDGET, RecorderGuard, budget_from_params  # noqa: F401
+from trainer.nodes.recorder_loss import RecorderLoss
 from trainer.nodes.recorder_params import PARAMS
-from trainer.nodes.recorder_topics import DEFAULT_QUEUE_DEPTH, EXIT_TYPE_MISMATCH, TopicSubscriber, history_name  # noqa: F401
-from trainer.nodes.recorder_writing import DRAIN_LIMIT_S, EXIT_WRITE_FAILED, BagWriting, default_output  # noqa: F401
+from trainer.nodes.recorder_topics import (  # noqa: F401
+    DEFAULT_QUEUE_DEPTH,
+    EXIT_TYPE_MISMATCH,
+    RecorderTopics,
+    TopicSelection,
+    history_name,
+)
+from trainer.nodes.recorder_writing import (  # noqa: F401
+    DRAIN_LIMIT_S,
+    EXIT_WRITE_FAILED,
+    RecorderWriting,
+    default_output,
+    open_bag,
+)
 
 
-class RecorderNode(TopicSubscriber, AnnouncementFilter, LossAccounting, BagWriting, RecorderGuard, ProtocadNode):
+class RecorderNode(ProtocadNode):
     """Records topics into a BagWriter. Its ROS parameters are the table recorder_params.PARAMS,
     declared with `values` (the command line's) as their defaults: a --ros-args -p override
     wins; the per-topic lists (rate_limits, byte_budgets, byte_rate_limits, message_limits:
@@ -73,50 +87,89 @@ class RecorderNode(TopicSubscriber, AnnouncementFilter, LossAccounting, BagWriti
         values = {k: v for k, v in (values or {}).items() if v is not None}
         values["output"] = values.get("output") or default_output()
         p = self.params = declare_all(self, with_defaults(PARAMS, values))
-
-        def per_topic(key: str) -> dict[str, float]:
-            return {self.resolve_topic_name(t): v for t, v in parse_topic_values(p[key], key).items()}
-
-        self.budget = RecordBudget(BudgetLimits(
-            max_topic_rate=p["max_topic_rate"], max_topic_bytes=p["max_topic_bytes"],
-            max_total_bytes=p["max_total_bytes"], flood_factor=p["flood_factor"],
-            rates=per_topic("rate_limits"), topic_bytes=per_topic("byte_budgets"),
-            byte_rates=per_topic("byte_rate_limits"), message_bytes=per_topic("message_limits"),
-            namespace=p["namespace"]))
-        for off in self.budget.limits.turned_off():
+        budget = budget_from_params(p, self.resolve_topic_name)
+        for off in budget.limits.turned_off():
             self.get_logger().warning(f"{off} turned off (0): a flood on it is not bounded (msgs_docs/recorder.md)")
+        #: Why the recording ended by itself (the budget, a topic of another type), or None.
         self.stop_reason: str | None = None
-        self._select_topics(p, qos_overrides)   # before the bag: a bad regex leaves no bag behind
-        self._start_announcement_filter()
-        self._open_bag(p, custom_data)
-        self.disk_floor = DiskFloor(self.writer.bag_dir, p["min_free_disk"])
+        self.done = threading.Event()    # set when recording cannot go on (run_node then closes)
+        self.exit_code = 0
+        selection = TopicSelection(p, self.resolve_topic_name, qos_overrides)   # before the bag: a bad regex leaves no bag behind
+        self.writer = open_bag(p, custom_data)
         # Where a flood is reported; made now, so readers have matched it when one comes.
-
         self._diag_pub = self.create_publisher(DiagnosticArray, T.DIAGNOSTICS, diagnostics_qos())
-        self._flood_timer = None
-        self._start_loss_accounting()
-        # A recorded topic with several writers mixes their samples in the bag (an impostor, a
-        # second bridge): marked in the bag's metadata as soon as it is seen.
-        self.publisher_watch = PublisherWatch(self._on_new_publisher)
         self._warned: set[str] = set()
         self._throttle = KeyThrottle(self.get_logger())
         self._lock = threading.Lock()
-        self._discover()
-        if not p["no_discovery"]:
-            self._discovery_timer = self.create_timer(p["discovery_interval"], self._discover)
-        if p["flush_interval"] > 0:
-            self._flush_timer = self.create_timer(p["flush_interval"], self._flush_if_due)
-        if p["status_interval"] > 0:
-            self._status_timer = self.create_timer(p["status_interval"], self._status)
+        self._build_parts(budget, selection)
+        self.recorder_topics.start()
+        self.recorder_writing.start()
         self.get_logger().info(
-            f"recording {self._selection_text()} to {self.writer.bag_dir} (compression {p['compression']}, "
+            f"recording {selection.text()} to {self.writer.bag_dir} (compression {p['compression']}, "
             f"chunk {p['chunk_size']} B, split size {p['max_bagfile_size']} B / duration "
             f"{p['max_bagfile_duration']} s, {history_name(p['queue_depth'])})")
+
+    def _build_parts(self, budget: RecordBudget, selection: TopicSelection) -> None:
+        """The parts, each handed what it needs (the recorder's parts are described in the module docstring)."""
+        shared = dict(node=self, writer=self.writer, lock=self._lock)
+        self.recorder_guard = RecorderGuard(
+            node=self, budget=budget, writer=self.writer, min_free_disk=self.params["min_free_disk"],
+            diag_pub=self._diag_pub, done=self.done, stop=self.stop, warn_once=self._warn_once,
+            warn_throttled=self._throttle.warning)
+        self.recorder_loss = RecorderLoss(node=self, lock=self._lock, warn_once=self._warn_once,
+                                          warn_throttled=self._throttle.warning)
+        self.recorder_writing = RecorderWriting(
+            **shared, params=self.params, done=self.done, stop=self.stop, warn_once=self._warn_once,
+            account=self.recorder_loss.account, within_budget=self.recorder_guard.within_budget)
+        self.recorder_announcements = RecorderAnnouncements(
+            **shared, on_message=self.recorder_writing.on_message, warn_once=self._warn_once)
+        self.recorder_topics = RecorderTopics(
+            **shared, params=self.params, selection=selection, done=self.done, stop=self.stop,
+            warn_once=self._warn_once, on_message=self.recorder_writing.on_message,
+            filter_announcements=self.recorder_announcements.filter,
+            on_announcement_heard=self.recorder_announcements.heard)
+
+    def stop(self, exit_code: int, reason: str | None = None) -> None:
+        """End the recording (run_node then closes the bag) with `exit_code`; `reason`, when
+        given, goes into the bag's metadata and the summary."""
+        if reason is not None:
+            self.stop_reason = reason
+        self.exit_code = exit_code
+        self.done.set()
 
     def _warn_once(self, key: str, text: str) -> None:
         if key not in self._warned:
             self._warned.add(key)
             self.get_logger().warning(text)
+
+    def close(self) -> dict[str, int]:
+        """Take what the middleware still holds (when stopped by a signal, not by the recording's
+        own end), close the bag (footer, summary, metadata.yaml with the loss and the marks),
+        print the summary; returns the per-topic counts."""
+        self.recorder_writing.drain_held()
+        self.recorder_announcements.stop()   # held announcements: the bridge's written, others left out
+        self.recorder_loss.stop()
+        self.recorder_writing.close(self._marks)
+        print(self.summary(), flush=True)
+        return self.writer.topic_counts
+
+    def _marks(self) -> dict[str, str]:
+        """What the bag's metadata says beside the counts (custom_data)."""
+        marks = {**self.recorder_loss.metadata(), **self.recorder_topics.publishers_summary(),
+                 **self.recorder_guard.metadata()}
+        if self.stop_reason:
+            marks["protocad_recording_stopped"] = self.stop_reason
+        return marks
+
+    def summary(self) -> str:
+        """What was recorded and what was lost, for the exit message."""
+        lines = self.recorder_writing.recorded_lines() + self.recorder_loss.summary_lines() \
+            + self.recorder_guard.summary_lines()
+        if self.stop_reason:
+            lines.append(f"  RECORDING STOPPED: {self.stop_reason}")
+        lines += self.recorder_announcements.summary_lines() + self.recorder_topics.summary_lines() \
+            + self.recorder_writing.failure_lines()
+        return "\n".join(lines)
 
 
 def start_recorder(args: argparse.Namespace) -> RecorderNode:
@@ -138,7 +191,7 @@ def start_recorder(args: argparse.Namespace) -> RecorderNode:
         node.get_logger().info(f"DDS lease {args.lease_duration:g} s: a stall shorter than that loses nothing")
     lease = announced_lease(args.lease_duration)
     if lease is not None and math.isfinite(lease):
-        node.watch_stalls(lease)
+        node.recorder_loss.watch_stalls(lease)
     print(f"recorder: recording to {node.writer.bag_dir}", flush=True)
     return node
 

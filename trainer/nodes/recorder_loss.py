@@ -1,13 +1,17 @@
-"""The recorder's loss accounting (mixed into RecorderNode, trainer/nodes/recorder.py): what the
-middleware dropped before the recorder took it, counted from each writer's publication sequence
-numbers, and stalls of the recorder's own process past its DDS lease (StallWatch). Both go into
-the bag's metadata (loss_summary) and the exit summary (_loss_lines)."""
+"""RecorderLoss, the recorder's loss accounting (a part of RecorderNode, trainer/nodes/recorder.py):
+what the middleware dropped before the recorder took it, counted from each writer's publication
+sequence numbers, and stalls of the recorder's own process past its DDS lease (StallWatch). Both
+go into the bag's metadata (metadata()) and the exit summary (summary_lines()).
+
+It owns the counts (lost, missed_before_subscribing, untracked, stalls) and its StallWatch; it is
+handed the node (its logger, count_publishers), the node's lock (the stall thread appends under
+it) and the node's warn_once and throttled warning."""
 from __future__ import annotations
 
 import json
 import threading
 import time
-from typing import Callable
+from typing import Any, Callable
 
 #: The DDS lease the recorder's participant announces (s): how long its writers keep it matched,
 #: and keep what it has not acknowledged, while it does not run (sim_bridge/nodekit/
@@ -43,11 +47,13 @@ class StallWatch:
         self._thread.join(timeout=5)
 
 
-class LossAccounting:
-    """Mixed into RecorderNode: it has _lock, _throttle and _warn_once, and count_publishers
-    and get_logger (rclpy)."""
+class RecorderLoss:
+    """What was lost before the recorder took it: sequence gaps per topic, stalls past the lease."""
 
-    def _start_loss_accounting(self) -> None:
+    def __init__(self, *, node: Any, lock: threading.Lock, warn_once: Callable[[str, str], None],
+                 warn_throttled: Callable[[str, str], None]):
+        self._node, self._lock = node, lock
+        self._warn_once, self._warn_throttled = warn_once, warn_throttled
         # Loss accounting from each writer's publication sequence numbers (1, 2, 3, ... per
         # publisher): a jump is messages the middleware dropped before we took them (a stalled
         # recorder, a KEEP_LAST writer overwriting what it held); a first number above 1 is what
@@ -62,12 +68,13 @@ class LossAccounting:
         self.stall_lease_s = 0.0
         self.stall_watch: StallWatch | None = None
 
-    def _account(self, topic: str, seq: int) -> None:
+    def account(self, topic: str, seq: int) -> None:
+        """A message of `topic` with publication sequence number `seq` (0: unknown) arrived."""
         if seq <= 0 or topic in self.untracked:
             return
         last = self._last_seq.get(topic)
         if last is None or seq <= last:
-            if last is not None or self.count_publishers(topic) > 1:
+            if last is not None or self._node.count_publishers(topic) > 1:
                 # several writers (or one restarted): their numbers say nothing about loss
                 self.untracked.add(topic)
                 self._warn_once(f"untracked:{topic}", f"{topic} has several publishers: its losses "
@@ -75,13 +82,13 @@ class LossAccounting:
                 return
             if seq > 1:
                 self.missed_before_subscribing[topic] = seq - 1
-                self.get_logger().warning(f"{topic}: {seq - 1} message(s) were published before the "
+                self._node.get_logger().warning(f"{topic}: {seq - 1} message(s) were published before the "
                                           "recorder subscribed (start the recorder first)")
         elif seq > last + 1:
             n = seq - last - 1
             self.lost[topic] = self.lost.get(topic, 0) + n
-            self._throttle.warning(f"lost:{topic}", f"{topic}: {n} message(s) lost before the recorder took "
-                                   f"them (sequence {last} -> {seq}; {self.lost[topic]} on this topic so far)")
+            self._warn_throttled(f"lost:{topic}", f"{topic}: {n} message(s) lost before the recorder took "
+                                 f"them (sequence {last} -> {seq}; {self.lost[topic]} on this topic so far)")
         self._last_seq[topic] = seq
 
     def watch_stalls(self, lease_s: float) -> None:
@@ -92,12 +99,17 @@ class LossAccounting:
     def _on_stall(self, seconds: float) -> None:
         with self._lock:
             self.stalls.append(round(seconds, 1))
-        self.get_logger().warning(
+        self._node.get_logger().warning(
             f"the recorder did not run for {seconds:.1f} s, longer than its DDS lease "
             f"({self.stall_lease_s:g} s): writers may have dropped it with what it had not "
             "taken; that loss is counted only where a later sample shows the gap")
 
-    def loss_summary(self) -> dict[str, str]:
+    def stop(self) -> None:
+        """Stop watching for stalls (at close)."""
+        if self.stall_watch is not None:
+            self.stall_watch.stop()
+
+    def metadata(self) -> dict[str, str]:
         """The loss as metadata.yaml custom_data (rosbag2 keeps str -> str)."""
         out = {}
         if self.stalls:
@@ -111,7 +123,7 @@ class LossAccounting:
             out["protocad_loss_untracked_topics"] = json.dumps(sorted(self.untracked))
         return out
 
-    def _loss_lines(self) -> list[str]:
+    def summary_lines(self) -> list[str]:
         """The loss, for the exit summary."""
         lines = []
         if self.lost:

@@ -1,13 +1,20 @@
-"""The recorder's writing (mixed into RecorderNode, trainer/nodes/recorder.py): each received
-message into the bag (log time = reception time, never going back), the periodic flush, a write
-error ending the recording (EXIT_WRITE_FAILED), and the close after SIGINT/SIGTERM: take what
-the middleware still holds, close the bag with the loss in its metadata, print the summary."""
+"""RecorderWriting, the recorder's writing (a part of RecorderNode, trainer/nodes/recorder.py):
+each received message into the bag (log time = reception time, never going back), the periodic
+flush and status line, a write error ending the recording (EXIT_WRITE_FAILED), and the close
+after SIGINT/SIGTERM: take what the middleware still holds, close the bag with the marks in its
+metadata. open_bag makes the BagWriter the node holds (the other parts add to it too).
+
+It owns the counts of what it received and what failed, and the flush and status timers; it is
+handed the node (its logger, timers, executor and context), the parameters, the writer, the
+node's lock and `done` event, stop(exit_code, reason) (a write error ends the recording),
+warn_once, and RecorderLoss' account and RecorderGuard's within_budget, which see each message
+first."""
 from __future__ import annotations
 
 import threading
 import time
 from datetime import datetime
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 from trainer.bag.writer import BagWriteError, BagWriter
 
@@ -28,25 +35,38 @@ def default_output() -> str:
 _MAX_TIME_NS = 2 ** 63
 
 
-class BagWriting:
-    """Mixed into RecorderNode: it has budget, stop_reason, stall_watch, publisher_watch, _lock
-    and _warn_once; _account (the loss) and _within_budget (the disk budget) see each message
-    first; loss_summary, _loss_lines and publishers_summary go into the close; executor and
-    context are rclpy's."""
+def open_bag(p: Mapping[str, Any], custom_data: Mapping[str, str] | None) -> BagWriter:
+    """The bag the parameters ask for (BagWriteError: the directory exists; ValueError: a bad
+    option)."""
+    return BagWriter(
+        p["output"], compression=p["compression"], chunk_size=p["chunk_size"],
+        max_bagfile_size=p["max_bagfile_size"],
+        max_bagfile_duration_s=p["max_bagfile_duration"],
+        flush_interval_s=p["flush_interval"], custom_data=custom_data)
 
-    def _open_bag(self, p: Mapping[str, Any], custom_data: Mapping[str, str] | None) -> None:
-        self.writer = BagWriter(
-            p["output"], compression=p["compression"], chunk_size=p["chunk_size"],
-            max_bagfile_size=p["max_bagfile_size"],
-            max_bagfile_duration_s=p["max_bagfile_duration"],
-            flush_interval_s=p["flush_interval"], custom_data=custom_data)
+
+class RecorderWriting:
+    """Each received message into the bag, the flush, and the bag's close (see the module docstring)."""
+
+    def __init__(self, *, node: Any, params: Mapping[str, Any], writer: BagWriter, lock: threading.Lock,
+                 done: threading.Event, stop: Callable[[int, str | None], None],
+                 warn_once: Callable[[str, str], None], account: Callable[[str, int], None],
+                 within_budget: Callable[[str, int], bool]):
+        self._node, self._params, self._writer, self._lock, self._done = node, params, writer, lock, done
+        self._stop, self._warn_once, self._account, self._within_budget = stop, warn_once, account, within_budget
         self.received = 0
-        self._last_log_time = 0   # ns; the newest log time written (see _on_message)
+        self._last_log_time = 0   # ns; the newest log time written (see on_message)
         self.errors = 0
-        self.done = threading.Event()    # set when recording cannot go on (write failure)
-        self.exit_code = 0
+        self._flush_timer = self._status_timer = None
 
-    def _on_message(self, topic: str, data: bytes, info: Any) -> None:
+    def start(self) -> None:
+        """The flush and status timers the parameters ask for (0: none)."""
+        if self._params["flush_interval"] > 0:
+            self._flush_timer = self._node.create_timer(self._params["flush_interval"], self._flush_if_due)
+        if self._params["status_interval"] > 0:
+            self._status_timer = self._node.create_timer(self._params["status_interval"], self._status)
+
+    def on_message(self, topic: str, data: bytes, info: Any) -> None:
         """raw=True + two-argument callback: CDR bytes and the rmw message info."""
         if isinstance(info, dict):
             recv, src = info.get("received_timestamp"), info.get("source_timestamp")
@@ -62,7 +82,7 @@ class BagWriting:
         if not isinstance(src, int) or not 0 < src < _MAX_TIME_NS:
             src = None
         with self._lock:
-            if self.writer.closed:
+            if self._writer.closed:
                 return
             self._account(topic, int(seq) if isinstance(seq, int) else 0)
             if not self._within_budget(topic, len(data)):
@@ -73,7 +93,7 @@ class BagWriting:
             # as written, which streaming readers such as rosbags require.
             recv = self._last_log_time = max(int(recv), self._last_log_time)
             try:
-                self.writer.write(topic, data, recv, src if src else recv, sequence=seq)
+                self._writer.write(topic, data, recv, src if src else recv, sequence=seq)
                 self.received += 1
             except Exception as exc:  # noqa: BLE001 - any write failure is counted and reported; _check_failure decides
                 self.errors += 1
@@ -83,7 +103,7 @@ class BagWriting:
     def _flush_if_due(self) -> None:
         with self._lock:
             try:
-                self.writer.flush_if_due()
+                self._writer.flush_if_due()
             except BagWriteError as exc:
                 self._warn_once("flush", f"flushing the bag failed: {exc}")
                 self._check_failure()
@@ -92,15 +112,14 @@ class BagWriting:
         """A write error (disk full, file too large, permission lost, file removed) ends the
         recording: the bag is closed with what it holds and the recorder exits with
         EXIT_WRITE_FAILED."""
-        if self.writer.failure is not None and not self.done.is_set():
-            self.get_logger().error(f"recording stopped: {self.writer.failure}; closing the bag with the "
-                                    f"{self.writer.message_count} messages written")
-            self.exit_code = EXIT_WRITE_FAILED
-            self.done.set()
+        if self._writer.failure is not None and not self._done.is_set():
+            self._node.get_logger().error(f"recording stopped: {self._writer.failure}; closing the bag with the "
+                                    f"{self._writer.message_count} messages written")
+            self._stop(EXIT_WRITE_FAILED, None)
 
     def _status(self) -> None:
-        counts = ", ".join(f"{t}: {n}" for t, n in self.writer.topic_counts.items())
-        self.get_logger().info(f"{self.writer.message_count} messages ({counts})")
+        counts = ", ".join(f"{t}: {n}" for t, n in self._writer.topic_counts.items())
+        self._node.get_logger().info(f"{self._writer.message_count} messages ({counts})")
 
     def drain(self, executor: Any, quiet_s: float = 0.3, limit_s: float = DRAIN_LIMIT_S) -> None:
         """Take what the middleware already holds before closing (used after SIGINT/SIGTERM):
@@ -115,54 +134,38 @@ class BagWriting:
             elif time.monotonic() - quiet_since >= quiet_s:
                 break
 
-    def close(self) -> dict[str, int]:
-        """Take what the middleware still holds (when stopped by a signal, not by a write
-        failure), close the bag (footer, summary, metadata.yaml with the loss), print the
-        summary; returns the per-topic counts."""
-        executor = self.executor
-        if executor is not None and not self.done.is_set() and self.context.ok():
+    def drain_held(self) -> None:
+        """At close, unless the recording ended by itself (the bag is full, or failed): take
+        what the middleware still holds (see drain)."""
+        executor = self._node.executor
+        if executor is not None and not self._done.is_set() and self._node.context.ok():
             self.drain(executor)
-        self._stop_announcement_filter()   # held announcements: the bridge's written, others left out
-        if self.stall_watch is not None:
-            self.stall_watch.stop()
-        with self._lock:
-            marks = {**self.loss_summary(), **self.publishers_summary(), **self.budget.metadata()}
-            if self.stop_reason:
-                marks["protocad_recording_stopped"] = self.stop_reason
-            if marks:
-                self.writer.custom_data = {**(self.writer.custom_data or {}), **marks}
-            self.writer.close()
-        print(self.summary(), flush=True)
-        return self.writer.topic_counts
 
-    def summary(self) -> str:
-        """What was recorded and what was lost, for the exit message."""
-        w, counts = self.writer, self.writer.topic_counts
+    def close(self, marks: Callable[[], dict[str, str]]) -> None:
+        """Close the bag (footer, summary, metadata.yaml) with `marks()` (the other parts'
+        custom_data: the loss, several publishers, the budget, a stop) added to its metadata."""
+        with self._lock:
+            added = marks()
+            if added:
+                self._writer.custom_data = {**(self._writer.custom_data or {}), **added}
+            self._writer.close()
+
+    def recorded_lines(self) -> list[str]:
+        """What was recorded, for the exit summary's head."""
+        w, counts = self._writer, self._writer.topic_counts
         lines = [f"recorder: recorded {sum(counts.values())} messages to {w.bag_dir} ({len(w.files)} file(s))"]
         lines += [f"  {t}: {n}" for t, n in counts.items()]
         if self.errors:
             lines.append(f"  write errors: {self.errors}")
-        lines += self._loss_lines()
-        if self.budget.dropped:
-            lines.append("  DROPPED by the budget (message size / rate / byte rate / topic bytes / bag bytes): " + ", ".join(
-                f"{t}: {sum(r.values())} ({', '.join(f'{k} {n}' for k, n in sorted(r.items()))})"
-                for t, r in sorted(self.budget.dropped.items())))
-        if self.budget.floods:
-            lines.append("  FLOOD (marked in the metadata): " + ", ".join(
-                f"{t}: {f['rate_hz']:g} msg/s against {f['recent_hz']:g}" for t, f in sorted(self.budget.floods.items())))
-        if self.stop_reason:
-            lines.append(f"  RECORDING STOPPED: {self.stop_reason}")
-        if self.ignored_announcements:
-            lines.append("  LEFT OUT (not written by the bridge; marked in the metadata): " + ", ".join(
-                f"{t}: {n}" for t, n in sorted(self.ignored_announcements.items())))
-        several = self.publisher_watch.ever
-        if several:
-            lines.append("  SEVERAL PUBLISHERS (marked in the metadata): " + ", ".join(
-                f"{t}: {n}" for t, n in sorted(several.items())))
-        if w.failure is not None:
-            lines.append(f"  RECORDING STOPPED EARLY: {w.failure}")
-            lines.append(f"  messages lost (received, not in the bag: the open chunk and everything after): "
-                         f"{w.lost_after_failure}")
-            lines += [f"  {note}" for note in w.salvage_notes]
-            lines.append(f"  metadata.yaml: {'written' if (w.bag_dir / 'metadata.yaml').exists() else 'NOT written'}")
-        return "\n".join(lines)
+        return lines
+
+    def failure_lines(self) -> list[str]:
+        """How a write error ended the recording, for the exit summary's tail."""
+        w = self._writer
+        if w.failure is None:
+            return []
+        return [f"  RECORDING STOPPED EARLY: {w.failure}",
+                f"  messages lost (received, not in the bag: the open chunk and everything after): "
+                f"{w.lost_after_failure}",
+                *(f"  {note}" for note in w.salvage_notes),
+                f"  metadata.yaml: {'written' if (w.bag_dir / 'metadata.yaml').exists() else 'NOT written'}"]

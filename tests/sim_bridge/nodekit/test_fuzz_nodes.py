@@ -181,10 +181,11 @@ def test_bridge_reset_service_answers_before_the_first_episode(bridge_node):
        seq=st.one_of(st.none(), st.integers(-2 ** 70, 2 ** 70)),
        topic=st.sampled_from([f"{NS}/image", "/not/registered"]))
 def test_recorder_message_callback_is_total(recorder_node, data, recv, src, seq, topic):
-    before = recorder_node.received + recorder_node.errors
-    recorder_node._on_message(topic, data, {"received_timestamp": recv, "source_timestamp": src,
-                                            "publication_sequence_number": seq})
-    assert recorder_node.received + recorder_node.errors == before + 1
+    writing = recorder_node.recorder_writing
+    before = writing.received + writing.errors
+    writing.on_message(topic, data, {"received_timestamp": recv, "source_timestamp": src,
+                                     "publication_sequence_number": seq})
+    assert writing.received + writing.errors == before + 1
 
 
 param_value = st.one_of(st.booleans(), st.integers(-2 ** 63, 2 ** 63 - 1), hostile_float, st.text(max_size=12),
