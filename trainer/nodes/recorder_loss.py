@@ -83,7 +83,7 @@ class RecorderLoss:
             if seq > 1:
                 self.missed_before_subscribing[topic] = seq - 1
                 self._node.get_logger().warning(f"{topic}: {seq - 1} message(s) were published before the "
-                                          "recorder subscribed (start the recorder first)")
+                                                "recorder subscribed (start the recorder first)")
         elif seq > last + 1:
             n = seq - last - 1
             self.lost[topic] = self.lost.get(topic, 0) + n

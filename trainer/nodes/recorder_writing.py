@@ -114,7 +114,7 @@ class RecorderWriting:
         EXIT_WRITE_FAILED."""
         if self._writer.failure is not None and not self._done.is_set():
             self._node.get_logger().error(f"recording stopped: {self._writer.failure}; closing the bag with the "
-                                    f"{self._writer.message_count} messages written")
+                                          f"{self._writer.message_count} messages written")
             self._stop(EXIT_WRITE_FAILED, None)
 
     def _status(self) -> None:

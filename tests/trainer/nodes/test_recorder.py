@@ -282,6 +282,22 @@ def test_include_and_exclude_regex_select_topics_as_ros2_bag_record(ros, tmp_pat
     assert BagReader(bag).report.counts == {"/a/keep": 20}
 
 
+def test_the_topic_selection_is_a_part_readable_alone():
+    """RecorderTopics' TopicSelection without a node: -e, the excludes, hidden topics and a bad
+    regular expression (refused before any bag exists)."""
+    from trainer.nodes.recorder_topics import TopicSelection
+
+    p = {"all_topics": False, "regex": "^/a/", "include_hidden_topics": False, "topics": ["/b/other"],
+         "namespace": NS, "exclude_regex": "skip", "exclude_topics": ["/a/drop"]}
+    sel = TopicSelection(p, lambda t: t, {"/a/keep": {"depth": 5}})
+    assert [t for t in ("/a/keep", "/a/skip_me", "/a/drop", "/b/other", "/c", "/a/_hidden") if sel.want(t)] \
+        == ["/a/keep", "/b/other"]
+    assert sel.text() == "/b/other, topics matching '^/a/'" and sel.qos_override("/a/keep") == {"depth": 5}
+    assert TopicSelection({**p, "regex": "", "topics": []}, lambda t: t, None).wanted[0].startswith(NS)
+    with pytest.raises(ValueError, match="bad regular expression"):
+        TopicSelection({**p, "regex": "("}, lambda t: t, None)
+
+
 @contextlib.contextmanager
 def frozen_recorder(*args: str):
     """A recorder process the test freezes (SIGSTOP) and stops, reading its output at the end;
