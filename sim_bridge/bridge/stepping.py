@@ -1,31 +1,111 @@
 """The sim bridge's stepping thread: it builds and owns the env (the renderer's GL context is
 bound to the thread that creates it), waits to be active and for its readers, then steps in
 lock-step (each observation waits for the action stamped with it; msgs_docs/sim_bridge.md) or in
-real time (at control_rate_hz with the latest valid action) until cleanup or max_episodes. A
-part of SimBridgeNode: it publishes through ObservationPublishing and takes the actions
-ActionIntake accepted, both under the node's condition variable."""
+real time (at control_rate_hz with the latest valid action) until cleanup or max_episodes.
+
+Stepping (the node's `stepping`) owns the thread, the env and what the env fixes at configure
+(action_dim, action_names, dt_ns, the real-time control rate), and the episode-context schedule.
+It is handed the node (for its logger and the ROS graph), the parameters, the four observation
+publishers (to see who reads them), the shared Handover (sim_bridge/bridge/handover.py) through
+which ActionIntake's accepted actions and reset requests arrive, the node's counters and log
+throttle, and callables: ObservationPublishing's `publish` and `next_stamp`, ActionIntake's
+`action_publishers`, and the node's `finished(exit_code)` (the process is done)."""
 from __future__ import annotations
 
+import threading
 import time
 import traceback
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
+from rclpy.publisher import Publisher
 
+from sim_bridge.bridge.handover import Handover
 from sim_bridge.bridge.params import READY_GRACE_S
 from sim_bridge.contract import topics
+from sim_bridge.nodekit.lifecycle import ManagedNode
+from sim_bridge.nodekit.rosnode import ConfigError, KeyThrottle
 from sim_bridge.sim.envs import ContextDMCEnv
 
 
-class Stepping:
-    def _make_env(self):
-        p = self.params
-        return ContextDMCEnv(p["task"], split=p["split"], seed=p["seed"],
-                             action_repeat=p["action_repeat"], image_size=p["image_size"],
-                             render_quality=p["render_quality"],
-                             time_limit=p["episode_length"] * p["action_repeat"],
-                             camera_size=self.camera.render_size)
+def bridge_env(p: dict[str, Any], render_size: tuple[int, int] | None) -> ContextDMCEnv:
+    """The env the parameters describe (render_size: CameraOut's, None for the square image)."""
+    return ContextDMCEnv(p["task"], split=p["split"], seed=p["seed"],
+                         action_repeat=p["action_repeat"], image_size=p["image_size"],
+                         render_quality=p["render_quality"],
+                         time_limit=p["episode_length"] * p["action_repeat"],
+                         camera_size=render_size)
 
+
+class Stepping:
+    """The stepping thread and its env; see the module docstring."""
+
+    def __init__(self, *, node: ManagedNode, params: dict[str, Any], handover: Handover,
+                 counters: dict[str, int], throttle: KeyThrottle, lockstep: bool,
+                 contexts: list[dict[str, float]], env_factory: Callable[[], Any] | None,
+                 render_size: tuple[int, int] | None, observation_pubs: tuple[Publisher, Publisher, Publisher],
+                 pub_clock: Publisher, action_publishers: Callable[[], int],
+                 publish: Callable[..., bool], next_stamp: Callable[[], int],
+                 finished: Callable[[int], None]):
+        self.node, self.params, self.handover, self.counters = node, params, handover, counters
+        self.throttle, self.lockstep, self._contexts = throttle, lockstep, contexts
+        self._env_factory = env_factory or (lambda: bridge_env(params, render_size))
+        self._obs_pubs = observation_pubs   # image, step_info, context
+        self.pub_image, self.pub_info, self.pub_context = observation_pubs
+        self.pub_clock = pub_clock
+        self._action_publishers = action_publishers
+        self._publish, self._stamp, self._finished = publish, next_stamp, finished
+        self._thread: threading.Thread | None = None
+        self._env_ready = threading.Event()   # per configure: the thread built the env, or failed
+        self._env_error: BaseException | None = None
+        self.env = None
+        self.action_dim, self.action_names, self.dt_ns = 0, [], 0
+        self.control_rate = params["control_rate_hz"]   # the task's rate once configured
+        self._episodes_begun = 0
+
+    # ------------------------------------------------------------------ the node's lifecycle
+    def configure(self) -> None:
+        """Build the env in a new stepping thread (the renderer's GL context is bound to the
+        thread that creates it) and wait for it; a bad configuration is a ConfigError."""
+        if self._thread is not None and self._thread.is_alive():
+            raise RuntimeError("the previous stepping thread has not ended")
+        self.handover.stop.clear()
+        self._env_error = None
+        self._env_ready = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="sim_bridge_stepper", daemon=True)
+        self._thread.start()
+        while not self._env_ready.wait(0.1):
+            if not self._thread.is_alive():
+                break
+        if self._env_error is not None or self.env is None:
+            err = self._env_error or RuntimeError("the stepping thread ended before the env was built")
+            if isinstance(err, (TypeError, ValueError)):
+                raise ConfigError(str(err))
+            raise err
+        env = self.env
+        with self.handover.cond:
+            self.action_dim = int(env.action_dim)
+            self.action_names = list(env.action_names)
+            self.dt_ns = int(round(env.control_dt * 1e9))
+            self.control_rate = self.params["control_rate_hz"] or 1e9 / self.dt_ns
+            self._episodes_begun = 0
+
+    def cleanup(self) -> None:
+        """End the stepping thread; it closes the env (in the thread that owns the GL context)."""
+        self.handover.stop.set()
+        self.handover.set_go(False)
+        if self._thread is not None:
+            self._thread.join(timeout=10.0)
+            if self._thread.is_alive():
+                raise RuntimeError("the stepping thread did not end within 10 s")
+        self._thread = None
+
+    def set_control_rate(self, hz: float) -> None:
+        """control_rate_hz changed (0: the task's rate). Called under the handover's cond."""
+        if self.dt_ns:
+            self.control_rate = hz or 1e9 / self.dt_ns
+
+    # ------------------------------------------------------------------ the thread
     def _run(self) -> None:
         """The stepping thread of one configured run: build the env, wait for activation and
         for the readers, step until cleanup (_stop) or max_episodes; close the env."""
@@ -40,13 +120,12 @@ class Stepping:
             if not self._wait_active() or not self._wait_ready():
                 return
             (self._run_lockstep if self.lockstep else self._run_realtime)()
-            if not self._stop.is_set():
-                self.done.set()   # max_episodes reached: the process exits
+            if not self.handover.stop.is_set():
+                self._finished(0)   # max_episodes reached: the process exits
         except Exception as e:  # noqa: BLE001
-            if not self._stop.is_set():
-                self.get_logger().fatal(f"stepping thread failed: {e}\n{traceback.format_exc()}")
-                self.exit_code = 1
-                self.done.set()
+            if not self.handover.stop.is_set():
+                self.node.get_logger().fatal(f"stepping thread failed: {e}\n{traceback.format_exc()}")
+                self._finished(1)
         finally:
             env, self.env = self.env, None
             if env is not None and hasattr(env, "close"):
@@ -57,12 +136,16 @@ class Stepping:
 
     def _wait_active(self) -> bool:
         """Block while not active; False once the thread is to end."""
-        with self._cond:
-            self._cond.wait_for(lambda: self._go or self._stop.is_set())
-        return not self._stop.is_set()
+        h = self.handover
+        with h.cond:
+            h.cond.wait_for(lambda: h.go or h.stop.is_set())
+        return not h.stop.is_set()
+
+    def _policy_present(self) -> bool:
+        return self._action_publishers() > 0
 
     def _readers_ready(self) -> bool:
-        if not self._go:
+        if not self.handover.go:
             return False
         n = self.params["min_subscribers"]
         if min(self.pub_image.get_subscription_count(),
@@ -76,10 +159,10 @@ class Stepping:
         answer nothing (recorders, unlike policies) are matched on context and clock as well:
         through a Discovery Server each topic is matched on its own, and a recorder's image
         reader can be matched before its context and clock readers are."""
-        if not all(pub.get_subscription_count() >= self.count_subscribers(pub.topic_name)
+        if not all(pub.get_subscription_count() >= self.node.count_subscribers(pub.topic_name)
                    for pub in self._obs_pubs):
             return False
-        silent = self.pub_image.get_subscription_count() - self.sub_action.get_publisher_count()
+        silent = self.pub_image.get_subscription_count() - self._action_publishers()
         return min(self.pub_context.get_subscription_count(),
                    self.pub_clock.get_subscription_count()) >= silent
 
@@ -87,11 +170,11 @@ class Stepping:
         """Block until min_subscribers readers of image and step_info (and, in lock-step, an
         action publisher) are matched; then up to READY_GRACE_S more until every reader the
         ROS graph shows on image/step_info/context is matched as well."""
-        self.get_logger().info(
+        self.node.get_logger().info(
             f"waiting for {self.params['min_subscribers']} reader(s) of image and step_info"
             + (" and an action publisher" if self.lockstep else ""))
         since = None
-        while not self._stop.is_set():
+        while not self.handover.stop.is_set():
             if not self._readers_ready():
                 since = None
             else:
@@ -99,14 +182,14 @@ class Stepping:
                 if self._graph_readers_matched() or time.monotonic() - since > READY_GRACE_S:
                     counts = {pub.topic_name: pub.get_subscription_count()
                               for pub in self._obs_pubs}
-                    self.get_logger().info(f"readers matched {counts}: starting")
+                    self.node.get_logger().info(f"readers matched {counts}: starting")
                     return True
-            self._stop.wait(0.01)
+            self.handover.stop.wait(0.01)
         return False
 
     def _resume(self, stamp: int) -> bool:
         """Deactivated: hold the episode until active again (False: the thread is to end)."""
-        self.get_logger().info(f"inactive: holding observation {topics.format_stamp(stamp)} until activated again")
+        self.node.get_logger().info(f"inactive: holding observation {topics.format_stamp(stamp)} until activated again")
         return self._wait_active()
 
     def _begin_episode(self):
@@ -114,54 +197,57 @@ class Stepping:
         ctx = self._contexts[self._episodes_begun % len(self._contexts)] if self._contexts else None
         self._episodes_begun += 1
         obs = self.env.reset(context=ctx)
-        with self._cond:
-            self._held, self._held_stamp = np.zeros(self.action_dim), -1
+        h = self.handover
+        with h.cond:
+            h.held, h.held_stamp = np.zeros(self.action_dim), -1
         ctx = ", ".join(f"{k}={v:g}" for k, v in obs.context.items())
-        self.get_logger().info(f"episode {obs.episode} ({obs.split} context {ctx})")
+        self.node.get_logger().info(f"episode {obs.episode} ({obs.split} context {ctx})")
         return obs
 
     def _count_step(self) -> None:
-        with self._cond:
+        with self.handover.cond:
             self.counters["steps"] += 1
 
     def _finish_episode(self) -> bool:
         """Count a finished episode; True when max_episodes is reached."""
-        with self._cond:
+        with self.handover.cond:
             self.counters["episodes"] += 1
             n, limit = self.counters["episodes"], self.params["max_episodes"]
         if limit and n >= limit:
-            self.get_logger().info(f"max_episodes={limit} reached: "
-                                   f"{self.counters['steps']} steps; exiting")
+            self.node.get_logger().info(f"max_episodes={limit} reached: "
+                                        f"{self.counters['steps']} steps; exiting")
             return True
         return False
 
     def _serve_reset(self, obs_before) -> Any:
         """Start a new episode at once (the current one ends without is_last)."""
         obs = self._begin_episode()
-        with self._cond:
-            self._reset_requested = False
-            self._reset_note = (f"episode {obs_before.episode} ended at step "
-                                f"{obs_before.step}; episode {obs.episode} started")
-            self._reset_served += 1
-            self._cond.notify_all()
+        h = self.handover
+        with h.cond:
+            h.reset_requested = False
+            h.reset_note = (f"episode {obs_before.episode} ended at step "
+                            f"{obs_before.step}; episode {obs.episode} started")
+            h.reset_served += 1
+            h.cond.notify_all()
         return obs
 
     def _run_lockstep(self) -> None:
-        with self._cond:
-            self._started = True
+        h = self.handover
+        with h.cond:
+            h.started = True
         obs = self._begin_episode()
         stamp = self._stamp()
         sent = self._publish(obs, stamp)
-        while not self._stop.is_set():
-            with self._cond:
+        while not h.stop.is_set():
+            with h.cond:
                 since = time.monotonic()   # the timeout may be changed while waiting
                 rematched = False
-                while not (self._stop.is_set() or self._answer is not None
-                           or self._reset_requested or not self._go):
+                while not (h.stop.is_set() or h.answer is not None
+                           or h.reset_requested or not h.go):
                     if not self._policy_present():
                         # Nobody can answer: wait without timing out; when a policy appears
                         # again the observation is published again at once.
-                        self._cond.wait(0.1)
+                        h.cond.wait(0.1)
                         rematched = self._policy_present()
                         if rematched:
                             break
@@ -169,9 +255,9 @@ class Stepping:
                     left = since + self.params["lockstep_timeout_s"] - time.monotonic()
                     if left <= 0:
                         break
-                    self._cond.wait(left)
-                answer, reset, go = self._answer, self._reset_requested, self._go
-            if self._stop.is_set():
+                    h.cond.wait(left)
+                answer, reset, go = h.answer, h.reset_requested, h.go
+            if h.stop.is_set():
                 return
             if not go:   # paused: once active again the same observation goes out again
                 if not self._resume(stamp):
@@ -185,12 +271,12 @@ class Stepping:
                 continue
             if answer is None:   # timeout: publish the same observation again, unchanged
                 if rematched:
-                    self.get_logger().info(f"action publisher matched again: publishing stamp "
-                                           f"{topics.format_stamp(stamp)} again")
+                    self.node.get_logger().info(f"action publisher matched again: publishing stamp "
+                                                f"{topics.format_stamp(stamp)} again")
                 elif sent:
-                    with self._cond:
+                    with h.cond:
                         self.counters["lockstep_timeouts"] += 1
-                    self._throttle.warning(
+                    self.throttle.warning(
                         "lockstep_timeouts", f"no valid action for stamp {topics.format_stamp(stamp)} within "
                         f"{self.params['lockstep_timeout_s']} s: publishing it again "
                         f"({self.counters['lockstep_timeouts']} timeouts so far)")
@@ -207,22 +293,23 @@ class Stepping:
             sent = self._publish(obs, stamp)
 
     def _run_realtime(self) -> None:
-        with self._cond:
-            self._started = True
+        h = self.handover
+        with h.cond:
+            h.started = True
         obs = self._begin_episode()
         stamp = self._stamp()
         sent = self._publish(obs, stamp)
         next_t = time.monotonic()
-        while not self._stop.is_set():
-            with self._cond:
-                next_t += 1.0 / self._control_rate
-                while not (self._stop.is_set() or self._reset_requested or not self._go):
+        while not h.stop.is_set():
+            with h.cond:
+                next_t += 1.0 / self.control_rate
+                while not (h.stop.is_set() or h.reset_requested or not h.go):
                     left = next_t - time.monotonic()
                     if left <= 0:
                         break
-                    self._cond.wait(left)
-                reset, action, go = self._reset_requested, self._held.copy(), self._go
-            if self._stop.is_set():
+                    h.cond.wait(left)
+                reset, action, go = h.reset_requested, h.held.copy(), h.go
+            if h.stop.is_set():
                 return
             if not go:   # paused: the sim holds still; it goes on at the rate once active
                 if not self._resume(stamp):
@@ -232,8 +319,8 @@ class Stepping:
                     sent = self._publish(obs, stamp)
                 continue
             now = time.monotonic()
-            if now - next_t > 1.0 / self._control_rate:   # fell behind: don't catch up
-                with self._cond:
+            if now - next_t > 1.0 / self.control_rate:   # fell behind: don't catch up
+                with h.cond:
                     self.counters["realtime_overruns"] += 1
                 next_t = now
             if reset:

@@ -142,7 +142,7 @@ def publish_waiting_out_a_full_history(pub, msg, timeout_s: float = 120.0) -> No
     """Publish on a KEEP_ALL writer (the action QoS), waiting while its history is full: Fast DDS
     refuses a sample once 5000 are held that a reliable reader (a recorder frozen that many
     steps) has not acknowledged; the acknowledgements come on DDS's own threads, as the bridge's
-    lossless writers also wait (sim_bridge/bridge/publishing.py)."""
+    lossless writers also wait (sim_bridge/bridge/observation_publishing.py)."""
     deadline = time.monotonic() + timeout_s
     while True:
         try:

@@ -377,10 +377,12 @@ def test_a_full_lossless_history_is_waited_for_not_fatal():
     """Fast DDS refuses a sample once a KEEP_ALL writer holds 5000 a reader has not acknowledged
     (a recorder stalled that long): the bridge waits and publishes it then, counting the waits;
     only when it is stopping, or not lossless, does the error go up."""
-    import threading
     from types import SimpleNamespace
 
-    from sim_bridge.bridge.node import RCLError, SimBridgeNode
+    from sim_bridge.bridge.camera_out import CameraOut
+    from sim_bridge.bridge.handover import Handover
+    from sim_bridge.bridge.node import PARAMS, RCLError
+    from sim_bridge.bridge.observation_publishing import ObservationPublishing
 
     class FullThenFree:
         topic_name = "/protocad/image"
@@ -394,19 +396,23 @@ def test_a_full_lossless_history_is_waited_for_not_fatal():
                 raise RCLError("Failed to publish: cannot publish data")
             self.sent.append(msg)
 
-    def bridge(lossless: bool):
-        return SimpleNamespace(_obs_lossless=lossless, _stop=threading.Event(), _cond=threading.Condition(),
-                               counters={"publish_waits": 0}, _throttle=SimpleNamespace(warning=lambda *a: None))
+    def bridge(lossless: bool) -> ObservationPublishing:
+        # The part alone: no node needed to publish (only an is_last observation logs).
+        return ObservationPublishing(
+            node=None, camera_out=CameraOut({p.name: p.default for p in PARAMS}), pub_image=None,
+            pub_info=None, pub_context=None, pub_clock=None, handover=Handover(),
+            counters={"publish_waits": 0}, throttle=SimpleNamespace(warning=lambda *a: None),
+            lockstep=True, lossless=lossless)
 
     b, pub = bridge(True), FullThenFree(3)
-    with b._cond:
-        SimBridgeNode._send(b, pub, "obs")
+    with b.handover.cond:
+        b._send(pub, "obs")
     assert pub.sent == ["obs"] and b.counters["publish_waits"] == 3
     stopping = bridge(True)
-    stopping._stop.set()
+    stopping.handover.stop.set()
     for b in (bridge(False), stopping):
-        with b._cond, pytest.raises(RCLError):
-            SimBridgeNode._send(b, FullThenFree(1), "obs")
+        with b.handover.cond, pytest.raises(RCLError):
+            b._send(FullThenFree(1), "obs")
 
 
 def test_the_first_publisher_lock_follows_one_writers_sequence_numbers():

@@ -162,7 +162,7 @@ def test_policy_image_callback_is_total(policy_node, msg):
 @given(msg=joint_states(("torque",)))
 def test_bridge_action_callback_is_total(bridge_node, msg):
     before = bridge_node.counters["actions_received"]
-    bridge_node._on_action(msg)
+    bridge_node.action_intake._on_action(msg)
     c = bridge_node.counters
     assert c["actions_received"] == before + 1
     assert c["actions_accepted"] + c["actions_rejected"] == c["actions_received"]
@@ -171,7 +171,7 @@ def test_bridge_action_callback_is_total(bridge_node, msg):
 def test_bridge_reset_service_answers_before_the_first_episode(bridge_node):
     from std_srvs.srv import Trigger
 
-    resp = bridge_node._on_reset(Trigger.Request(), Trigger.Response())
+    resp = bridge_node.action_intake._on_reset(Trigger.Request(), Trigger.Response())
     assert resp.success is False and "waiting" in resp.message
 
 
