@@ -20,9 +20,9 @@ Real-time: the env steps at control_rate_hz with the latest valid action (zeros 
 first one of an episode); actions answering an older observation than the newest one are
 counted late (and still used if newer than the held one).
 
-Camera option and adapter mode (camera_out.py, command_adapter.py): the image topic may carry a real
-camera's frame (any size, another encoding, or JPEG/PNG on image/compressed), and actions may
-come as a robot's Float64MultiArray commands through a joint map, so the policy node's robot
+Camera option and adapter mode (camera_out.py, command_adapter.py): the image topic may carry
+a real camera's frame (any size, another encoding, or JPEG/PNG on image/compressed), and actions
+may come as a robot's Float64MultiArray commands through a joint map, so the policy node's robot
 path runs without a robot.
 """
 from __future__ import annotations
