@@ -34,10 +34,14 @@ from protocad_ros.model.config import check_train_memory
 from protocad_ros.model.hyperparameters import PRESETS, VARIANTS
 from protocad_ros.model.precision import PRECISIONS
 from sim_bridge.contract.contexts import TASKS
-from trainer import cli_values, run_config, torch_setup
+from trainer import cli_values, run_config
 from trainer.run_input import check_settings_section, load_json_object
 
 S = TypeVar("S")
+
+#: The --threads help of every command that computes (trainer.torch_setup.setup_torch reads it).
+THREADS_HELP = ("torch intra-op threads (default 0 = auto: one per core, shared among torchrun's ranks "
+                "on this machine; give 1 to runs that compute side by side)")
 
 PRECEDENCE = """\
 order of precedence, lowest first:
@@ -288,7 +292,7 @@ class ModelChoice:
     """seeds model init, sampling and augmentation"""
     device: str = "cpu"
     """cpu, cuda, cuda:N or auto (cuda when available)"""
-    threads: int = arg(0, help=torch_setup.THREADS_HELP)
+    threads: int = arg(0, help=THREADS_HELP)
     """torch threads"""
     precision: str | None = arg(None, choices=PRECISIONS)
     """train.precision; auto = bfloat16 where the device has bf16 arithmetic (AVX512-BF16/AMX

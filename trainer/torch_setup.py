@@ -1,4 +1,6 @@
-"""Torch set-up of the trainer CLIs: seeds, the device, threads, and how freed memory is kept."""
+"""Torch set-up of the trainer CLIs: seeds, the device, threads, and how freed memory is kept.
+Imported where a command starts to compute, not by the command lines (trainer.settings), so that
+--help and the torch-free commands never load torch."""
 from __future__ import annotations
 
 import ctypes
@@ -6,23 +8,17 @@ import os
 import random
 
 import numpy as np
+import torch
 
 
 def seed_everything(seed: int) -> None:
     random.seed(seed)
     np.random.seed(seed % (2 ** 32))
-    try:
-        import torch
-
-        torch.manual_seed(seed)
-    except ImportError:  # pragma: no cover
-        pass
+    torch.manual_seed(seed)
 
 
 def resolve_device(name: str | None) -> str:
     """'cpu' (default), 'cuda', 'cuda:N' or 'auto' (cuda when available)."""
-    import torch
-
     name = (name or "cpu").lower()
     if name == "auto":
         return "cuda" if torch.cuda.is_available() else "cpu"
@@ -31,10 +27,6 @@ def resolve_device(name: str | None) -> str:
     if name != "cpu" and not name.startswith("cuda"):
         raise SystemExit(f"--device {name!r}: expected cpu, cuda, cuda:N or auto")
     return name
-
-
-THREADS_HELP = ("torch intra-op threads (default 0 = auto: one per core, shared among torchrun's ranks "
-                "on this machine; give 1 to runs that compute side by side)")
 
 
 _TORCH_DEFAULT_THREADS: int | None = None
@@ -66,8 +58,6 @@ def setup_torch(n: int | None) -> int:
     lock-step loop; the loop's nodes wait while it trains), so each has the cores while it
     computes; jobs that do run side by side (protocad-compare's) are given --threads. Returns
     the number of threads in use."""
-    import torch
-
     global _TORCH_DEFAULT_THREADS
     retain_freed_memory()
     if _TORCH_DEFAULT_THREADS is None:   # before anything set it: torch's own, one per core
@@ -81,6 +71,4 @@ def setup_torch(n: int | None) -> int:
 
 
 def torch_threads() -> int:
-    import torch
-
     return torch.get_num_threads()

@@ -8,6 +8,8 @@ from __future__ import annotations
 import math
 from typing import Any, Mapping
 
+import torch
+
 #: Target projections in a cone: their mean pairwise cosine at least this (the collapsed walker
 #: policy of 2026-12 read 0.83; a module that codes B contexts in B directions reads ~1/B).
 COLLAPSE_PROJ_COSINE = 0.8
@@ -64,8 +66,6 @@ def health_of_states(agent: Any, s: Any) -> dict[str, float] | None:
     """The context module's health on posterior states s (B, M, S; numpy or torch) without
     augmentation: the online and target projections of the same states, Sinkhorn targets as
     training computes them (None for a variant without the module)."""
-    import torch
-
     ctx = agent.wm.context
     if ctx is None:
         return None

@@ -41,7 +41,7 @@ from protocad_ros.checkpoint.files import CheckpointError, existing_checkpoint_f
 from sim_bridge.contract.contexts import context_label, get_task, task_actuators
 from sim_bridge.sim.rollout import RandomPolicy, rollout
 from sim_bridge.sim.vector import VectorEnv
-from trainer import console, runs, settings, torch_setup
+from trainer import console, runs, settings
 from trainer.settings import arg, settings_parser
 
 DEFAULT_EPISODES = 5
@@ -347,7 +347,7 @@ class EvaluateSettings:
     """--through-ros: ROS_DOMAIN_ID (default: a fresh one)"""
     json: str | None = arg(None, metavar="FILE")
     """write the results as JSON"""
-    threads: int = arg(0, help=torch_setup.THREADS_HELP)
+    threads: int = arg(0, help=settings.THREADS_HELP)
     """torch threads"""
     no_progress: bool = False
     """no progress bar"""
@@ -377,6 +377,8 @@ def run(a: EvaluateSettings, ros_evaluator: Callable[..., EvalResult] | None = N
     """Evaluate as the settings say, print the tables (and write --json)."""
     if a.through_ros and ros_evaluator is None:
         raise ValueError("--through-ros starts ROS nodes: run it as protocad-evaluate (trainer.launch.ros_evaluate)")
+    from trainer import torch_setup
+
     torch_setup.setup_torch(a.threads)
     device = torch_setup.resolve_device(a.device)
     if not a.checkpoints and not a.random:

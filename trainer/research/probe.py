@@ -30,8 +30,13 @@ from pathlib import Path
 from typing import Any, Sequence
 
 import numpy as np
+import torch
+import torch.nn.functional as F
 
+from protocad_ros.checkpoint.agent_file import load_checkpoint, read_provenance
 from protocad_ros.checkpoint.files import CheckpointError, existing_checkpoint_file
+from protocad_ros.model.agent import make_agent
+from protocad_ros.policy import Policy
 from sim_bridge.contract.contexts import get_task
 from trainer import settings, torch_setup
 from trainer.learn.context_health import collapse_reason
@@ -79,7 +84,7 @@ class ProbeSettings:
     """write a rerun recording: the window features in 2-D PCA, coloured by context"""
     device: str = "cpu"
     """cpu, cuda, cuda:N or auto"""
-    threads: int = arg(0, help=torch_setup.THREADS_HELP)
+    threads: int = arg(0, help=settings.THREADS_HELP)
     """torch threads"""
     no_progress: bool = False
     """no progress bar"""
@@ -103,7 +108,6 @@ def build_parser():
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    # torch comes with the checkpoint module: --help answers without it.
     parsed = settings.parse(build_parser(), argv, config_help=False)
     try:
         return run(parsed.get(ProbeSettings), command=["protocad-probe", *parsed.argv])
@@ -115,8 +119,6 @@ def main(argv: Sequence[str] | None = None) -> int:
 def load(checkpoint: str, device: str) -> tuple[Any, dict[str, Any], Path]:
     """The agent, its counters and the checkpoint file; ValueError for a variant without a
     world model (nothing to probe)."""
-    from protocad_ros.checkpoint.agent_file import load_checkpoint, read_provenance
-
     if not checkpoint:
         raise ValueError("give a CHECKPOINT (file or run directory)")
     path = existing_checkpoint_file(checkpoint)
@@ -165,11 +167,6 @@ def prototype_drift(agent: Any, freeze: int | None = None) -> dict[str, Any] | N
     variant without prototypes). Initialisation is seeded by the config alone (Agent), so
     rebuilding the agent from its config redraws exactly the values training started from.
     `freeze`: the run's effective prototype freeze (its counters), kept beside the figures."""
-    import torch
-    import torch.nn.functional as F
-
-    from protocad_ros.model.agent import make_agent
-
     mine = {n: p for n, p in agent.named_parameters() if n.endswith("prototypes")}
     if not mine:
         return None
@@ -197,7 +194,6 @@ def run(s: ProbeSettings, command: Sequence[str] = ()) -> int:
     torch_setup.setup_torch(s.threads)
     device = torch_setup.resolve_device(s.device)
     agent, counters, path = load(s.checkpoint, device)
-    from protocad_ros.policy import Policy
 
     contexts = {split: select_contexts(agent.cfg.task, split, max_contexts=s.max_contexts)
                 for split in ("train", "test")}

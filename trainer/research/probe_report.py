@@ -262,13 +262,12 @@ def prototypes_line(c: Mapping[str, Any], updates: int) -> str:
 def write_png(doc: Mapping[str, Any], path: Path) -> None:
     """R^2 bars (one panel per target: settings on x, a bar per feature) above the open-loop
     error curves of both splits."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    # A Figure of its own, not pyplot's: no global backend or figure registry to set or leak.
+    from matplotlib.figure import Figure
 
     targets = list(dict.fromkeys(t for s in doc["probes"].values() for t in s))
-    fig, axes = plt.subplots(2, max(2, len(targets)), figsize=(6 * max(2, len(targets)), 8), squeeze=False)
+    fig = Figure(figsize=(6 * max(2, len(targets)), 8))
+    axes = fig.subplots(2, max(2, len(targets)), squeeze=False)
     for ax, target in zip(axes[0], targets):
         _bars(ax, doc["probes"], target)
     for ax in axes[0][len(targets):]:
@@ -289,7 +288,6 @@ def write_png(doc: Mapping[str, Any], path: Path) -> None:
     fig.suptitle(f"protocad-probe: {doc['task']} {doc['variant']}, {doc['updates']} updates")
     fig.tight_layout()
     fig.savefig(path, dpi=90)
-    plt.close(fig)
 
 
 def _bars(ax: Any, probes: Mapping[str, Any], target: str) -> None:

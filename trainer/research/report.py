@@ -269,13 +269,12 @@ def superseded_lines(doc: Mapping[str, Any]) -> list[str]:
 
 def plot_curves(doc: Mapping[str, Any], path: str | Path) -> Path:
     """PNG: one panel per task, return vs env steps, a line per variant with its 95% band."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    # A Figure of its own, not pyplot's: no global backend or figure registry to set or leak.
+    from matplotlib.figure import Figure
 
     tasks = sorted({r["task"] for r in doc["runs"]})
-    fig, axes = plt.subplots(1, max(1, len(tasks)), figsize=(5.2 * max(1, len(tasks)), 3.8), squeeze=False)
+    fig = Figure(figsize=(5.2 * max(1, len(tasks)), 3.8))
+    axes = fig.subplots(1, max(1, len(tasks)), squeeze=False)
     for ax, task in zip(axes[0], tasks):
         for label in labels_of(doc, task):
             x, m, lo, hi = curves(doc, task, label)
@@ -308,7 +307,6 @@ def plot_curves(doc: Mapping[str, Any], path: str | Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.tmp")
     fig.savefig(tmp, format="png", dpi=110, metadata={"Software": None})
-    plt.close(fig)
     os.replace(tmp, path)
     return path
 

@@ -11,6 +11,7 @@ import json
 from typing import Any, Callable, Mapping, Sequence
 
 import numpy as np
+from scipy import optimize, stats
 
 from sim_bridge.contract.contexts import get_task
 from trainer.research.results_json import DREAMERV2_SCORES, PAPER_ENV_STEPS, PAPER_TABLE1
@@ -30,9 +31,7 @@ def iqm(scores: np.ndarray) -> float:
 # The aggregates take each task's scores along the last axis, so bootstrap_ci computes all its
 # replicates in one call (leading axis: replicate); on plain score vectors they give a float.
 def _iqm_last_axis(scores: np.ndarray) -> np.ndarray:
-    from scipy.stats import trim_mean
-
-    return trim_mean(scores, 0.25, axis=-1)
+    return stats.trim_mean(scores, 0.25, axis=-1)
 
 
 def _float_or_array(x: np.ndarray) -> float | np.ndarray:
@@ -114,8 +113,6 @@ def paired_difference(doc: Mapping[str, Any], task: str, a: str = "protocad", b:
     """The primary metric of a paired comparison: per seed that both labels finished, the final
     return of `a` minus that of `b`; their mean with a Student-t interval over the seeds (None
     with fewer than 2 pairs)."""
-    from scipy import stats
-
     scores = final_scores(doc)
     by_seed = [{r["seed"]: r["final"]["mean_return"] for r in scores.get((task, lab), [])} for lab in (a, b)]
     seeds = sorted(set(by_seed[0]) & set(by_seed[1]))
@@ -152,8 +149,6 @@ def power_of(effect: float, pair_sd: float, n_pairs: int, alpha: float = 0.05) -
     """The probability that the two-sided paired t-test at level alpha over n_pairs pairs
     rejects "no difference" when the true mean difference is `effect` (either sign) and the pairs'
     differences have standard deviation pair_sd; alpha itself when effect is 0."""
-    from scipy import stats
-
     _check_test(pair_sd, n_pairs, alpha)
     df = n_pairs - 1
     crit = stats.t.ppf(1 - alpha / 2, df)
@@ -165,15 +160,13 @@ def power_of(effect: float, pair_sd: float, n_pairs: int, alpha: float = 0.05) -
 def detectable_effect(pair_sd: float, n_pairs: int, alpha: float = 0.05, power: float = 0.8) -> float:
     """The smallest true mean paired difference (in return) that the paired t-test over n_pairs
     pairs detects with probability `power`: power_of(result, pair_sd, n_pairs, alpha) == power."""
-    from scipy.optimize import brentq
-
     _check_test(pair_sd, n_pairs, alpha)
     if not alpha < power < 1:
         raise ValueError(f"power must lie between alpha ({alpha}) and 1, got {power}")
     hi = pair_sd
     while power_of(hi, pair_sd, n_pairs, alpha) < power:
         hi *= 2
-    return float(brentq(lambda e: power_of(e, pair_sd, n_pairs, alpha) - power, 0.0, hi,
+    return float(optimize.brentq(lambda e: power_of(e, pair_sd, n_pairs, alpha) - power, 0.0, hi,
                         xtol=1e-9 * pair_sd, rtol=1e-12))
 
 
@@ -266,8 +259,6 @@ def power_table(budgets: Sequence[int] = POWER_BUDGETS, alpha: float = 0.05, pow
     approximation would claim), its power for the paper's walker_walk gap carried to 30k, and the
     independent-pair SD the other rows assume, for that row. `cheapest`: the row with the fewest
     core-hours. Values rounded as msgs_docs/results/power_table.json holds them."""
-    from scipy import stats
-
     diffs = np.array(WALKER_GRID_DIFFS)
     measured_sd = float(diffs.std(ddof=1))
     rows = []

@@ -61,7 +61,7 @@ class StudySettings:
     """record: observations per evaluation episode (one per context)"""
     json: str | None = arg(None, metavar="FILE")
     """report: write the per-arm figures as JSON"""
-    threads: int = arg(1, help=torch_setup.THREADS_HELP)
+    threads: int = arg(1, help=settings.THREADS_HELP)
 
 
 def build_parser():
