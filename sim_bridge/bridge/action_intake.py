@@ -4,12 +4,11 @@ publisher, matched to the observation that awaits them, clipped) and the reset s
 ActionIntake (the node's `action_intake`) creates and owns the action subscription (or, in
 adapter mode, the command subscription and its CommandAdapter, loaded at configure), the
 publisher watch and first-publisher lock on it, and the reset service; it owns which stamps were
-answered and the action latency (observation published -> answer received). It is handed the
-node (to create those and for its logger and lifecycle state), the parameters, the shared
-Handover (sim_bridge/bridge/handover.py) through which accepted actions and reset requests
-reach the stepping thread (sim_bridge/bridge/stepping.py), the node's counters and log
-throttle, the mode, and the node's `done` event (a reset request stops waiting once the node is
-done)."""
+answered and the action latency (observation published -> answer received). It is handed
+BridgeShared (sim_bridge/bridge/handover.py: the node, to create those and for its logger and
+lifecycle state; the parameters; the Handover through which accepted actions and reset requests
+reach the stepping thread; the counters, the log throttle, the mode) and the node's `done` event
+(a reset request stops waiting once the node is done)."""
 from __future__ import annotations
 
 import collections
@@ -23,27 +22,21 @@ from std_msgs.msg import Float64MultiArray
 from std_srvs.srv import Trigger
 
 from sim_bridge.bridge.command_adapter import CommandAdapter, CommandRejected
-from sim_bridge.bridge.handover import Handover
+from sim_bridge.bridge.handover import BridgeShared
 from sim_bridge.bridge.params import ACTION_HIGH, ACTION_LOW
 from sim_bridge.contract import qos, topics
 from sim_bridge.contract.contexts import task_actuators
-from sim_bridge.nodekit.lifecycle import ManagedNode
 from sim_bridge.nodekit.publisher_watch import FirstPublisherLock, PublisherWatch
-from sim_bridge.nodekit.rosnode import KeyThrottle, Percentiles
+from sim_bridge.nodekit.rosnode import Percentiles
 
 
 class ActionIntake:
     """Actions and the reset service; see the module docstring."""
 
-    def __init__(self, *, node: ManagedNode, params: dict[str, Any], handover: Handover,
-                 counters: dict[str, int], throttle: KeyThrottle, lockstep: bool,
-                 done: threading.Event):
-        self.node = node
-        self.params = params
-        self.handover = handover
-        self.counters = counters
-        self.throttle = throttle
-        self.lockstep = lockstep
+    def __init__(self, shared: BridgeShared, *, done: threading.Event):
+        node, params = self.node, self.params = shared.node, shared.params
+        self.handover, self.counters, self.throttle = shared.handover, shared.counters, shared.throttle
+        self.lockstep = shared.lockstep
         self.done = done
         self.latency = Percentiles()   # observation published -> answer received
         self.command_adapter: CommandAdapter | None = None   # adapter mode, from configure

@@ -2,12 +2,11 @@
 
 BridgeDiagnostics (the node's `bridge_diagnostics`) owns the step-rate window, the late-action
 count at its last report and which of the bridge's topics another node publishes too. It is
-handed the node (its lifecycle state, error counts, unknown parameters, clock, logger and the
-ROS graph), the parameters, the shared Handover's lock (sim_bridge/bridge/handover.py) and the
-node's counters, /diagnostics' publisher and the bridge's own publishers to watch, the action
-latency, the type watch, and callables for what other parts know: ObservationPublishing's
-`progress`, ActionIntake's `action_publishers` and its publisher watch's `summary`, and the
-stepping thread's control rate."""
+handed BridgeShared (sim_bridge/bridge/handover.py: the node, for its lifecycle state, error
+counts, unknown parameters, clock, logger and the ROS graph; the parameters; the Handover's lock
+and the counters), /diagnostics' publisher and the bridge's own publishers to watch, the type
+watch, ActionIntake (its latency, `action_publishers` and its publisher watch's `summary`),
+ObservationPublishing's `progress` and the stepping thread's control rate."""
 from __future__ import annotations
 
 import collections
@@ -17,35 +16,30 @@ from typing import Any, Callable
 from diagnostic_msgs.msg import DiagnosticArray
 from rclpy.publisher import Publisher
 
-from sim_bridge.bridge.handover import Handover
-from sim_bridge.nodekit.lifecycle import ManagedNode
-from sim_bridge.nodekit.rosnode import Percentiles, make_status
+from sim_bridge.bridge.action_intake import ActionIntake
+from sim_bridge.bridge.handover import BridgeShared
+from sim_bridge.nodekit.rosnode import make_status
 from sim_bridge.nodekit.type_watch import TopicTypeWatch
 
 
 class BridgeDiagnostics:
     """One DiagnosticStatus per call of `publish`; see the module docstring."""
 
-    def __init__(self, *, node: ManagedNode, params: dict[str, Any], handover: Handover,
-                 counters: dict[str, int], pub_diag: Publisher, own_pubs: tuple[Publisher, ...],
-                 latency: Percentiles, type_watch: TopicTypeWatch, lockstep: bool,
-                 progress: Callable[[], tuple[int, int, dict[str, float], float]],
-                 action_publishers: Callable[[], int], multiple_publishers: Callable[[], str],
+    def __init__(self, shared: BridgeShared, *, pub_diag: Publisher, own_pubs: tuple[Publisher, ...],
+                 type_watch: TopicTypeWatch, intake: ActionIntake, progress: Callable[[], tuple],
                  control_rate: Callable[[], float]):
-        self.node = node
-        self.params = params
-        self.handover = handover
-        self.counters = counters
+        self.node, self.params, self.handover = shared.node, shared.params, shared.handover
+        self.counters, self.lockstep = shared.counters, shared.lockstep
         self.pub_diag = pub_diag
         self.own_pubs = own_pubs   # image, step_info, context, bridge_info
-        self.latency = latency
         self.type_watch = type_watch
-        self.lockstep = lockstep
-        self._progress = progress
-        self._action_publishers = action_publishers
-        self._multiple_publishers = multiple_publishers
+        # ActionIntake's figures: latency, who publishes actions, a second publisher's summary.
+        self.latency = intake.latency
+        self._action_publishers = intake.action_publishers
+        self._multiple_publishers = intake.publisher_watch.summary
+        self._progress = progress   # ObservationPublishing.progress
         self._control_rate = control_rate
-        self.name = node.get_fully_qualified_name()   # -r __node:=... renames it too
+        self.name = self.node.get_fully_qualified_name()   # -r __node:=... renames it too
         self._late_at_last_diag = 0
         self._rate_window: collections.deque[tuple[float, int]] = collections.deque(maxlen=2)
         self._rate_window.append((time.monotonic(), 0))

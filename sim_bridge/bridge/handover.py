@@ -16,8 +16,27 @@ from __future__ import annotations
 
 import collections
 import threading
+from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
+
+from sim_bridge.nodekit.rosnode import KeyThrottle
+
+
+@dataclass(frozen=True)
+class BridgeShared:
+    """What the node hands every part of the bridge: itself (logger, ROS graph, create_*), its
+    parameters, the Handover, its counters (changed under the handover's lock), its log throttle
+    and whether it steps in lock-step. One object, so a part's constructor lists only what is
+    its own."""
+
+    node: Any            # SimBridgeNode (a ManagedNode)
+    params: dict[str, Any]
+    handover: "Handover"
+    counters: dict[str, int]
+    throttle: KeyThrottle
+    lockstep: bool
 
 
 class Handover:

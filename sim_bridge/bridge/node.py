@@ -37,10 +37,10 @@ from sensor_msgs.msg import JointState
 from sim_bridge.bridge.action_intake import ActionIntake
 from sim_bridge.bridge.bridge_diagnostics import BridgeDiagnostics
 from sim_bridge.bridge.camera_out import CameraOut
-from sim_bridge.bridge.handover import Handover
+from sim_bridge.bridge.handover import BridgeShared, Handover
 from sim_bridge.bridge.observation_publishing import PUBLISH_RETRY_S, ObservationPublishing, RCLError
 from sim_bridge.bridge.params import COUNTERS, FLUSH_TIMEOUT_S, LOSSLESS_FLUSH_TIMEOUT_S, PARAMS, episode_contexts
-from sim_bridge.bridge.stepping import Stepping
+from sim_bridge.bridge.stepping import Stepping, bridge_env
 from sim_bridge.contract import qos, topics
 from sim_bridge.nodekit.lifecycle import ManagedNode
 from sim_bridge.nodekit.rosnode import (
@@ -89,7 +89,6 @@ class SimBridgeNode(ManagedNode):
         if not self.params["remote_lifecycle"]:
             self.refuse_remote_transitions()
         self._throttle = KeyThrottle(self.get_logger())
-        shared = {"node": self, "handover": self.handover, "counters": self.counters}
 
         # Every ROS interface exists in every state (the graph shows the node's topics even
         # while unconfigured); observations go out only while active (lifecycle publishers,
@@ -110,28 +109,22 @@ class SimBridgeNode(ManagedNode):
         # check that it fits before the bridge steps.
         self.pub_bridge_info = self.create_publisher(JointState, topics.BRIDGE_INFO, qos.announcement_qos())
         self._obs_pubs = (self.pub_image, self.pub_info, self.pub_context)
+        shared = BridgeShared(node=self, params=p, handover=self.handover, counters=self.counters,
+                              throttle=self._throttle, lockstep=self.lockstep)
         self.observation_publishing = ObservationPublishing(
-            **shared, camera_out=self.camera_out, pub_image=self.pub_image, pub_info=self.pub_info,
-            pub_context=self.pub_context, pub_clock=self.pub_clock, throttle=self._throttle,
-            lockstep=self.lockstep, lossless=lossless)
-        self.action_intake = ActionIntake(**shared, params=p, throttle=self._throttle,
-                                          lockstep=self.lockstep, done=self.done)
+            shared, camera_out=self.camera_out, observation_pubs=self._obs_pubs, pub_clock=self.pub_clock,
+            lossless=lossless)
+        self.action_intake = ActionIntake(shared, done=self.done)
+        render_size = self.camera_out.render_size
         self.stepping = Stepping(
-            **shared, params=p, throttle=self._throttle, lockstep=self.lockstep, contexts=contexts,
-            env_factory=env_factory, render_size=self.camera_out.render_size,
-            observation_pubs=self._obs_pubs, pub_clock=self.pub_clock,
-            action_publishers=self.action_intake.action_publishers,
-            publish=self.observation_publishing.publish,
-            next_stamp=self.observation_publishing.next_stamp, finished=self._finished)
+            shared, contexts=contexts, env_factory=env_factory or (lambda: bridge_env(p, render_size)),
+            publishing=self.observation_publishing, action_publishers=self.action_intake.action_publishers,
+            finished=self._finished)
         # A contract topic claimed by a stranger with another type never matches: said, not a hang.
         self.type_watch = TopicTypeWatch(self)
         self.bridge_diagnostics = BridgeDiagnostics(
-            **shared, params=p, pub_diag=self.pub_diag,
-            own_pubs=(*self._obs_pubs, self.pub_bridge_info), latency=self.action_intake.latency,
-            type_watch=self.type_watch, lockstep=self.lockstep,
-            progress=self.observation_publishing.progress,
-            action_publishers=self.action_intake.action_publishers,
-            multiple_publishers=self.action_intake.publisher_watch.summary,
+            shared, pub_diag=self.pub_diag, own_pubs=(*self._obs_pubs, self.pub_bridge_info),
+            type_watch=self.type_watch, intake=self.action_intake, progress=self.observation_publishing.progress,
             control_rate=lambda: self.stepping.control_rate)
         self.diag_timer = self.create_timer(p["diagnostics_period_s"], self.bridge_diagnostics.publish)
         install_parameter_guards(self, PARAMS, self._apply_param, self._parameter_rejected)

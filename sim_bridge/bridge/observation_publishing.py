@@ -4,23 +4,22 @@ and, lossless, waiting out a full history instead of losing a sample.
 
 ObservationPublishing (the node's `observation_publishing`) owns the four reused messages, the
 stamp clock (tick x dt_ns) and what the newest observation said (episode, step, return so far,
-context). It is handed the node (for its logger), the four observation publishers, the node's
-CameraOut, the shared Handover (sim_bridge/bridge/handover.py: `go`, the published stamps, the
-stamp awaiting its answer), the node's counters and log throttle, and the mode."""
+context). It is handed BridgeShared (sim_bridge/bridge/handover.py: the node, for its logger;
+the Handover, with `go`, the published stamps and the stamp awaiting its answer; the counters,
+the log throttle and the mode), the node's CameraOut, the three observation publishers and the
+clock's."""
 from __future__ import annotations
 
 import time
 
 from rclpy.impl.implementation_singleton import rclpy_implementation as _rclpy
-from rclpy.node import Node
 from rclpy.publisher import Publisher
 from rosgraph_msgs.msg import Clock
 from sensor_msgs.msg import JointState
 
 from sim_bridge.bridge.camera_out import CameraOut
-from sim_bridge.bridge.handover import Handover
+from sim_bridge.bridge.handover import BridgeShared
 from sim_bridge.contract import topics
-from sim_bridge.nodekit.rosnode import KeyThrottle
 
 #: What rclpy raises when the middleware refuses a sample (a full KEEP_ALL history).
 RCLError = _rclpy.RCLError
@@ -31,17 +30,14 @@ PUBLISH_RETRY_S = 0.05
 class ObservationPublishing:
     """One observation out, whole; see the module docstring."""
 
-    def __init__(self, *, node: Node, camera_out: CameraOut, pub_image: Publisher, pub_info: Publisher,
-                 pub_context: Publisher, pub_clock: Publisher, handover: Handover, counters: dict[str, int],
-                 throttle: KeyThrottle, lockstep: bool, lossless: bool):
-        self.node = node
+    def __init__(self, shared: BridgeShared, *, camera_out: CameraOut,
+                 observation_pubs: tuple[Publisher, Publisher, Publisher], pub_clock: Publisher, lossless: bool):
+        self.node, self.handover, self.counters = shared.node, shared.handover, shared.counters
+        self.throttle, self.lockstep = shared.throttle, shared.lockstep
         self.camera_out = camera_out
-        self.pub_image, self.pub_info, self.pub_context, self.pub_clock = (
-            pub_image, pub_info, pub_context, pub_clock)
-        self.handover = handover
-        self.counters = counters
-        self.throttle = throttle
-        self.lockstep = lockstep
+        self.observation_pubs = observation_pubs   # image, step_info, context
+        self.pub_image, self.pub_info, self.pub_context = observation_pubs
+        self.pub_clock = pub_clock
         self.lossless = lossless
         self._img_msg, self._info_msg, self._ctx_msg, self._clock_msg = (
             camera_out.msg_type(), JointState(), JointState(), Clock())

@@ -5,11 +5,12 @@ real time (at control_rate_hz with the latest valid action) until cleanup or max
 
 Stepping (the node's `stepping`) owns the thread, the env and what the env fixes at configure
 (action_dim, action_names, dt_ns, the real-time control rate), and the episode-context schedule.
-It is handed the node (for its logger and the ROS graph), the parameters, the four observation
-publishers (to see who reads them), the shared Handover (sim_bridge/bridge/handover.py) through
-which ActionIntake's accepted actions and reset requests arrive, the node's counters and log
-throttle, and callables: ObservationPublishing's `publish` and `next_stamp`, ActionIntake's
-`action_publishers`, and the node's `finished(exit_code)` (the process is done)."""
+It is handed BridgeShared (sim_bridge/bridge/handover.py: the node, for its logger and the ROS
+graph; the parameters; the Handover through which ActionIntake's accepted actions and reset
+requests arrive; the counters, the log throttle and the mode), the episode contexts, the env
+factory, ObservationPublishing (its publishers, to see who reads them, and its `publish` and
+`next_stamp`), ActionIntake's `action_publishers` and the node's `finished(exit_code)` (the
+process is done)."""
 from __future__ import annotations
 
 import threading
@@ -18,13 +19,12 @@ import traceback
 from typing import Any, Callable
 
 import numpy as np
-from rclpy.publisher import Publisher
 
-from sim_bridge.bridge.handover import Handover
+from sim_bridge.bridge.handover import BridgeShared
+from sim_bridge.bridge.observation_publishing import ObservationPublishing
 from sim_bridge.bridge.params import READY_GRACE_S
 from sim_bridge.contract import topics
-from sim_bridge.nodekit.lifecycle import ManagedNode
-from sim_bridge.nodekit.rosnode import ConfigError, KeyThrottle
+from sim_bridge.nodekit.rosnode import ConfigError
 from sim_bridge.sim.envs import ContextDMCEnv
 
 
@@ -40,27 +40,26 @@ def bridge_env(p: dict[str, Any], render_size: tuple[int, int] | None) -> Contex
 class Stepping:
     """The stepping thread and its env; see the module docstring."""
 
-    def __init__(self, *, node: ManagedNode, params: dict[str, Any], handover: Handover,
-                 counters: dict[str, int], throttle: KeyThrottle, lockstep: bool,
-                 contexts: list[dict[str, float]], env_factory: Callable[[], Any] | None,
-                 render_size: tuple[int, int] | None, observation_pubs: tuple[Publisher, Publisher, Publisher],
-                 pub_clock: Publisher, action_publishers: Callable[[], int],
-                 publish: Callable[..., bool], next_stamp: Callable[[], int],
-                 finished: Callable[[int], None]):
-        self.node, self.params, self.handover, self.counters = node, params, handover, counters
-        self.throttle, self.lockstep, self._contexts = throttle, lockstep, contexts
-        self._env_factory = env_factory or (lambda: bridge_env(params, render_size))
-        self._obs_pubs = observation_pubs   # image, step_info, context
-        self.pub_image, self.pub_info, self.pub_context = observation_pubs
-        self.pub_clock = pub_clock
-        self._action_publishers = action_publishers
-        self._publish, self._stamp, self._finished = publish, next_stamp, finished
+    def __init__(self, shared: BridgeShared, *, contexts: list[dict[str, float]],
+                 env_factory: Callable[[], Any], publishing: ObservationPublishing,
+                 action_publishers: Callable[[], int], finished: Callable[[int], None]):
+        self.node, self.params, self.handover = shared.node, shared.params, shared.handover
+        self.counters, self.throttle, self.lockstep = shared.counters, shared.throttle, shared.lockstep
+        self._contexts = contexts
+        self._env_factory = env_factory
+        # ObservationPublishing's publishers (whose readers it waits for) and its one way out.
+        self._obs_pubs = publishing.observation_pubs   # image, step_info, context
+        self.pub_image, self.pub_info, self.pub_context = publishing.observation_pubs
+        self.pub_clock = publishing.pub_clock
+        self._publish, self._stamp = publishing.publish, publishing.next_stamp
+        self._action_publishers = action_publishers   # ActionIntake's count of action writers
+        self._finished = finished
         self._thread: threading.Thread | None = None
         self._env_ready = threading.Event()   # per configure: the thread built the env, or failed
         self._env_error: BaseException | None = None
         self.env = None
         self.action_dim, self.action_names, self.dt_ns = 0, [], 0
-        self.control_rate = params["control_rate_hz"]   # the task's rate once configured
+        self.control_rate = self.params["control_rate_hz"]   # the task's rate once configured
         self._episodes_begun = 0
 
     # ------------------------------------------------------------------ the node's lifecycle

@@ -380,7 +380,7 @@ def test_a_full_lossless_history_is_waited_for_not_fatal():
     from types import SimpleNamespace
 
     from sim_bridge.bridge.camera_out import CameraOut
-    from sim_bridge.bridge.handover import Handover
+    from sim_bridge.bridge.handover import BridgeShared, Handover
     from sim_bridge.bridge.node import PARAMS, RCLError
     from sim_bridge.bridge.observation_publishing import ObservationPublishing
 
@@ -398,11 +398,10 @@ def test_a_full_lossless_history_is_waited_for_not_fatal():
 
     def bridge(lossless: bool) -> ObservationPublishing:
         # The part alone: no node needed to publish (only an is_last observation logs).
-        return ObservationPublishing(
-            node=None, camera_out=CameraOut({p.name: p.default for p in PARAMS}), pub_image=None,
-            pub_info=None, pub_context=None, pub_clock=None, handover=Handover(),
-            counters={"publish_waits": 0}, throttle=SimpleNamespace(warning=lambda *a: None),
-            lockstep=True, lossless=lossless)
+        shared = BridgeShared(node=None, params={}, handover=Handover(), counters={"publish_waits": 0},
+                              throttle=SimpleNamespace(warning=lambda *a: None), lockstep=True)
+        return ObservationPublishing(shared, camera_out=CameraOut({p.name: p.default for p in PARAMS}),
+                                     observation_pubs=(None, None, None), pub_clock=None, lossless=lossless)
 
     b, pub = bridge(True), FullThenFree(3)
     with b.handover.cond:
