@@ -136,32 +136,46 @@ def record_signature(path: str | os.PathLike, a: topics.CheckpointAnnouncement) 
         signature_path(path).unlink(missing_ok=True)
 
 
-class CheckpointReceiver:
-    """Subscriptions of one node to one checkpoint topic; see the module docstring.
+@dataclass(frozen=True)
+class ReceiverSettings:
+    """What a CheckpointReceiver is handed by its node: limits, trust and callbacks.
 
     wake(): a version arrived whole (executor thread); the node's checkpoint thread then calls
     install_received. next_sha(): the version the node serves from its next episode on (not
-    fetched again). newest_seq(): the sequence number of the newest version the node holds
-    (served or about to be; -1 if none is signed). serving(): what the node serves, for the
-    rejection line. fits(announcement): why the announced task/variant does not fit what the
-    node serves, or None. count(key, why): the node's counters, `why` a throttled warning.
-    trusted: key id -> public key; None accepts unsigned versions.
+    fetched again). serving(): what the node serves, for the rejection line. count(key, why):
+    the node's counters, `why` a throttled warning. trusted: key id -> public key; None accepts
+    unsigned versions. newest_seq(): the sequence number of the newest version the node holds
+    (served or about to be; -1 if none is signed). fits(announcement): why the announced
+    task/variant does not fit what the node serves, or None. refusals: the node's rate-limited
+    refusal lines (a log of the receiver's own when None).
     """
+
+    timeout_s: float
+    wake: Callable[[], None]
+    next_sha: Callable[[], str | None]
+    serving: Callable[[], str]
+    count: Callable[..., None]
+    max_bytes: int = DEFAULT_MAX_BYTES
+    trusted: TrustedKeys | None = None
+    newest_seq: Callable[[], int] = lambda: -1
+    fits: Callable[[topics.CheckpointAnnouncement], str | None] = lambda a: None
+    refusals: RefusalLog | None = None
+
+
+class CheckpointReceiver:
+    """Subscriptions of one node to one checkpoint topic, with its ReceiverSettings (the
+    node's limits and callbacks); see the module docstring."""
 
     ACCEPTED, REJECTED = "checkpoint_transfers", "checkpoint_transfers_rejected"
     SIGNATURE, ROLLBACK = "checkpoint_signatures_rejected", "checkpoint_rollbacks_rejected"
     LIMITS, MISMATCH = "checkpoint_limits_rejected", "checkpoint_mismatches"
     DROPPED = "checkpoint_chunks_dropped"
 
-    def __init__(self, node, topic: str, *, timeout_s: float, wake: Callable[[], None],
-                 next_sha: Callable[[], str | None], serving: Callable[[], str],
-                 count: Callable[..., None], max_bytes: int = DEFAULT_MAX_BYTES,
-                 trusted: TrustedKeys | None = None, newest_seq: Callable[[], int] = lambda: -1,
-                 fits: Callable[[topics.CheckpointAnnouncement], str | None] = lambda a: None,
-                 refusals: RefusalLog | None = None):
-        self.node, self.timeout_s, self.max_bytes, self.trusted = node, timeout_s, max_bytes, trusted
-        self._wake, self._next_sha, self._serving, self._count = wake, next_sha, serving, count
-        self._newest_seq, self._fits = newest_seq, fits
+    def __init__(self, node, topic: str, settings: ReceiverSettings):
+        s = settings
+        self.node, self.timeout_s, self.max_bytes, self.trusted = node, s.timeout_s, s.max_bytes, s.trusted
+        self._wake, self._next_sha, self._serving, self._count = s.wake, s.next_sha, s.serving, s.count
+        self._newest_seq, self._fits = s.newest_seq, s.fits
         self._lock = threading.Lock()
         self._received: Transfer | None = None   # whole, for install_received
         self.announced: topics.CheckpointAnnouncement | None = None   # verified, coming in
@@ -170,12 +184,12 @@ class CheckpointReceiver:
         self._parts: dict[int, bytes] = {}   # the announced version's chunks so far
         self._buffered = 0                   # their bytes
         self._refetch = False   # chunks of no announced version were dropped (maybe early ones)
-        self.refusals = refusals or RefusalLog(node.get_logger().error)
+        self.refusals = s.refusals or RefusalLog(node.get_logger().error)
         self.sub_announce = node.create_subscription(String, topic, self._on_announcement,
                                                      qos.announcement_qos())
         self.topic = self.sub_announce.topic_name
         self.sub_chunks = self._subscribe_chunks()
-        self.timer = node.create_timer(min(1.0, max(timeout_s / 4, 0.05)), self._check_timeout)
+        self.timer = node.create_timer(min(1.0, max(s.timeout_s / 4, 0.05)), self._check_timeout)
 
     def _subscribe_chunks(self):
         return self.node.create_subscription(UInt8MultiArray, topics.chunks_topic(self.topic),

@@ -65,8 +65,8 @@ from cryptography.hazmat.primitives.asymmetric.ed25519 import Ed25519PrivateKey
 from protocad_ros.checkpoint.signing import sign_file
 
 def policy_node(path):   # the policy node's one read (checkpoint_serving)
-    from protocad_ros.node.checkpoint_serving import CheckpointServing
-    return CheckpointServing._read_once(types.SimpleNamespace(params={"max_checkpoint_bytes": 512 << 20}), path)
+    from protocad_ros.node.checkpoint_serving import read_once
+    return read_once(path, 512 << 20)
 
 def publisher(path):     # the checkpoint publisher's
     from trainer.nodes.checkpoint_publisher import CheckpointPublisherNode

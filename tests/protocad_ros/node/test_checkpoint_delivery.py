@@ -32,7 +32,7 @@ from hypothesis import strategies as st
 from std_msgs.msg import String, UInt8MultiArray
 
 from protocad_ros.checkpoint.signing import generate_keypair, load_private_key, next_seq, sign_file, signature_path
-from protocad_ros.node.checkpoint_receiver import CheckpointReceiver
+from protocad_ros.node.checkpoint_receiver import CheckpointReceiver, ReceiverSettings
 from sim_bridge.contract import qos, topics
 
 TIMEOUT_S = 5.0   # the policy's checkpoint_transfer_timeout_s: how long a version may be partial
@@ -534,7 +534,7 @@ announcements = st.one_of(st.text(max_size=40), json_values.map(json.dumps), st.
 def test_no_announcement_or_chunk_breaks_the_receiver(receiving_policy, text, label, data):
     from std_msgs.msg import MultiArrayDimension
 
-    receiver = receiving_policy.receiver
+    receiver = receiving_policy.checkpoint_serving.receiver
     before = receiving_policy.counters["checkpoint_transfers_rejected"]
     receiver._on_announcement(String(data=text))      # must not raise
     try:
@@ -571,9 +571,9 @@ def bare_receiver():
 
     def make(**kw):
         woken, counted = [], []
-        r = CheckpointReceiver(node, "checkpoint", timeout_s=60.0, wake=lambda: woken.append(1),
-                               next_sha=kw.pop("next_sha", lambda: None), serving=lambda: "nothing",
-                               count=lambda key, why=None: counted.append(key), **kw)
+        r = CheckpointReceiver(node, "checkpoint", ReceiverSettings(
+            timeout_s=60.0, wake=lambda: woken.append(1), next_sha=kw.pop("next_sha", lambda: None),
+            serving=lambda: "nothing", count=lambda key, why=None: counted.append(key), **kw))
         made.append(r)
         return r, woken, counted
 

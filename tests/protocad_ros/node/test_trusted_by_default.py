@@ -283,7 +283,7 @@ def test_a_file_swapped_between_verification_and_load_is_never_served(keyed_node
     save_agent(path, 5, seed=1)
     sign_file(path, learner)
     node = make(path, reload_poll_s=0.0)
-    assert node.checkpoint_updates == 5
+    assert node.checkpoint_serving.checkpoint_updates == 5
     save_agent(path, 7, seed=2)
     sign_file(path, learner)
     signed_v2 = path.read_bytes()
@@ -325,9 +325,9 @@ def test_a_file_swapped_between_verification_and_load_is_never_served(keyed_node
     monkeypatch.setattr(builtins, "open", hooked_open)
     monkeypatch.setattr(io, "open", hooked_open)
     monkeypatch.setattr(os, "open", hooked_os_open)
-    node._check_file(str(path))
+    node.checkpoint_serving._check_file(str(path))
     monkeypatch.undo()
-    pending = node._pending_policy
+    pending = node.checkpoint_serving._pending_policy
     assert pending is not None, node.counters
     assert pending[1]["updates"] == 7 and pending[3] == hashlib.sha256(signed_v2).hexdigest()
     assert len(reads) == 1, f"the checkpoint was read {len(reads)} times"
@@ -341,14 +341,14 @@ def test_the_random_agent_refuses_another_variant_or_architecture(keyed_node, tm
 
     make, learner, _ = keyed_node
     node = make(tmp_path / "robot" / "agent.pt", checkpoint_topic="checkpoint")
-    assert node.agent_kind == "random"
+    assert node.checkpoint_serving.agent_kind == "random"
     dreamer = _with_config(_saved(tmp_path / "d.pt"), "variant", None, "dreamer")
     wider = _with_config(_saved(tmp_path / "w.pt"), "world_model", "mlp_units", 7)
     for data, says in ((dreamer, "variant"), (wider, "world_model.mlp_units")):
         with pytest.raises(CheckpointMismatch, match=says):
-            node._load_checked("the received file", data)
+            node.checkpoint_serving._load_checked("the received file", data)
     ann = topics.describe_checkpoint(dreamer, SIZE, task=TASK, variant="dreamer")
-    assert "dreamer agent, this node serves protocad" in node._announced_fits(ann)
+    assert "dreamer agent, this node serves protocad" in node.checkpoint_serving._announced_fits(ann)
     assert not (tmp_path / "robot" / "agent.pt").exists()   # nothing installed
 
 

@@ -130,7 +130,7 @@ def recorder_node(ros_context, tmp_path_factory):
 @given(msg=joint_states(topics.STEP_INFO_FIELDS))
 def test_policy_step_info_callback_is_total(policy_node, msg):
     before = policy_node.counters["step_info_rejected"]
-    policy_node._on_info(msg)      # must not raise
+    policy_node.observation_pairing._on_info(msg)      # must not raise
     try:
         topics.read_step_info(msg)
     except ValueError:
@@ -142,7 +142,7 @@ def test_step_info_with_inf_nan_is_rejected_not_fatal(policy_node):
         m = JointState()
         topics.fill_named(m, topics.STEP_INFO_FIELDS, [0.0, 1.0, is_first, 0.0, 0.0, episode, 3.0], 99)
         before = policy_node.counters["step_info_rejected"]
-        policy_node._on_info(m)
+        policy_node.observation_pairing._on_info(m)
         assert policy_node.counters["step_info_rejected"] == before + 1
     m = JointState()
     topics.fill_named(m, topics.STEP_INFO_FIELDS, [math.nan, 1.0, 0.0, 0.0, 0.0, 0.0, 3.0], 99)
@@ -154,7 +154,7 @@ def test_step_info_with_inf_nan_is_rejected_not_fatal(policy_node):
 @given(msg=images())
 def test_policy_image_callback_is_total(policy_node, msg):
     before = policy_node.counters["images_received"]
-    policy_node.camera._on_frame(msg)   # the image subscription's callback
+    policy_node.camera_input._on_frame(msg)   # the image subscription's callback
     assert policy_node.counters["images_received"] == before + 1
 
 
