@@ -24,7 +24,8 @@ from sensor_msgs.msg import JointState
 
 from protocad_ros.live_view import LiveView
 from sim_bridge.contract import topics
-from sim_bridge.nodekit.rosnode import ConfigError, Percentiles
+from sim_bridge.nodekit.param_table import ConfigError
+from sim_bridge.nodekit.rosnode import Percentiles
 
 
 @dataclass

@@ -46,7 +46,7 @@ from protocad_ros.node.checkpoint_receiver import CheckpointReceiver, ReceiverSe
 from protocad_ros.node.checkpoint_trust import CheckpointTrust, RollbackRejected
 from protocad_ros.node.refusal_log import RefusalLog
 from sim_bridge.contract.contexts import task_actuators
-from sim_bridge.nodekit.rosnode import ConfigError
+from sim_bridge.nodekit.param_table import ConfigError
 
 
 @dataclass(frozen=True)

@@ -27,7 +27,7 @@ from protocad_ros.checkpoint.signing import (
     verify_file,
 )
 from protocad_ros.node.rollback_floor import RollbackFloor, RollbackStateError, default_state_path
-from sim_bridge.nodekit.rosnode import ConfigError
+from sim_bridge.nodekit.param_table import ConfigError
 
 #: How long a changed checkpoint file may wait for its FILE.sig (a signer writes it after the
 #: file) before it counts as unsigned.

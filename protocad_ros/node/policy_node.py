@@ -33,15 +33,9 @@ from protocad_ros.robot.camera_input import CameraInput
 from protocad_ros.robot.robot_output import RobotOutput
 from sim_bridge.contract import qos, topics
 from sim_bridge.nodekit.lifecycle import ManagedNode
+from sim_bridge.nodekit.param_table import ConfigError
 from sim_bridge.nodekit.publisher_watch import PublisherWatch
-from sim_bridge.nodekit.rosnode import (
-    ConfigError,
-    KeyThrottle,
-    declare_all,
-    flush_publishers,
-    install_parameter_guards,
-    run_node,
-)
+from sim_bridge.nodekit.rosnode import KeyThrottle, declare_all, flush_publishers, install_parameter_guards, run_node
 from sim_bridge.nodekit.type_watch import TopicTypeWatch
 
 NODE_NAME = "policy"

@@ -9,7 +9,7 @@ from typing import Sequence
 import numpy as np
 
 from sim_bridge.contract.joint_map import JointMap, JointMapError, identity_map, load_joint_map
-from sim_bridge.nodekit.rosnode import ConfigError
+from sim_bridge.nodekit.param_table import ConfigError
 
 
 class CommandRejected(ValueError):

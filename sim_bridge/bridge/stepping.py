@@ -24,7 +24,7 @@ from sim_bridge.bridge.handover import BridgeShared
 from sim_bridge.bridge.observation_publishing import ObservationPublishing
 from sim_bridge.bridge.params import READY_GRACE_S
 from sim_bridge.contract import topics
-from sim_bridge.nodekit.rosnode import ConfigError
+from sim_bridge.nodekit.param_table import ConfigError
 from sim_bridge.sim.envs import ContextDMCEnv
 
 

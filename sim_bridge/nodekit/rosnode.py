@@ -43,25 +43,16 @@ from rclpy.parameter import Parameter
 from rclpy.signals import SignalHandlerOptions
 from rclpy.utilities import remove_ros_args
 
-# ConfigError, Param, with_defaults and the shared rows are imported from here by the nodes (and,
-# from before the table had a module of its own, by their parameter modules).
 from sim_bridge.nodekit.param_table import (
-    EXECUTORS,
     ConfigError,
     Param,
-    autostart_param,
-    executor_param,
     help_epilog,
     is_builtin_param,
-    remote_lifecycle_param,
-    strict_param,
-    with_defaults,
 )
 
-__all__ = ["EXECUTORS", "SHUTDOWN_BUDGET_S", "ConfigError", "KeyThrottle", "Param", "Percentiles", "arm_shutdown_watchdog",
-           "autostart_param", "declare_all", "descriptor", "executor_param", "flush_publishers",
-           "install_parameter_guards", "make_executor", "make_status", "remote_lifecycle_param", "run_node",
-           "strict_param", "with_defaults"]
+__all__ = ["SHUTDOWN_BUDGET_S", "KeyThrottle", "Percentiles", "arm_shutdown_watchdog", "declare_all",
+           "descriptor", "flush_publishers", "install_parameter_guards", "make_executor", "make_status",
+           "run_node"]
 
 
 def descriptor(p: Param) -> ParameterDescriptor:

@@ -34,17 +34,9 @@ from protocad_ros.checkpoint.signing import (
 )
 from protocad_ros.node.checkpoint_receiver import manifest_of
 from sim_bridge.contract import qos, topics
+from sim_bridge.nodekit.param_table import ConfigError, Param, executor_param, strict_param
 from sim_bridge.nodekit.rosbase import ProtocadNode
-from sim_bridge.nodekit.rosnode import (
-    ConfigError,
-    Param,
-    declare_all,
-    executor_param,
-    install_parameter_guards,
-    make_status,
-    run_node,
-    strict_param,
-)
+from sim_bridge.nodekit.rosnode import declare_all, install_parameter_guards, make_status, run_node
 
 NODE_NAME = "checkpoint_publisher"
 

@@ -19,8 +19,9 @@ from sensor_msgs.msg import Image, JointState
 
 from sim_bridge.contract import qos, topics
 from sim_bridge.contract.contexts import TASKS, task_actuators
+from sim_bridge.nodekit.param_table import Param
 from sim_bridge.nodekit.rosbase import ProtocadNode
-from sim_bridge.nodekit.rosnode import Param, declare_all, run_node
+from sim_bridge.nodekit.rosnode import declare_all, run_node
 
 NODE_NAME = "random_actor"
 #: Stamps remembered (half-paired observations, answers to repeat): a bounded memory.

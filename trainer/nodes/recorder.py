@@ -36,8 +36,9 @@ from diagnostic_msgs.msg import DiagnosticArray
 from sim_bridge.contract import topics as T
 from sim_bridge.contract.qos import diagnostics_qos
 from sim_bridge.nodekit.fastdds_profile import announced_lease, participant_lease
+from sim_bridge.nodekit.param_table import ConfigError, with_defaults
 from sim_bridge.nodekit.rosbase import ProtocadNode
-from sim_bridge.nodekit.rosnode import ConfigError, KeyThrottle, declare_all, run_node, with_defaults
+from sim_bridge.nodekit.rosnode import KeyThrottle, declare_all, run_node
 from trainer.bag.writer import BagWriteError
 from trainer.nodes.record_budget import RecordBudget
 from trainer.nodes.recorder_announcements import RecorderAnnouncements
