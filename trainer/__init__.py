@@ -12,5 +12,5 @@
              settings.py: typed run settings and the command lines generated from them;
              provenance.py: the commit a run trains with (stdlib only: setup.py loads it)
 
-May import: protocad_ros.atomic, protocad_ros.model, sim_bridge.contract
+May import: protocad_ros.atomic, protocad_ros.checkpoint.files (its file names), protocad_ros.model, sim_bridge.contract
 """

@@ -25,6 +25,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from protocad_ros.atomic import atomic_write_text
+from protocad_ros.checkpoint.files import CONFIG_NAME
 from protocad_ros.model.config import Config
 from trainer.run_input import load_json_object, load_yaml_mapping
 
@@ -63,10 +64,19 @@ def resume_run_dir(run_dir: str | os.PathLike | None, *, need_checkpoint: bool =
         raise ValueError(f"--resume: {e}") from None
 
 
+def save_run_config(run_dir: str | os.PathLike, cfg, ran: str | None = None) -> Path:
+    """RUN_DIR/config.yaml, the one place a run's config is written: when the run directory is
+    made (the config as asked), and again by the trainer that opens it (with `ran`: the precision
+    that ran on this machine, PrecisionChoice.ran_here()). Atomic (Config.save)."""
+    path = Path(run_dir) / CONFIG_NAME
+    cfg.save(path, ran=ran)
+    return path
+
+
 def load_run_config(run_dir: str | os.PathLike):
     """RUN_DIR/config.yaml as a Config, or one ValueError line naming the file (not YAML, an
     unsafe tag, nested too deep, not a mapping, not a config)."""
-    path = Path(run_dir) / "config.yaml"
+    path = Path(run_dir) / CONFIG_NAME
     try:
         return Config.from_dict(load_yaml_mapping(path))
     except ValueError as exc:   # ConfigError is one

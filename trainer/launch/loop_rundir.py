@@ -119,7 +119,7 @@ class LoopRunDir:
             plan_prototype_freeze(cfg, 0, planned_updates(s.resolved(cfg.train)))
             run_dir = runs.new_run_dir(s.run_dir, "loop", cfg.task, cfg.variant)
             run_dir.mkdir(parents=True, exist_ok=True)
-            cfg.save(run_dir / "config.yaml")
+            runs.save_run_config(run_dir, cfg)
             run_json = {}
         tr = cfg.train
         a = s.resolved(tr, saved_protocol)

@@ -58,5 +58,5 @@ def open_trainer(cfg, run_dir: Path, dataset: MCAPDataset, *, resume: bool, devi
     # Resolved here, on this rank's device: a config from another machine asks, never forces.
     chosen = trainer.agent.use_precision(precision)
     if ctx.is_main:
-        cfg.save(Path(run_dir) / "config.yaml", ran=chosen.ran_here())
+        runs.save_run_config(run_dir, cfg, ran=chosen.ran_here())
     return OpenedTrainer(trainer, resumed, freeze, chosen)

@@ -168,7 +168,7 @@ def open_run_dir(s: OnlineSettings, model: settings.ModelChoice, ctx: distribute
             str(runs.new_run_dir(s.run_dir, "online", cfg.task, cfg.variant)) if ctx.is_main else None, ctx)[0])
         if ctx.is_main:
             run_dir.mkdir(parents=True, exist_ok=True)
-            cfg.save(run_dir / "config.yaml")
+            runs.save_run_config(run_dir, cfg)
         distributed.barrier_if(ctx)
     rd = OnlineRunDir(s, cfg, run_dir, run_json, schedule_of(cfg, s))
     rd.bags_dir.mkdir(parents=True, exist_ok=True)

@@ -15,6 +15,7 @@ import numpy as np
 from protocad_ros.atomic import atomic_write_text
 from protocad_ros.model.config import Config, make_config
 from sim_bridge.contract.contexts import get_task, normalized_log_context
+from trainer import runs
 from trainer.data.dataset import MCAPDataset
 from trainer.learn.context_health import health_of_states
 from trainer.learn.trainer import Trainer
@@ -95,7 +96,7 @@ def train_one(data: Path, arm: str, seed: int, out: Path, updates: int) -> Any:
     trainer = (Trainer.from_checkpoint(ckpt, out, ds) if ckpt.exists()
                else Trainer(cfg, out, ds, log_every=25))
     if not ckpt.exists():
-        cfg.save(out / "config.yaml")
+        runs.save_run_config(out, cfg)
     trainer.plan_prototype_freeze(updates)
     t0 = time.monotonic()
     trainer.train(updates, checkpoint_every=100)
