@@ -226,7 +226,7 @@ def spawn(name: str, *argv: str, logdir: Path) -> subprocess.Popen:
 
 
 #: Frames of a node at work (stepping, spinning, answering): start-up (imports, model load) is left out.
-STEADY = ("_run_lockstep", "_run_realtime", "spin_once", "_answer")
+STEADY = ("_run_lockstep", "_run_realtime", "spin_once", "answer_paired")
 
 
 def profile_top(path: Path, n: int = 12) -> list[tuple[float, float, str]]:
