@@ -174,3 +174,42 @@ def test_a_class_reads_only_what_it_or_a_declared_base_sets(module, cls):
     assert not missing, (f"{FILES[module].relative_to(ROOT)}: {cls.name} reads attributes that neither it nor "
                          f"a declared base sets: {', '.join(missing)}. Give the class what it needs when it is "
                          "built (a part of a node takes the node, its parameters and its publishers), or set it.")
+
+
+#: The three nodes built of parts, and the packages their parts live in.
+NODES_OF_PARTS = {
+    ("protocad_ros.node.policy_node", "PolicyNode"): ("protocad_ros.node", "protocad_ros.robot"),
+    ("sim_bridge.bridge.node", "SimBridgeNode"): ("sim_bridge.bridge",),
+    ("trainer.nodes.recorder", "RecorderNode"): ("trainer.nodes",),
+}
+
+
+def snake(name: str) -> str:
+    return "".join(f"_{c.lower()}" if c.isupper() else c for c in name).lstrip("_")
+
+
+@pytest.mark.parametrize("node", sorted(NODES_OF_PARTS), ids=lambda n: n[1])
+def test_a_node_holds_each_part_under_its_module_name(node):
+    """One naming scheme (msgs_docs/layout.md, "A node and its parts"): a part built by the node
+    from its own packages is a class named like its module (snake_case) and is held in the
+    attribute of that name: `self.stepping = Stepping(...)` from stepping.py."""
+    module, name = node
+    cls = project_class(module, name)
+    origins = imported_names(parsed(module), module)
+    parts, wrong = [], []
+    for fn in methods(cls):
+        for stmt in ast.walk(fn):
+            if not (isinstance(stmt, ast.Assign) and isinstance(stmt.value, ast.Call)
+                    and isinstance(stmt.value.func, ast.Name) and stmt.value.func.id in origins):
+                continue
+            owner, _, cls_name = origins[stmt.value.func.id].rpartition(".")
+            if not owner.startswith(NODES_OF_PARTS[node]) or project_class(owner, cls_name) is None:
+                continue
+            for target in stmt.targets:
+                if isinstance(target, ast.Attribute) and isinstance(target.value, ast.Name) and target.value.id == "self":
+                    parts.append(target.attr)
+                    stem = owner.rpartition(".")[2]
+                    if not (target.attr == stem == snake(cls_name)):
+                        wrong.append(f"self.{target.attr} = {cls_name}(...) from {owner}")
+    assert len(parts) >= 4, f"{name} builds {parts}: fewer parts than it has"
+    assert not wrong, f"{name}: parts off the naming scheme: {wrong}"
