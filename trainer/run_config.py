@@ -1,5 +1,12 @@
 """The training config a CLI builds: task, variant and preset, a --config file, --set overrides
-and the config's own flags (protocad_ros.model.config.Config)."""
+and the config's own flags (protocad_ros.model.config.Config).
+
+Two generators of options, one per kind: a command's own settings are flat dataclasses beside
+the command (trainer.settings.settings_parser: `--field-name`, in help groups, the precedence
+epilog); the model config is a tree of nested sections whose fields carry tuples, literals and
+optionals, with the comment beside each field as its help (protocad_ros.model.hyperparameters),
+and tyro generates `--section.field` (and `--section.no_field`) for it here. Nested types are
+what tyro is for; settings.py does not reimplement them."""
 from __future__ import annotations
 
 import copy
