@@ -2,11 +2,12 @@
 and the config's own flags (protocad_ros.model.config.Config).
 
 Two generators of options, one per kind: a command's own settings are flat dataclasses beside
-the command (trainer.settings.settings_parser: `--field-name`, in help groups, the precedence
-epilog); the model config is a tree of nested sections whose fields carry tuples, literals and
-optionals, with the comment beside each field as its help (protocad_ros.model.hyperparameters),
-and tyro generates `--section.field` (and `--section.no_field`) for it here. Nested types are
-what tyro is for; settings.py does not reimplement them."""
+the command (trainer.settings.settings_parser: `--field-name`, its help the docstring under the
+field, in help groups, with the precedence epilog); the model config is a tree of nested sections
+(about 100 fields) whose help is the comment beside or above each field, where the paper's and
+the reference implementations' values are cited (protocad_ros.model.hyperparameters). tyro reads
+those comments and nests the sections, generating `--section.field` (`--section.no_field` for a
+bool) here; settings.py does not reimplement that."""
 from __future__ import annotations
 
 import copy
