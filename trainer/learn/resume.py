@@ -27,36 +27,46 @@ class OpenedTrainer:
     precision: PrecisionChoice
 
 
-def open_trainer(cfg, run_dir: Path, dataset: MCAPDataset, *, resume: bool, device: str, end_updates: int,
-                 precision: str | None, log_every: int, callbacks: Iterable[metrics_log.MetricsCallback] = (),
-                 dist_ctx: distributed.DistContext | None = None,
-                 initial_agent: Callable[[], Any] | None = None,
-                 restart_metrics: bool = False) -> OpenedTrainer:
-    """The trainer of the run in `run_dir` with the run's config `cfg`.
+@dataclass(frozen=True)
+class TrainerOpening:
+    """How a command opens its run's trainer (the same for protocad-train, -loop and -online)."""
 
-    resume: restore the checkpoint if the run has one (weights, optimizers, counters, sampler
-    state); without one (stopped before it was written) the trainer starts fresh like a new run.
-    end_updates: the agent's update count at the end of the run's plan (the freeze is a share of
-    it; once resolved, the checkpoint keeps it). precision: the command line's --precision
-    (None: the config's request). initial_agent: builds a fresh trainer's agent (--init-policy's
-    weights) instead of new weights. restart_metrics: a trainer that starts fresh (a new run, or
-    a resume of one stopped before its first checkpoint) drops the metrics lines an earlier
-    attempt logged, as its updates start from 0 again."""
-    ctx = dist_ctx or distributed.DistContext()
+    resume: bool
+    """restore the checkpoint if the run has one (weights, optimizers, counters, sampler state);
+    without one (stopped before it was written) the trainer starts fresh like a new run"""
+    device: str
+    end_updates: int
+    """the agent's update count at the end of the run's plan (the freeze is a share of it; once
+    resolved, the checkpoint keeps it)"""
+    precision: str | None
+    """the command line's --precision (None: the config's request)"""
+    log_every: int
+    callbacks: Iterable[metrics_log.MetricsCallback] = ()
+    dist_ctx: distributed.DistContext | None = None
+    initial_agent: Callable[[], Any] | None = None
+    """builds a fresh trainer's agent (--init-policy's weights) instead of new weights"""
+    restart_metrics: bool = False
+    """a trainer that starts fresh (a new run, or a resume of one stopped before its first
+    checkpoint) drops the metrics lines an earlier attempt logged, as its updates start from 0"""
+
+
+def open_trainer(cfg, run_dir: Path, dataset: MCAPDataset, how: TrainerOpening) -> OpenedTrainer:
+    """The trainer of the run in `run_dir` with the run's config `cfg`, opened as `how` says."""
+    ctx = how.dist_ctx or distributed.DistContext()
     ckpt = runs.checkpoint_path(run_dir)
-    resumed = resume and ckpt.exists()
+    resumed = how.resume and ckpt.exists()
+    # What the trainer runs on and reports to, whether it is rebuilt or new.
+    process = {"device": how.device, "callbacks": how.callbacks, "log_every": how.log_every, "dist_ctx": how.dist_ctx}
     if resumed:
-        trainer = Trainer.from_checkpoint(ckpt, run_dir, dataset, device=device, callbacks=callbacks,
-                                          log_every=log_every, dist_ctx=dist_ctx)
+        trainer = Trainer.from_checkpoint(ckpt, run_dir, dataset, **process)
     else:
-        if restart_metrics and ctx.is_main:
+        if how.restart_metrics and ctx.is_main:
             metrics_log.truncate_metrics(Path(run_dir) / "metrics.jsonl", 0)
-        trainer = Trainer(cfg, run_dir, dataset, device=device, callbacks=callbacks, log_every=log_every,
-                          action_dim=len(task_actuators(cfg.task)),
-                          agent=initial_agent() if initial_agent is not None else None, dist_ctx=dist_ctx)
-    freeze = trainer.plan_prototype_freeze(end_updates)
+        trainer = Trainer(cfg, run_dir, dataset, action_dim=len(task_actuators(cfg.task)),
+                          agent=how.initial_agent() if how.initial_agent is not None else None, **process)
+    freeze = trainer.plan_prototype_freeze(how.end_updates)
     # Resolved here, on this rank's device: a config from another machine asks, never forces.
-    chosen = trainer.agent.use_precision(precision)
+    chosen = trainer.agent.use_precision(how.precision)
     if ctx.is_main:
         runs.save_run_config(run_dir, cfg, ran=chosen.ran_here())
     return OpenedTrainer(trainer, resumed, freeze, chosen)

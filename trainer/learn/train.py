@@ -28,7 +28,7 @@ from trainer.data.records import DEFAULT_CROP
 from trainer.data.sources import find_sources
 from trainer.data.store import multiple_publishers
 from trainer.learn import distributed
-from trainer.learn.resume import open_trainer
+from trainer.learn.resume import TrainerOpening, open_trainer
 from trainer.learn.trainer import DEFAULT_LOG_EVERY, CheckpointWriteError, RanksDiverged, Trainer
 from trainer.run_input import check_logs, check_settings_section
 from trainer.settings import arg
@@ -226,9 +226,9 @@ def _train(s: TrainSettings, model: settings.ModelChoice, config_args: list[str]
     if not s.resume:
         cfg.train.device = device
     try:   # the one way every trainer CLI opens its run's trainer (resume.py)
-        opened = open_trainer(cfg, run_dir, ds, resume=s.resume, device=device, end_updates=target,
-                              precision=model.precision, log_every=s.log_every, callbacks=callbacks,
-                              dist_ctx=ctx, restart_metrics=True)
+        opened = open_trainer(cfg, run_dir, ds, TrainerOpening(
+            resume=s.resume, device=device, end_updates=target, precision=model.precision,
+            log_every=s.log_every, callbacks=callbacks, dist_ctx=ctx, restart_metrics=True))
     except CheckpointError as exc:
         raise ValueError(str(exc)) from None
     trainer, precision, freeze = opened.trainer, opened.precision, opened.prototype_freeze

@@ -55,7 +55,7 @@ from trainer.data.dataset import MCAPDataset, TopicMap
 from trainer.data.records import CacheWriteError
 from trainer.learn import distributed
 from trainer.learn.evaluate import select_contexts
-from trainer.learn.resume import open_trainer
+from trainer.learn.resume import TrainerOpening, open_trainer
 from trainer.learn.schedule import RunCounters
 from trainer.learn.trainer import CheckpointWriteError, RanksDiverged
 from trainer.learn.training_eval import Evaluator
@@ -185,11 +185,11 @@ class OnlineRun:
         if all_bags[ctx.rank::self.world]:   # each rank a share, whatever the ranks that wrote them
             self.ds.add(all_bags[ctx.rank::self.world])
         callbacks = metrics_callbacks(s.rerun, self.run_dir, "protocad-online")
-        opened = open_trainer(self.cfg, self.run_dir, self.ds, resume=s.resume, device=self.device,
-                              end_updates=self.schedule.planned_updates(s.env_steps, tr.time_limit,
-                                                                        s.num_envs * self.world),
-                              precision=self.model.precision, log_every=s.log_every, callbacks=callbacks,
-                              dist_ctx=ctx, restart_metrics=True)
+        opened = open_trainer(self.cfg, self.run_dir, self.ds, TrainerOpening(
+            resume=s.resume, device=self.device,
+            end_updates=self.schedule.planned_updates(s.env_steps, tr.time_limit, s.num_envs * self.world),
+            precision=self.model.precision, log_every=s.log_every, callbacks=callbacks, dist_ctx=ctx,
+            restart_metrics=True))
         self.trainer = opened.trainer
         self.c = (RunCounters.from_dict(self.trainer.counters) if opened.resumed
                   else RunCounters(next_eval=self.schedule.first_eval()))
