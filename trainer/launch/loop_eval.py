@@ -11,7 +11,7 @@ from pathlib import Path
 from trainer import console, runs
 from trainer.launch.loop_rundir import LoopRunDir
 from trainer.launch.ros_evaluate import evaluate_through_ros
-from trainer.learn.evaluate import EvalPlan, evaluate_checkpoint, format_table
+from trainer.learn.evaluate import EvalPlan, RosPlan, evaluate_checkpoint, format_table
 
 
 def policy_vs_random(rundir: LoopRunDir, domain_id: int, device: str, stop: console.StopFlag) -> None:
@@ -19,13 +19,14 @@ def policy_vs_random(rundir: LoopRunDir, domain_id: int, device: str, stop: cons
     n, cfg = rundir.a.start_eval_episodes, rundir.cfg
     print(f"[loop] {rundir.init_policy} against the random policy on {n} unseen-context episode(s), "
           "through the ROS nodes (sim bridge + policy node / random actor + recorder)", flush=True)
-    common = dict(task=cfg.task, split="test", total_episodes=n, seed=cfg.train.seed + 11,
-                  out_dir=rundir.path / "eval_start", domain_id=domain_id,
-                  episode_length=rundir.a.episode_length)
-    res = evaluate_through_ros(str(rundir.init_policy), device=device, **common)
+    plan = RosPlan(split="test", total_episodes=n, seed=cfg.train.seed + 11, domain_id=domain_id,
+                   episode_length=rundir.a.episode_length)
+    out_dir = rundir.path / "eval_start"
+    res = evaluate_through_ros(str(rundir.init_policy), dataclasses.replace(plan, device=device), task=cfg.task,
+                               out_dir=out_dir)
     if stop.stop:
         return
-    rnd = evaluate_through_ros(None, **common)
+    rnd = evaluate_through_ros(None, plan, task=cfg.task, out_dir=out_dir)
     print(format_table(res, rnd), flush=True)
     runs.atomic_write_json(rundir.path / "eval" / "start.json", {**res.to_dict(), "random": rnd.to_dict()})
 

@@ -15,21 +15,20 @@ from protocad_ros.model.config import Config
 from sim_bridge.contract.contexts import context_label, get_task
 from trainer.launch import rosprocs
 from trainer.learn import evaluate
-from trainer.learn.evaluate import ContextResult, EvalResult
+from trainer.learn.evaluate import ContextResult, EvalResult, RosPlan
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     return evaluate.main(argv, ros_evaluator=evaluate_through_ros)
 
 
-def evaluate_through_ros(checkpoint: str | None, *, task: str | None, split: str = "test", episodes: int = 1,
-                         total_episodes: int = 0, seed: int = 0, out_dir: Path, domain_id: int | None = None,
-                         episode_length: int | None = None, device: str = "cpu",
-                         timeout_s: float = 3600.0) -> EvalResult:
-    """Run the episodes through real ROS processes (bridge + policy node or random actor +
-    recorder), then read the returns from the recorded bag (grouped by the true context).
-    Without `total_episodes` the bridge cycles through the split's contexts, so each gets
-    exactly `episodes` episodes; with it, contexts are drawn uniformly."""
+def evaluate_through_ros(checkpoint: str | None, plan: RosPlan = RosPlan(), *, task: str | None,
+                         out_dir: Path) -> EvalResult:
+    """Run the episodes `plan` asks for through real ROS processes (bridge + policy node or
+    random actor + recorder), then read the returns from the recorded bag (grouped by the true
+    context). Without `plan.total_episodes` the bridge cycles through the split's contexts, so
+    each gets exactly `plan.episodes` episodes; with it, contexts are drawn uniformly."""
+    split, seed, total_episodes = plan.split, plan.seed, plan.total_episodes
     from trainer.data.dataset import MCAPDataset
 
     t0 = time.monotonic()
@@ -48,12 +47,12 @@ def evaluate_through_ros(checkpoint: str | None, *, task: str | None, split: str
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     bag = out_dir / f"eval_{split}_{time.strftime('%Y%m%d-%H%M%S')}"
-    stack = rosprocs.RosStack(out_dir / "logs", domain_id=domain_id)
-    ep_len = episode_length or ((cfg.train.time_limit // cfg.train.action_repeat) if cfg else 500)
-    total = total_episodes or episodes * len(get_task(task).contexts(split))
+    stack = rosprocs.RosStack(out_dir / "logs", domain_id=plan.domain_id)
+    ep_len = plan.episode_length or ((cfg.train.time_limit // cfg.train.action_repeat) if cfg else 500)
+    total = total_episodes or plan.episodes * len(get_task(task).contexts(split))
     try:
         if checkpoint:
-            stack.start_policy(checkpoint=checkpoint, task=task, seed=seed, device=device, mode="deterministic",
+            stack.start_policy(checkpoint=checkpoint, task=task, seed=seed, device=plan.device, mode="deterministic",
                                reload_poll_s=0.0)
         else:  # the random baseline: uniform random actions
             stack.start_random_actor(task=task, seed=seed)
@@ -61,7 +60,7 @@ def evaluate_through_ros(checkpoint: str | None, *, task: str | None, split: str
         bridge = stack.start_bridge(task=task, split=split, seed=seed, max_episodes=total,
                                     context_schedule="sample" if total_episodes else "cycle",
                                     episode_length=ep_len, action_repeat=cfg.train.action_repeat if cfg else 2)
-        stack.wait_exit(bridge, timeout_s)
+        stack.wait_exit(bridge, plan.timeout_s)
     finally:
         stack.stop_all()
     ds = MCAPDataset([bag], seq_len=1, cache_dir=out_dir / "cache")

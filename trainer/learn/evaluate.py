@@ -190,6 +190,23 @@ def select_contexts(task: str, split: str = "test", contexts: Sequence[Mapping[s
 
 
 @dataclass(frozen=True)
+class RosPlan:
+    """What `--through-ros` plays through real nodes (trainer.launch.ros_evaluate): episodes per
+    context of the split (the bridge cycles through its contexts), or `total_episodes` drawn
+    uniformly; the seed; where the policy runs; the episode length (None: the checkpoint's); the
+    ROS domain (None: a free one) and how long the episodes may take."""
+
+    split: str = "test"
+    episodes: int = 1
+    total_episodes: int = 0
+    seed: int = 0
+    device: str = "cpu"
+    episode_length: int | None = None
+    domain_id: int | None = None
+    timeout_s: float = 3600.0
+
+
+@dataclass(frozen=True)
 class EpisodePlan:
     """How `run_episodes` plays its episodes: how many per context, the split they are recorded
     under, the seeds, the envs (in worker processes or here; side by side), and each episode's
@@ -391,6 +408,8 @@ def run(a: EvaluateSettings, ros_evaluator: Callable[..., EvalResult] | None = N
     plan = EvalPlan(split=a.split, episodes=a.episodes, contexts=contexts, max_contexts=a.max_contexts,
                     seed=a.seed, device=device, workers=workers, batch=a.batch, time_limit=a.time_limit,
                     progress=False if a.no_progress else None)
+    ros_plan = RosPlan(split=a.split, episodes=a.episodes, total_episodes=a.ros_episodes, seed=a.seed,
+                       episode_length=a.episode_length, domain_id=a.domain_id)
     results: list[EvalResult] = []
     baselines: dict[str, EvalResult] = {}
     out: dict[str, Any] = {"split": a.split, "episodes_per_context": a.episodes, "seed": a.seed, "results": []}
@@ -399,11 +418,8 @@ def run(a: EvaluateSettings, ros_evaluator: Callable[..., EvalResult] | None = N
         for ck in ckpts:
             sha = file_sha256(ck)   # the file as evaluation began (a live run may replace latest.pt)
             if a.through_ros:
-                r = ros_evaluator(str(ck), task=None, split=a.split, episodes=a.episodes,
-                                         total_episodes=a.ros_episodes, seed=a.seed,
-                                         out_dir=Path(a.ros_dir or ck.parent.parent / "eval_ros"),
-                                         domain_id=a.domain_id, device=device,
-                                         episode_length=a.episode_length)
+                r = ros_evaluator(str(ck), dataclasses.replace(ros_plan, device=device), task=None,
+                                  out_dir=Path(a.ros_dir or ck.parent.parent / "eval_ros"))
             else:
                 r = evaluate_checkpoint(ck, plan, stop=stop)
             r.sha256 = sha
@@ -415,10 +431,7 @@ def run(a: EvaluateSettings, ros_evaluator: Callable[..., EvalResult] | None = N
                 raise ValueError("--random needs --task TASK (or checkpoints to take tasks from)")
             for t in random_tasks:
                 if a.through_ros:
-                    r = ros_evaluator(None, task=t, split=a.split, episodes=a.episodes,
-                                             total_episodes=a.ros_episodes, seed=a.seed,
-                                             out_dir=Path(a.ros_dir or "runs/eval_ros"), domain_id=a.domain_id,
-                                             episode_length=a.episode_length)
+                    r = ros_evaluator(None, ros_plan, task=t, out_dir=Path(a.ros_dir or "runs/eval_ros"))
                 else:
                     r = evaluate_checkpoint(None, dataclasses.replace(plan, device="cpu"), task=t, stop=stop)
                 baselines[t] = r
