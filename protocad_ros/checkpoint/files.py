@@ -118,7 +118,7 @@ def architecture_differences(mine: Config, theirs: Config) -> list[str]:
 _ARCH_KEYS = {
     "world_model": {"deter", "hidden", "stoch", "discrete", "cnn", "cnn_depth", "mlp_layers",
                     "mlp_units", "act", "norm", "gru_norm", "discount_head"},
-    "context": {"num_prototypes", "proto_dim", "dreamerpro_num_prototypes"},
+    "context": {"num_prototypes", "proto_dim", "dreamerpro_num_prototypes", "projector_input"},
     "behavior": {"actor_layers", "actor_units", "critic_layers", "critic_units", "act", "norm",
                  "actor_dist"},
     "drq": {"frame_stack", "num_filters", "num_conv_layers", "feature_dim", "hidden_dim",

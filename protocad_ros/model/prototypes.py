@@ -280,8 +280,8 @@ class ContextModule(nn.Module):
         self.target_projector.requires_grad_(False)
         # c_k: random directions on the unit sphere (K, D).
         self.prototypes = nn.Parameter(random_unit_prototypes(num_prototypes, proj_dim))
-        # The seeded starting directions, for the health metric "have the prototypes moved"
-        # (not saved: the agent's seeded construction redraws them on every load).
+        # The starting directions, for the health metric "have the prototypes moved": the seeded
+        # draw, redrawn on every load (not saved), or the policy's a run started from (init_policy).
         self.register_buffer("initial_prototypes", self.prototypes.detach().clone(), persistent=False)
         # EMA updates done so far; a buffer so a resumed checkpoint does not re-copy.
         self.register_buffer("ema_updates", torch.zeros((), dtype=torch.long))

@@ -50,7 +50,7 @@ from trainer import cli_values, console, runs, settings, torch_setup
 from trainer.launch import discovery, run_key
 from trainer.launch.loop_collect import Collection
 from trainer.launch.loop_eval import context_recording, final_evaluation, policy_vs_random
-from trainer.launch.loop_rundir import PROTOCOL_KEYS, LoopRunDir, agent_from_policy, planned_updates
+from trainer.launch.loop_rundir import PROTOCOL_KEYS, LoopRunDir, planned_updates
 from trainer.launch.rosprocs import NodeFailed, RosStack
 from trainer.learn.resume import TrainerOpening, open_trainer
 from trainer.learn.trainer import Trainer
@@ -273,7 +273,7 @@ class Loop:
         opened = open_trainer(self.cfg, self.run_dir, rd.ledger.ds, TrainerOpening(
             resume=a.resume, device=self.device, end_updates=planned_updates(a), precision=self.model.precision,
             log_every=a.log_every, callbacks=callbacks,
-            initial_agent=(lambda: agent_from_policy(rd.init_policy, self.cfg, self.device)) if a.init_policy else None))
+            init_policy=rd.init_policy if a.init_policy else None))
         self.trainer = opened.trainer
         if opened.prototype_freeze is not None:
             print(f"[loop] prototypes frozen for the first {opened.prototype_freeze:,} updates", flush=True)

@@ -1,21 +1,19 @@
 """A loop run's directory: opening a new one or the one --resume continues (config.yaml,
-run.json), the config and weights --init-policy starts from, and the ledger of the phases the
+run.json), with --init-policy's config (trainer/learn/init_policy.py), and the ledger of the phases the
 bags on disk hold, which the counters, phases.json and a resume read. Its settings are
 trainer.launch.loop.LoopSettings, declared beside their command."""
 from __future__ import annotations
 
-import copy
 from pathlib import Path
 from typing import Any, Sequence
 
-from protocad_ros.checkpoint.agent_file import read_checkpoint
-from protocad_ros.checkpoint.files import CheckpointError, architecture_differences, existing_checkpoint_file
-from protocad_ros.model.agent import make_agent
-from protocad_ros.model.config import Config, apply_overrides, plan_prototype_freeze
+from protocad_ros.checkpoint.files import existing_checkpoint_file
+from protocad_ros.model.config import plan_prototype_freeze
 from sim_bridge.contract import topics as T
-from trainer import run_config, runs, settings
+from trainer import runs, settings
 from trainer.data.dataset import MCAPDataset, TopicMap
 from trainer.launch.rosprocs import robot_namespaces
+from trainer.learn.init_policy import policy_config
 from trainer.learn.schedule import Schedule
 from trainer.run_input import check_settings_section
 
@@ -33,49 +31,6 @@ def planned_updates(a: LoopSettings) -> int:
 PROTOCOL_KEYS = ("cycles", "episodes_per_cycle", "prefill_episodes", "updates_per_episode", "episode_length",
                  "exploration_noise", "eval_episodes", "robots")
 
-
-
-def policy_config(init_policy: Path, s: LoopSettings, model: settings.ModelChoice, *,
-                  config_args: Sequence[str], prog: str):
-    """--init-policy: the policy file's config (its networks) with this run's training
-    options on top (--set, --batch-size, --seq-len, --seed, --precision, config flags); an
-    option that would change the networks is refused (ValueError)."""
-    try:
-        policy_cfg = Config.from_dict(read_checkpoint(init_policy)["config"])
-    except CheckpointError as err:
-        raise ValueError(f"--init-policy: {err}") from None
-    m = model
-    asked = {"task": m.task, "variant": m.variant, "preset": m.preset}
-    other = [f"--{k} {v} (the policy's: {getattr(policy_cfg, k)})" for k, v in asked.items()
-             if v is not None and v != getattr(policy_cfg, k)]
-    if other and not s.demo:
-        raise ValueError(f"--init-policy {s.init_policy} is another model than "
-                         + ", ".join(other) + ": leave them out, the policy's config is the run's")
-    train = {"train.seed": m.seed, **({"train.batch_size": m.batch_size} if m.batch_size else {}),
-             **({"train.seq_len": m.seq_len} if m.seq_len else {})}
-    if m.precision:   # the request; the policy's own (a shipped bf16 one) is a request too
-        train["train.precision"] = m.precision
-    cfg = apply_overrides(copy.deepcopy(policy_cfg), {**run_config.parse_set(m.set), **train})
-    if config_args:
-        cfg = run_config.apply_config_flags(cfg, list(config_args), prog)
-    diffs = architecture_differences(policy_cfg, cfg)
-    if diffs:
-        raise ValueError(f"--init-policy {s.init_policy}: these options change its networks: "
-                         + "; ".join(diffs))
-    return cfg
-
-
-def agent_from_policy(init_policy: Path, cfg, device: str):
-    """An agent of the run's config (its optimizers from the run's learning rates) holding
-    the policy's weights, update counter 0 (this run's schedule counts its own updates)."""
-    try:
-        payload = read_checkpoint(init_policy)
-        agent = make_agent(cfg, int(payload["action_dim"]), device=device)
-        agent.load_state_dict(payload["modules"], strict=True)
-    except (CheckpointError, RuntimeError, KeyError) as err:
-        raise ValueError(f"--init-policy {init_policy}: its weights do not load: {err}") from None
-    agent.updates.zero_()
-    return agent
 
 
 class LoopRunDir:
@@ -112,7 +67,8 @@ class LoopRunDir:
             check_settings_section(run_dir / "run.json", "protocol", type(s),
                                    {k: v for k, v in (saved_protocol or {}).items() if k in PROTOCOL_KEYS})
         else:
-            cfg = (policy_config(init_policy, s, model, config_args=config_args, prog=prog) if s.init_policy
+            cfg = (policy_config(init_policy, model, config_args=config_args, prog=prog, other_model_allowed=s.demo)
+                   if s.init_policy
                    else model.to_config(config_args, prog))
             cfg.train.device = device
             # a refused plan leaves no run directory behind

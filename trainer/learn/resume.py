@@ -6,13 +6,15 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Iterable
+from typing import Callable, Iterable
 
+from protocad_ros.checkpoint.agent_file import read_checkpoint
 from protocad_ros.model.precision import PrecisionChoice
 from sim_bridge.contract.contexts import task_actuators
 from trainer import metrics_log, runs
 from trainer.data.dataset import MCAPDataset
 from trainer.learn import distributed
+from trainer.learn.init_policy import agent_from_policy, measure_drift_from_policy
 from trainer.learn.trainer import Trainer
 
 
@@ -43,8 +45,10 @@ class TrainerOpening:
     log_every: int
     callbacks: Iterable[metrics_log.MetricsCallback] = ()
     dist_ctx: distributed.DistContext | None = None
-    initial_agent: Callable[[], Any] | None = None
-    """builds a fresh trainer's agent (--init-policy's weights) instead of new weights"""
+    init_policy: Path | None = None
+    """the policy file the run started from (--init-policy): a fresh trainer's agent holds its
+    weights; a resumed one measures its prototypes' drift from that policy's"""
+    say: Callable[..., None] = print
     restart_metrics: bool = False
     """a trainer that starts fresh (a new run, or a resume of one stopped before its first
     checkpoint) drops the metrics lines an earlier attempt logged, as its updates start from 0"""
@@ -59,11 +63,14 @@ def open_trainer(cfg, run_dir: Path, dataset: MCAPDataset, how: TrainerOpening) 
     process = {"device": how.device, "callbacks": how.callbacks, "log_every": how.log_every, "dist_ctx": how.dist_ctx}
     if resumed:
         trainer = Trainer.from_checkpoint(ckpt, run_dir, dataset, **process)
+        if how.init_policy is not None:
+            measure_drift_from_policy(trainer.agent, read_checkpoint(how.init_policy)["modules"])
     else:
         if how.restart_metrics and ctx.is_main:
             metrics_log.truncate_metrics(Path(run_dir) / "metrics.jsonl", 0)
         trainer = Trainer(cfg, run_dir, dataset, action_dim=len(task_actuators(cfg.task)),
-                          agent=how.initial_agent() if how.initial_agent is not None else None, **process)
+                          agent=None if how.init_policy is None else
+                          agent_from_policy(how.init_policy, cfg, how.device, say=how.say), **process)
     freeze = trainer.plan_prototype_freeze(how.end_updates)
     # Resolved here, on this rank's device: a config from another machine asks, never forces.
     chosen = trainer.agent.use_precision(how.precision)

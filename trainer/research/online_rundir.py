@@ -19,6 +19,7 @@ from typing import Any, Sequence
 import numpy as np
 
 from protocad_ros.atomic import remove_stale_temporaries
+from protocad_ros.checkpoint.files import existing_checkpoint_file
 from protocad_ros.model.config import plan_prototype_freeze
 from sim_bridge.contract import topics as T
 from sim_bridge.contract.contexts import get_task
@@ -28,6 +29,7 @@ from trainer.bag.writer import BagWriter, qos_profile
 from trainer.data.dataset import MCAPDataset
 from trainer.learn import distributed
 from trainer.learn.evaluate import parse_context
+from trainer.learn.init_policy import policy_config
 from trainer.learn.schedule import RunCounters, Schedule
 from trainer.provenance import code_version, stale_install
 from trainer.run_input import check_settings_section
@@ -92,6 +94,12 @@ class OnlineSettings:
     """output directory (default runs/online-TASK-VARIANT-TIME)"""
     resume: bool = arg(False, group="run")
     """continue RUN_DIR from its checkpoint"""
+    init_policy: str | None = arg(None, metavar="POLICY_PT", group="run")
+    """start from this policy file's weights (a shipped policy, a run's checkpoint) instead of
+    fresh ones: its config is the run's, training options on top (--set, --seed, ...); fresh
+    optimizers and update counter; the protocol is the same (the prefill's episodes are still
+    random). Only context.projector_input may change its networks (the projector then starts
+    fresh): trainer/learn/init_policy.py"""
     checkpoint_every: int = arg(1000, group="run")
     """updates between checkpoints (also after every evaluation and at the end)"""
     log_every: int = arg(10, group="run")
@@ -159,7 +167,11 @@ def open_run_dir(s: OnlineSettings, model: settings.ModelChoice, ctx: distribute
             s = dataclasses.replace(s, **{k: proto[k] for k in PROTOCOL_KEYS if k in proto
                                           and getattr(s, k) == getattr(defaults, k)})
     else:
-        cfg = model.to_config(config_args, prog, s.config_overrides())
+        if s.init_policy:   # the file itself (a run directory names its latest checkpoint), as run.json keeps it
+            s = dataclasses.replace(s, init_policy=str(existing_checkpoint_file(s.init_policy)))
+        cfg = (policy_config(Path(s.init_policy), model, config_args=config_args, prog=prog,
+                             overrides=s.config_overrides()) if s.init_policy
+               else model.to_config(config_args, prog, s.config_overrides()))
         cfg.train.device = device
         planned = schedule_of(cfg, s).planned_updates(s.env_steps, cfg.train.time_limit, s.num_envs * ctx.world_size)
         # before the run directory exists: a refused plan leaves nothing behind

@@ -226,6 +226,9 @@ def test_incompatible_checkpoints(tmp_path, trained):
         restore_checkpoint(path, Agent(tiny(**{"world_model.deter": 16}), action_dim=6))
     with pytest.raises(CheckpointError, match="variant"):
         restore_checkpoint(path, Agent(tiny("dreamer"), action_dim=6))
+    # what the projector reads sets its input width: another network too
+    with pytest.raises(CheckpointError, match="context.projector_input: 's' != 'h'"):
+        restore_checkpoint(path, Agent(tiny(**{"context.projector_input": "s"}), action_dim=6))
     with pytest.raises(CheckpointError, match="action_dim"):
         restore_checkpoint(path, Agent(tiny(), action_dim=2))
 

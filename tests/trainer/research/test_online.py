@@ -288,3 +288,50 @@ def test_a_run_whose_prototypes_would_stay_frozen_is_refused_before_it_starts(tm
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and "frozen for 6 of this run's 6 updates" in lines[0], r.stderr
     assert not run.exists()                  # nothing to clean up
+
+
+@pytest.mark.process
+def test_a_run_starts_from_a_policy_file_and_may_change_only_what_its_projector_reads(tmp_path):
+    """--init-policy: the policy's networks and weights (fresh optimizers, updates counted from
+    0), the run's options on top; context.projector_input may change (the projector alone starts
+    fresh, said in one line); an option that changes any other network is refused before a run
+    directory exists."""
+
+    from protocad_ros.checkpoint.agent_file import read_checkpoint
+
+    trained = tmp_path / "trained"
+    short = [*ARGS, "--env-steps", "80", "--eval-every", "0", "--final-max-contexts", "1"]
+    r = run_cli("trainer.research.online", *short, "--run-dir", trained, timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    policy = read_checkpoint(trained / "checkpoints" / "latest.pt")
+    assert policy["config"]["context"]["projector_input"] == "h"
+
+    run = tmp_path / "from_policy"
+    r = run_cli("trainer.research.online", "--init-policy", trained, "--set", "context.projector_input=s",
+                "--seed", "3", "--time-limit", "40", "--prefill-episodes", "2", "--updates-per-episode", "2",
+                "--env-steps", "80", "--eval-every", "0", "--final-max-contexts", "1", "--final-episodes", "1",
+                "--eval-workers", "0", "--threads", "1", "--log-every", "1", "--no-progress", "--run-dir", run,
+                timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "context.projector_input differs from the policy's" in r.stdout
+    # the prototypes' drift is measured from the policy's, where this run started (a fresh
+    # seeded draw would sit near cosine 0 to them)
+    health = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert [h["proto_init_cosine"] for h in health if "proto_init_cosine" in h][-1] > 0.9
+    ck = read_checkpoint(run / "checkpoints" / "latest.pt")
+    assert ck["config"]["world_model"] == policy["config"]["world_model"]
+    assert ck["config"]["context"]["projector_input"] == "s" and ck["config"]["train"]["seed"] == 3
+    assert int(ck["modules"]["updates"]) == 2           # its own count, from 0
+    # two Adam steps from the policy's weights (each moves a weight by about lr at most), not
+    # seed 3's fresh initialisation; the projector reads s = (z, h) now: a wider, new layer
+    before, after = policy["modules"], ck["modules"]
+    moved = (after["wm.encoder.convs.0.weight"].float() - before["wm.encoder.convs.0.weight"].float()).abs().max()
+    assert 0 < moved < 0.01
+    assert after["wm.context.prototypes"].shape == before["wm.context.prototypes"].shape
+    assert after["wm.context.projector.weight"].shape[1] > before["wm.context.projector.weight"].shape[1]
+
+    refused = tmp_path / "refused"
+    bad = run_cli("trainer.research.online", "--init-policy", trained, "--set", "world_model.deter=64",
+                  "--env-steps", "80", "--run-dir", refused, "--no-progress", timeout=120)
+    assert bad.returncode == 2 and "world_model.deter: 32 != 64" in bad.stderr, bad.stderr
+    assert not refused.exists()
