@@ -18,7 +18,7 @@ from typing import Any, Sequence
 
 import numpy as np
 
-from protocad_ros.atomic import remove_stale_temporaries
+from protocad_ros.atomic import file_sha256, remove_stale_temporaries
 from protocad_ros.checkpoint.files import existing_checkpoint_file
 from protocad_ros.model.config import plan_prototype_freeze
 from sim_bridge.contract import topics as T
@@ -213,6 +213,8 @@ def write_run_json(rd: OnlineRunDir, model: settings.ModelChoice, ctx: distribut
                         "wall_budget": s.wall_budget, "train_context": s.train_context,
                         "eval_split": s.eval_split, "eval_contexts": s.eval_contexts, "world_size": ctx.world_size,
                         "env_draws": "per_episode"})
+    if s.init_policy and "init_policy" not in rj:   # the file by its content: a shipped one is replaced later
+        rj["init_policy"] = {"path": s.init_policy, "sha256": file_sha256(s.init_policy)}
     if ctx.is_main:
         runs.atomic_write_json(rd.path / "run.json", rj)
 

@@ -33,7 +33,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from protocad_ros.checkpoint.agent_file import load_checkpoint, read_provenance
+from protocad_ros.atomic import file_sha256
+from protocad_ros.checkpoint.agent_file import load_checkpoint, read_checkpoint, read_provenance
 from protocad_ros.checkpoint.files import CheckpointError, existing_checkpoint_file
 from protocad_ros.model.agent import make_agent
 from protocad_ros.policy import Policy
@@ -76,6 +77,9 @@ class ProbeSettings:
     """episodes run side by side"""
     seed: int = 0
     """seeds the envs, the policy's samples, the pixel projection and the folds"""
+    drift_from: str | None = arg(None, metavar="POLICY_PT")
+    """the policy file the checkpoint's run started from (its --init-policy): the prototypes'
+    drift is measured from that file's prototypes, not from the config's seeded draw"""
     json: str | None = arg(None, metavar="FILE")
     """write the results as JSON (schema protocad-probe/1)"""
     plot: str | None = arg(None, metavar="FILE.png")
@@ -157,25 +161,32 @@ def document(s: ProbeSettings, agent: Any, *, counters: dict[str, Any], path: Pa
         "assignment": data.assignment.mean(),
         "health": health,
         "collapsed": collapse_reason(health, cfg.context.num_prototypes) if health else None,
-        "prototypes": prototype_drift(agent, counters.get("prototype_freeze")),
+        "prototypes": prototype_drift(agent, counters.get("prototype_freeze"),
+                                      Path(s.drift_from) if s.drift_from else None),
         "seconds": 0.0,
     }
 
 
-def prototype_drift(agent: Any, freeze: int | None = None) -> dict[str, Any] | None:
+def prototype_drift(agent: Any, freeze: int | None = None, start_policy: Path | None = None) -> dict[str, Any] | None:
     """The cosine of each prototype c_k to its initial direction, summarised (None for a
     variant without prototypes). Initialisation is seeded by the config alone (Agent), so
-    rebuilding the agent from its config redraws exactly the values training started from.
+    rebuilding the agent from its config redraws exactly the values training started from;
+    a run that started from a policy file started from that file's (`start_policy`).
     `freeze`: the run's effective prototype freeze (its counters), kept beside the figures."""
     mine = {n: p for n, p in agent.named_parameters() if n.endswith("prototypes")}
     if not mine:
         return None
-    initial = dict(make_agent(agent.cfg, agent.action_dim, device="cpu").named_parameters())
     name, c = next(iter(mine.items()))
+    if start_policy is None:
+        initial = dict(make_agent(agent.cfg, agent.action_dim, device="cpu").named_parameters())[name]
+    else:
+        initial = read_checkpoint(existing_checkpoint_file(start_policy))["modules"][name]
     with torch.no_grad():
-        cos = F.cosine_similarity(c.float().cpu(), initial[name].float(), dim=-1)
+        cos = F.cosine_similarity(c.float().cpu(), initial.float(), dim=-1)
     return {"parameter": name, "cos_to_initial_mean": float(cos.mean()), "cos_to_initial_min": float(cos.min()),
-            "count": int(cos.numel()), "prototype_freeze": None if freeze is None else int(freeze)}
+            "count": int(cos.numel()), "prototype_freeze": None if freeze is None else int(freeze),
+            "start": "seeded draw" if start_policy is None else {"policy": str(start_policy),
+                                                                "sha256": file_sha256(start_policy)}}
 
 
 def _params(task: str) -> tuple[str, ...]:

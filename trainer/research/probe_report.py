@@ -87,7 +87,11 @@ PROBE_SCHEMA: dict[str, Any] = {
                                            "prototype_freeze"],
             "properties": {"parameter": {"type": "string"}, "cos_to_initial_mean": _NUM,
                            "cos_to_initial_min": _NUM, "count": _INT,
-                           "prototype_freeze": {"type": ["integer", "null"]}}}]},
+                           "prototype_freeze": {"type": ["integer", "null"]},
+                           # absent before --drift-from: the seeded draw
+                           "start": {"oneOf": [{"const": "seeded draw"}, {
+                               "type": "object", "required": ["policy", "sha256"],
+                               "properties": {"policy": {"type": "string"}, "sha256": {"type": "string"}}}]}}}]},
         "seconds": _NUM,
     },
 }
@@ -254,7 +258,10 @@ def prototypes_line(c: Mapping[str, Any], updates: int) -> str:
     """Whether training moved the prototypes, in one line."""
     frozen = ("" if c["prototype_freeze"] is None
               else f"; frozen for the first {c['prototype_freeze']:,} of its {updates:,} updates")
-    return (f"prototypes c_k: cosine to their seeded initial values {c['cos_to_initial_mean']:.3f} on average, "
+    start = c.get("start", "seeded draw")
+    start = ("their seeded initial values" if start == "seeded draw"
+             else f"those of {Path(start['policy']).name}, where the run started")
+    return (f"prototypes c_k: cosine to {start} {c['cos_to_initial_mean']:.3f} on average, "
             f"{c['cos_to_initial_min']:.3f} at the least (1.000: never trained){frozen}")
 
 

@@ -104,6 +104,8 @@ def ship_best(doc: Mapping[str, Any], out: str | Path, results_path: str | Path,
         "source_checkpoint_sha256": file_sha256(ckpt),
         "counters": {k: v for k, v in counters.items() if isinstance(v, (int, float))},   # not the sampler state
     }
+    if info.get("init_policy"):   # the policy file the run started from (--init-policy)
+        provenance["init_policy"] = info["init_policy"]
     if evaluation is not None:
         provenance["unseen_evaluation"] = unseen_evaluation(evaluation, ckpt)
     return save_policy(out, agent, provenance), provenance

@@ -322,6 +322,10 @@ def test_a_run_starts_from_a_policy_file_and_may_change_only_what_its_projector_
     assert ck["config"]["world_model"] == policy["config"]["world_model"]
     assert ck["config"]["context"]["projector_input"] == "s" and ck["config"]["train"]["seed"] == 3
     assert int(ck["modules"]["updates"]) == 2           # its own count, from 0
+    from protocad_ros.atomic import file_sha256
+
+    started = json.loads((run / "run.json").read_text())["init_policy"]   # the file by its content
+    assert started["sha256"] == file_sha256(trained / "checkpoints" / "latest.pt")
     # two Adam steps from the policy's weights (each moves a weight by about lr at most), not
     # seed 3's fresh initialisation; the projector reads s = (z, h) now: a wider, new layer
     before, after = policy["modules"], ck["modules"]

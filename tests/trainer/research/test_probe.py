@@ -163,6 +163,14 @@ def test_the_probe_tells_prototypes_that_trained_from_frozen_ones(tmp_path):
     assert moved["cos_to_initial_min"] <= moved["cos_to_initial_mean"] < 0.999
     assert moved["cos_to_initial_mean"] == pytest.approx(prototype_drift(agent)["cos_to_initial_mean"], abs=1e-6)
     assert "frozen for the first 1 of its 4 updates" in prototypes_line(moved, 4)
+    # a run that started from a policy file (--init-policy) started from that file's
+    # prototypes: measured from it, the file named by its content, said in the line
+    assert prototype_drift(loaded, 1, tmp_path / "ck.pt")["cos_to_initial_mean"] == pytest.approx(1.0, abs=1e-6)
+    fresh = Agent(cfg, 1)                                      # the seeded draw, untrained
+    from_policy = prototype_drift(fresh, None, tmp_path / "ck.pt")
+    assert from_policy["cos_to_initial_mean"] == pytest.approx(moved["cos_to_initial_mean"], abs=1e-6)
+    assert from_policy["start"]["policy"] == str(tmp_path / "ck.pt") and len(from_policy["start"]["sha256"]) == 64
+    assert "those of ck.pt, where the run started" in prototypes_line(from_policy, 4)
     dreamer = Agent(make_config("pendulum_swingup", "small", "dreamer", **TINY_OVERRIDES), 1)
     assert prototype_drift(dreamer) is None
     # a shipped policy file has no counters of its own: the run's come from its provenance
