@@ -139,13 +139,19 @@ def test_reference_paper_gives_the_papers_context_settings_whatever_the_defaults
     assert tried.world_model == pro.world_model and tried.behavior == pro.behavior
 
 
-def test_a_config_saved_before_the_context_settings_reads_as_the_papers():
-    from protocad_ros.checkpoint.agent_file import read_checkpoint
-    from protocad_ros.model.config import Config
-    from protocad_ros.policy import shipped_policy
+#: The context section of the walker policy shipped until 2026-12-07 (4bb2ca1), as its file
+#: saved it: trained before the context settings existed.
+SAVED_BEFORE = {"num_prototypes": 100, "proto_dim": 32, "temperature": 0.1, "sinkhorn_iters": 3,
+                "sinkhorn_eps": 0.05, "ema": 0.05, "freeze_prototypes_updates": -1,
+                "freeze_prototypes_fraction": 0.1, "allow_long_freeze": False, "drop_first_steps": 1,
+                "swav_scale": 1.0, "aug_pad": 3, "recon_trains_context": True, "dreamerpro_num_prototypes": 2500,
+                "dreamerpro_temp_scale": 1.0, "dreamerpro_norm_scale": 1.0}
 
-    saved = read_checkpoint(shipped_policy("walker_walk"))["config"]
-    assert "projector_input" not in saved["context"]           # trained before they existed
+
+def test_a_config_saved_before_the_context_settings_reads_as_the_papers():
+    from protocad_ros.model.config import Config
+
+    saved = {**make_config("walker_walk", "small", "protocad").to_dict(), "context": dict(SAVED_BEFORE)}
     cfg = Config.from_dict(saved)
     assert {k: getattr(cfg.context, k) for k in PAPER_CONTEXT} == PAPER_CONTEXT
     # A whole context section with the settings keeps them; a partial one (a user's --config

@@ -192,12 +192,15 @@ def _run_walkers(spawn, probe: Probe) -> None:
     acts = {k: np.stack([f.effort(s) for s in stamps]) for k, f in feeders.items()}
     assert np.array_equal(acts["big"], acts["native"])
     assert np.array_equal(acts["alone"], acts["native"])      # is_first at its first frame, then steps
-    # JPEG: the model sees a few levels of difference (JPEG_P99_TOL). Measured on these frames:
-    # actions identical in bfloat16, within 1e-6 in float32 ($PROTOCAD_CPU_NO_BF16); the
-    # mistakes this must catch move them far more (channels swapped: up to 1.85, the full frame
-    # squashed instead of the center crop: up to 0.96). Tolerance: 0.05 on every action value.
+    # JPEG: the model sees a few levels of difference (JPEG_P99_TOL). The first answer has no
+    # history behind it: on these frames it is the native one exactly, for the walker shipped on
+    # 2026-12-07 and the one before it, where the mistakes this must catch move it far more
+    # (channels swapped: 2.0 and 1.78, the full frame squashed instead of the center crop: 0.99
+    # and 0.96). Later answers carry the recurrent state, which a few levels of difference can
+    # send down another path (in process, 8 frames of seeds 1-4: later gaps up to 0.94 for the
+    # shipped walker, 2.0 for the one before it), so only the first is held to JPEG_ACTION_TOL.
     gap = np.abs(acts["jpeg"] - acts["native"])
-    assert gap.max() < JPEG_ACTION_TOL, gap
+    assert gap[0].max() < JPEG_ACTION_TOL, gap
 
     for k in ("native", "big", "jpeg"):
         wait_until(lambda k=k: probe.node_diag(f"cam_{k}/policy").get("bridge", "").startswith("walker_walk"),
