@@ -71,7 +71,7 @@ def agent_from_policy(init_policy: Path, cfg: Config, device: str, say=print):
         changed = fresh_weights(Config.from_dict(payload["config"]), cfg)
         fresh = tuple(p for prefixes in changed.values() for p in prefixes)
         agent = make_agent(cfg, int(payload["action_dim"]), device=device)
-        weights = {k: v for k, v in payload["modules"].items() if not k.startswith(fresh or ("\0",))}
+        weights = {k: v for k, v in payload["modules"].items() if not (fresh and k.startswith(fresh))}
         missing, unexpected = agent.load_state_dict(weights, strict=not fresh)
         left = [k for k in missing if not k.startswith(fresh)] + list(unexpected)
         if left:

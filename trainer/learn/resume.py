@@ -8,6 +8,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Iterable
 
+from protocad_ros.atomic import file_sha256
 from protocad_ros.checkpoint.agent_file import read_checkpoint
 from protocad_ros.model.precision import PrecisionChoice
 from sim_bridge.contract.contexts import task_actuators
@@ -48,6 +49,8 @@ class TrainerOpening:
     init_policy: Path | None = None
     """the policy file the run started from (--init-policy): a fresh trainer's agent holds its
     weights; a resumed one measures its prototypes' drift from that policy's"""
+    init_policy_sha256: str | None = None
+    """that file's sha256 when the run started (run.json): a file replaced since is not used"""
     say: Callable[..., None] = print
     restart_metrics: bool = False
     """a trainer that starts fresh (a new run, or a resume of one stopped before its first
@@ -63,9 +66,13 @@ def open_trainer(cfg, run_dir: Path, dataset: MCAPDataset, how: TrainerOpening) 
     process = {"device": how.device, "callbacks": how.callbacks, "log_every": how.log_every, "dist_ctx": how.dist_ctx}
     if resumed:
         trainer = Trainer.from_checkpoint(ckpt, run_dir, dataset, **process)
-        if how.init_policy is not None:
+        if how.init_policy is not None and (why := _same_file(how)):
+            how.say(f"[resume] {why}: the prototypes' drift is measured from their seeded draw", flush=True)
+        elif how.init_policy is not None:
             measure_drift_from_policy(trainer.agent, read_checkpoint(how.init_policy)["modules"])
     else:
+        if how.init_policy is not None and (why := _same_file(how)):
+            raise ValueError(f"{why}: the run cannot start from it again")
         if how.restart_metrics and ctx.is_main:
             metrics_log.truncate_metrics(Path(run_dir) / "metrics.jsonl", 0)
         trainer = Trainer(cfg, run_dir, dataset, action_dim=len(task_actuators(cfg.task)),
@@ -77,3 +84,14 @@ def open_trainer(cfg, run_dir: Path, dataset: MCAPDataset, how: TrainerOpening) 
     if ctx.is_main:
         runs.save_run_config(run_dir, cfg, ran=chosen.ran_here())
     return OpenedTrainer(trainer, resumed, freeze, chosen)
+
+
+def _same_file(how: TrainerOpening) -> str | None:
+    """Why the --init-policy file is not the one the run started from (None: it is)."""
+    path = Path(how.init_policy)
+    if not path.is_file():
+        return f"--init-policy {path} is gone since the run started"
+    if how.init_policy_sha256 and file_sha256(path) != how.init_policy_sha256:
+        return (f"--init-policy {path} changed since the run started (sha256 {how.init_policy_sha256[:12]}..., "
+                f"now {file_sha256(path)[:12]}...)")
+    return None

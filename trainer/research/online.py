@@ -189,7 +189,8 @@ class OnlineRun:
             resume=s.resume, device=self.device,
             end_updates=self.schedule.planned_updates(s.env_steps, tr.time_limit, s.num_envs * self.world),
             precision=self.model.precision, log_every=s.log_every, callbacks=callbacks, dist_ctx=ctx,
-            restart_metrics=True, init_policy=Path(s.init_policy) if s.init_policy else None, say=self.say))
+            restart_metrics=True, init_policy=Path(s.init_policy) if s.init_policy else None,
+            init_policy_sha256=(self.run_json.get("init_policy") or {}).get("sha256"), say=self.say))
         self.trainer = opened.trainer
         self.c = (RunCounters.from_dict(self.trainer.counters) if opened.resumed
                   else RunCounters(next_eval=self.schedule.first_eval()))

@@ -180,7 +180,12 @@ def prototype_drift(agent: Any, freeze: int | None = None, start_policy: Path | 
     if start_policy is None:
         initial = dict(make_agent(agent.cfg, agent.action_dim, device="cpu").named_parameters())[name]
     else:
-        initial = read_checkpoint(existing_checkpoint_file(start_policy))["modules"][name]
+        initial = read_checkpoint(existing_checkpoint_file(start_policy))["modules"].get(name)
+        if not isinstance(initial, torch.Tensor) or initial.shape != c.shape:
+            raise ValueError(f"--drift-from {start_policy}: its {name} "
+                             + ("is missing" if not isinstance(initial, torch.Tensor) else
+                                f"has shape {tuple(initial.shape)}, this checkpoint's {tuple(c.shape)}")
+                             + ": not the policy this run started from")
     with torch.no_grad():
         cos = F.cosine_similarity(c.float().cpu(), initial.float(), dim=-1)
     return {"parameter": name, "cos_to_initial_mean": float(cos.mean()), "cos_to_initial_min": float(cos.min()),
@@ -205,6 +210,8 @@ def run(s: ProbeSettings, command: Sequence[str] = ()) -> int:
     torch_setup.setup_torch(s.threads)
     device = torch_setup.resolve_device(s.device)
     agent, counters, path = load(s.checkpoint, device)
+    if s.drift_from:   # checked before the episodes, not after them
+        prototype_drift(agent, None, Path(s.drift_from))
 
     contexts = {split: select_contexts(agent.cfg.task, split, max_contexts=s.max_contexts)
                 for split in ("train", "test")}

@@ -334,6 +334,16 @@ def test_a_run_starts_from_a_policy_file_and_may_change_only_what_its_projector_
     assert after["wm.context.prototypes"].shape == before["wm.context.prototypes"].shape
     assert after["wm.context.projector.weight"].shape[1] > before["wm.context.projector.weight"].shape[1]
 
+    # a resume whose --init-policy file was replaced since (a shipped policy is) goes on from
+    # its own checkpoint and says the drift is no longer measured from that file
+    import shutil
+
+    shutil.copyfile(run / "checkpoints" / "latest.pt", trained / "checkpoints" / "latest.pt")
+    r = run_cli("trainer.research.online", "--run-dir", run, "--resume", "--env-steps", "120", "--no-progress",
+                timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "changed since the run started" in r.stdout and "finished: 120 env steps" in r.stdout
+
     refused = tmp_path / "refused"
     bad = run_cli("trainer.research.online", "--init-policy", trained, "--set", "world_model.deter=64",
                   "--env-steps", "80", "--run-dir", refused, "--no-progress", timeout=120)

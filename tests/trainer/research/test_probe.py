@@ -173,6 +173,9 @@ def test_the_probe_tells_prototypes_that_trained_from_frozen_ones(tmp_path):
     assert "those of ck.pt, where the run started" in prototypes_line(from_policy, 4)
     dreamer = Agent(make_config("pendulum_swingup", "small", "dreamer", **TINY_OVERRIDES), 1)
     assert prototype_drift(dreamer) is None
+    save_checkpoint(tmp_path / "dreamer.pt", dreamer, {})   # not where a ProtoCAD run started: one clear error
+    with pytest.raises(ValueError, match="prototypes is missing: not the policy this run started from"):
+        prototype_drift(loaded, 1, tmp_path / "dreamer.pt")
     # a shipped policy file has no counters of its own: the run's come from its provenance
     from protocad_ros.checkpoint.agent_file import save_policy
     from trainer.research.probe import load
